@@ -1,0 +1,333 @@
+"""Camera configuration: main lens, MLA, sensor, geometry and sensor model, read from TOML and validated.
+
+The paper's Table 1 camera is the default (also shipped as fixtures/paper_table1.toml). Geometry left
+unset defaults to the f-number-matched setting (DESIGN.md §2): the MLA sits where the main lens'
+exit pupil (diameter D) subtends the same angle as a microlens (p/f), so sub-images fill their cells.
+Every error names the offending key, e.g. "config key 'mla.pitch_um' must be positive, got -3".
+"""
+
+from __future__ import annotations
+
+import math
+import tomllib
+from dataclasses import asdict, dataclass, field, fields, replace
+from pathlib import Path
+from typing import Any
+
+from mlaqc.errors import InputError
+from mlaqc.paraxial import ThickLens, image_distance, thick_lens
+
+CFA_CHOICES = ("none", "RGGB", "BGGR", "GRBG", "GBRG")
+CORNER_CHOICES = ("opaque", "clear")
+
+
+@dataclass(frozen=True)
+class MainLens:
+    """Thick biconvex main lens; its rim (diameter) is the aperture stop."""
+
+    diameter_mm: float = 42.0
+    thickness_mm: float = 14.5
+    radius_front_mm: float = 106.0
+    radius_back_mm: float = -106.0
+    refractive_index: float = 1.5168
+
+
+@dataclass(frozen=True)
+class MLA:
+    """Square-aperture microlens array, 100 % fill; radii follow the optical sign convention.
+
+    `corners`: where the two spherical surfaces would cross (beyond r ≈ 68 µm for Table 1) there is no
+    lens. 'opaque' blocks those rays (a black matrix); 'clear' lets them pass undeviated.
+    """
+
+    count_w: int = 102
+    count_h: int = 102
+    pitch_um: float = 100.0
+    radius_front_um: float = 469.0
+    radius_back_um: float = -469.0
+    thickness_um: float = 10.0
+    refractive_index: float = 1.56
+    corners: str = "opaque"
+
+
+@dataclass(frozen=True)
+class Sensor:
+    """Pixel array and its photon-to-DN model (QE, full well, gain, black level, noise, CFA)."""
+
+    pixel_um: float = 5.0
+    width_px: int = 2048
+    height_px: int = 2048
+    bit_depth: int = 12
+    qe: float = 0.6
+    full_well_e: float = 20000.0
+    gain_dn_per_e: float = 0.2
+    black_level_dn: int = 64
+    read_noise_e: float = 3.0
+    cfa: str = "none"
+    cfa_qe: tuple[float, float, float] = (0.45, 0.6, 0.4)  # QE of R, G, B sites when a CFA is set
+    exposure_photons: float = 20000.0  # photons per pixel at relative irradiance 1 (white scene)
+
+
+@dataclass(frozen=True)
+class Geometry:
+    """Distances along the axis; None means 'derive from the f-number-matched setting'.
+
+    object_distance_mm: object plane to the main lens' front vertex.
+    mla_distance_mm: main lens' rear vertex to the MLA mid-plane.
+    sensor_gap_um: MLA rear vertex to the sensor (None: the microlens back focal distance).
+    """
+
+    object_distance_mm: float | None = None
+    mla_distance_mm: float | None = None
+    sensor_gap_um: float | None = None
+    wavelength_nm: float = 632.8
+
+
+@dataclass(frozen=True)
+class Trace:
+    """Ray-tracer settings."""
+
+    fresnel: bool = True
+    rays_per_pixel: float = 50.0
+    batch_rays: int = 1 << 18
+    threads: int = 0  # 0 = one per CPU core
+
+
+@dataclass(frozen=True)
+class CameraConfig:
+    """The whole camera: one object passed to the tracer, the pipeline and written to every sidecar."""
+
+    main_lens: MainLens = field(default_factory=MainLens)
+    mla: MLA = field(default_factory=MLA)
+    sensor: Sensor = field(default_factory=Sensor)
+    geometry: Geometry = field(default_factory=Geometry)
+    trace: Trace = field(default_factory=Trace)
+
+    def to_dict(self) -> dict[str, Any]:
+        """Plain dict (TOML/JSON-able) of the config as given, geometry holes left as None."""
+        return asdict(self)
+
+    @property
+    def layout(self) -> Layout:
+        """Axial positions and first-order facts derived from the config."""
+        return compute_layout(self)
+
+
+@dataclass(frozen=True)
+class Layout:
+    """Derived axial layout in mm (z = 0 at the main lens' front vertex, light along +z)."""
+
+    main: ThickLens
+    micro: ThickLens  # in mm
+    object_distance_mm: float
+    mla_distance_mm: float
+    sensor_gap_mm: float
+    z_object_mm: float
+    z_mla_mm: float  # MLA mid-plane
+    z_sensor_mm: float
+    pupil_to_mla_mm: float  # main lens rear principal plane to MLA mid-plane (b)
+    subimage_pitch_px: float  # p*(b+f)/b / pixel
+
+
+def compute_layout(cfg: CameraConfig) -> Layout:
+    """Fill geometry holes: matched b = D*f/p; object and MLA conjugate through the main lens."""
+    ml, mla, geo = cfg.main_lens, cfg.mla, cfg.geometry
+    main = thick_lens(ml.radius_front_mm, ml.radius_back_mm, ml.thickness_mm, ml.refractive_index)
+    micro = thick_lens(mla.radius_front_um * 1e-3, mla.radius_back_um * 1e-3, mla.thickness_um * 1e-3, mla.refractive_index)
+    h_front, h_rear = main.front_principal, main.rear_principal
+    if geo.mla_distance_mm is None and geo.object_distance_mm is None:
+        b = ml.diameter_mm * micro.efl / (mla.pitch_um * 1e-3)
+        a = image_distance(main.efl, b)
+    elif geo.mla_distance_mm is None:
+        a = geo.object_distance_mm + h_front
+        b = image_distance(main.efl, a)
+    else:
+        b = geo.mla_distance_mm + h_rear
+        a = geo.object_distance_mm + h_front if geo.object_distance_mm is not None else image_distance(main.efl, b)
+    gap_mm = micro.bfd if geo.sensor_gap_um is None else geo.sensor_gap_um * 1e-3
+    z_mla = ml.thickness_mm + b - h_rear
+    z_sensor = z_mla + 0.5 * mla.thickness_um * 1e-3 + gap_mm
+    lens_to_sensor = z_sensor - z_mla
+    return Layout(
+        main=main,
+        micro=micro,
+        object_distance_mm=a - h_front,
+        mla_distance_mm=b - h_rear,
+        sensor_gap_mm=gap_mm,
+        z_object_mm=-(a - h_front),
+        z_mla_mm=z_mla,
+        z_sensor_mm=z_sensor,
+        pupil_to_mla_mm=b,
+        subimage_pitch_px=mla.pitch_um * (b + lens_to_sensor) / b / cfg.sensor.pixel_um,
+    )
+
+
+def default_config() -> CameraConfig:
+    """The paper's Table 1 camera at the f-number-matched geometry."""
+    return CameraConfig()
+
+
+def load_config(path: str | Path | None) -> CameraConfig:
+    """Read and validate a TOML camera config; None gives the default. Raises InputError."""
+    if path is None:
+        return default_config()
+    p = Path(path)
+    try:
+        text = p.read_bytes().decode("utf-8")
+    except FileNotFoundError:
+        raise InputError(f"config file {str(p)!r} does not exist") from None
+    except (OSError, UnicodeDecodeError) as exc:
+        raise InputError(f"config file {str(p)!r} cannot be read ({exc.__class__.__name__})") from None
+    try:
+        data = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as exc:
+        raise InputError(f"config file {str(p)!r} is not valid TOML: {exc}") from None
+    return config_from_dict(data, source=str(p))
+
+
+def config_from_dict(data: dict[str, Any], source: str = "config") -> CameraConfig:
+    """Build a validated CameraConfig from nested dicts (the TOML tables)."""
+    sections = {f.name: f.type for f in fields(CameraConfig)}
+    unknown = set(data) - set(sections)
+    if unknown:
+        raise InputError(f"{source}: unknown config section {sorted(unknown)[0]!r}; expected one of {sorted(sections)}")
+    base = CameraConfig()
+    parts = {}
+    for name in sections:
+        table = data.get(name, {})
+        if not isinstance(table, dict):
+            raise InputError(f"{source}: config key {name!r} must be a table")
+        parts[name] = _build_section(getattr(base, name), table, name, source)
+    cfg = CameraConfig(**parts)
+    validate(cfg, source)
+    return cfg
+
+
+def _build_section(default: Any, table: dict[str, Any], section: str, source: str) -> Any:
+    """Overlay a TOML table on a section's defaults, checking key names and value types."""
+    known = {f.name: f for f in fields(default)}
+    values = {}
+    for key, value in table.items():
+        if key not in known:
+            raise InputError(f"{source}: unknown config key '{section}.{key}'; expected one of {sorted(known)}")
+        values[key] = _coerce(getattr(default, key), value, f"{section}.{key}", source, known[key].type)
+    return replace(default, **values)
+
+
+def _coerce(default: Any, value: Any, key: str, source: str, type_text: Any) -> Any:
+    """Check one value's type against its default's; ints are accepted for floats."""
+    optional = "None" in str(type_text)
+    if isinstance(default, bool) or "bool" in str(type_text):
+        if not isinstance(value, bool):
+            raise InputError(f"{source}: config key '{key}' must be true or false, got {value!r}")
+        return value
+    if isinstance(default, int) and not isinstance(default, bool) and "int" in str(type_text):
+        if not isinstance(value, int) or isinstance(value, bool):
+            raise InputError(f"{source}: config key '{key}' must be an integer, got {value!r}")
+        return value
+    if isinstance(default, float) or (default is None and optional):
+        if not isinstance(value, (int, float)) or isinstance(value, bool):
+            raise InputError(f"{source}: config key '{key}' must be a number, got {value!r}")
+        return float(value)
+    if isinstance(default, str):
+        if not isinstance(value, str):
+            raise InputError(f"{source}: config key '{key}' must be a string, got {value!r}")
+        return value
+    if isinstance(default, tuple):
+        if not isinstance(value, list) or len(value) != len(default) or not all(isinstance(v, (int, float)) for v in value):
+            raise InputError(f"{source}: config key '{key}' must be a list of {len(default)} numbers, got {value!r}")
+        return tuple(float(v) for v in value)
+    raise InputError(f"{source}: config key '{key}' has an unsupported value {value!r}")
+
+
+def _require(ok: bool, source: str, key: str, what: str, value: Any) -> None:
+    if not ok or (isinstance(value, float) and not math.isfinite(value)):
+        raise InputError(f"{source}: config key '{key}' {what}, got {value!r}")
+
+
+def validate(cfg: CameraConfig, source: str = "config") -> None:
+    """Check that the camera is physically possible; raise InputError naming the first bad key."""
+    ml, mla, s, g, t = cfg.main_lens, cfg.mla, cfg.sensor, cfg.geometry, cfg.trace
+    for sec, obj in (("main_lens", ml), ("mla", mla), ("sensor", s), ("geometry", g)):
+        for f in fields(obj):
+            v = getattr(obj, f.name)
+            if isinstance(v, float):
+                _require(math.isfinite(v), source, f"{sec}.{f.name}", "must be a finite number", v)
+    for key in ("diameter_mm", "thickness_mm"):
+        _require(getattr(ml, key) > 0, source, f"main_lens.{key}", "must be positive", getattr(ml, key))
+    _require(ml.refractive_index > 1, source, "main_lens.refractive_index", "must be greater than 1", ml.refractive_index)
+    for key in ("radius_front_mm", "radius_back_mm"):
+        r = getattr(ml, key)
+        _require(r != 0 and abs(r) > ml.diameter_mm / 2, source, f"main_lens.{key}",
+                 f"must exceed the lens' half-diameter {ml.diameter_mm / 2} mm in magnitude", r)
+    edge = ml.thickness_mm - _sag(ml.radius_front_mm, ml.diameter_mm / 2) + _sag(ml.radius_back_mm, ml.diameter_mm / 2)
+    _require(edge > 0, source, "main_lens.thickness_mm", f"gives a negative edge thickness ({edge:.3f} mm) at the rim", ml.thickness_mm)
+    for key in ("count_w", "count_h"):
+        _require(getattr(mla, key) >= 1, source, f"mla.{key}", "must be at least 1", getattr(mla, key))
+    for key in ("pitch_um", "thickness_um"):
+        _require(getattr(mla, key) > 0, source, f"mla.{key}", "must be positive", getattr(mla, key))
+    _require(mla.refractive_index > 1, source, "mla.refractive_index", "must be greater than 1", mla.refractive_index)
+    half_diag = mla.pitch_um / math.sqrt(2)
+    for key in ("radius_front_um", "radius_back_um"):
+        r = getattr(mla, key)
+        _require(r != 0 and abs(r) > half_diag, source, f"mla.{key}",
+                 f"must exceed the cell's half-diagonal {half_diag:.1f} µm in magnitude so the surface covers the aperture", r)
+    _require(mla.corners in CORNER_CHOICES, source, "mla.corners", f"must be one of {CORNER_CHOICES}", mla.corners)
+    for key in ("pixel_um",):
+        _require(getattr(s, key) > 0, source, f"sensor.{key}", "must be positive", getattr(s, key))
+    for key in ("width_px", "height_px"):
+        _require(getattr(s, key) >= 8, source, f"sensor.{key}", "must be at least 8", getattr(s, key))
+    _require(mla.count_w * mla.pitch_um <= s.width_px * s.pixel_um, source, "mla.count_w",
+             f"makes the MLA ({mla.count_w * mla.pitch_um / 1000:.3f} mm) wider than the sensor ({s.width_px * s.pixel_um / 1000:.3f} mm)", mla.count_w)
+    _require(mla.count_h * mla.pitch_um <= s.height_px * s.pixel_um, source, "mla.count_h",
+             f"makes the MLA ({mla.count_h * mla.pitch_um / 1000:.3f} mm) taller than the sensor ({s.height_px * s.pixel_um / 1000:.3f} mm)", mla.count_h)
+    _require(8 <= s.bit_depth <= 16, source, "sensor.bit_depth", "must be between 8 and 16", s.bit_depth)
+    _require(0 < s.qe <= 1, source, "sensor.qe", "must be in (0, 1]", s.qe)
+    _require(all(0 < q <= 1 for q in s.cfa_qe), source, "sensor.cfa_qe", "must hold three values in (0, 1]", s.cfa_qe)
+    for key in ("full_well_e", "gain_dn_per_e", "exposure_photons"):
+        _require(getattr(s, key) > 0, source, f"sensor.{key}", "must be positive", getattr(s, key))
+    _require(s.read_noise_e >= 0, source, "sensor.read_noise_e", "must not be negative", s.read_noise_e)
+    _require(0 <= s.black_level_dn < 2 ** s.bit_depth, source, "sensor.black_level_dn", f"must be in [0, {2 ** s.bit_depth})", s.black_level_dn)
+    _require(s.cfa in CFA_CHOICES, source, "sensor.cfa", f"must be one of {CFA_CHOICES}", s.cfa)
+    _require(t.rays_per_pixel > 0, source, "trace.rays_per_pixel", "must be positive", t.rays_per_pixel)
+    _require(1024 <= t.batch_rays <= 1 << 24, source, "trace.batch_rays", "must be between 1024 and 16777216", t.batch_rays)
+    _require(0 <= t.threads <= 256, source, "trace.threads", "must be between 0 and 256", t.threads)
+    for key in ("object_distance_mm", "mla_distance_mm", "sensor_gap_um"):
+        v = getattr(g, key)
+        _require(v is None or v > 0, source, f"geometry.{key}", "must be positive", v)
+    _require(g.wavelength_nm > 0, source, "geometry.wavelength_nm", "must be positive", g.wavelength_nm)
+    if g.object_distance_mm is not None and g.mla_distance_mm is None:
+        main = thick_lens(ml.radius_front_mm, ml.radius_back_mm, ml.thickness_mm, ml.refractive_index)
+        _require(g.object_distance_mm + main.front_principal > main.efl, source, "geometry.object_distance_mm",
+                 f"must put the object beyond the front focal length ({main.ffd:.2f} mm) so a real image forms", g.object_distance_mm)
+    lay = compute_layout(cfg)
+    _require(lay.mla_distance_mm > 0, source, "geometry.mla_distance_mm", "puts the MLA inside the main lens", lay.mla_distance_mm)
+    _require(lay.object_distance_mm > 0, source, "geometry.object_distance_mm", "puts the object inside the main lens", lay.object_distance_mm)
+
+
+def _sag(radius: float, rho: float) -> float:
+    """Sag of a sphere of signed `radius` at height `rho` (same sign as the radius)."""
+    return radius - math.copysign(math.sqrt(radius * radius - rho * rho), radius)
+
+
+def config_to_toml(cfg: CameraConfig) -> str:
+    """Serialize a config as TOML (holes in the geometry are omitted, so they stay 'matched')."""
+    lines: list[str] = []
+    for sec, table in cfg.to_dict().items():
+        lines.append(f"[{sec}]")
+        for key, value in table.items():
+            if value is None:
+                continue
+            lines.append(f"{key} = {_toml_value(value)}")
+        lines.append("")
+    return "\n".join(lines)
+
+
+def _toml_value(value: Any) -> str:
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, str):
+        return f'"{value}"'
+    if isinstance(value, (list, tuple)):
+        return "[" + ", ".join(_toml_value(v) for v in value) + "]"
+    return repr(value)

@@ -1,0 +1,217 @@
+"""Monte-Carlo rendering of raw images: batched, threaded, seeded, memory-bounded.
+
+The object region is cut into tiles, one batch of rays per tile (stratified sampling: each batch lands on
+a compact patch of the sensor, so it is accumulated with `np.bincount` over that patch only). Batches run
+on a thread pool (NumPy releases the GIL) and are summed in batch order, so a seed gives a bit-identical
+image whatever the thread count. Memory is bounded by the batch size times the number of batches in flight.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import time
+from collections import deque
+from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass
+
+import numpy as np
+
+from mlaqc.config import CameraConfig
+from mlaqc.errormap import ErrorMap
+from mlaqc.errors import InputError
+from mlaqc.raytrace import Camera, Rays
+from mlaqc.scene import (PointScene, Scene, SourceRegion, TextureScene, WhiteScene, sample_plane, sample_points,
+                         texture_weight)
+
+Progress = Callable[[int, int], None]
+MAX_RAYS = 10 ** 11
+
+
+@dataclass(frozen=True)
+class RenderResult:
+    """Expected photons per pixel (a Monte-Carlo estimate) and what it cost."""
+
+    photons: np.ndarray  # (H, W) float64
+    rays_traced: int
+    rays_landed: int
+    seconds: float
+    seed: int
+
+
+@dataclass(frozen=True)
+class _Job:
+    index: int
+    n: int
+    tile: tuple[float, float, float, float] | None  # plane scenes
+    point: tuple[float, float] | None  # point scenes
+
+
+def source_region(camera: Camera) -> SourceRegion:
+    """The object rectangle whose image covers the MLA plus the main lens' blur, and the pupil disc.
+
+    The blur margin is measured by tracing a pupil fan from the field's centre and corner, so that the
+    border lenses get all the light they would get from an infinite plane.
+    """
+    cfg, lay = camera.cfg, camera.layout
+    a = lay.object_distance_mm + lay.main.front_principal
+    mag = lay.pupil_to_mla_mm / a
+    hx = 0.5 * cfg.mla.count_w * cfg.mla.pitch_um * 1e-3
+    hy = 0.5 * cfg.mla.count_h * cfg.mla.pitch_um * 1e-3
+    angle = math.radians(abs(camera.errors.globals["mla_rotation_deg"]))
+    hx, hy = hx * math.cos(angle) + hy * math.sin(angle), hy * math.cos(angle) + hx * math.sin(angle)
+    pupil = 0.5 * cfg.main_lens.diameter_mm
+    region = SourceRegion(lay.z_object_mm, hx / mag, hy / mag, pupil, mag)
+    margin = max(_blur_radius(camera, region, 0.0, 0.0), _blur_radius(camera, region, -hx / mag, -hy / mag))
+    margin += cfg.mla.pitch_um * 1e-3
+    return SourceRegion(lay.z_object_mm, (hx + margin) / mag, (hy + margin) / mag, pupil, mag)
+
+
+def _blur_radius(camera: Camera, region: SourceRegion, x_mm: float, y_mm: float) -> float:
+    """Largest distance (mm, at the MLA plane) of a point's pupil fan from its median landing point."""
+    rng = np.random.default_rng(12345)
+    r = sample_points(region, rng, 4096, x_mm, y_mm)
+    camera.trace_to_mla(r)
+    r.advance((camera.z_mla - r.z) / r.N)
+    ok = r.w > 0
+    if not ok.any():
+        return 0.0
+    x, y = r.x[ok], r.y[ok]
+    return float(np.max(np.hypot(x - np.median(x), y - np.median(y))))
+
+
+def ray_count(cfg: CameraConfig, rays: int | None, rays_per_pixel: float | None) -> int:
+    """Total rays to trace: explicit, or rays per sensor pixel (config default if neither is given)."""
+    if rays is not None and rays_per_pixel is not None:
+        raise InputError("give either a ray count or rays per pixel, not both")
+    if rays is None:
+        rpp = cfg.trace.rays_per_pixel if rays_per_pixel is None else rays_per_pixel
+        if not (rpp > 0 and math.isfinite(rpp)):
+            raise InputError(f"rays per pixel must be a positive number, got {rpp!r}")
+        rays = int(round(rpp * cfg.sensor.width_px * cfg.sensor.height_px))
+    if not 1 <= rays <= MAX_RAYS:
+        raise InputError(f"ray count must be between 1 and {MAX_RAYS:.0e}, got {rays}")
+    return rays
+
+
+def _plane_jobs(region: SourceRegion, total: int, batch: int) -> list[_Job]:
+    """Tiles of the object rectangle, about `batch` rays each, rays shared out exactly."""
+    n_batches = max(1, math.ceil(total / batch))
+    aspect = region.half_x_mm / region.half_y_mm
+    nx = max(1, round(math.sqrt(n_batches * aspect)))
+    ny = max(1, math.ceil(n_batches / nx))
+    tiles = nx * ny
+    xs = np.linspace(-region.half_x_mm, region.half_x_mm, nx + 1)
+    ys = np.linspace(-region.half_y_mm, region.half_y_mm, ny + 1)
+    base, extra = divmod(total, tiles)
+    jobs = []
+    for i in range(tiles):
+        ty, tx = divmod(i, nx)
+        n = base + (1 if i < extra else 0)
+        if n:
+            jobs.append(_Job(len(jobs), n, (xs[tx], xs[tx + 1], ys[ty], ys[ty + 1]), None))
+    return jobs
+
+
+def _point_jobs(scene: PointScene, total: int, batch: int) -> list[_Job]:
+    """Batches of rays per point source, rays shared equally among points."""
+    per_point = max(1, total // len(scene.points_mm))
+    jobs = []
+    for pt in scene.points_mm:
+        left = per_point
+        while left:
+            n = min(batch, left)
+            jobs.append(_Job(len(jobs), n, None, (float(pt[0]), float(pt[1]))))
+            left -= n
+    return jobs
+
+
+class Renderer:
+    """Renders one camera (config + error map) for any scene; reusable across frames."""
+
+    def __init__(self, cfg: CameraConfig, errors: ErrorMap | None = None) -> None:
+        self.cfg = cfg
+        self.camera = Camera(cfg, errors)
+        self.region = source_region(self.camera)
+
+    def render(self, scene: Scene, *, rays: int | None = None, rays_per_pixel: float | None = None,
+               seed: int = 0, threads: int | None = None, progress: Progress | None = None) -> RenderResult:
+        """Trace `rays` rays of `scene` and return expected photons per pixel."""
+        start = time.perf_counter()
+        total = ray_count(self.cfg, rays, rays_per_pixel)
+        batch = self.cfg.trace.batch_rays
+        if isinstance(scene, PointScene):
+            if not scene.points_mm:
+                raise InputError("a point scene needs at least one point")
+            jobs = _point_jobs(scene, total, batch)
+        else:
+            jobs = _plane_jobs(self.region, total, batch)
+        total = sum(j.n for j in jobs)
+        children = np.random.SeedSequence(seed).spawn(len(jobs))
+        h, w = self.cfg.sensor.height_px, self.cfg.sensor.width_px
+        image = np.zeros((h, w))
+        landed = done = 0
+        n_threads = threads or self.cfg.trace.threads or os.cpu_count() or 1
+
+        def work(job: _Job):
+            return self._trace_job(scene, job, np.random.default_rng(children[job.index]))
+
+        with ThreadPoolExecutor(max_workers=n_threads) as pool:
+            pending: deque = deque()
+            it = iter(jobs)
+            for job in it:
+                pending.append((job, pool.submit(work, job)))
+                if len(pending) >= 2 * n_threads:
+                    break
+            while pending:
+                job, fut = pending.popleft()
+                r0, c0, patch, hits = fut.result()
+                image[r0:r0 + patch.shape[0], c0:c0 + patch.shape[1]] += patch
+                landed += hits
+                done += job.n
+                nxt = next(it, None)
+                if nxt is not None:
+                    pending.append((nxt, pool.submit(work, nxt)))
+                if progress is not None:
+                    progress(done, total)
+        image *= self._photons_per_weight(scene, total)
+        return RenderResult(image, total, landed, time.perf_counter() - start, seed)
+
+    def _trace_job(self, scene: Scene, job: _Job, rng: np.random.Generator):
+        """Sample, trace and bin one batch; returns the patch of the sensor it touched."""
+        if job.point is not None:
+            r = sample_points(self.region, rng, job.n, *job.point)
+        else:
+            r = sample_plane(self.region, rng, job.n, job.tile)
+            if isinstance(scene, TextureScene):
+                r.w *= texture_weight(scene, self.region, r.x, r.y)
+        self.camera.trace(r)
+        idx, wts = self.camera.pixel_index(r)
+        return _bin_patch(idx, wts, self.cfg.sensor.width_px)
+
+    def _photons_per_weight(self, scene: Scene, total: int) -> float:
+        """Photons one unit of ray weight stands for, so that pixels read physical photon counts."""
+        if isinstance(scene, PointScene):
+            return scene.photons * len(scene.points_mm) / total
+        reg = self.region
+        image_area = (2 * reg.half_x_mm * reg.magnification) * (2 * reg.half_y_mm * reg.magnification)
+        pixel_area = (self.cfg.sensor.pixel_um * 1e-3) ** 2
+        return self.cfg.sensor.exposure_photons * (image_area / pixel_area) / total
+
+
+def _bin_patch(idx: np.ndarray, wts: np.ndarray, width: int):
+    """Sum weights per pixel over the bounding box of the hits (np.bincount: duplicates add up)."""
+    if idx.size == 0:
+        return 0, 0, np.zeros((0, 0)), 0
+    rows, cols = np.divmod(idx, width)
+    r0, r1, c0, c1 = rows.min(), rows.max(), cols.min(), cols.max()
+    pw = c1 - c0 + 1
+    local = (rows - r0) * pw + (cols - c0)
+    patch = np.bincount(local, weights=wts, minlength=(r1 - r0 + 1) * pw).reshape(r1 - r0 + 1, pw)
+    return int(r0), int(c0), patch, int(idx.size)
+
+
+def render(cfg: CameraConfig, scene: Scene | None = None, errors: ErrorMap | None = None, **kwargs) -> RenderResult:
+    """One-shot convenience: build a Renderer and render `scene` (default: the white image)."""
+    return Renderer(cfg, errors).render(scene if scene is not None else WhiteScene(), **kwargs)
