@@ -19,6 +19,7 @@ from mlaqc.paraxial import ThickLens, image_distance, thick_lens
 
 CFA_CHOICES = ("none", "RGGB", "BGGR", "GRBG", "GBRG")
 CORNER_CHOICES = ("opaque", "clear")
+ENGINE_CHOICES = ("auto", "numba", "numpy")
 
 
 @dataclass(frozen=True)
@@ -91,6 +92,7 @@ class Trace:
     rays_per_pixel: float = 50.0
     batch_rays: int = 1 << 18
     threads: int = 0  # 0 = one per CPU core
+    engine: str = "auto"  # 'numba' (compiled fast path), 'numpy' (reference), 'auto' = numba if installed
 
 
 @dataclass(frozen=True)
@@ -291,6 +293,7 @@ def validate(cfg: CameraConfig, source: str = "config") -> None:
     _require(s.cfa in CFA_CHOICES, source, "sensor.cfa", f"must be one of {CFA_CHOICES}", s.cfa)
     _require(t.rays_per_pixel > 0, source, "trace.rays_per_pixel", "must be positive", t.rays_per_pixel)
     _require(1024 <= t.batch_rays <= 1 << 24, source, "trace.batch_rays", "must be between 1024 and 16777216", t.batch_rays)
+    _require(t.engine in ENGINE_CHOICES, source, "trace.engine", f"must be one of {ENGINE_CHOICES}", t.engine)
     _require(0 <= t.threads <= 256, source, "trace.threads", "must be between 0 and 256", t.threads)
     for key in ("object_distance_mm", "mla_distance_mm", "sensor_gap_um"):
         v = getattr(g, key)

@@ -74,10 +74,12 @@ def refract(L, M, N, nx, ny, nz, mu):
 
 
 def fresnel_transmittance(cos_i, cos_t, n1: float, n2: float):
-    """Unpolarized Fresnel power transmittance T = 1 - (Rs + Rp)/2 (Hecht, Optics §4.6)."""
-    rs = (n1 * cos_i - n2 * cos_t) / (n1 * cos_i + n2 * cos_t)
-    rp = (n1 * cos_t - n2 * cos_i) / (n1 * cos_t + n2 * cos_i)
-    return 1.0 - 0.5 * (rs * rs + rp * rp)
+    """Unpolarized Fresnel power transmittance (Ts + Tp)/2 with Ts = 4 n1 n2 ci ct / (n1 ci + n2 ct)^2,
+    Tp = 4 n1 n2 ci ct / (n1 ct + n2 ci)^2 (Hecht, Optics §4.6), written with a single division."""
+    a = n1 * cos_i + n2 * cos_t
+    b = n1 * cos_t + n2 * cos_i
+    a2, b2 = a * a, b * b
+    return (2.0 * n1 * n2) * cos_i * cos_t * (a2 + b2) / (a2 * b2)
 
 
 def _rotation(rx_deg: float, ry_deg: float, rz_deg: float) -> np.ndarray:
@@ -108,6 +110,7 @@ class MainLens:
     def __init__(self, cfg: CameraConfig) -> None:
         ml = cfg.main_lens
         self.n = ml.refractive_index
+        self.mu_in, self.mu_out = 1.0 / self.n, self.n
         self.c1 = 1.0 / ml.radius_front_mm
         self.c2 = 1.0 / ml.radius_back_mm
         self.z2 = ml.thickness_mm
@@ -115,12 +118,19 @@ class MainLens:
         self.fresnel = cfg.trace.fresnel
 
     def trace(self, r: Rays) -> None:
-        """Refract through both surfaces in place; rays outside the rim get weight 0."""
-        for zv, c, n1, n2 in ((0.0, self.c1, 1.0, self.n), (self.z2, self.c2, self.n, 1.0)):
+        """Refract object-side rays (travelling +z) through both surfaces in place; vignetted rays get weight 0."""
+        self._surfaces(r, ((0.0, self.c1, 1.0, self.n, self.mu_in), (self.z2, self.c2, self.n, 1.0, self.mu_out)))
+
+    def trace_back(self, r: Rays) -> None:
+        """Refract image-side rays travelling -z back out through the front, in place (reversibility)."""
+        self._surfaces(r, ((self.z2, self.c2, 1.0, self.n, self.mu_in), (0.0, self.c1, self.n, 1.0, self.mu_out)))
+
+    def _surfaces(self, r: Rays, steps) -> None:
+        for zv, c, n1, n2, mu in steps:
             t = intersect_sphere(r.x, r.y, r.z, r.L, r.M, r.N, 0.0, 0.0, zv, c)
             r.advance(t)
             nx, ny, nz = sphere_normal(r.x, r.y, r.z, 0.0, 0.0, zv, c)
-            r.L, r.M, r.N, ci, ct, ok = refract(r.L, r.M, r.N, nx, ny, nz, n1 / n2)
+            r.L, r.M, r.N, ci, ct, ok = refract(r.L, r.M, r.N, nx, ny, nz, mu)
             keep = ok & (r.x * r.x + r.y * r.y <= self.rim2)  # NaN (a miss) compares False
             r.w = np.where(keep, r.w * (fresnel_transmittance(ci, ct, n1, n2) if self.fresnel else 1.0), 0.0)
 
@@ -143,9 +153,11 @@ class MicrolensArray:
         e = errors.lens
         self.rows, self.cols = rows, cols
         self.p = mla.pitch_um * 1e-3
+        self.inv_p = 1.0 / self.p
         self.x0 = -0.5 * cols * self.p
         self.y0 = -0.5 * rows * self.p
         self.n = mla.refractive_index
+        self.mu_in = 1.0 / self.n
         self.clear_corners = mla.corners == "clear"
         self.fresnel = cfg.trace.fresnel
         t = mla.thickness_um * 1e-3
@@ -167,8 +179,8 @@ class MicrolensArray:
 
     def cell_of(self, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Flat lens index of each point (clipped into range) and whether it lies on the array."""
-        col = np.floor((x - self.x0) / self.p)
-        row = np.floor((y - self.y0) / self.p)
+        col = np.floor((x - self.x0) * self.inv_p)
+        row = np.floor((y - self.y0) * self.inv_p)
         inside = (col >= 0) & (col < self.cols) & (row >= 0) & (row < self.rows)
         k = np.where(inside, row * self.cols + col, 0).astype(np.int64)
         return k, inside
@@ -223,7 +235,7 @@ class MicrolensArray:
         k, on_array = self.cell_of(r.x, r.y)
         k, local, ldir, nrm, hit = self._hit(k, r, rear=False)
         corner = ~self._inside_lens(k, *local)
-        L, M, N, ci, ct, ok = refract(*ldir, *nrm, 1.0 / self.n)
+        L, M, N, ci, ct, ok = refract(*ldir, *nrm, self.mu_in)
         if self.clear_corners:
             L, M, N = (np.where(corner, a, b) for a, b in zip(ldir, (L, M, N)))
             keep = on_array & hit
@@ -285,6 +297,7 @@ class Camera:
         self.z_sensor = self.layout.z_sensor_mm + g["mla_sensor_distance_um"] * 1e-3
         s = cfg.sensor
         self.pixel = s.pixel_um * 1e-3
+        self.inv_pixel = 1.0 / self.pixel
         self.width, self.height = s.width_px, s.height_px
         self.sx0 = -0.5 * s.width_px * self.pixel
         self.sy0 = -0.5 * s.height_px * self.pixel
@@ -311,6 +324,10 @@ class Camera:
     def trace(self, r: Rays) -> None:
         """Object space -> sensor plane, in place; r.x, r.y are then sensor coordinates in mm."""
         self.main.trace(r)
+        self.trace_behind_main(r)
+
+    def trace_behind_main(self, r: Rays) -> None:
+        """Rays already past the main lens (camera frame) -> through the MLA -> sensor plane, in place."""
         self.to_mla(r)
         self.mla.trace(r)
         self.from_mla(r)
@@ -319,8 +336,8 @@ class Camera:
     def pixel_index(self, r: Rays) -> tuple[np.ndarray, np.ndarray]:
         """Flat pixel index (row * W + col) and weight of rays that landed on the sensor with weight > 0."""
         with np.errstate(invalid="ignore"):
-            col = np.floor((r.x - self.sx0) / self.pixel)
-            row = np.floor((r.y - self.sy0) / self.pixel)
+            col = np.floor((r.x - self.sx0) * self.inv_pixel)
+            row = np.floor((r.y - self.sy0) * self.inv_pixel)
             good = (r.w > 0) & (col >= 0) & (col < self.width) & (row >= 0) & (row < self.height)
         idx = (row[good] * self.width + col[good]).astype(np.int64)
         return idx, r.w[good]

@@ -1,7 +1,7 @@
 """Monte-Carlo rendering of raw images: batched, threaded, seeded, memory-bounded.
 
-The object region is cut into tiles, one batch of rays per tile (stratified sampling: each batch lands on
-a compact patch of the sensor, so it is accumulated with `np.bincount` over that patch only). Batches run
+Plane scenes are sampled from the image side (see `mlaqc.scene`); the MLA area is cut into tiles, one
+batch of rays per tile (stratified sampling: each batch lands on a compact patch of the sensor, so it is accumulated with `np.bincount` over that patch only). Batches run
 on a thread pool (NumPy releases the GIL) and are summed in batch order, so a seed gives a bit-identical
 image whatever the thread count. Memory is bounded by the batch size times the number of batches in flight.
 """
@@ -18,12 +18,14 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from mlaqc import fastpath
 from mlaqc.config import CameraConfig
 from mlaqc.errormap import ErrorMap
 from mlaqc.errors import InputError
 from mlaqc.raytrace import Camera, Rays
-from mlaqc.scene import (PointScene, Scene, SourceRegion, TextureScene, WhiteScene, sample_plane, sample_points,
-                         texture_weight)
+from mlaqc.unitcircle import counter_uniforms
+from mlaqc.scene import (ImageRegion, PointScene, Scene, SourceRegion, TextureScene, WhiteScene, sample_image_side,
+                         sample_plane, sample_points, texture_weight)
 
 Progress = Callable[[int, int], None]
 MAX_RAYS = 10 ** 11
@@ -48,6 +50,23 @@ class _Job:
     point: tuple[float, float] | None  # point scenes
 
 
+def _mla_half_extent(camera: Camera) -> tuple[float, float]:
+    """Half-width and half-height (mm) of the MLA's bounding box, its rotation about the axis included."""
+    cfg = camera.cfg
+    hx = 0.5 * cfg.mla.count_w * cfg.mla.pitch_um * 1e-3
+    hy = 0.5 * cfg.mla.count_h * cfg.mla.pitch_um * 1e-3
+    angle = math.radians(abs(camera.errors.globals["mla_rotation_deg"]))
+    return hx * math.cos(angle) + hy * math.sin(angle), hy * math.cos(angle) + hx * math.sin(angle)
+
+
+def image_region(camera: Camera) -> ImageRegion:
+    """The MLA's bounding box plus one pitch (image-side sampling) and the rear aperture disc."""
+    hx, hy = _mla_half_extent(camera)
+    pad = camera.cfg.mla.pitch_um * 1e-3
+    ml = camera.cfg.main_lens
+    return ImageRegion(camera.z_mla, hx + pad, hy + pad, ml.thickness_mm, 0.5 * ml.diameter_mm)
+
+
 def source_region(camera: Camera) -> SourceRegion:
     """The object rectangle whose image covers the MLA plus the main lens' blur, and the pupil disc.
 
@@ -55,12 +74,8 @@ def source_region(camera: Camera) -> SourceRegion:
     border lenses get all the light they would get from an infinite plane.
     """
     cfg, lay = camera.cfg, camera.layout
-    a = lay.object_distance_mm + lay.main.front_principal
-    mag = lay.pupil_to_mla_mm / a
-    hx = 0.5 * cfg.mla.count_w * cfg.mla.pitch_um * 1e-3
-    hy = 0.5 * cfg.mla.count_h * cfg.mla.pitch_um * 1e-3
-    angle = math.radians(abs(camera.errors.globals["mla_rotation_deg"]))
-    hx, hy = hx * math.cos(angle) + hy * math.sin(angle), hy * math.cos(angle) + hx * math.sin(angle)
+    mag = lay.pupil_to_mla_mm / (lay.object_distance_mm + lay.main.front_principal)
+    hx, hy = _mla_half_extent(camera)
     pupil = 0.5 * cfg.main_lens.diameter_mm
     region = SourceRegion(lay.z_object_mm, hx / mag, hy / mag, pupil, mag)
     margin = max(_blur_radius(camera, region, 0.0, 0.0), _blur_radius(camera, region, -hx / mag, -hy / mag))
@@ -70,8 +85,7 @@ def source_region(camera: Camera) -> SourceRegion:
 
 def _blur_radius(camera: Camera, region: SourceRegion, x_mm: float, y_mm: float) -> float:
     """Largest distance (mm, at the MLA plane) of a point's pupil fan from its median landing point."""
-    rng = np.random.default_rng(12345)
-    r = sample_points(region, rng, 4096, x_mm, y_mm)
+    r = sample_points(region, counter_uniforms(12345, 4096, 2), x_mm, y_mm)
     camera.trace_to_mla(r)
     r.advance((camera.z_mla - r.z) / r.N)
     ok = r.w > 0
@@ -95,8 +109,8 @@ def ray_count(cfg: CameraConfig, rays: int | None, rays_per_pixel: float | None)
     return rays
 
 
-def _plane_jobs(region: SourceRegion, total: int, batch: int) -> list[_Job]:
-    """Tiles of the object rectangle, about `batch` rays each, rays shared out exactly."""
+def _plane_jobs(region: SourceRegion | ImageRegion, total: int, batch: int) -> list[_Job]:
+    """Tiles of the sampled rectangle, about `batch` rays each, rays shared out exactly."""
     n_batches = max(1, math.ceil(total / batch))
     aspect = region.half_x_mm / region.half_y_mm
     nx = max(1, round(math.sqrt(n_batches * aspect)))
@@ -130,10 +144,26 @@ def _point_jobs(scene: PointScene, total: int, batch: int) -> list[_Job]:
 class Renderer:
     """Renders one camera (config + error map) for any scene; reusable across frames."""
 
-    def __init__(self, cfg: CameraConfig, errors: ErrorMap | None = None) -> None:
+    def __init__(self, cfg: CameraConfig, errors: ErrorMap | None = None, sampling: str = "image",
+                 engine: str | None = None) -> None:
+        if sampling not in ("image", "object"):
+            raise ValueError(f"sampling must be 'image' or 'object', got {sampling!r}")
+        engine = engine or cfg.trace.engine
+        if engine == "auto":
+            engine = "numba" if fastpath.AVAILABLE else "numpy"
+        if engine == "numba" and not fastpath.AVAILABLE:
+            raise InputError("the numba engine was asked for but numba is not installed")
+        self.engine = engine
         self.cfg = cfg
         self.camera = Camera(cfg, errors)
+        self.sampling = sampling
         self.region = source_region(self.camera)
+        self.image_region = image_region(self.camera)
+        mag = self.region.magnification
+        hx, hy = _mla_half_extent(self.camera)
+        self.texture_half_mm = (hx / mag, hy / mag)  # a texture spans the object-side conjugate of the MLA
+        self.fast = (fastpath.FastCamera(self.camera, self.image_region, self.region, self.texture_half_mm)
+                     if engine == "numba" else None)
 
     def render(self, scene: Scene, *, rays: int | None = None, rays_per_pixel: float | None = None,
                seed: int = 0, threads: int | None = None, progress: Progress | None = None) -> RenderResult:
@@ -146,16 +176,16 @@ class Renderer:
                 raise InputError("a point scene needs at least one point")
             jobs = _point_jobs(scene, total, batch)
         else:
-            jobs = _plane_jobs(self.region, total, batch)
+            jobs = _plane_jobs(self.image_region if self.sampling == "image" else self.region, total, batch)
         total = sum(j.n for j in jobs)
-        children = np.random.SeedSequence(seed).spawn(len(jobs))
+        keys = np.random.SeedSequence(seed).generate_state(len(jobs), np.uint64)
         h, w = self.cfg.sensor.height_px, self.cfg.sensor.width_px
         image = np.zeros((h, w))
         landed = done = 0
         n_threads = threads or self.cfg.trace.threads or os.cpu_count() or 1
 
         def work(job: _Job):
-            return self._trace_job(scene, job, np.random.default_rng(children[job.index]))
+            return self._trace_job(scene, job, int(keys[job.index]))
 
         with ThreadPoolExecutor(max_workers=n_threads) as pool:
             pending: deque = deque()
@@ -178,24 +208,52 @@ class Renderer:
         image *= self._photons_per_weight(scene, total)
         return RenderResult(image, total, landed, time.perf_counter() - start, seed)
 
-    def _trace_job(self, scene: Scene, job: _Job, rng: np.random.Generator):
+    def _trace_job(self, scene: Scene, job: _Job, key: int):
         """Sample, trace and bin one batch; returns the patch of the sensor it touched."""
-        if job.point is not None:
-            r = sample_points(self.region, rng, job.n, *job.point)
-        else:
-            r = sample_plane(self.region, rng, job.n, job.tile)
-            if isinstance(scene, TextureScene):
-                r.w *= texture_weight(scene, self.region, r.x, r.y)
-        self.camera.trace(r)
-        idx, wts = self.camera.pixel_index(r)
+        idx, wts = self.trace_batch(scene, key, job.n, job.tile, job.point)
         return _bin_patch(idx, wts, self.cfg.sensor.width_px)
+
+    def trace_batch(self, scene: Scene, key: int, n: int, tile=None, point=None):
+        """Trace n rays drawn with `key`; (flat pixel index, weight) of those that reached the sensor."""
+        texture = scene.radiance if isinstance(scene, TextureScene) else None
+        if self.fast is not None:
+            mode = (fastpath.POINT if point is not None else
+                    fastpath.IMAGE_SIDE if self.sampling == "image" else fastpath.OBJECT_SIDE)
+            return self.fast.trace(mode, key, n, tile, point, texture)
+        u = counter_uniforms(key, n, 2 if point is not None else 4)
+        if point is not None:
+            r = sample_points(self.region, u, *point)
+            self.camera.trace(r)
+        elif self.sampling == "image":
+            r = sample_image_side(self.image_region, u, tile)
+            self._weigh_by_main_lens(scene, r)
+            self.camera.trace_behind_main(r)
+        else:
+            r = sample_plane(self.region, u, tile)
+            if texture is not None:
+                r.w *= texture_weight(scene, *self.texture_half_mm, r.x, r.y)
+            self.camera.trace(r)
+        return self.camera.pixel_index(r)
+
+    def _weigh_by_main_lens(self, scene: Scene, r: Rays) -> None:
+        """Trace image-side rays back through the main lens: vignetting, Fresnel, and the object radiance."""
+        back = Rays(r.x.copy(), r.y.copy(), r.z.copy(), -r.L, -r.M, -r.N, r.w)
+        self.camera.main.trace_back(back)
+        r.w = back.w
+        if isinstance(scene, TextureScene):
+            t = (self.camera.layout.z_object_mm - back.z) / back.N
+            r.w = r.w * texture_weight(scene, *self.texture_half_mm, back.x + t * back.L, back.y + t * back.M)
 
     def _photons_per_weight(self, scene: Scene, total: int) -> float:
         """Photons one unit of ray weight stands for, so that pixels read physical photon counts."""
         if isinstance(scene, PointScene):
             return scene.photons * len(scene.points_mm) / total
-        reg = self.region
-        image_area = (2 * reg.half_x_mm * reg.magnification) * (2 * reg.half_y_mm * reg.magnification)
+        if self.sampling == "image":
+            image_area = 4 * self.image_region.half_x_mm * self.image_region.half_y_mm
+        else:  # same radiometric unit: object area seen through the front disc instead of the MLA through the rear
+            reg, lay = self.region, self.camera.layout
+            ratio = (lay.z_mla_mm - self.cfg.main_lens.thickness_mm) / -lay.z_object_mm
+            image_area = 4 * reg.half_x_mm * reg.half_y_mm * ratio * ratio
         pixel_area = (self.cfg.sensor.pixel_um * 1e-3) ** 2
         return self.cfg.sensor.exposure_photons * (image_area / pixel_area) / total
 
