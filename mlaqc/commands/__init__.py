@@ -1,0 +1,1 @@
+"""Subcommands of the `mlaqc` CLI, one module each (see mlaqc.cli)."""

@@ -1,0 +1,139 @@
+"""Simulated raw frames with their ground truth: render -> sensor model -> raw file + `<name>.sim.json`.
+
+The sidecar holds everything needed to reproduce or judge the frame: config, derived layout, scene,
+the ground-truth error map, seed, ray counts, engine and versions, and the raw file's checksum.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import platform
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from mlaqc import __version__
+from mlaqc.atomic import atomic_path
+from mlaqc.config import CameraConfig
+from mlaqc.errormap import ErrorMap
+from mlaqc.errors import InputError
+from mlaqc.rawio import write_raw
+from mlaqc.render import Progress, Renderer, RenderResult
+from mlaqc.scene import PointScene, Scene, TextureScene, WhiteScene
+from mlaqc.sensor import expose, white_level
+
+RAW_SUFFIXES = (".tif", ".tiff", ".dng", ".npy", ".png")
+SIDECAR_FORMAT = "mlaqc-simulation"
+
+
+@dataclass(frozen=True)
+class SimulatedRaw:
+    """A rendered frame: raw counts as the sensor reads them, the expected photons, and the render facts."""
+
+    raw: np.ndarray  # (H, W) uint16
+    render: RenderResult
+    errors: ErrorMap
+    scene: Scene
+    noise: bool
+    engine: str
+
+
+def simulate(cfg: CameraConfig, scene: Scene | None = None, errors: ErrorMap | None = None, *,
+             rays: int | None = None, rays_per_pixel: float | None = None, seed: int = 0, noise: bool = True,
+             threads: int | None = None, progress: Progress | None = None, renderer: Renderer | None = None) -> SimulatedRaw:
+    """Render `scene` through the camera with `errors` and read it out with the sensor model."""
+    scene = scene if scene is not None else WhiteScene()
+    errors = errors if errors is not None else ErrorMap.zeros(cfg.mla.count_h, cfg.mla.count_w)
+    renderer = renderer or Renderer(cfg, errors)
+    result = renderer.render(scene, rays=rays, rays_per_pixel=rays_per_pixel, seed=seed, threads=threads, progress=progress)
+    raw = expose(result.photons, cfg.sensor, seed=seed + 1, noise=noise)
+    return SimulatedRaw(raw, result, errors, scene, noise, renderer.engine)
+
+
+def scene_record(scene: Scene) -> dict[str, Any]:
+    """JSON description of a scene (textures by shape, not pixels)."""
+    if isinstance(scene, PointScene):
+        return {"kind": "points", "points_mm": [list(p) for p in scene.points_mm], "photons": scene.photons}
+    if isinstance(scene, TextureScene):
+        return {"kind": "texture", "shape": list(scene.radiance.shape)}
+    return {"kind": "white"}
+
+
+def sidecar_path(raw_path: str | Path) -> Path:
+    """Where the simulation record of a raw file lives: `<name>.sim.json`."""
+    p = Path(raw_path)
+    return p.with_name(p.name + ".sim.json")
+
+
+def check_output(out: str | Path) -> Path:
+    """Refuse an output path with an unknown suffix or a missing folder (before any long render)."""
+    out = Path(out)
+    if out.suffix.lower() not in RAW_SUFFIXES:
+        raise InputError(f"output {str(out)!r} must end in one of {', '.join(RAW_SUFFIXES)}")
+    if not out.parent.is_dir():
+        raise InputError(f"output folder {str(out.parent)!r} does not exist")
+    return out
+
+
+def write_simulation(out: str | Path, sim: SimulatedRaw, cfg: CameraConfig) -> Path:
+    """Write the raw file and its `.sim.json` record; neither appears unless both were written."""
+    out = check_output(out)
+    s = cfg.sensor
+    cfa = None if s.cfa == "none" else s.cfa
+    record = _record(sim, cfg, out)
+    with atomic_path(sidecar_path(out)) as tmp_json:
+        write_raw(out, sim.raw, bits=s.bit_depth, cfa=cfa, black_level=s.black_level_dn, white_level=white_level(s),
+                  metadata={"mlaqc_simulation": {"seed": sim.render.seed, "rays": sim.render.rays_traced,
+                                                 "version": __version__}})
+        record["raw"]["sha256"] = hashlib.sha256(out.read_bytes()).hexdigest()
+        tmp_json.write_text(json.dumps(record, indent=2) + "\n", encoding="utf-8")
+    return sidecar_path(out)
+
+
+def _record(sim: SimulatedRaw, cfg: CameraConfig, out: Path) -> dict[str, Any]:
+    lay = cfg.layout
+    s = cfg.sensor
+    return {
+        "format": SIDECAR_FORMAT,
+        "version": 1,
+        "mlaqc_version": __version__,
+        "numpy_version": np.__version__,
+        "python": platform.python_version(),
+        "config": cfg.to_dict(),
+        "layout": {
+            "object_distance_mm": lay.object_distance_mm,
+            "mla_distance_mm": lay.mla_distance_mm,
+            "sensor_gap_mm": lay.sensor_gap_mm,
+            "main_efl_mm": lay.main.efl,
+            "microlens_efl_um": lay.micro.efl * 1e3,
+            "subimage_pitch_px": lay.subimage_pitch_px,
+        },
+        "scene": scene_record(sim.scene),
+        "error_map": sim.errors.to_json_dict(),
+        "seed": sim.render.seed,
+        "rays_traced": sim.render.rays_traced,
+        "rays_landed": sim.render.rays_landed,
+        "rays_per_pixel": sim.render.rays_traced / (s.width_px * s.height_px),
+        "engine": sim.engine,
+        "noise": sim.noise,
+        "render_seconds": round(sim.render.seconds, 3),
+        "raw": {"file": out.name, "bits": s.bit_depth, "cfa": s.cfa, "black_level": s.black_level_dn,
+                "white_level": white_level(s)},
+    }
+
+
+def load_simulation_record(raw_path: str | Path) -> dict[str, Any]:
+    """Read the `.sim.json` record beside a simulated raw file (InputError if absent or not one)."""
+    p = sidecar_path(raw_path)
+    try:
+        rec = json.loads(p.read_text(encoding="utf-8"))
+    except FileNotFoundError:
+        raise InputError(f"no simulation record {str(p)!r} beside {str(raw_path)!r}") from None
+    except (OSError, json.JSONDecodeError) as exc:
+        raise InputError(f"simulation record {str(p)!r} is not readable JSON ({exc.__class__.__name__})") from None
+    if not isinstance(rec, dict) or rec.get("format") != SIDECAR_FORMAT:
+        raise InputError(f"{str(p)!r} is not an mlaqc simulation record")
+    return rec
