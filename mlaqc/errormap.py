@@ -11,7 +11,9 @@ Conventions (DESIGN.md §2-3):
 - tilt_x/y: the lens rotated about its centre, about the image x axis and the image y axis (pointing
   down), right-handed with z along the light.
 - thickness: vertex thickness error; the front vertex stays on the array's reference plane.
-Global: MLA-sensor distance error, MLA rotation about the optical axis, MLA tilt about x and y.
+Global: MLA shift in its plane (x right, y down, as in the raw image: the stage position of a mock
+bench), MLA-sensor distance error, MLA rotation about the optical axis (counterclockwise as displayed),
+MLA tilt about x and y.
 """
 
 from __future__ import annotations
@@ -43,6 +45,8 @@ LENS_FIELDS: dict[str, str] = {
     "thickness_um": "µm",
 }
 GLOBAL_FIELDS: dict[str, str] = {
+    "mla_shift_x_um": "µm",
+    "mla_shift_y_um": "µm",
     "mla_sensor_distance_um": "µm",
     "mla_rotation_deg": "deg",
     "mla_tilt_x_deg": "deg",

@@ -37,8 +37,8 @@ IMAGE_SIDE, POINT, OBJECT_SIDE = 0, 1, 2
 # Slots of the scalar parameter vector.
 (S_MODE, S_X0, S_X1, S_Y0, S_Y1, S_ZSTART, S_ZEXIT, S_RPUPIL, S_PX, S_PY,
  S_C1, S_C2, S_T, S_N, S_RIM2, S_FRES, S_ZOBJ, S_TEXHX, S_TEXHY,
- S_P, S_AX0, S_AY0, S_ROWS, S_COLS, S_ZFRONT, S_NMLA, S_CLEAR, S_UNUSED1,
- S_ZMLA, S_UNUSED2, S_ZSENS, S_PIX, S_SX0, S_SY0, S_W, S_H, S_INVP, S_INVPIX, S_COUNT) = range(39)
+ S_P, S_AX0, S_AY0, S_ROWS, S_COLS, S_ZFRONT, S_NMLA, S_CLEAR, S_SHIFTX,
+ S_ZMLA, S_SHIFTY, S_ZSENS, S_PIX, S_SX0, S_SY0, S_W, S_H, S_INVP, S_INVPIX, S_COUNT) = range(39)
 
 
 @_jit_inline
@@ -241,6 +241,8 @@ def stage1_forward(start, m, mode, s, key, buf, fres, texture):
 def trace_mla_to_sensor(i, x, y, z, L, M, N, w, s, tab, rot, grot, clear, fres, n_mla, mu_mla_in, out_idx, out_w):
     """Stage 2: one ray from behind the main lens through its microlens onto a pixel (writes slot i)."""
     # --- into the MLA frame ---
+    x = x - s[S_SHIFTX]
+    y = y - s[S_SHIFTY]
     z = z - s[S_ZMLA]
     if grot is not None:
         x, y, z = (grot[0, 0] * x + grot[1, 0] * y + grot[2, 0] * z, grot[0, 1] * x + grot[1, 1] * y + grot[2, 1] * z,
@@ -292,6 +294,8 @@ def trace_mla_to_sensor(i, x, y, z, L, M, N, w, s, tab, rot, grot, clear, fres, 
                    grot[2, 0] * x + grot[2, 1] * y + grot[2, 2] * z)
         L, M, N = (grot[0, 0] * L + grot[0, 1] * M + grot[0, 2] * N, grot[1, 0] * L + grot[1, 1] * M + grot[1, 2] * N,
                    grot[2, 0] * L + grot[2, 1] * M + grot[2, 2] * N)
+    x = x + s[S_SHIFTX]
+    y = y + s[S_SHIFTY]
     z = z + s[S_ZMLA]
     t = (s[S_ZSENS] - z) / N
     x += t * L
@@ -353,6 +357,7 @@ class FastCamera:
         s[S_P], s[S_AX0], s[S_AY0], s[S_ROWS], s[S_COLS] = mla.p, mla.x0, mla.y0, mla.rows, mla.cols
         s[S_ZFRONT], s[S_NMLA], s[S_CLEAR] = mla.z_front, mla.n, float(mla.clear_corners)
         s[S_ZMLA], s[S_ZSENS] = camera.z_mla, camera.z_sensor
+        s[S_SHIFTX], s[S_SHIFTY] = camera.shift_x, camera.shift_y
         s[S_PIX], s[S_SX0], s[S_SY0], s[S_W], s[S_H] = camera.pixel, camera.sx0, camera.sy0, camera.width, camera.height
         s[S_INVP], s[S_INVPIX] = 1.0 / mla.p, 1.0 / camera.pixel
         self.base = s

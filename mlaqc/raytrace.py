@@ -294,6 +294,8 @@ class Camera:
         self.rot = _rotation(g["mla_tilt_x_deg"], g["mla_tilt_y_deg"], -g["mla_rotation_deg"])
         self.rotated = not np.allclose(self.rot, np.eye(3), rtol=0, atol=0)
         self.z_mla = self.layout.z_mla_mm
+        self.shift_x = g["mla_shift_x_um"] * 1e-3
+        self.shift_y = g["mla_shift_y_um"] * 1e-3
         self.z_sensor = self.layout.z_sensor_mm + g["mla_sensor_distance_um"] * 1e-3
         s = cfg.sensor
         self.pixel = s.pixel_um * 1e-3
@@ -303,7 +305,9 @@ class Camera:
         self.sy0 = -0.5 * s.height_px * self.pixel
 
     def to_mla(self, r: Rays) -> None:
-        """Camera frame -> MLA frame (translate to the mid-plane, undo the MLA's rotation/tilt)."""
+        """Camera frame -> MLA frame (translate to the MLA's centre, undo its rotation/tilt)."""
+        r.x = r.x - self.shift_x
+        r.y = r.y - self.shift_y
         r.z = r.z - self.z_mla
         if self.rotated:
             rt = self.rot.T
@@ -315,6 +319,8 @@ class Camera:
         if self.rotated:
             r.x, r.y, r.z = _rotate(self.rot, r.x, r.y, r.z)
             r.L, r.M, r.N = _rotate(self.rot, r.L, r.M, r.N)
+        r.x = r.x + self.shift_x
+        r.y = r.y + self.shift_y
         r.z = r.z + self.z_mla
 
     def trace_to_mla(self, r: Rays) -> None:

@@ -64,7 +64,8 @@ def image_region(camera: Camera) -> ImageRegion:
     hx, hy = _mla_half_extent(camera)
     pad = camera.cfg.mla.pitch_um * 1e-3
     ml = camera.cfg.main_lens
-    return ImageRegion(camera.z_mla, hx + pad, hy + pad, ml.thickness_mm, 0.5 * ml.diameter_mm)
+    return ImageRegion(camera.z_mla, hx + pad, hy + pad, ml.thickness_mm, 0.5 * ml.diameter_mm,
+                       camera.shift_x, camera.shift_y)
 
 
 def source_region(camera: Camera) -> SourceRegion:
@@ -77,10 +78,11 @@ def source_region(camera: Camera) -> SourceRegion:
     mag = lay.pupil_to_mla_mm / (lay.object_distance_mm + lay.main.front_principal)
     hx, hy = _mla_half_extent(camera)
     pupil = 0.5 * cfg.main_lens.diameter_mm
-    region = SourceRegion(lay.z_object_mm, hx / mag, hy / mag, pupil, mag)
-    margin = max(_blur_radius(camera, region, 0.0, 0.0), _blur_radius(camera, region, -hx / mag, -hy / mag))
+    cx, cy = -camera.shift_x / mag, -camera.shift_y / mag  # the image is inverted
+    region = SourceRegion(lay.z_object_mm, hx / mag, hy / mag, pupil, mag, cx, cy)
+    margin = max(_blur_radius(camera, region, cx, cy), _blur_radius(camera, region, cx - hx / mag, cy - hy / mag))
     margin += cfg.mla.pitch_um * 1e-3
-    return SourceRegion(lay.z_object_mm, (hx + margin) / mag, (hy + margin) / mag, pupil, mag)
+    return SourceRegion(lay.z_object_mm, (hx + margin) / mag, (hy + margin) / mag, pupil, mag, cx, cy)
 
 
 def _blur_radius(camera: Camera, region: SourceRegion, x_mm: float, y_mm: float) -> float:
@@ -116,8 +118,8 @@ def _plane_jobs(region: SourceRegion | ImageRegion, total: int, batch: int) -> l
     nx = max(1, round(math.sqrt(n_batches * aspect)))
     ny = max(1, math.ceil(n_batches / nx))
     tiles = nx * ny
-    xs = np.linspace(-region.half_x_mm, region.half_x_mm, nx + 1)
-    ys = np.linspace(-region.half_y_mm, region.half_y_mm, ny + 1)
+    xs = region.center_x_mm + np.linspace(-region.half_x_mm, region.half_x_mm, nx + 1)
+    ys = region.center_y_mm + np.linspace(-region.half_y_mm, region.half_y_mm, ny + 1)
     base, extra = divmod(total, tiles)
     jobs = []
     for i in range(tiles):

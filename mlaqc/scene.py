@@ -86,6 +86,8 @@ class SourceRegion:
     half_y_mm: float
     pupil_radius_mm: float
     magnification: float  # |image size / object size| at the MLA (paraxial)
+    center_x_mm: float = 0.0  # object-side conjugate of the MLA's centre
+    center_y_mm: float = 0.0
 
 
 @dataclass(frozen=True)
@@ -97,6 +99,8 @@ class ImageRegion:
     half_y_mm: float
     z_exit_mm: float  # the main lens' rear vertex plane
     exit_radius_mm: float
+    center_x_mm: float = 0.0  # the MLA's lateral shift
+    center_y_mm: float = 0.0
 
 
 # Samplers take their uniform draws `u` (shape (4, n) or (2, n), values in [0, 1)) from the caller, so the
