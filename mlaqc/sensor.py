@@ -36,9 +36,13 @@ def expose(photons: np.ndarray, sensor: Sensor, seed: int | None, noise: bool = 
     if noise and sensor.read_noise_e > 0:
         electrons += rng.normal(0.0, sensor.read_noise_e, electrons.shape)
     dn = np.rint(electrons * sensor.gain_dn_per_e + sensor.black_level_dn)
-    return np.clip(dn, 0, 2 ** sensor.bit_depth - 1).astype(np.uint16)
+    return np.clip(dn, 0, white_level(sensor)).astype(np.uint16)  # saturated pixels read the white level
 
 
 def white_level(sensor: Sensor) -> int:
-    """The largest count the sensor can report (saturation in the raw file)."""
-    return min(2 ** sensor.bit_depth - 1, int(round(sensor.full_well_e * sensor.gain_dn_per_e + sensor.black_level_dn)))
+    """The clip level of the raw counts (saturation in the raw file).
+
+    Set 3 sigma of read noise below full well, as camera makers set their white point, so a saturated
+    pixel always reads exactly this value; never above the ADC's range."""
+    top = (sensor.full_well_e - 3.0 * sensor.read_noise_e) * sensor.gain_dn_per_e + sensor.black_level_dn
+    return int(min(2 ** sensor.bit_depth - 1, np.floor(top)))
