@@ -1,0 +1,26 @@
+"""The README's commands are the ones CI runs, and the layering rules of DESIGN.md hold."""
+
+import re
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parent.parent
+
+
+def test_ci_runs_the_readme_test_command():
+    readme = (ROOT / "README.md").read_text()
+    ci = (ROOT / ".ci" / "run").read_text()
+    cmd = "python3 -m pip install -e '.[test]' && python3 -m pytest -q"
+    assert cmd in readme and cmd in ci
+
+
+def test_core_never_imports_qt_or_hardware_and_drivers_never_import_gui():
+    bad = []
+    pattern = re.compile(r"^\s*(from|import)\s+(gui|drivers|PySide6|serial|linuxpy)\b", re.M)
+    for path in (ROOT / "mlaqc").rglob("*.py"):
+        if path.name == "cli.py":
+            continue
+        bad += [f"{path}: {m.group(0).strip()}" for m in pattern.finditer(path.read_text())]
+    gui_pattern = re.compile(r"^\s*(from|import)\s+(gui|PySide6)\b", re.M)
+    for path in (ROOT / "drivers").rglob("*.py"):
+        bad += [f"{path}: {m.group(0).strip()}" for m in gui_pattern.finditer(path.read_text())]
+    assert not bad, bad
