@@ -1,0 +1,166 @@
+"""Reference model of the ideal camera: the white-image sub-image of a perfect lens, rendered by the
+tracer at 8x oversampling, and the relative flux of every lens (vignetting).
+
+Built for a config on first use and cached on disk keyed by the config's optics and sensor; the one for
+the default (Table 1) camera ships in the package, so inspection works offline at once.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import io
+import json
+import os
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from mlaqc.atomic import write_bytes_atomic
+from mlaqc.config import CameraConfig
+from mlaqc.errormap import ErrorMap
+from mlaqc.render import Renderer
+from mlaqc.scene import WhiteScene
+
+OVERSAMPLE = 8
+PACKAGE_DATA = Path(__file__).resolve().parent / "data"
+FORMAT_VERSION = 1
+
+
+@dataclass(frozen=True)
+class ReferenceModel:
+    """An ideal lens' sub-image on a fine grid, box-filtered to the sensor pixel, and the flux map.
+
+    `template[i, j]` is the mean irradiance over a whole sensor pixel whose centre sits at
+    ((j - centre) / OVERSAMPLE, (i - centre) / OVERSAMPLE) px from the lens' sub-image centre.
+    """
+
+    template: np.ndarray  # (T, T) float64, box-filtered, peak normalized to 1
+    centre: float  # template index of the sub-image centre (both axes)
+    oversample: int
+    flux: np.ndarray  # (rows, cols) relative flux of each ideal lens, 1 at the array centre
+    key: str
+
+    def window_px(self) -> int:
+        """Half-size in sensor pixels that the template covers."""
+        return int(self.centre // self.oversample)
+
+
+def config_key(cfg: CameraConfig) -> str:
+    """Hash of everything that shapes the ideal sub-images (optics, geometry, sensor geometry)."""
+    d = cfg.to_dict()
+    keep = {"main_lens": d["main_lens"], "mla": d["mla"], "geometry": d["geometry"],
+            "sensor": {k: d["sensor"][k] for k in ("pixel_um", "width_px", "height_px")},
+            "fresnel": d["trace"]["fresnel"], "format": FORMAT_VERSION}
+    return hashlib.sha256(json.dumps(keep, sort_keys=True).encode()).hexdigest()[:16]
+
+
+def cache_dir() -> Path:
+    """Where rendered references are kept: $MLAQC_CACHE or ~/.cache/mlaqc."""
+    return Path(os.environ.get("MLAQC_CACHE", Path.home() / ".cache" / "mlaqc"))
+
+
+def reference_model(cfg: CameraConfig, *, build_if_missing: bool = True, rays_per_lens: int = 4_000_000) -> ReferenceModel:
+    """The reference for `cfg`: from the package, else the disk cache, else rendered now and cached."""
+    key = config_key(cfg)
+    for folder in (PACKAGE_DATA, cache_dir()):
+        path = folder / f"reference_{key}.npz"
+        if path.is_file():
+            return _load(path, key)
+    if not build_if_missing:
+        raise FileNotFoundError(f"no reference model for config {key}")
+    model = build_reference(cfg, rays_per_lens=rays_per_lens)
+    try:
+        cache_dir().mkdir(parents=True, exist_ok=True)
+        save_reference(model, cache_dir() / f"reference_{key}.npz")
+    except OSError:
+        pass  # a read-only home still gets a working (uncached) reference
+    return model
+
+
+def save_reference(model: ReferenceModel, path: Path) -> None:
+    """Write a reference as compressed NPZ, atomically."""
+    buf = io.BytesIO()
+    np.savez_compressed(buf, template=model.template.astype(np.float32), centre=model.centre,
+                        oversample=model.oversample, flux=model.flux.astype(np.float32), key=model.key)
+    write_bytes_atomic(path, buf.getvalue())
+
+
+def _load(path: Path, key: str) -> ReferenceModel:
+    with np.load(path, allow_pickle=False) as z:
+        return ReferenceModel(z["template"].astype(np.float64), float(z["centre"]), int(z["oversample"]),
+                              z["flux"].astype(np.float64), key)
+
+
+def build_reference(cfg: CameraConfig, *, rays_per_lens: int = 4_000_000, seed: int = 20180501) -> ReferenceModel:
+    """Render the reference: the sub-image of the lens nearest the axis on a sensor with pixels 8x finer
+    (rays through that lens and its eight neighbours, so the window holds what a real one holds), then
+    the flux of every ideal lens from a full-frame render, smoothed by a low-order fit."""
+    os_ = OVERSAMPLE
+    s = cfg.sensor
+    fine = dataclasses.replace(cfg, sensor=dataclasses.replace(s, pixel_um=s.pixel_um / os_, width_px=s.width_px * os_,
+                                                                height_px=s.height_px * os_))
+    rows, cols = cfg.mla.count_h, cfg.mla.count_w
+    renderer = Renderer(fine, ErrorMap.zeros(rows, cols))
+    p = cfg.mla.pitch_um * 1e-3
+    m0, n0 = rows // 2, cols // 2  # 0-based lens just up-left of (or on) the axis
+    x_c = (n0 + 0.5) * p - 0.5 * cols * p
+    y_c = (m0 + 0.5) * p - 0.5 * rows * p
+    tile = (x_c - 1.5 * p, x_c + 1.5 * p, y_c - 1.5 * p, y_c + 1.5 * p)
+    fine_img = np.zeros(fine.sensor.width_px * fine.sensor.height_px)
+    for i in range(max(1, rays_per_lens * 9 // (1 << 20))):
+        idx, w = renderer.trace_batch(WhiteScene(), seed + i, 1 << 20, tile=tile)
+        fine_img += np.bincount(idx, weights=w, minlength=fine_img.size)
+    fine_img = fine_img.reshape(fine.sensor.height_px, fine.sensor.width_px)
+    lay = cfg.layout
+    gain = lay.subimage_pitch_px / (cfg.mla.pitch_um / s.pixel_um)
+    # the sub-image centre: chief ray from the pupil centre through the lens centre, on the fine grid
+    cx = (fine.sensor.width_px - 1) / 2 + x_c * gain / (s.pixel_um * 1e-3 / os_)
+    cy = (fine.sensor.height_px - 1) / 2 + y_c * gain / (s.pixel_um * 1e-3 / os_)
+    half = int(np.ceil(0.75 * lay.subimage_pitch_px)) * os_ + os_
+    template = _box_filter(_cut(fine_img, cx, cy, half), os_)
+    template /= template.max()
+    flux = _flux_map(cfg)
+    return ReferenceModel(template, float(half), os_, flux, config_key(cfg))
+
+
+def _cut(img: np.ndarray, cx: float, cy: float, half: int) -> np.ndarray:
+    """(2*half+1)^2 window whose centre sample sits at (cx, cy), by linear interpolation."""
+    from scipy.ndimage import map_coordinates
+
+    off = np.arange(-half, half + 1, dtype=float)
+    yy, xx = np.meshgrid(cy + off, cx + off, indexing="ij")
+    return map_coordinates(img, [yy, xx], order=1, mode="constant")
+
+
+def _box_filter(img: np.ndarray, size: int) -> np.ndarray:
+    """Mean over a size x size box centred on each sample (what one coarse pixel integrates)."""
+    from scipy.ndimage import uniform_filter
+
+    if size % 2 == 0:  # an even box is centred between samples: average the two half-shifted odd ones
+        a = uniform_filter(img, size + 1, mode="constant")
+        b = uniform_filter(img, size - 1, mode="constant")
+        return 0.5 * (a + b)
+    return uniform_filter(img, size, mode="constant")
+
+
+def _flux_map(cfg: CameraConfig, rays_per_pixel: float = 4.0) -> np.ndarray:
+    """Relative flux of every ideal lens: per-cell sums of a white render, fitted by an even quartic."""
+    res = Renderer(cfg).render(WhiteScene(), rays_per_pixel=rays_per_pixel, seed=7)
+    rows, cols = cfg.mla.count_h, cfg.mla.count_w
+    pitch = cfg.layout.subimage_pitch_px
+    h, w = res.photons.shape
+    yy = ((np.arange(h) - (h - 1) / 2) / pitch + rows / 2).astype(int)
+    xx = ((np.arange(w) - (w - 1) / 2) / pitch + cols / 2).astype(int)
+    ok_y, ok_x = (yy >= 0) & (yy < rows), (xx >= 0) & (xx < cols)
+    idx = (yy[ok_y][:, None] * cols + xx[ok_x][None, :]).ravel()
+    sums = np.bincount(idx, weights=res.photons[np.ix_(ok_y, ok_x)].ravel(), minlength=rows * cols).reshape(rows, cols)
+    m, n = np.meshgrid(np.arange(rows) - (rows - 1) / 2, np.arange(cols) - (cols - 1) / 2, indexing="ij")
+    r2 = (m / max(rows, 1)) ** 2 + (n / max(cols, 1)) ** 2
+    basis = np.stack([np.ones_like(r2), r2, r2 * r2, (m / rows) ** 2 - (n / cols) ** 2]).reshape(4, -1).T
+    inner = np.ones((rows, cols), bool)
+    inner[[0, -1], :] = inner[:, [0, -1]] = False  # border cells may be cut by the sensor edge
+    coef, *_ = np.linalg.lstsq(basis[inner.ravel()], sums.ravel()[inner.ravel()], rcond=None)
+    fit = (basis @ coef).reshape(rows, cols)
+    return fit / fit[rows // 2, cols // 2]
