@@ -96,6 +96,20 @@ class Trace:
 
 
 @dataclass(frozen=True)
+class QC:
+    """QC spec: per-type limits a flagged lens must stay within, and what fails the array."""
+
+    pitch_um: float = 1.0
+    decenter_um: float = 5.0
+    radius_rel: float = 0.05
+    tilt_deg: float = 2.0
+    thickness_um: float = 3.0
+    detect_sigma: float = 7.0  # robust z-score above which a lens is flagged
+    max_out_of_tolerance: int = 0  # more than this many out-of-tolerance lenses fails the array
+    max_missing: int = 0  # more than this many missing lenses fails the array
+
+
+@dataclass(frozen=True)
 class CameraConfig:
     """The whole camera: one object passed to the tracer, the pipeline and written to every sidecar."""
 
@@ -104,6 +118,7 @@ class CameraConfig:
     sensor: Sensor = field(default_factory=Sensor)
     geometry: Geometry = field(default_factory=Geometry)
     trace: Trace = field(default_factory=Trace)
+    qc: QC = field(default_factory=QC)
 
     def to_dict(self) -> dict[str, Any]:
         """Plain dict (TOML/JSON-able) of the config as given, geometry holes left as None."""
@@ -250,7 +265,7 @@ def _require(ok: bool, source: str, key: str, what: str, value: Any) -> None:
 def validate(cfg: CameraConfig, source: str = "config") -> None:
     """Check that the camera is physically possible; raise InputError naming the first bad key."""
     ml, mla, s, g, t = cfg.main_lens, cfg.mla, cfg.sensor, cfg.geometry, cfg.trace
-    for sec, obj in (("main_lens", ml), ("mla", mla), ("sensor", s), ("geometry", g)):
+    for sec, obj in (("main_lens", ml), ("mla", mla), ("sensor", s), ("geometry", g), ("qc", cfg.qc)):
         for f in fields(obj):
             v = getattr(obj, f.name)
             if isinstance(v, float):
@@ -291,6 +306,10 @@ def validate(cfg: CameraConfig, source: str = "config") -> None:
     _require(s.read_noise_e >= 0, source, "sensor.read_noise_e", "must not be negative", s.read_noise_e)
     _require(0 <= s.black_level_dn < 2 ** s.bit_depth, source, "sensor.black_level_dn", f"must be in [0, {2 ** s.bit_depth})", s.black_level_dn)
     _require(s.cfa in CFA_CHOICES, source, "sensor.cfa", f"must be one of {CFA_CHOICES}", s.cfa)
+    for key in ("pitch_um", "decenter_um", "radius_rel", "tilt_deg", "thickness_um", "detect_sigma"):
+        _require(getattr(cfg.qc, key) > 0, source, f"qc.{key}", "must be positive", getattr(cfg.qc, key))
+    for key in ("max_out_of_tolerance", "max_missing"):
+        _require(getattr(cfg.qc, key) >= 0, source, f"qc.{key}", "must not be negative", getattr(cfg.qc, key))
     _require(t.rays_per_pixel > 0, source, "trace.rays_per_pixel", "must be positive", t.rays_per_pixel)
     _require(1024 <= t.batch_rays <= 1 << 24, source, "trace.batch_rays", "must be between 1024 and 16777216", t.batch_rays)
     _require(t.engine in ENGINE_CHOICES, source, "trace.engine", f"must be one of {ENGINE_CHOICES}", t.engine)

@@ -52,20 +52,24 @@ class Defect:
 
     m: int
     n: int
-    error_type: str  # 'pitch', 'decenter', 'radius', 'tilt', 'thickness', 'missing' or 'unknown'
+    error_type: str  # 'pitch', 'decenter', 'position' (pitch or decenter), 'radius', 'tilt', 'thickness', 'missing'
     magnitude: float  # in `unit`; signed for radius/thickness errors
     unit: str
     direction_deg: float | None  # counterclockwise from the image's +x towards its top; None if not directional
     score: float  # how far outside normal the lens is (robust z), larger = more certain
     within_tolerance: bool  # True if flagged but inside the QC spec for its type
     indexes: dict[str, float] = field(default_factory=dict)
+    # other readings that fit about as well: (type, magnitude, unit, direction_deg) each
+    alternatives: tuple[tuple[str, float, str, float | None], ...] = ()
 
     def to_json_dict(self) -> dict[str, Any]:
         d = {"row": self.m, "col": self.n, "error_type": self.error_type,
              "magnitude": _finite(self.magnitude), "unit": self.unit,
              "direction_deg": None if self.direction_deg is None else _finite(self.direction_deg),
              "score": _finite(self.score), "within_tolerance": self.within_tolerance,
-             "indexes": {k: _finite(v) for k, v in self.indexes.items()}}
+             "indexes": {k: _finite(v) for k, v in self.indexes.items()},
+             "alternatives": [{"error_type": t, "magnitude": _finite(v), "unit": u,
+                               "direction_deg": None if a is None else _finite(a)} for t, v, u, a in self.alternatives]}
         return d
 
 

@@ -1,0 +1,148 @@
+"""Identification: flag lenses whose indexes leave the normal population, then say what is wrong.
+
+Detection compares every lens with its own neighbourhood (5 x 5 local median, which cancels vignetting,
+exposure and slow field variation) in units of the array's robust spread (1.4826 MAD): a real capture
+differs from the model in exposure and illumination, and inspection must still work.
+
+Classification inverts the signature table: the flagged lens' feature changes, taken along and across
+its own shift, are fitted by every error kind over its magnitude (noise-weighted least squares); the
+best kind gives type, magnitude and direction. In a white image a pitch (position) error and a surface
+decenter shift the sub-image almost identically (both only redirect the chief ray of a lens whose cell
+aperture stays on the grid), so when both fit about equally the lens is reported as 'position' with
+both readings, not as a guess.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.ndimage import median_filter
+
+from mlaqc.config import QC
+from mlaqc.results import Defect, LensMetrics
+from mlaqc.signatures import FEATURES, KIND_BY_NAME, SignatureTable
+
+# Features whose change is tested for detection, and on which side (+1 up, -1 down, 0 both).
+DETECT = {"offset": 0, "asym": 0, "blur": +1, "flux": 0, "ssim": -1, "sharpness": 0}
+_CHI2_AMBIGUOUS = 9.0  # pitch and decenter fits closer than this (3 sigma) -> 'position'
+
+
+def local_deviation(values: np.ndarray, size: int = 5) -> np.ndarray:
+    """values minus their NaN-robust local median over size x size lenses."""
+    fill = np.where(np.isfinite(values), values, np.nanmedian(values))
+    return values - median_filter(fill, size=size, mode="nearest")
+
+
+def robust_sigma(dev: np.ndarray) -> float:
+    """1.4826 x median absolute deviation (NaN ignored); a tiny floor keeps z finite."""
+    d = dev[np.isfinite(dev)]
+    if d.size == 0:
+        return np.inf
+    return max(1.4826 * float(np.median(np.abs(d - np.median(d)))), 1e-9)
+
+
+def deviations(metrics: LensMetrics) -> tuple[dict[str, np.ndarray], dict[str, float]]:
+    """Local deviations of the classification features and their robust spreads."""
+    dev = {k: local_deviation(metrics[k]) for k in
+           ("offset_x_px", "offset_y_px", "asym_x", "asym_y", "blur", "flux", "ssim", "sharpness")}
+    sig = {k: robust_sigma(v) for k, v in dev.items()}
+    return dev, sig
+
+
+def detection_score(dev: dict[str, np.ndarray], sig: dict[str, float]) -> np.ndarray:
+    """Largest robust z over the detection features, per lens."""
+    s_off = 0.5 * (sig["offset_x_px"] + sig["offset_y_px"])
+    s_asym = 0.5 * (sig["asym_x"] + sig["asym_y"])
+    zs = [np.hypot(dev["offset_x_px"], dev["offset_y_px"]) / s_off,
+          np.hypot(dev["asym_x"], dev["asym_y"]) / s_asym,
+          dev["blur"] / sig["blur"], np.abs(dev["flux"]) / sig["flux"],
+          -dev["ssim"] / sig["ssim"], np.abs(dev["sharpness"]) / sig["sharpness"]]
+    return np.nanmax(np.stack([np.where(np.isfinite(z), z, 0.0) for z in zs]), axis=0)
+
+
+def _feature_vector(dev: dict[str, np.ndarray], m: int, n: int) -> tuple[np.ndarray, float]:
+    """FEATURES of lens [m, n] from its deviations, along its own shift; and that shift's direction."""
+    dx, dy = dev["offset_x_px"][m, n], dev["offset_y_px"][m, n]
+    r = max(float(np.hypot(dx, dy)), 1e-12)
+    ux, uy = dx / r, dy / r
+    ax, ay = dev["asym_x"][m, n], dev["asym_y"][m, n]
+    vec = np.array([r, 0.0, ax * ux + ay * uy, ay * ux - ax * uy, dev["blur"][m, n], dev["flux"][m, n],
+                    dev["ssim"][m, n], dev["sharpness"][m, n]])
+    return vec, float(np.degrees(np.arctan2(-dy, dx)))
+
+
+def _feature_sigmas(sig: dict[str, float]) -> np.ndarray:
+    s_off = 0.5 * (sig["offset_x_px"] + sig["offset_y_px"])
+    s_asym = 0.5 * (sig["asym_x"] + sig["asym_y"])
+    return np.array([s_off, s_off, s_asym, s_asym, sig["blur"], sig["flux"], sig["ssim"], sig["sharpness"]])
+
+
+def fit_kind(table: SignatureTable, kind: str, vec: np.ndarray, sigmas: np.ndarray) -> tuple[float, float]:
+    """Best magnitude of `kind` for feature changes `vec` and its chi-square (magnitude interpolated
+    linearly in the table, through zero)."""
+    mags, feats = table.magnitudes[kind], table.features[kind]
+    order = np.argsort(mags)
+    mags, feats = mags[order], feats[order]
+    grid_m, grid_f = _dense_curve(mags, feats)
+    chi2 = (((vec[None, :] - grid_f) / sigmas[None, :]) ** 2).sum(axis=1)
+    i = int(np.argmin(chi2))
+    return float(grid_m[i]), float(chi2[i])
+
+
+def _dense_curve(mags: np.ndarray, feats: np.ndarray, per_step: int = 40) -> tuple[np.ndarray, np.ndarray]:
+    """The table's magnitude curve with the origin added, resampled densely for the fit."""
+    if not np.any(mags == 0):
+        k = np.searchsorted(mags, 0.0)
+        mags = np.insert(mags, k, 0.0)
+        feats = np.insert(feats, k, np.zeros(feats.shape[1]), axis=0)
+    t = np.linspace(0, len(mags) - 1, (len(mags) - 1) * per_step + 1)
+    i0 = np.clip(np.floor(t).astype(int), 0, len(mags) - 2)
+    w = (t - i0)[:, None]
+    return mags[i0] * (1 - w[:, 0]) + mags[i0 + 1] * w[:, 0], feats[i0] * (1 - w) + feats[i0 + 1] * w
+
+
+def classify(table: SignatureTable, vec: np.ndarray, shift_dir: float, sigmas: np.ndarray):
+    """(type, magnitude, unit, direction, alternatives) for one lens' feature changes."""
+    fits = {k: fit_kind(table, k, vec, sigmas) for k in table.magnitudes}
+    best = min(fits, key=lambda k: fits[k][1])
+    kind = KIND_BY_NAME[best]
+    direction = (shift_dir - table.phi0_deg[best]) % 360.0 if kind.directional else None
+    alternatives: tuple = ()
+    if best in ("pitch", "decenter") and "pitch" in fits and "decenter" in fits:
+        other = "decenter" if best == "pitch" else "pitch"
+        if fits[other][1] - fits[best][1] < _CHI2_AMBIGUOUS:
+            alt_dir = (shift_dir - table.phi0_deg[other]) % 360.0
+            alternatives = ((other, fits[other][0], "µm", alt_dir),)
+            return "position", fits[best][0], "µm", direction, ((best, fits[best][0], "µm", direction),) + alternatives
+    return best, fits[best][0], kind.unit, direction, alternatives
+
+
+def tolerance_for(error_type: str, qc: QC) -> float:
+    """The QC limit of a type, in its unit (radius errors are relative)."""
+    return {"pitch": qc.pitch_um, "position": qc.pitch_um, "decenter": qc.decenter_um, "radius": qc.radius_rel,
+            "tilt": qc.tilt_deg, "thickness": qc.thickness_um}.get(error_type, 0.0)
+
+
+def identify(metrics: LensMetrics, missing: np.ndarray, qc: QC, table: SignatureTable):
+    """Flag, classify and size the defective lenses; returns (defects, flagged mask, type per lens)."""
+    dev, sig = deviations(metrics)
+    score = detection_score(dev, sig)
+    flagged = (score > qc.detect_sigma) | missing
+    sigmas = _feature_sigmas(sig)
+    error_type = np.full(flagged.shape, "", dtype=object)
+    defects = []
+    for m, n in zip(*np.nonzero(flagged)):
+        indexes = metrics.at(m + 1, n + 1)
+        if missing[m, n]:
+            defects.append(Defect(int(m) + 1, int(n) + 1, "missing", float("nan"), "", None, float("inf"), False, indexes))
+            error_type[m, n] = "missing"
+            continue
+        vec, shift_dir = _feature_vector(dev, m, n)
+        kind, mag, unit, direction, alts = classify(table, vec, shift_dir, sigmas)
+        limit = tolerance_for(kind, qc)
+        defects.append(Defect(int(m) + 1, int(n) + 1, kind, mag, unit, direction, float(score[m, n]),
+                              abs(mag) <= limit, indexes, alternatives=alts))
+        error_type[m, n] = kind
+    return tuple(defects), flagged, error_type, score
+
+
+__all__ = ["identify", "classify", "deviations", "detection_score", "FEATURES"]

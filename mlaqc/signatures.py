@@ -1,0 +1,192 @@
+"""Signature table of the inverse model: how each error type, at each magnitude, changes a lens' indexes.
+
+Rendered by the tracer on a 9 x 9-lens patch of the camera (same optics, geometry and pixels), the error
+on the centre lens and the same random draws with and without it, so the differences are nearly free of
+Monte-Carlo noise. Directional errors are rendered at direction 0; their features are taken along and
+across the shift they cause, so a measured lens is compared after rotating into its own shift direction.
+Cached on disk keyed by the optics; the default camera's table ships in the package.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import json
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+
+from mlaqc.atomic import write_json_atomic
+from mlaqc.config import CameraConfig
+from mlaqc.errormap import ErrorMap
+from mlaqc.metrics import compute_metrics
+from mlaqc.reference import PACKAGE_DATA, ReferenceModel, build_reference, cache_dir
+from mlaqc.render import Renderer
+from mlaqc.scene import WhiteScene
+
+FEATURES = ("shift_par", "shift_perp", "asym_par", "asym_perp", "blur", "flux", "ssim", "sharpness")
+PATCH = 9
+TABLE_VERSION = 1
+
+
+@dataclass(frozen=True)
+class ErrorKind:
+    """One error type of the table: magnitudes rendered, their unit, and the error-map fields."""
+
+    name: str
+    magnitudes: tuple[float, ...]
+    unit: str
+    directional: bool
+    fields: Callable[[float], dict[str, float]]
+
+
+KINDS = (
+    ErrorKind("pitch", (0.5, 1.0, 2.0, 3.0, 5.0, 8.0), "µm", True, lambda v: {"pitch_um": v, "pitch_dir_deg": 0.0}),
+    ErrorKind("decenter", (2.0, 5.0, 8.0, 12.0, 20.0), "µm", True, lambda v: {"decenter_um": v, "decenter_dir_deg": 0.0}),
+    ErrorKind("radius", (-0.3, -0.2, -0.1, -0.05, -0.02, 0.02, 0.05, 0.1, 0.2, 0.3), "rel", False,
+              lambda v: {"radius_front_rel": v, "radius_back_rel": v}),
+    ErrorKind("tilt", (1.0, 2.0, 4.0, 8.0), "deg", True, lambda v: {"tilt_x_deg": v}),
+    ErrorKind("thickness", (-8.0, -4.0, -2.0, 2.0, 4.0, 8.0), "µm", False, lambda v: {"thickness_um": v}),
+)
+KIND_BY_NAME = {k.name: k for k in KINDS}
+
+
+@dataclass(frozen=True)
+class SignatureTable:
+    """features[kind] is (len(magnitudes), len(FEATURES)); phi0_deg[kind] is the direction of the shift
+    an error at direction 0 causes (so error direction = measured shift direction - phi0)."""
+
+    magnitudes: dict[str, np.ndarray]
+    features: dict[str, np.ndarray]
+    phi0_deg: dict[str, float]
+    key: str
+
+    def to_json_dict(self) -> dict:
+        return {"format": "mlaqc-signatures", "version": TABLE_VERSION, "key": self.key, "features": list(FEATURES),
+                "kinds": {k: {"magnitudes": self.magnitudes[k].tolist(), "features": self.features[k].tolist(),
+                              "phi0_deg": self.phi0_deg[k]} for k in self.magnitudes}}
+
+    @classmethod
+    def from_json_dict(cls, d: dict) -> SignatureTable:
+        kinds = d["kinds"]
+        return cls({k: np.asarray(v["magnitudes"], float) for k, v in kinds.items()},
+                   {k: np.asarray(v["features"], float) for k, v in kinds.items()},
+                   {k: float(v["phi0_deg"]) for k, v in kinds.items()}, d["key"])
+
+
+def signature_key(cfg: CameraConfig) -> str:
+    """Hash of what shapes a single lens' sub-image: optics, geometry, pixel size, Fresnel."""
+    d = cfg.to_dict()
+    mla = {k: v for k, v in d["mla"].items() if k not in ("count_w", "count_h")}
+    keep = {"main_lens": d["main_lens"], "mla": mla, "geometry": d["geometry"], "pixel_um": d["sensor"]["pixel_um"],
+            "fresnel": d["trace"]["fresnel"], "version": TABLE_VERSION}
+    return hashlib.sha256(json.dumps(keep, sort_keys=True).encode()).hexdigest()[:16]
+
+
+def patch_config(cfg: CameraConfig, lenses: int = PATCH) -> CameraConfig:
+    """The same camera cut down to a lenses x lenses MLA on a sensor just large enough."""
+    side = int(np.ceil(lenses * cfg.layout.subimage_pitch_px)) + 16
+    side += side % 2
+    return dataclasses.replace(cfg, mla=dataclasses.replace(cfg.mla, count_w=lenses, count_h=lenses),
+                               sensor=dataclasses.replace(cfg.sensor, width_px=side, height_px=side))
+
+
+def nominal_windows(img: np.ndarray, cfg: CameraConfig, half: int = 10):
+    """(rows, cols, h, w) windows around each lens' nominal sub-image centre, and that centre in window
+    coordinates: for simulated images whose grid is known exactly (signatures, tests)."""
+    rows, cols = cfg.mla.count_h, cfg.mla.count_w
+    pitch = cfg.layout.subimage_pitch_px
+    m, n = np.meshgrid(np.arange(rows), np.arange(cols), indexing="ij")
+    gx = (img.shape[1] - 1) / 2 + (n - (cols - 1) / 2) * pitch
+    gy = (img.shape[0] - 1) / 2 + (m - (rows - 1) / 2) * pitch
+    ox, oy = np.rint(gx).astype(int) - half, np.rint(gy).astype(int) - half
+    ii = oy[..., None, None] + np.arange(2 * half + 1)[:, None]
+    jj = ox[..., None, None] + np.arange(2 * half + 1)[None, :]
+    ok = (ii >= 0) & (ii < img.shape[0]) & (jj >= 0) & (jj < img.shape[1])
+    win = np.where(ok, img[np.clip(ii, 0, img.shape[0] - 1), np.clip(jj, 0, img.shape[1] - 1)], np.nan)
+    return win, gx - ox, gy - oy
+
+
+def um_per_px_at_mla(cfg: CameraConfig) -> float:
+    """A sub-image shift of 1 px corresponds to this many µm of lens shift in the MLA plane."""
+    return cfg.sensor.pixel_um * (cfg.mla.pitch_um / cfg.sensor.pixel_um) / cfg.layout.subimage_pitch_px
+
+
+def lens_features(metrics, m: int, n: int, direction_deg: float | None = None) -> np.ndarray:
+    """FEATURES of lens [m, n] (0-based); shift/asymmetry taken along/across `direction_deg` (image
+    convention, counterclockwise from +x towards the top) or along the lens' own shift if None."""
+    dx, dy = metrics["offset_x_px"][m, n], metrics["offset_y_px"][m, n]
+    if direction_deg is None:
+        ux, uy = (dx, dy) / max(np.hypot(dx, dy), 1e-12)
+    else:
+        a = np.radians(direction_deg)
+        ux, uy = np.cos(a), -np.sin(a)
+    ax, ay = metrics["asym_x"][m, n], metrics["asym_y"][m, n]
+    return np.array([dx * ux + dy * uy, dy * ux - dx * uy, ax * ux + ay * uy, ay * ux - ax * uy,
+                     metrics["blur"][m, n], metrics["flux"][m, n], metrics["ssim"][m, n], metrics["sharpness"][m, n]])
+
+
+def build_signatures(cfg: CameraConfig, *, rays_per_pixel: float = 400.0, kinds=KINDS, seed: int = 99,
+                     model: ReferenceModel | None = None, progress=None) -> SignatureTable:
+    """Render every kind at every magnitude on the patch and tabulate the feature changes."""
+    patch = patch_config(cfg)
+    model = model or build_reference(patch, rays_per_lens=2_000_000)
+    c = PATCH // 2
+    um_px = um_per_px_at_mla(patch)
+
+    def metrics_for(errors: ErrorMap):
+        img = Renderer(patch, errors).render(WhiteScene(), rays_per_pixel=rays_per_pixel, seed=seed).photons
+        win, cx, cy = nominal_windows(img / img.max(), patch)
+        return compute_metrics(win, cx, cy, model, um_per_px_at_mla=um_px)
+
+    base = lens_features(metrics_for(ErrorMap.zeros(PATCH, PATCH)), c, c, 0.0)
+    mags, feats, phi0 = {}, {}, {}
+    total, done = sum(len(k.magnitudes) for k in kinds), 0
+    for kind in kinds:
+        mets = []
+        for v in kind.magnitudes:
+            mets.append(metrics_for(ErrorMap.zeros(PATCH, PATCH).with_lens(c + 1, c + 1, **kind.fields(v))))
+            done += 1
+            if progress:
+                progress(done, total)
+        phi = 0.0
+        if kind.directional:  # features are taken along the shift that an error at direction 0 causes
+            big = mets[len(mets) // 2:]
+            phi = float(np.degrees(np.angle(sum(np.exp(1j * np.arctan2(-m_["offset_y_px"][c, c], m_["offset_x_px"][c, c]))
+                                                    for m_ in big))))
+        base_phi = lens_features_base(base, phi)
+        mags[kind.name] = np.asarray(kind.magnitudes, float)
+        feats[kind.name] = np.asarray([lens_features(m_, c, c, phi) - base_phi for m_ in mets])
+        phi0[kind.name] = phi
+    return SignatureTable(mags, feats, phi0, signature_key(cfg))
+
+
+def lens_features_base(base_dir0: np.ndarray, phi_deg: float) -> np.ndarray:
+    """The perfect lens' features seen along direction phi (only the vector parts rotate)."""
+    out = base_dir0.copy()
+    a = np.radians(phi_deg)
+    c, s = np.cos(a), np.sin(a)
+    sx, sy = base_dir0[0], base_dir0[1]
+    ax, ay = base_dir0[2], base_dir0[3]
+    out[0], out[1] = sx * c + sy * s, sy * c - sx * s
+    out[2], out[3] = ax * c + ay * s, ay * c - ax * s
+    return out
+
+
+def signature_table(cfg: CameraConfig, *, build_if_missing: bool = True, progress=None) -> SignatureTable:
+    """The table for `cfg`'s optics: from the package, else the disk cache, else rendered and cached."""
+    key = signature_key(cfg)
+    for folder in (PACKAGE_DATA, cache_dir()):
+        path = folder / f"signatures_{key}.json"
+        if path.is_file():
+            return SignatureTable.from_json_dict(json.loads(path.read_text()))
+    if not build_if_missing:
+        raise FileNotFoundError(f"no signature table for optics {key}")
+    table = build_signatures(cfg, progress=progress)
+    try:
+        cache_dir().mkdir(parents=True, exist_ok=True)
+        write_json_atomic(cache_dir() / f"signatures_{key}.json", table.to_json_dict())
+    except OSError:
+        pass
+    return table
