@@ -1,0 +1,956 @@
+"""Headless XY scans: move, settle, capture, write atomically, record in a fsync'd manifest; resumable.
+
+Plan (TOML; see fixtures/scan_plan_raster.toml and fixtures/scan_plan_list.toml)::
+
+    [scan]                      # every key optional
+    settle_s = 0.05             # wait after each move before capturing (s, >= 0)
+    frames_per_position = 1     # raw files per position
+    average = 1                 # frames averaged into each file
+    retries = 3                 # extra attempts per position after a device error
+    retry_delay_s = 0.5         # pause before a retry (s, >= 0)
+    move_timeout_s = 30.0       # deadline of each move (s, > 0)
+    capture_timeout_s = 5.0     # deadline of each frame (s, > 0)
+    home = "auto"               # auto: home if not homed (also after a reconnect); always; never
+    format = "tiff"             # tiff or dng
+    exposure_us = 10000.0       # optional, set once (and after every camera reopen)
+    gain = 1.0                  # optional
+
+    [raster]                    # either a raster ...
+    origin_mm = [10.0, 10.0]    # first position (x, y)
+    step_mm = [5.0, 5.0]        # spacing along x and y (may be negative)
+    count = [3, 3]              # positions along x and y
+    serpentine = true           # reverse every other line (default true)
+    fast_axis = "x"             # the axis that changes from one position to the next (default x)
+
+    [[positions]]               # ... or an explicit list, in order
+    x_mm = 10.0
+    y_mm = 10.0
+    label = "W(1,1)"            # optional; default p00001, p00002, ...
+
+Every key is checked; an error names it (``scan plan 'p.toml': key 'raster.count' must be ...``).
+
+Output folder: ``pos_NNNNN.tiff`` (``pos_NNNNN_fK.tiff`` with several frames per position; N is the
+1-based index in plan order) with ``.meta.json`` sidecars (see drivers.capture), ``manifest.jsonl``
+and ``events.jsonl``.
+
+Manifest (JSON Lines, the source of truth for --resume): line 1 is the header
+``{"type": "header", "format": "mlaqc-scan-manifest", "version": 1, "plan_digest", "plan", "camera",
+"stage", "camera_settings", "created", "truth", "truth_digest", "versions"}`` (`truth` is the camera's ground truth when it
+has one, e.g. the mock's wafer: every array's position and error map) and ``camera_settings`` (the
+camera's settings read back at the start; the mock's include its camera config). Then exactly one line per completed
+position, appended and fsync'd only after its frames and sidecars are on disk:
+``{"type": "position", "index", "label", "target_mm", "position_mm" (read back), "files": [{"file",
+"sha256", "bytes", "sidecar", "sequence", "warnings"}], "attempts", "completed", "timing_s": {"move",
+"settle", "capture", "write", "recover", "total"}, "truth"}`` (`truth`: which wafer array the frame shows
+and its offset, from the mock camera).
+
+Resume: positions with a record whose files still match their checksums are skipped; a record whose
+files are missing or altered, a torn last line (a kill mid-append) and leftover temporary files are
+dropped, and the manifest is rewritten atomically without them; a frame on disk without a record (a
+kill between the frame write and the manifest append) is simply captured again and overwritten.
+A plan with other positions or capture settings than the header's is refused.
+
+Faults: a DeviceError while moving or capturing makes the position retry up to `retries` times; before
+each retry the failed device is reconnected (stage: closed and reopened from its URL, then homed; camera:
+`reopen()`, exposure and gain re-applied). When the retries are used up, or on Ctrl-C, the stage is
+stopped, the manifest is left consistent and ScanFailed (DeviceError, exit 3) or ScanInterrupted (exit
+130) says in one sentence where the scan stopped and that --resume continues it.
+
+Inspection: `inspect` is a callable ``(frame: ScanFrame) -> dict | None`` run for each raw file right
+after its position is recorded (a ScanFrame carries the raw and sidecar paths, the manifest record and
+the manifest header with the camera's settings and ground truth); a returned dict is written to
+``<raw name>.inspect.json``. An exception in it is logged as an ``inspect_failed`` event and the scan goes
+on (the frame is already safe). `default_inspect_hook()` finds ``mlaqc.inspect.scan_frame_hook`` once the
+inspection pipeline provides it, else returns None (``mlaqc scan --inspect`` then says so and scans).
+"""
+
+from __future__ import annotations
+
+import datetime as _dt
+import hashlib
+import importlib
+import json
+import logging
+import math
+import os
+import time
+import tomllib
+from collections.abc import Callable
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any
+
+from drivers.camera import camera_from_url
+from drivers.camera.base import Camera
+from drivers.capture import (MAX_AVERAGE, SavedFrame, jsonable, check_out_dir, file_suffix, grab, load_sidecar,
+                             save_frame, sha256_file, versions)
+from mlaqc.atomic import write_bytes_atomic, write_json_atomic
+from mlaqc.errors import DeviceError, InputError, MlaqcError
+
+log = logging.getLogger(__name__)
+
+MANIFEST_NAME = "manifest.jsonl"
+EVENTS_NAME = "events.jsonl"
+MANIFEST_FORMAT = "mlaqc-scan-manifest"
+MAX_POSITIONS = 1_000_000
+MAX_FRAMES_PER_POSITION = 100
+HOME_CHOICES = ("auto", "always", "never")
+SCAN_KEYS = {"settle_s", "frames_per_position", "average", "retries", "retry_delay_s", "move_timeout_s",
+             "capture_timeout_s", "home", "format", "exposure_us", "gain"}
+RASTER_KEYS = {"origin_mm", "step_mm", "count", "serpentine", "fast_axis"}
+POSITION_KEYS = {"x_mm", "y_mm", "label"}
+HOME_TIMEOUT_S = 120.0
+READBACK_TIMEOUT_S = 5.0
+
+
+
+@dataclass(frozen=True)
+class ScanFrame:
+    """What an inspection hook gets for each raw file of a recorded position."""
+
+    path: Path  # the raw file
+    sidecar: Path  # its .meta.json
+    record: dict[str, Any]  # the position's manifest record
+    header: dict[str, Any]  # the manifest header: plan, camera URL and settings, ground truth (mock)
+    out_dir: Path
+
+
+InspectHook = Callable[[ScanFrame], "dict | None"]
+
+
+class ScanFailed(DeviceError):
+    """The scan stopped because a device kept failing at one position (exit status 3)."""
+
+
+class ScanInterrupted(MlaqcError, KeyboardInterrupt):
+    """Ctrl-C stopped the scan; the stage was stopped and the manifest is consistent (exit status 130)."""
+
+    exit_status = 130
+
+
+# --------------------------------------------------------------------------------------------- plan
+
+
+@dataclass(frozen=True)
+class PlanPosition:
+    """One stop of the scan: its 0-based index in plan order, target (mm) and label."""
+
+    index: int
+    x_mm: float
+    y_mm: float
+    label: str
+
+    def file_names(self, frames: int, suffix: str) -> list[str]:
+        """Raw file names of this position's frames."""
+        base = f"pos_{self.index + 1:05d}"
+        if frames == 1:
+            return [base + suffix]
+        return [f"{base}_f{k}{suffix}" for k in range(1, frames + 1)]
+
+
+@dataclass(frozen=True)
+class ScanPlan:
+    """A validated scan plan: positions in order plus how to capture at each."""
+
+    positions: tuple[PlanPosition, ...]
+    settle_s: float = 0.05
+    frames_per_position: int = 1
+    average: int = 1
+    retries: int = 3
+    retry_delay_s: float = 0.5
+    move_timeout_s: float = 30.0
+    capture_timeout_s: float = 5.0
+    home: str = "auto"
+    file_format: str = "tiff"
+    exposure_us: float | None = None
+    gain: float | None = None
+    kind: str = "list"
+    source: str = "plan"
+
+    @property
+    def suffix(self) -> str:
+        return file_suffix(self.file_format)
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON form (for the manifest header)."""
+        d = asdict(self)
+        d["positions"] = [[p.x_mm, p.y_mm, p.label] for p in self.positions]
+        return d
+
+    @property
+    def digest(self) -> str:
+        """sha256 over what ends up on disk: positions, labels, frames, averaging and file format.
+
+        Timing, retries and settings that do not change which files exist may differ between a scan
+        and its resumption."""
+        key = {"positions": [[p.x_mm, p.y_mm, p.label] for p in self.positions],
+               "frames_per_position": self.frames_per_position, "average": self.average,
+               "format": self.file_format}
+        return hashlib.sha256(json.dumps(key, sort_keys=True).encode()).hexdigest()
+
+
+class _Checker:
+    """Typed access to one plan table; InputError naming the key."""
+
+    def __init__(self, source: str, section: str, table: Any, allowed: set[str]) -> None:
+        self.source, self.section = source, section
+        if not isinstance(table, dict):
+            raise self.error(section, "must be a table")
+        unknown = sorted(set(table) - allowed)
+        if unknown:
+            raise InputError(f"scan plan {source!r}: unknown key '{section}.{unknown[0]}'; expected some of "
+                             f"{', '.join(sorted(allowed))}")
+        self.table = table
+
+    def error(self, key: str, what: str, value: Any = None) -> InputError:
+        got = "" if value is None else f", got {value!r}"
+        return InputError(f"scan plan {self.source!r}: key '{key}' {what}{got}")
+
+    def key(self, name: str) -> str:
+        return f"{self.section}.{name}" if self.section else name
+
+    def number(self, name: str, default: float | None, *, minimum: float = 0.0, strict: bool = False) -> float | None:
+        if name not in self.table:
+            return default
+        value = self.table[name]
+        ok = isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
+        if not ok or value < minimum or (strict and value <= minimum):
+            bound = f"greater than {minimum:g}" if strict else f"at least {minimum:g}"
+            raise self.error(self.key(name), f"must be a number {bound}", value)
+        return float(value)
+
+    def integer(self, name: str, default: int, minimum: int, maximum: int) -> int:
+        if name not in self.table:
+            return default
+        value = self.table[name]
+        if isinstance(value, bool) or not isinstance(value, int) or not minimum <= value <= maximum:
+            raise self.error(self.key(name), f"must be a whole number from {minimum} to {maximum}", value)
+        return value
+
+    def choice(self, name: str, default: str, choices: tuple[str, ...]) -> str:
+        if name not in self.table:
+            return default
+        value = self.table[name]
+        if value not in choices:
+            raise self.error(self.key(name), f"must be one of {', '.join(repr(c) for c in choices)}", value)
+        return value
+
+    def boolean(self, name: str, default: bool) -> bool:
+        if name not in self.table:
+            return default
+        value = self.table[name]
+        if not isinstance(value, bool):
+            raise self.error(self.key(name), "must be true or false", value)
+        return value
+
+    def pair(self, name: str, *, integer: bool = False, required: bool = True) -> tuple[Any, Any]:
+        if name not in self.table:
+            if required:
+                raise self.error(self.key(name), "is missing")
+            return None  # type: ignore[return-value]
+        value = self.table[name]
+        kind = int if integer else (int, float)
+        ok = (isinstance(value, list) and len(value) == 2
+              and all(isinstance(v, kind) and not isinstance(v, bool) for v in value)
+              and all(math.isfinite(v) for v in value))
+        if not ok:
+            what = "two whole numbers [x, y]" if integer else "two numbers [x, y] in mm"
+            raise self.error(self.key(name), f"must be a list of {what}", value)
+        return value[0], value[1]
+
+
+def load_plan(path: str | os.PathLike[str]) -> ScanPlan:
+    """Read and validate a scan plan TOML; InputError naming the file and key at fault."""
+    p = Path(path)
+    try:
+        data = tomllib.loads(p.read_bytes().decode("utf-8"))
+    except FileNotFoundError:
+        raise InputError(f"scan plan {str(p)!r} does not exist") from None
+    except IsADirectoryError:
+        raise InputError(f"scan plan {str(p)!r} is a folder, not a TOML file") from None
+    except (OSError, UnicodeDecodeError) as exc:
+        raise InputError(f"scan plan {str(p)!r} cannot be read ({exc.__class__.__name__})") from None
+    except tomllib.TOMLDecodeError as exc:
+        raise InputError(f"scan plan {str(p)!r} is not valid TOML: {exc}") from None
+    return plan_from_dict(data, str(p))
+
+
+def plan_from_dict(data: dict[str, Any], source: str = "plan") -> ScanPlan:
+    """Build a validated ScanPlan from the TOML tables."""
+    _Checker(source, "", data, {"scan", "raster", "positions"})  # unknown top-level keys
+    s = _Checker(source, "scan", data.get("scan", {}), SCAN_KEYS)
+    if ("raster" in data) == ("positions" in data):
+        raise InputError(f"scan plan {source!r} needs exactly one of a [raster] table or a [[positions]] list")
+    if "raster" in data:
+        positions, kind = _raster(source, data["raster"]), "raster"
+    else:
+        positions, kind = _position_list(source, data["positions"]), "list"
+    frames = s.integer("frames_per_position", 1, 1, MAX_FRAMES_PER_POSITION)
+    file_format = s.choice("format", "tiff", ("tiff", "dng"))
+    return ScanPlan(
+        positions=tuple(positions),
+        settle_s=s.number("settle_s", 0.05, minimum=0.0),
+        frames_per_position=frames,
+        average=s.integer("average", 1, 1, MAX_AVERAGE),
+        retries=s.integer("retries", 3, 0, 100),
+        retry_delay_s=s.number("retry_delay_s", 0.5, minimum=0.0),
+        move_timeout_s=s.number("move_timeout_s", 30.0, minimum=0.0, strict=True),
+        capture_timeout_s=s.number("capture_timeout_s", 5.0, minimum=0.0, strict=True),
+        home=s.choice("home", "auto", HOME_CHOICES),
+        file_format=file_format,
+        exposure_us=s.number("exposure_us", None, minimum=0.0, strict=True),
+        gain=s.number("gain", None, minimum=0.0, strict=True),
+        kind=kind,
+        source=source,
+    )
+
+
+def _raster(source: str, table: Any) -> list[PlanPosition]:
+    r = _Checker(source, "raster", table, RASTER_KEYS)
+    ox, oy = r.pair("origin_mm")
+    sx, sy = r.pair("step_mm")
+    nx, ny = r.pair("count", integer=True)
+    if nx < 1 or ny < 1 or nx * ny > MAX_POSITIONS:
+        raise r.error("raster.count", f"must be at least [1, 1] and at most {MAX_POSITIONS} positions in all",
+                      table["count"])
+    if (nx > 1 and sx == 0) or (ny > 1 and sy == 0):
+        raise r.error("raster.step_mm", "must be non-zero along an axis with more than one position", table["step_mm"])
+    serpentine = r.boolean("serpentine", True)
+    fast = r.choice("fast_axis", "x", ("x", "y"))
+    n_fast, n_slow = (nx, ny) if fast == "x" else (ny, nx)
+    positions = []
+    for slow in range(n_slow):
+        order = range(n_fast)
+        if serpentine and slow % 2:
+            order = reversed(order)
+        for fast_i in order:
+            i, j = (fast_i, slow) if fast == "x" else (slow, fast_i)
+            x, y = ox + i * sx, oy + j * sy
+            positions.append(PlanPosition(len(positions), round(x, 9), round(y, 9), f"r{j + 1:03d}c{i + 1:03d}"))
+    return positions
+
+
+def _position_list(source: str, items: Any) -> list[PlanPosition]:
+    if not isinstance(items, list) or not items:
+        raise InputError(f"scan plan {source!r}: key 'positions' must be a non-empty list of "
+                         "[[positions]] tables with x_mm and y_mm")
+    if len(items) > MAX_POSITIONS:
+        raise InputError(f"scan plan {source!r}: key 'positions' has more than {MAX_POSITIONS} entries")
+    positions, labels = [], set()
+    for k, item in enumerate(items):
+        c = _Checker(source, f"positions[{k}]", item, POSITION_KEYS)
+        for name in ("x_mm", "y_mm"):
+            if name not in item:
+                raise c.error(c.key(name), "is missing")
+        x = c.number("x_mm", None, minimum=-math.inf)
+        y = c.number("y_mm", None, minimum=-math.inf)
+        label = item.get("label", f"p{k + 1:05d}")
+        if not isinstance(label, str) or not label.strip() or len(label) > 100:
+            raise c.error(c.key("label"), "must be a non-empty string of at most 100 characters", label)
+        if label in labels:
+            raise c.error(c.key("label"), "repeats an earlier label", label)
+        labels.add(label)
+        positions.append(PlanPosition(k, float(x), float(y), label))
+    return positions
+
+
+# --------------------------------------------------------------------------------------------- manifest
+
+
+def _now_iso() -> str:
+    return _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="milliseconds")
+
+
+def _fsync_dir(path: Path) -> None:
+    """Make renames and new names in `path` durable."""
+    try:
+        fd = os.open(path, os.O_RDONLY)
+    except OSError:
+        return
+    try:
+        os.fsync(fd)
+    except OSError:
+        pass
+    finally:
+        os.close(fd)
+
+
+@dataclass
+class ManifestData:
+    """A manifest as read: header, position records in file order, and whether the last line was torn."""
+
+    header: dict[str, Any]
+    records: list[dict[str, Any]]
+    torn: bool = False
+
+
+def read_manifest(path: str | os.PathLike[str]) -> ManifestData:
+    """Parse a manifest; a torn (unterminated or unparsable) last line is reported, not fatal."""
+    p = Path(path)
+    try:
+        blob = p.read_bytes()
+    except FileNotFoundError:
+        raise InputError(f"scan manifest {str(p)!r} does not exist") from None
+    except OSError as exc:
+        raise InputError(f"scan manifest {str(p)!r} cannot be read ({exc.strerror or exc})") from None
+    lines = blob.split(b"\n")
+    torn = False
+    if lines and lines[-1] == b"":
+        lines.pop()
+    elif lines:
+        torn = True  # the last line has no newline: an append was cut short
+    parsed = []
+    for k, line in enumerate(lines):
+        try:
+            obj = json.loads(line)
+            if not isinstance(obj, dict):
+                raise ValueError("not an object")
+        except (ValueError, UnicodeDecodeError):
+            if k == len(lines) - 1:
+                torn = True
+                continue
+            raise InputError(f"scan manifest {str(p)!r} is damaged at line {k + 1}; it cannot be resumed") from None
+        parsed.append(obj)
+    if torn and parsed and len(parsed) == len(lines):
+        parsed.pop()  # an unterminated line that happens to parse is still an unfinished append
+    if not parsed or parsed[0].get("type") != "header" or parsed[0].get("format") != MANIFEST_FORMAT:
+        raise InputError(f"{str(p)!r} is not an mlaqc scan manifest (no header line)")
+    records = []
+    for k, obj in enumerate(parsed[1:], start=2):
+        if obj.get("type") != "position" or not isinstance(obj.get("index"), int) or not isinstance(obj.get("files"), list):
+            raise InputError(f"scan manifest {str(p)!r} has an unknown record at line {k}; it cannot be resumed")
+        records.append(obj)
+    return ManifestData(parsed[0], records, torn)
+
+
+def _manifest_bytes(header: dict[str, Any], records: list[dict[str, Any]]) -> bytes:
+    return "".join(json.dumps(r, separators=(",", ":"), allow_nan=False) + "\n" for r in [header, *records]).encode()
+
+
+class _ManifestWriter:
+    """Appends one fsync'd line per completed position."""
+
+    def __init__(self, path: Path) -> None:
+        self.path = path
+        self._fh = open(path, "ab")
+
+    def append(self, record: dict[str, Any]) -> None:
+        line = (json.dumps(record, separators=(",", ":"), allow_nan=False) + "\n").encode()
+        self._fh.write(line)
+        self._fh.flush()
+        os.fsync(self._fh.fileno())
+
+    def close(self) -> None:
+        self._fh.close()
+
+
+def verify_record(out_dir: Path, record: dict[str, Any]) -> str | None:
+    """None if every file of a manifest record exists and matches its recorded checksum; else why not."""
+    for item in record.get("files", []):
+        name = item.get("file")
+        if not isinstance(name, str) or "/" in name or name.startswith("."):
+            return f"record {record.get('index')} names a bad file {name!r}"
+        path = out_dir / name
+        if not path.is_file():
+            return f"{name} is missing"
+        if sha256_file(path) != item.get("sha256"):
+            return f"{name} does not match its recorded checksum"
+        try:
+            side = load_sidecar(path)
+        except InputError as exc:
+            return str(exc)
+        if side.get("sha256") != item.get("sha256"):
+            return f"the sidecar of {name} does not match its recorded checksum"
+    return None
+
+
+def verify_scan(out_dir: str | os.PathLike[str]) -> list[str]:
+    """Problems with a finished scan folder: missing, altered or duplicated frames, stray temporary files."""
+    out = Path(out_dir)
+    data = read_manifest(out / MANIFEST_NAME)
+    problems = []
+    if data.torn:
+        problems.append("the manifest's last line is torn")
+    seen: set[int] = set()
+    for rec in data.records:
+        if rec["index"] in seen:
+            problems.append(f"position {rec['index'] + 1} is recorded twice")
+        seen.add(rec["index"])
+        why = verify_record(out, rec)
+        if why:
+            problems.append(f"position {rec['index'] + 1}: {why}")
+    total = len(data.header.get("plan", {}).get("positions", []))
+    missing = total - len(seen)
+    if missing:
+        problems.append(f"{missing} of {total} positions have no record")
+    problems += [f"stray temporary file {p.name}" for p in _temp_files(out)]
+    return problems
+
+
+def _temp_files(out: Path) -> list[Path]:
+    """Leftovers of atomic writes cut short (mlaqc.atomic names them '.<name>.<random>.part<suffix>')."""
+    return sorted(p for p in out.glob(".*.part*") if p.is_file())
+
+
+# --------------------------------------------------------------------------------------------- runner
+
+
+@dataclass
+class ScanResult:
+    """What a scan run did."""
+
+    out_dir: Path
+    manifest: Path
+    total: int
+    resumed: int = 0  # positions already complete when this run started
+    captured: int = 0  # positions completed by this run
+    retries: int = 0
+    reconnects: dict[str, int] = field(default_factory=lambda: {"stage": 0, "camera": 0})
+    warnings: int = 0
+    inspected: int = 0
+    inspect_failures: int = 0
+    elapsed_s: float = 0.0  # the whole run, device opening included
+    loop_s: float = 0.0  # time in the position loop
+    motion_s: float = 0.0  # move + settle inside the loop
+    home_s: float = 0.0
+
+    @property
+    def done(self) -> int:
+        return self.resumed + self.captured
+
+    @property
+    def positions_per_s_excl_motion(self) -> float:
+        """Positions completed per second of loop time not spent moving or settling."""
+        busy = self.loop_s - self.motion_s
+        return self.captured / busy if busy > 0 else math.nan
+
+    def summary(self) -> str:
+        """One line for the CLI."""
+        rate = self.positions_per_s_excl_motion
+        rate_text = f"{rate:.1f} positions/s excluding motion" if math.isfinite(rate) else "no positions captured"
+        return (f"scan complete: {self.done} of {self.total} positions in {self.out_dir} "
+                f"({self.captured} captured now, {self.resumed} already done, {self.retries} retries, "
+                f"{self.reconnects['stage']} stage and {self.reconnects['camera']} camera reconnects, "
+                f"{self.warnings} frame warnings); {self.elapsed_s:.1f} s in all, {self.motion_s:.1f} s moving and "
+                f"settling, {rate_text}")
+
+
+class ScanRunner:
+    """Runs one scan plan into one folder; see the module docstring for the guarantees.
+
+    `camera` and `stage` are device URLs (the runner opens, reopens and closes them) or open objects
+    (the runner reconnects them in place and leaves them open). `before_position(runner, position)` is
+    called before each position is attempted (a test hook for fault injection); `on_event(dict)` sees
+    every event also written to events.jsonl; `progress(done, total)` is called after each position."""
+
+    def __init__(self, plan: ScanPlan, out_dir: str | os.PathLike[str], *, camera: Camera | str, stage: Any,
+                 resume: bool = False, inspect: InspectHook | None = None,
+                 progress: Callable[[int, int], None] | None = None,
+                 before_position: Callable[[ScanRunner, PlanPosition], None] | None = None,
+                 on_event: Callable[[dict[str, Any]], None] | None = None) -> None:
+        self.plan = plan
+        self.out = Path(out_dir)
+        self.resume = resume
+        self.inspect = inspect
+        self.progress = progress
+        self.before_position = before_position
+        self.on_event = on_event
+        if isinstance(camera, str):
+            self.camera_url: str | None = camera
+            self.camera: Camera = camera_from_url(camera)  # InputError for a bad URL, before anything else
+            self._own_camera = True
+        else:
+            self.camera_url, self.camera, self._own_camera = None, camera, False
+        if isinstance(stage, str):
+            from drivers.url import parse_device_url
+
+            parse_device_url(stage)
+            self.stage_url: str | None = stage
+            self.stage: Any = None
+            self._own_stage = True
+        else:
+            self.stage_url, self.stage, self._own_stage = None, stage, False
+        self.manifest_path = self.out / MANIFEST_NAME
+        self.result = ScanResult(self.out, self.manifest_path, len(plan.positions))
+        self._done: dict[int, dict[str, Any]] = {}
+        self._header: dict[str, Any] | None = None
+        self._rewrite = False
+        self._writer: _ManifestWriter | None = None
+        self._events = None
+        self._stage_bad = False
+        self._camera_bad = False
+        self._attached = False
+        self._current: PlanPosition | None = None
+        self._pending: list[dict[str, Any]] = []  # events found before events.jsonl is open
+
+    # ------------------------------------------------------------ public
+
+    def run(self) -> ScanResult:
+        """Run (or resume) the scan to the end; raise ScanFailed, ScanInterrupted or InputError."""
+        start = time.monotonic()
+        try:
+            self._read_out_dir()
+            self._open_devices()
+            self._check_limits()
+            self._setup_out_dir()
+            self._event("resume" if self.result.resumed else "start", positions=self.result.total,
+                        done=self.result.resumed, camera=self._camera_label(), stage=self._stage_label())
+            self._loop()
+            self._event("finished", **self._timing())
+            return self.result
+        except KeyboardInterrupt:
+            stopped = self._stop_stage()
+            msg = self._stopped_message("interrupted", stopped)
+            self._event("interrupted", message=msg, **self._timing())
+            raise ScanInterrupted(msg) from None
+        finally:
+            self.result.elapsed_s = time.monotonic() - start
+            self._shutdown()
+
+    # ------------------------------------------------------------ preparation
+
+    def _read_out_dir(self) -> None:
+        """Decide fresh vs resume and load what is already done (read only)."""
+        check_out_dir(self.out)
+        if not self.manifest_path.exists():
+            if self.out.is_dir() and any(self.out.iterdir()):
+                raise InputError(f"output folder {str(self.out)!r} is not empty and holds no scan manifest; "
+                                 "choose an empty or new folder")
+            return
+        if not self.resume:
+            raise InputError(f"output folder {str(self.out)!r} already holds a scan ({MANIFEST_NAME}); pass --resume "
+                             "to continue it or choose another folder")
+        data = read_manifest(self.manifest_path)
+        if data.header.get("plan_digest") != self.plan.digest:
+            raise InputError(f"the scan in {str(self.out)!r} was made with a different plan (other positions, "
+                             "frames, averaging or format); resume it with its own plan or choose another folder")
+        self._header = data.header
+        self._rewrite = data.torn
+        for rec in data.records:
+            index = rec["index"]
+            if not 0 <= index < len(self.plan.positions):
+                raise InputError(f"scan manifest {str(self.manifest_path)!r} records position {index + 1}, "
+                                 "which the plan does not have")
+            if index in self._done:
+                self._rewrite = True
+            why = verify_record(self.out, rec)
+            if why:
+                self._rewrite = True
+                self._done.pop(index, None)
+                self._pending.append({"event": "invalid_record", "index": index, "reason": why})
+                continue
+            self._done[index] = rec
+        self.result.resumed = len(self._done)
+
+    def _open_devices(self) -> None:
+        """Open the camera and the stage (URLs), home if the plan says so, apply exposure and gain."""
+        if self._own_camera or not self.camera.is_open:
+            self.camera.open()
+        if self._own_stage:
+            self.stage = self._open_stage()
+        elif not self.stage.is_connected:
+            self.stage.connect()
+        if self.plan.home == "always" or (self.plan.home == "auto" and not self.stage.homed):
+            self._home()
+        self._apply_camera_settings()
+        attach = getattr(self.camera, "attach_stage", None)
+        if callable(attach):
+            attach(lambda: self.stage.last_position if self.stage is not None else None)
+            self._attached = True
+
+    def _open_stage(self) -> Any:
+        from drivers.stage import open_stage
+
+        return open_stage(self.stage_url)
+
+    def _home(self) -> None:
+        t0 = time.monotonic()
+        self.stage.home(timeout_s=HOME_TIMEOUT_S)
+        self.result.home_s += time.monotonic() - t0
+
+    def _apply_camera_settings(self) -> None:
+        if self.plan.exposure_us is not None:
+            self.camera.set_exposure_us(self.plan.exposure_us)
+        if self.plan.gain is not None:
+            self.camera.set_gain(self.plan.gain)
+
+    def _check_limits(self) -> None:
+        """Refuse the whole plan up front if any position is outside the stage's soft limits."""
+        limits = getattr(self.stage, "limits", None)
+        if limits is None:
+            return
+        for pos in self.plan.positions:
+            if not limits.contains(pos.x_mm, pos.y_mm):
+                raise InputError(f"scan plan {self.plan.source!r}: position {pos.index + 1} ({pos.label}, "
+                                 f"x={pos.x_mm:g} y={pos.y_mm:g} mm) is outside the stage's soft limits ({limits})")
+
+    def _setup_out_dir(self) -> None:
+        """Create the folder and header (fresh) or clean up and compact the manifest (resume)."""
+        self.out.mkdir(exist_ok=True)
+        self._events = open(self.out / EVENTS_NAME, "a", encoding="utf-8")
+        for stray in _temp_files(self.out):
+            stray.unlink(missing_ok=True)
+            self._event("removed_temp_file", file=stray.name)
+        for ev in self._pending:
+            self._event(**ev)
+        if self._header is None:
+            self._header = self._make_header()
+            write_bytes_atomic(self.manifest_path, _manifest_bytes(self._header, []))
+        elif self._rewrite:
+            records = sorted(self._done.values(), key=lambda r: r.get("completed", ""))
+            write_bytes_atomic(self.manifest_path, _manifest_bytes(self._header, records))
+            self._event("manifest_compacted", records=len(records))
+        _fsync_dir(self.out)
+        self._writer = _ManifestWriter(self.manifest_path)
+
+    def _make_header(self) -> dict[str, Any]:
+        truth = None
+        truth_fn = getattr(self.camera, "truth", None)
+        if callable(truth_fn):
+            truth = truth_fn()
+        return {"type": "header", "format": MANIFEST_FORMAT, "version": 1, "plan_digest": self.plan.digest,
+                "plan": self.plan.to_dict(), "camera": self._camera_label(), "stage": self._stage_label(),
+                "camera_settings": jsonable(self.camera.settings()), "created": _now_iso(), "truth": truth,
+                "truth_digest": None if truth is None else hashlib.sha256(
+                    json.dumps(truth, sort_keys=True).encode()).hexdigest(),
+                "versions": versions()}
+
+    def _camera_label(self) -> str:
+        return self.camera_url or self.camera.url
+
+    def _stage_label(self) -> str:
+        return self.stage_url or getattr(self.stage, "url", repr(self.stage))
+
+    # ------------------------------------------------------------ the loop
+
+    def _loop(self) -> None:
+        total = self.result.total
+        loop_start = time.monotonic()
+        try:
+            if self.progress is not None:
+                self.progress(self.result.done, total)
+            for pos in self.plan.positions:
+                if pos.index in self._done:
+                    continue
+                self._current = pos
+                if self.before_position is not None:
+                    self.before_position(self, pos)
+                self._position(pos)
+                if self.progress is not None:
+                    self.progress(self.result.done, total)
+            self._current = None
+        finally:
+            self.result.loop_s += time.monotonic() - loop_start
+
+    def _position(self, pos: PlanPosition) -> None:
+        """Attempt a position until it is recorded or the retries are used up."""
+        attempt = 0
+        while True:
+            attempt += 1
+            phase = ["stage"]
+            try:
+                record = self._attempt(pos, attempt, phase)
+            except DeviceError as exc:
+                device = phase[0]
+                self._event("device_error", index=pos.index, label=pos.label, attempt=attempt, device=device,
+                            error=str(exc))
+                if device == "stage":
+                    self._stage_bad = True
+                else:
+                    self._camera_bad = True
+                if attempt > self.plan.retries:
+                    stopped = self._stop_stage()
+                    msg = self._stopped_message("stopped", stopped, attempts=attempt, error=exc)
+                    self._event("failed", message=msg, **self._timing())
+                    raise ScanFailed(msg) from None
+                self.result.retries += 1
+                if self.plan.retry_delay_s:
+                    time.sleep(self.plan.retry_delay_s)
+                continue
+            self._done[pos.index] = record
+            self.result.captured += 1
+            self._run_inspect(pos, record)
+            return
+
+    def _attempt(self, pos: PlanPosition, attempt: int, phase: list[str]) -> dict[str, Any]:
+        """One try: recover devices, move, settle, read back, capture, write, record."""
+        t0 = time.monotonic()
+        phase[0] = "stage"
+        self._recover_stage()
+        phase[0] = "camera"
+        self._recover_camera()
+        t_recover = time.monotonic() - t0
+        phase[0] = "stage"
+        t1 = time.monotonic()
+        self.stage.move_to(pos.x_mm, pos.y_mm, timeout_s=self.plan.move_timeout_s)
+        t2 = time.monotonic()
+        if self.plan.settle_s:
+            time.sleep(self.plan.settle_s)
+        t3 = time.monotonic()
+        self.result.motion_s += t3 - t1
+        read_back = tuple(float(v) for v in self.stage.position(timeout_s=READBACK_TIMEOUT_S))
+        phase[0] = "camera"
+        grabs = [grab(self.camera, self.plan.average, self.plan.capture_timeout_s)
+                 for _ in range(self.plan.frames_per_position)]
+        t4 = time.monotonic()
+        phase[0] = "write"
+        names = pos.file_names(self.plan.frames_per_position, self.plan.suffix)
+        saved: list[SavedFrame] = []
+        for k, (name, g) in enumerate(zip(names, grabs), start=1):
+            (self.out / (name + ".inspect.json")).unlink(missing_ok=True)
+            context = {"scan": {"index": pos.index, "label": pos.label, "frame": k, "target_mm": [pos.x_mm, pos.y_mm],
+                                "attempt": attempt, "plan_digest": self.plan.digest}}
+            item = save_frame(self.out / name, g, position_mm=read_back, context=context)
+            saved.append(item)
+            for text in item.warnings:
+                self.result.warnings += 1
+                self._event("frame_warning", index=pos.index, file=name, warning=text)
+        _fsync_dir(self.out)
+        t5 = time.monotonic()
+        record: dict[str, Any] = {
+            "type": "position", "index": pos.index, "label": pos.label, "target_mm": [pos.x_mm, pos.y_mm],
+            "position_mm": list(read_back),
+            "files": [{"file": s.path.name, "sha256": s.sha256, "bytes": s.record["bytes"], "sidecar": s.sidecar.name,
+                       "sequence": s.record["sequence"], "warnings": s.warnings} for s in saved],
+            "attempts": attempt, "completed": _now_iso(),
+            "timing_s": {"recover": round(t_recover, 6), "move": round(t2 - t1, 6), "settle": round(t3 - t2, 6),
+                         "capture": round(t4 - t3, 6), "write": round(t5 - t4, 6), "total": round(t5 - t0, 6)},
+        }
+        truth = grabs[0].first.extra.get("truth")
+        if isinstance(truth, dict):
+            record["truth"] = {k: v for k, v in truth.items() if k != "error_map"}
+        self._writer.append(record)
+        return record
+
+    def _recover_stage(self) -> None:
+        """Reconnect (and re-home) the stage after a failure, or if it lost its connection or homing."""
+        if self._stage_bad or not self.stage.is_connected:
+            self.result.reconnects["stage"] += 1
+            self._event("reconnect", device="stage")
+            if self._own_stage:
+                old, self.stage = self.stage, None
+                try:
+                    old.close()
+                except Exception as exc:  # noqa: BLE001 - a dead device may fail to close; we replace it anyway
+                    log.debug("closing the failed stage: %s", exc)
+                self.stage = self._open_stage()
+            elif not self.stage.is_connected:
+                self.stage.connect()  # a stage we were handed: reconnect it in place
+            self._stage_bad = False
+        if not self.stage.homed and self.plan.home != "never":
+            self._home()
+
+    def _recover_camera(self) -> None:
+        """Reopen the camera after a failure (and re-apply exposure and gain)."""
+        if self._camera_bad or not self.camera.is_open:
+            self.result.reconnects["camera"] += 1
+            self._event("reconnect", device="camera")
+            self.camera.reopen(timeout_s=max(self.plan.capture_timeout_s, 1.0))
+            self._apply_camera_settings()
+            self._camera_bad = False
+
+    def _run_inspect(self, pos: PlanPosition, record: dict[str, Any]) -> None:
+        if self.inspect is None:
+            return
+        for item in record["files"]:
+            path = self.out / item["file"]
+            frame = ScanFrame(path, self.out / item["sidecar"], record, self._header or {}, self.out)
+            try:
+                result = self.inspect(frame)
+            except (KeyboardInterrupt, MemoryError):
+                raise
+            except Exception as exc:  # noqa: BLE001 - a failed inspection must not lose the scan
+                self.result.inspect_failures += 1
+                self._event("inspect_failed", index=pos.index, file=item["file"], error=f"{type(exc).__name__}: {exc}")
+                continue
+            self.result.inspected += 1
+            if isinstance(result, dict):
+                write_json_atomic(self.out / (item["file"] + ".inspect.json"), result)
+
+    # ------------------------------------------------------------ stopping
+
+    def _stop_stage(self) -> str | None:
+        """Halt the stage now; None if it is stopped (or was not moving), else why that is not certain."""
+        stage = self.stage
+        if stage is None or not getattr(stage, "is_connected", False):
+            return None
+        try:
+            stage.stop()
+        except Exception as exc:  # noqa: BLE001 - report, never mask the original failure
+            return str(exc).rstrip(".")
+        return None
+
+    def _stopped_message(self, how: str, stop_problem: str | None, *, attempts: int = 0,
+                         error: BaseException | None = None) -> str:
+        pos, total = self._current, self.result.total
+        where = "before the first position"
+        if pos is not None:
+            where = f"at position {pos.index + 1} of {total} ({pos.label}, x={pos.x_mm:g} y={pos.y_mm:g} mm)"
+        cause = ""
+        if error is not None:
+            cause = f" after {attempts} attempt{'s' if attempts != 1 else ''} ({str(error).rstrip('.')})"
+        stage = ("the stage was stopped" if stop_problem is None
+                 else f"the stage may still be moving ({stop_problem})")
+        if self._writer is None and not self.result.resumed:
+            return f"scan {how} {where}{cause}; {stage} and nothing was recorded."
+        return (f"scan {how} {where}{cause}; {stage} and {self.result.done} of {total} positions are recorded in "
+                f"{self.manifest_path}; rerun with --resume to continue.")
+
+    def _timing(self) -> dict[str, Any]:
+        r = self.result
+        return {"captured": r.captured, "resumed": r.resumed, "retries": r.retries, "reconnects": dict(r.reconnects),
+                "loop_s": round(r.loop_s, 3), "motion_s": round(r.motion_s, 3), "home_s": round(r.home_s, 3)}
+
+    def _shutdown(self) -> None:
+        """Close files; detach and close the devices the runner opened."""
+        if self._writer is not None:
+            self._writer.close()
+            self._writer = None
+        if self._attached:
+            try:
+                self.camera.attach_stage(None)  # type: ignore[attr-defined]
+            except Exception:  # noqa: BLE001
+                pass
+        if self._own_camera:
+            self.camera.close()
+        if self._own_stage and self.stage is not None:
+            try:
+                self.stage.close()
+            except Exception as exc:  # noqa: BLE001
+                log.warning("closing the stage: %s", exc)
+        if self._events is not None:
+            self._events.close()
+            self._events = None
+
+    def _event(self, event: str, **fields: Any) -> None:
+        rec = {"time": _now_iso(), "event": event, **fields}
+        if self._events is not None:
+            self._events.write(json.dumps(rec, default=str) + "\n")
+            self._events.flush()
+        if self.on_event is not None:
+            self.on_event(rec)
+
+
+def run_scan(camera: Camera | str, stage: Any, plan: ScanPlan | str | os.PathLike[str], out_dir: str | os.PathLike[str],
+             *, resume: bool = False, inspect: InspectHook | None = None,
+             progress: Callable[[int, int], None] | None = None,
+             before_position: Callable[[ScanRunner, PlanPosition], None] | None = None,
+             on_event: Callable[[dict[str, Any]], None] | None = None) -> ScanResult:
+    """Load the plan (if a path) and run the scan; see ScanRunner."""
+    if not isinstance(plan, ScanPlan):
+        plan = load_plan(plan)
+    runner = ScanRunner(plan, out_dir, camera=camera, stage=stage, resume=resume, inspect=inspect, progress=progress,
+                        before_position=before_position, on_event=on_event)
+    return runner.run()
+
+
+def default_inspect_hook() -> InspectHook | None:
+    """`mlaqc.inspect.scan_frame_hook` once the inspection pipeline provides it; None until then."""
+    try:
+        module = importlib.import_module("mlaqc.inspect")
+    except ModuleNotFoundError as exc:
+        if exc.name in ("mlaqc.inspect", "mlaqc"):
+            return None
+        raise
+    hook = getattr(module, "scan_frame_hook", None)
+    return hook if callable(hook) else None

@@ -1,0 +1,171 @@
+"""A simulated wafer of microlens arrays for mock benches: where each array sits and what is wrong with it.
+
+A wafer holds `cols` x `rows` arrays on a square grid of `pitch_mm`. Array W(m,n) is row m (1 = top) and
+column n (1 = left), like the lens numbering U(m,n); its centre is at stage coordinates
+``x = origin_x + (n - 1) * pitch``, ``y = origin_y + (m - 1) * pitch`` (mm; x right, y down as in the
+raw image). Each array has its own seeded `ErrorMap` (`random_defects`), so a scan over the wafer can be
+checked found-vs-seeded array by array.
+
+The camera looks at the wafer point under the optical axis, which is the stage position: an array
+whose centre is at C appears shifted by ``C - position`` (that is the ErrorMap's global
+``mla_shift_x_um`` / ``mla_shift_y_um``). Only the array nearest the position is drawn; `default_pitch_mm`
+keeps neighbours out of the field of view, so nothing else could be seen anyway.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import math
+from dataclasses import dataclass
+from functools import cached_property
+from typing import Any
+
+import numpy as np
+
+from mlaqc.config import CameraConfig
+from mlaqc.errormap import ERROR_TYPES, ErrorMap, random_defects
+from mlaqc.errors import InputError
+
+TRUTH_FORMAT = "mlaqc-mock-wafer"
+MAX_ARRAYS = 10_000
+
+
+@dataclass(frozen=True)
+class WaferArray:
+    """One microlens array on the wafer: W(m,n), its centre in stage coordinates and its seeded errors."""
+
+    m: int  # row, 1 = top
+    n: int  # column, 1 = left
+    centre_mm: tuple[float, float]
+    seed: int
+    errors: ErrorMap
+
+    @property
+    def name(self) -> str:
+        """'W(m,n)'."""
+        return f"W({self.m},{self.n})"
+
+    @cached_property
+    def error_map_json(self) -> dict[str, Any]:
+        """The ground-truth error map as JSON (computed once)."""
+        return self.errors.to_json_dict()
+
+
+def array_size_mm(cfg: CameraConfig) -> tuple[float, float]:
+    """Width and height of one array (mm)."""
+    return cfg.mla.count_w * cfg.mla.pitch_um * 1e-3, cfg.mla.count_h * cfg.mla.pitch_um * 1e-3
+
+
+def field_size_mm(cfg: CameraConfig) -> tuple[float, float]:
+    """Width and height of the sensor's field at the MLA (mm; the MLA sits roughly on the sensor scale)."""
+    return cfg.sensor.width_px * cfg.sensor.pixel_um * 1e-3, cfg.sensor.height_px * cfg.sensor.pixel_um * 1e-3
+
+
+def default_pitch_mm(cfg: CameraConfig) -> float:
+    """Smallest whole-mm pitch at which a neighbouring array can never enter the field of view."""
+    aw, ah = array_size_mm(cfg)
+    fw, fh = field_size_mm(cfg)
+    return float(math.ceil(max(aw + fw, ah + fh)))
+
+
+def array_seed(seed: int, m: int, n: int) -> int:
+    """The defect seed of array W(m,n) on a wafer made with `seed` (stable across versions)."""
+    digest = hashlib.sha256(f"mlaqc-wafer:{seed}:{m}:{n}".encode()).digest()
+    return int.from_bytes(digest[:4], "little")
+
+
+class Wafer:
+    """`cols` x `rows` arrays of the camera's MLA, `pitch_mm` apart, W(1,1) centred at `origin_mm`."""
+
+    def __init__(self, cfg: CameraConfig, *, cols: int = 1, rows: int = 1, pitch_mm: float | None = None,
+                 origin_mm: tuple[float, float] = (10.0, 10.0), defects: int = 5, seed: int = 0,
+                 defect_types: tuple[str, ...] = ("pitch", "decenter", "radius")) -> None:
+        if not (isinstance(cols, int) and isinstance(rows, int)) or cols < 1 or rows < 1 or cols * rows > MAX_ARRAYS:
+            raise InputError(f"a wafer needs 1..{MAX_ARRAYS} arrays in cols x rows, got {cols}x{rows}")
+        aw, ah = array_size_mm(cfg)
+        pitch = default_pitch_mm(cfg) if pitch_mm is None else float(pitch_mm)
+        if not math.isfinite(pitch) or pitch < max(aw, ah):
+            raise InputError(f"wafer pitch_mm={pitch_mm!r} must be at least the array size "
+                             f"({max(aw, ah):g} mm) so arrays do not overlap")
+        if len(origin_mm) != 2 or not all(math.isfinite(v) for v in origin_mm):
+            raise InputError(f"wafer origin_mm={origin_mm!r} must be two finite numbers (x, y)")
+        bad = [t for t in defect_types if t not in ERROR_TYPES]
+        if bad or not defect_types:
+            raise InputError(f"wafer defect types {list(defect_types)} must be some of {', '.join(ERROR_TYPES)}")
+        if not isinstance(defects, int) or defects < 0:
+            raise InputError(f"wafer defects={defects!r} must be a whole number >= 0")
+        self.cfg = cfg
+        self.cols, self.rows = cols, rows
+        self.pitch_mm = pitch
+        self.origin_mm = (float(origin_mm[0]), float(origin_mm[1]))
+        self.defects = defects
+        self.seed = int(seed)
+        self.defect_types = tuple(defect_types)
+        self._arrays: dict[tuple[int, int], WaferArray] = {}
+
+    def __repr__(self) -> str:
+        return (f"<Wafer {self.cols}x{self.rows} arrays of {self.cfg.mla.count_w}x{self.cfg.mla.count_h} lenses, "
+                f"pitch {self.pitch_mm:g} mm, W(1,1) at {self.origin_mm} mm, {self.defects} defects each>")
+
+    def centre_mm(self, m: int, n: int) -> tuple[float, float]:
+        """Stage position (mm) that centres array W(m,n) in the field of view."""
+        return self.origin_mm[0] + (n - 1) * self.pitch_mm, self.origin_mm[1] + (m - 1) * self.pitch_mm
+
+    def array(self, m: int, n: int) -> WaferArray:
+        """Array W(m,n) (1-based), its error map generated on first use."""
+        if not (1 <= m <= self.rows and 1 <= n <= self.cols):
+            raise InputError(f"wafer has no array W({m},{n}); it has {self.rows} rows and {self.cols} columns")
+        key = (m, n)
+        found = self._arrays.get(key)
+        if found is None:
+            seed = array_seed(self.seed, m, n)
+            mla = self.cfg.mla
+            if self.defects:
+                errors = random_defects(mla.count_h, mla.count_w, self.defects, seed, types=self.defect_types)
+            else:
+                errors = ErrorMap.zeros(mla.count_h, mla.count_w)
+            found = self._arrays[key] = WaferArray(m, n, self.centre_mm(m, n), seed, errors)
+        return found
+
+    def arrays(self) -> list[WaferArray]:
+        """Every array, row by row."""
+        return [self.array(m, n) for m in range(1, self.rows + 1) for n in range(1, self.cols + 1)]
+
+    def nearest(self, x_mm: float, y_mm: float) -> WaferArray:
+        """The array whose centre is nearest to stage position (x_mm, y_mm)."""
+        n = int(np.clip(round((x_mm - self.origin_mm[0]) / self.pitch_mm), 0, self.cols - 1)) + 1
+        m = int(np.clip(round((y_mm - self.origin_mm[1]) / self.pitch_mm), 0, self.rows - 1)) + 1
+        return self.array(m, n)
+
+    def locate(self, x_mm: float, y_mm: float) -> tuple[WaferArray, tuple[float, float]]:
+        """(array seen at this stage position, its offset in µm = centre - position, x right / y down)."""
+        arr = self.nearest(x_mm, y_mm)
+        return arr, ((arr.centre_mm[0] - x_mm) * 1000.0, (arr.centre_mm[1] - y_mm) * 1000.0)
+
+    def in_view(self, offset_um: tuple[float, float]) -> bool:
+        """False when an array at this offset lies wholly outside the field of view (nothing to render)."""
+        aw, ah = array_size_mm(self.cfg)
+        fw, fh = field_size_mm(self.cfg)
+        return abs(offset_um[0]) * 1e-3 < 0.5 * (aw + fw) and abs(offset_um[1]) * 1e-3 < 0.5 * (ah + fh)
+
+    def layout(self) -> dict[str, Any]:
+        """The wafer's geometry and seeding parameters (JSON)."""
+        return {"cols": self.cols, "rows": self.rows, "pitch_mm": self.pitch_mm, "origin_mm": list(self.origin_mm),
+                "defects_per_array": self.defects, "defect_types": list(self.defect_types), "seed": self.seed,
+                "array_size_mm": list(array_size_mm(self.cfg)), "mla_shape": [self.cfg.mla.count_h, self.cfg.mla.count_w]}
+
+    def truth(self) -> dict[str, Any]:
+        """Ground truth for the whole wafer (JSON): geometry, and per array its name, centre, seed and errors."""
+        return {
+            "format": TRUTH_FORMAT,
+            "version": 1,
+            **self.layout(),
+            "subimage_pitch_px": self.cfg.layout.subimage_pitch_px,
+            "arrays": [{"name": a.name, "m": a.m, "n": a.n, "centre_mm": list(a.centre_mm), "seed": a.seed,
+                        "error_map": a.error_map_json} for a in self.arrays()],
+        }
+
+    def truth_digest(self) -> str:
+        """sha256 of the truth JSON: two wafers with the same digest hold the same arrays and defects."""
+        return hashlib.sha256(json.dumps(self.truth(), sort_keys=True).encode()).hexdigest()
