@@ -109,10 +109,9 @@ def classify(table: SignatureTable, vec: np.ndarray, shift_dir: float, sigmas: n
     alternatives: tuple = ()
     if best in ("pitch", "decenter") and "pitch" in fits and "decenter" in fits:
         other = "decenter" if best == "pitch" else "pitch"
-        if fits[other][1] - fits[best][1] < _CHI2_AMBIGUOUS:
-            alt_dir = (shift_dir - table.phi0_deg[other]) % 360.0
-            alternatives = ((other, fits[other][0], "µm", alt_dir),)
-            return "position", fits[best][0], "µm", direction, ((best, fits[best][0], "µm", direction),) + alternatives
+        if fits[other][1] - fits[best][1] < _CHI2_AMBIGUOUS:  # report the pitch reading, list both
+            readings = {k: (k, fits[k][0], "µm", (shift_dir - table.phi0_deg[k]) % 360.0) for k in ("pitch", "decenter")}
+            return "position", fits["pitch"][0], "µm", readings["pitch"][3], (readings["pitch"], readings["decenter"])
     return best, fits[best][0], kind.unit, direction, alternatives
 
 

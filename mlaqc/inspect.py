@@ -82,7 +82,7 @@ def inspect_image(img: np.ndarray, cfg: CameraConfig, *, grid: Grid | None = Non
     out_of_tol = sum(1 for d in defects if d.error_type != "missing" and not d.within_tolerance)
     n_missing = sum(1 for d in defects if d.error_type == "missing")
     verdict = "FAIL" if (out_of_tol > qc.max_out_of_tolerance or n_missing > qc.max_missing) else "PASS"
-    (ref, *_), _, _ = reference_windows(model, cx, cy, 2 * half + 1, 2 * half + 1)
+    ref = reference_windows(model, cx, cy, 2 * half + 1, 2 * half + 1)[0][0]
     return InspectionResult(verdict, grid, metrics, defects, flagged, error_type, img.astype(np.float32), sub,
                             ref.astype(np.float32), source, _tolerance_dict(cfg), t)
 

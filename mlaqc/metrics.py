@@ -20,33 +20,32 @@ _ENTROPY_BINS = 32
 
 def reference_windows(model: ReferenceModel, cx: np.ndarray, cy: np.ndarray, h: int, w: int):
     """Reference sub-image, its gradients and Laplacian for windows whose lens centre is at (cx, cy)
-    (window pixel units); also the exact position (qx, qy) the gathered reference is centred at."""
+    (window pixel units), as one (4, rows, cols, h, w) float32 gather; also the exact position (qx, qy)
+    the gathered reference is centred at (cx, cy quantized to 1/oversample px)."""
     os_ = model.oversample
     qx = np.rint(cx * os_).astype(np.int64)
     qy = np.rint(cy * os_).astype(np.int64)
-    c = int(model.centre)
-    ti = c + np.arange(h)[None, None, :] * os_ - qy[..., None]  # (R, C, h)
-    tj = c + np.arange(w)[None, None, :] * os_ - qx[..., None]  # (R, C, w)
-    size = model.template.shape[0]
-    inside = ((ti >= 0) & (ti < size))[..., :, None] & ((tj >= 0) & (tj < size))[..., None, :]
-    ti, tj = np.clip(ti, 0, size - 1), np.clip(tj, 0, size - 1)
-    out = []
-    for table in _template_tables(model):
-        out.append(np.where(inside, table[ti[..., :, None], tj[..., None, :]], 0.0))
-    return out, qx / os_, qy / os_
+    stack, size, c = _template_stack(model)
+    ti = np.clip(c + np.arange(h)[None, None, :] * os_ - qy[..., None], 0, size - 1)  # (R, C, h)
+    tj = np.clip(c + np.arange(w)[None, None, :] * os_ - qx[..., None], 0, size - 1)  # (R, C, w)
+    flat = (ti[..., :, None] * size + tj[..., None, :]).astype(np.intp)
+    return np.take(stack, flat, axis=1), qx / os_, qy / os_
 
 
-def _template_tables(model: ReferenceModel) -> tuple[np.ndarray, ...]:
-    """Template, d/dx, d/dy and Laplacian per coarse pixel (cached on the model object)."""
-    cached = getattr(model, "_tables", None)
+def _template_stack(model: ReferenceModel) -> tuple[np.ndarray, int, int]:
+    """Template, d/dx, d/dy and Laplacian per coarse pixel, flattened, with a zero border so that
+    clipped indices read zeros (cached on the model object)."""
+    cached = getattr(model, "_stack", None)
     if cached is None:
         t = model.template
         os_ = model.oversample
         gy, gx = np.gradient(t)
         gx, gy = gx * os_, gy * os_
         lap = (np.gradient(gx, axis=1) + np.gradient(gy, axis=0)) * os_
-        cached = (t, gx, gy, lap)
-        object.__setattr__(model, "_tables", cached)
+        padded = np.pad(np.stack([t, gx, gy, lap]), ((0, 0), (1, 1), (1, 1)))
+        size = padded.shape[1]
+        cached = (padded.reshape(4, -1).astype(np.float32), size, int(model.centre) + 1)
+        object.__setattr__(model, "_stack", cached)
     return cached
 
 
@@ -85,8 +84,8 @@ def compute_metrics(img: np.ndarray, cx: np.ndarray, cy: np.ndarray, model: Refe
     """All indexes for sub-images `img` (rows, cols, h, w; NaN outside the frame) whose grid-predicted
     centres are (cx, cy) in window pixel coordinates."""
     valid = np.isfinite(img)
-    x = np.where(valid, img, 0.0).astype(np.float64)
-    vf = valid.astype(np.float64)
+    x = np.where(valid, img, 0.0).astype(np.float32)
+    vf = valid.astype(np.float32)
     h, w = x.shape[-2:]
     dx, dy, (r, gx, gy, lap), (qx, qy) = register(x, vf, model, cx, cy)
     r, lap = r * vf, lap * vf
