@@ -106,9 +106,13 @@ def run_scan_command(args: argparse.Namespace) -> int:
                   "so frames are captured and recorded without inspection.", file=sys.stderr)
     bar = ProgressBar("scan", enabled=False if args.quiet else None)
 
+    base: list[int] = []  # positions already done when this run started (a resume): not in the ETA
+
     def progress(done: int, total: int) -> None:
+        if not base:
+            base.append(done)
         bar.label = f"scan {done}/{total}"
-        bar(done, total)
+        bar(done - base[0], total - base[0])
 
     def on_event(event: dict) -> None:
         if args.quiet:

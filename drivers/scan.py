@@ -48,7 +48,8 @@ Resume: positions with a record whose files still match their checksums are skip
 files are missing or altered, a torn last line (a kill mid-append) and leftover temporary files are
 dropped, and the manifest is rewritten atomically without them; a frame on disk without a record (a
 kill between the frame write and the manifest append) is simply captured again and overwritten.
-A plan with other positions or capture settings than the header's is refused.
+A plan with other positions or capture settings than the header's is refused, and so is a camera whose
+ground truth differs from the header's (another mock wafer or seed).
 
 Faults: a DeviceError while moving or capturing makes the position retry up to `retries` times; before
 each retry the failed device is reconnected (stage: closed and reopened from its URL, then homed; camera:
@@ -357,6 +358,11 @@ def _position_list(source: str, items: Any) -> list[PlanPosition]:
 # --------------------------------------------------------------------------------------------- manifest
 
 
+def _digest(obj: Any) -> str:
+    """sha256 of an object's canonical JSON."""
+    return hashlib.sha256(json.dumps(obj, sort_keys=True).encode()).hexdigest()
+
+
 def _now_iso() -> str:
     return _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="milliseconds")
 
@@ -624,6 +630,11 @@ class ScanRunner:
         if data.header.get("plan_digest") != self.plan.digest:
             raise InputError(f"the scan in {str(self.out)!r} was made with a different plan (other positions, "
                              "frames, averaging or format); resume it with its own plan or choose another folder")
+        truth_fn = getattr(self.camera, "truth", None)
+        recorded = data.header.get("truth_digest")
+        if recorded is not None and callable(truth_fn) and _digest(truth_fn()) != recorded:
+            raise InputError(f"the scan in {str(self.out)!r} was made with a camera showing other ground truth "
+                             "(a different mock wafer or seed); resume it with the same camera URL")
         self._header = data.header
         self._rewrite = data.torn
         for rec in data.records:
@@ -711,8 +722,7 @@ class ScanRunner:
         return {"type": "header", "format": MANIFEST_FORMAT, "version": 1, "plan_digest": self.plan.digest,
                 "plan": self.plan.to_dict(), "camera": self._camera_label(), "stage": self._stage_label(),
                 "camera_settings": jsonable(self.camera.settings()), "created": _now_iso(), "truth": truth,
-                "truth_digest": None if truth is None else hashlib.sha256(
-                    json.dumps(truth, sort_keys=True).encode()).hexdigest(),
+                "truth_digest": None if truth is None else _digest(truth),
                 "versions": versions()}
 
     def _camera_label(self) -> str:
@@ -735,7 +745,13 @@ class ScanRunner:
                 self._current = pos
                 if self.before_position is not None:
                     self.before_position(self, pos)
-                self._position(pos)
+                try:
+                    self._position(pos)
+                except InputError as exc:  # e.g. the disk filled up or the folder vanished: stop cleanly
+                    stopped = self._stop_stage()
+                    msg = self._stopped_message("stopped", stopped, error=exc)
+                    self._event("failed", message=msg, **self._timing())
+                    raise InputError(msg) from None
                 if self.progress is not None:
                     self.progress(self.result.done, total)
             self._current = None
@@ -824,15 +840,16 @@ class ScanRunner:
 
     def _recover_stage(self) -> None:
         """Reconnect (and re-home) the stage after a failure, or if it lost its connection or homing."""
-        if self._stage_bad or not self.stage.is_connected:
+        if self._stage_bad or self.stage is None or not self.stage.is_connected:
             self.result.reconnects["stage"] += 1
             self._event("reconnect", device="stage")
             if self._own_stage:
                 old, self.stage = self.stage, None
-                try:
-                    old.close()
-                except Exception as exc:  # noqa: BLE001 - a dead device may fail to close; we replace it anyway
-                    log.debug("closing the failed stage: %s", exc)
+                if old is not None:
+                    try:
+                        old.close()
+                    except Exception as exc:  # noqa: BLE001 - a dead device may fail to close; we replace it
+                        log.debug("closing the failed stage: %s", exc)
                 self.stage = self._open_stage()
             elif not self.stage.is_connected:
                 self.stage.connect()  # a stage we were handed: reconnect it in place
@@ -887,8 +904,10 @@ class ScanRunner:
         if pos is not None:
             where = f"at position {pos.index + 1} of {total} ({pos.label}, x={pos.x_mm:g} y={pos.y_mm:g} mm)"
         cause = ""
-        if error is not None:
+        if error is not None and attempts:
             cause = f" after {attempts} attempt{'s' if attempts != 1 else ''} ({str(error).rstrip('.')})"
+        elif error is not None:
+            cause = f" ({str(error).rstrip('.')})"
         stage = ("the stage was stopped" if stop_problem is None
                  else f"the stage may still be moving ({stop_problem})")
         if self._writer is None and not self.result.resumed:

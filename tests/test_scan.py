@@ -249,7 +249,7 @@ def test_ctrl_c_mid_move_stops_the_stage_and_keeps_the_manifest(tmp_path, capsys
     plan = write_plan(tmp_path / "plan.toml", SLOW_PLAN)
     out = tmp_path / "scan"
     camera_url = "mock://?wafer=4x1&rpp=0.5&exposure_us=2000"
-    stage = open_stage("sim+grbl://?speed_mm_s=25&x_max_mm=30&y_max_mm=30")  # 5 mm moves take 0.2 s
+    stage = open_stage("sim+grbl://?speed_mm_s=20&x_max_mm=30&y_max_mm=12")  # 5 mm moves take 0.25 s
     camera = open_camera(camera_url)
 
     def interrupt(runner, pos):
@@ -383,6 +383,7 @@ def test_cli_refusals_exit_2_and_write_nothing(tmp_path, capsys):
     assert scan(out=done) == 2 and "--resume" in capsys.readouterr().err
     other = write_plan(tmp_path / "other.toml", QUICK_PLAN.replace("count = [3, 1]", "count = [2, 1]"))
     assert scan("--resume", out=done, plan_path=other) == 2 and "different plan" in capsys.readouterr().err
+    assert scan("--resume", out=done, camera=cam + "&seed=9") == 2 and "ground truth" in capsys.readouterr().err
     assert scan("--resume", out=done) == 0 and verify_scan(done) == []
 
 
@@ -427,3 +428,21 @@ def test_multiple_frames_and_averages_per_position(tmp_path):
     side = load_sidecar(out / "pos_00002_f2.dng")
     assert side["sequences"] == [7, 8] and side["exposure_us"] == 3000.0
     assert side["context"]["scan"]["label"] == "r001c002" and side["stage_position_mm"] == [15.0, 10.0]
+
+
+@pytest.mark.timeout(60)
+def test_write_failure_mid_scan_stops_with_one_sentence(tmp_path):
+    import shutil
+
+    plan = write_plan(tmp_path / "plan.toml", QUICK_PLAN)
+    out = tmp_path / "scan"
+
+    def pull_the_disk(runner, pos):
+        if pos.index == 1:
+            shutil.rmtree(out)
+
+    with pytest.raises(InputError) as info:
+        run_scan("mock://?wafer=3x1&rpp=0.5&exposure_us=2000", "mock://", plan, out, before_position=pull_the_disk)
+    msg = str(info.value)
+    assert msg.startswith("scan stopped at position 2 of 3 (r001c002") and "Cannot write raw file" in msg
+    assert "the stage was stopped" in msg and msg.count("\n") == 0
