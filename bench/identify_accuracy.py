@@ -62,7 +62,13 @@ def main() -> int:
         sim = simulate(cfg, None, em, rays_per_pixel=args.rpp, seed=500 + seed)
         res = inspect_image(prepare(RawFrame(sim.raw, s.bit_depth, None, s.black_level_dn, white_level(s), {}, "b")), cfg)
         by = {(d.m, d.n): d for d in res.defects}
-        false_flags.append(sum(1 for key in by if key not in truth))
+        false = [key for key in by if key not in truth]
+        false_flags.append(len(false))
+        for key in false:
+            near = min(truth, key=lambda t: max(abs(t[0] - key[0]), abs(t[1] - key[1])))
+            dist = max(abs(near[0] - key[0]), abs(near[1] - key[1]))
+            print(f"  false flag U{key}: {by[key].error_type} score {by[key].score:.1f}; nearest seeded U{near} "
+                  f"{truth[near][0]} {truth[near][1]:g} at {dist} lens(es)", file=sys.stderr)
         for key, (kind, mag, _d) in truth.items():
             st = stats[(kind, mag)]
             st[1] += 1

@@ -104,7 +104,7 @@ class QC:
     radius_rel: float = 0.05
     tilt_deg: float = 2.0
     thickness_um: float = 3.0
-    detect_sigma: float = 7.0  # robust z-score above which a lens is flagged
+    detect_sigma: float = 6.0  # robust z-score above which a lens is flagged (noise peaks near 4.7 over 10,404 lenses)
     max_out_of_tolerance: int = 0  # more than this many out-of-tolerance lenses fails the array
     max_missing: int = 0  # more than this many missing lenses fails the array
 
@@ -234,6 +234,8 @@ def _build_section(default: Any, table: dict[str, Any], section: str, source: st
 def _coerce(default: Any, value: Any, key: str, source: str, type_text: Any) -> Any:
     """Check one value's type against its default's; ints are accepted for floats."""
     optional = "None" in str(type_text)
+    if value is None and optional:  # JSON null: a derived geometry value
+        return None
     if isinstance(default, bool) or "bool" in str(type_text):
         if not isinstance(value, bool):
             raise InputError(f"{source}: config key '{key}' must be true or false, got {value!r}")

@@ -15,7 +15,7 @@ both readings, not as a guess.
 from __future__ import annotations
 
 import numpy as np
-from scipy.ndimage import median_filter
+from scipy.ndimage import maximum_filter, median_filter
 
 from mlaqc.config import QC
 from mlaqc.results import Defect, LensMetrics
@@ -27,9 +27,18 @@ _CHI2_AMBIGUOUS = 9.0  # pitch and decenter fits closer than this (3 sigma) -> '
 
 
 def local_deviation(values: np.ndarray, size: int = 5) -> np.ndarray:
-    """values minus their NaN-robust local median over size x size lenses."""
+    """values minus a NaN-robust local baseline: the median over size x size lenses inside the array;
+    along an edge the running median of that edge (its lenses miss the same neighbours); the corners
+    against each other (vignetting is symmetric about the axis)."""
     fill = np.where(np.isfinite(values), values, np.nanmedian(values))
-    return values - median_filter(fill, size=size, mode="nearest")
+    base = median_filter(fill, size=size, mode="nearest")
+    rows, cols = fill.shape
+    if rows >= size and cols >= size:
+        for sl in ((0, slice(None)), (-1, slice(None)), (slice(None), 0), (slice(None), -1)):
+            base[sl] = median_filter(fill[sl], size=size, mode="nearest")
+        corners = (np.array([0, 0, -1, -1]), np.array([0, -1, 0, -1]))
+        base[corners] = np.median(fill[corners])
+    return values - base
 
 
 def robust_sigma(dev: np.ndarray) -> float:
@@ -57,6 +66,15 @@ def detection_score(dev: dict[str, np.ndarray], sig: dict[str, float]) -> np.nda
           dev["blur"] / sig["blur"], np.abs(dev["flux"]) / sig["flux"],
           -dev["ssim"] / sig["ssim"], np.abs(dev["sharpness"]) / sig["sharpness"]]
     return np.nanmax(np.stack([np.where(np.isfinite(z), z, 0.0) for z in zs]), axis=0)
+
+
+def spill(score: np.ndarray, flagged: np.ndarray, ratio: float = 0.5) -> np.ndarray:
+    """Flagged lenses next to a flagged neighbour more than 1/ratio times as abnormal: a strong defect
+    disturbs its neighbours' windows (its light spills over), so they are taken as its echo."""
+    ring = np.ones((3, 3), bool)
+    ring[1, 1] = False
+    strongest = maximum_filter(np.where(flagged, score, 0.0), footprint=ring, mode="constant")
+    return flagged & (score < ratio * strongest)
 
 
 def _feature_vector(dev: dict[str, np.ndarray], m: int, n: int) -> tuple[np.ndarray, float]:
@@ -125,7 +143,10 @@ def identify(metrics: LensMetrics, missing: np.ndarray, qc: QC, table: Signature
     """Flag, classify and size the defective lenses; returns (defects, flagged mask, type per lens)."""
     dev, sig = deviations(metrics)
     score = detection_score(dev, sig)
-    flagged = (score > qc.detect_sigma) | missing
+    threshold = np.full(score.shape, qc.detect_sigma)
+    threshold[[0, 0, -1, -1], [0, -1, 0, -1]] *= 1.5  # corner windows hold dark margin on two sides: noisier
+    flagged = (score > threshold) | missing
+    flagged &= ~spill(score, flagged) | missing
     sigmas = _feature_sigmas(sig)
     error_type = np.full(flagged.shape, "", dtype=object)
     defects = []

@@ -107,3 +107,21 @@ def inspect_file(raw: str | Path, cfg: CameraConfig, *, white: str | Path | None
     result = inspect_image(img, cfg, grid=grid, source=str(raw))
     result.timings_s["load"] = round(load_s, 4)
     return result
+
+
+def scan_frame_hook(frame) -> dict:
+    """`mlaqc scan --inspect`: inspect a frame as soon as its position is recorded.
+
+    `frame` is a drivers.scan.ScanFrame (duck-typed here: the core never imports drivers). The camera
+    config comes from the manifest header when the camera reports one (the mock does), else the default.
+    Returns a summary the scan writes beside the raw as `<raw>.inspect.json`."""
+    from mlaqc.config import config_from_dict, default_config
+
+    cfg_dict = (frame.header.get("camera_settings") or {}).get("config")
+    cfg = config_from_dict(cfg_dict, source="scan manifest") if cfg_dict else default_config()
+    result = inspect_file(frame.path, cfg)
+    return {"verdict": result.verdict, "flagged": len(result.defects),
+            "defects": [d.to_json_dict() | {"indexes": None} for d in result.defects],
+            "grid": {"pitch_px": list(result.grid.pitch_px), "rotation_deg": result.grid.rotation_deg,
+                     "rms_residual_px": result.grid.rms_residual_px},
+            "timings_s": result.timings_s}

@@ -17,6 +17,12 @@ def test_fixture_is_the_builtin_default_and_round_trips():
     assert config_from_dict(tomllib.loads(config_to_toml(default_config()))) == default_config()
 
 
+def test_json_round_trip_keeps_derived_geometry_holes():
+    import json
+    cfg = load_config(FIXTURES / "small_camera.toml")
+    assert config_from_dict(json.loads(json.dumps(cfg.to_dict()))) == cfg
+
+
 def test_default_geometry_is_f_number_matched():
     lay = default_config().layout
     assert 42.0 / lay.pupil_to_mla_mm == pytest.approx(0.1 / lay.micro.efl, rel=1e-12)  # D/b = p/f
