@@ -1,7 +1,7 @@
 """Inspection benchmark on the Table 1 camera (2048 x 2048 px, 10,404 lenses): seconds per stage for
 load + calibrate + divide + indexes + identify, with and without a calibration reused from a white image.
 
-    python bench/inspect.py        # renders one frame (cached in /tmp), then times 3 runs
+    python bench/inspection.py        # renders one frame (cached in /tmp), then times 3 runs
 """
 
 from __future__ import annotations
