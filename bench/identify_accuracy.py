@@ -55,7 +55,7 @@ def main() -> int:
     args = ap.parse_args()
     cfg = default_config()
     s = cfg.sensor
-    stats = defaultdict(lambda: [0, 0, 0, []])  # found, total, type ok, magnitude errors
+    stats = defaultdict(lambda: [0, 0, 0, [], 0])  # found, total, type ok, magnitude errors, sign ambiguous
     false_flags = []
     for seed in range(args.seeds):
         em, truth = seeded(seed)
@@ -80,12 +80,15 @@ def main() -> int:
             ok = d.error_type == kind or (d.error_type == "position" and kind in ("pitch", "decenter"))
             st[2] += ok
             est = readings.get(kind, d.magnitude) if ok else np.nan
+            if ok and kind == "radius" and d.alternatives and np.sign(d.magnitude) != np.sign(mag):
+                est = d.alternatives[0][1]  # the sign was ambiguous and the other reading is listed
+                st[4] += 1
             st[3].append(abs(est - mag) / abs(mag))
     print(f"Table 1 camera, {args.rpp:g} rays/pixel, noise on, {args.seeds} frames; 'position' = pitch or decenter")
-    print(f"{'type':9s} {'magnitude':>9s} {'found':>7s} {'type ok':>8s} {'mag err (median)':>17s}")
-    for (kind, mag), (f, t, ok, errs) in sorted(stats.items()):
+    print(f"{'type':9s} {'magnitude':>9s} {'found':>7s} {'type ok':>8s} {'mag err (median)':>17s} {'sign from alternative':>22s}")
+    for (kind, mag), (f, t, ok, errs, amb) in sorted(stats.items()):
         e = np.nanmedian(errs) if errs else np.nan
-        print(f"{kind:9s} {mag:9.3g} {f:3d}/{t:<3d} {ok:4d}/{f:<3d} {100 * e:15.1f} %")
+        print(f"{kind:9s} {mag:9.3g} {f:3d}/{t:<3d} {ok:4d}/{f:<3d} {100 * e:15.1f} % {amb:22d}")
     print(f"false flags per frame (10,404 lenses): {false_flags}")
     return 0
 

@@ -9,7 +9,8 @@ its own shift, are fitted by every error kind over its magnitude (noise-weighted
 best kind gives type, magnitude and direction. In a white image a pitch (position) error and a surface
 decenter shift the sub-image almost identically (both only redirect the chief ray of a lens whose cell
 aperture stays on the grid), so when both fit about equally the lens is reported as 'position' with
-both readings, not as a guess.
+both readings, not as a guess. Likewise a radius or thickness error whose opposite sign fits about as
+well (both signs defocus the lens) carries the other reading in `alternatives`.
 """
 
 from __future__ import annotations
@@ -94,10 +95,13 @@ def _feature_sigmas(sig: dict[str, float]) -> np.ndarray:
     return np.array([s_off, s_off, s_asym, s_asym, sig["blur"], sig["flux"], sig["ssim"], sig["sharpness"]])
 
 
-def fit_kind(table: SignatureTable, kind: str, vec: np.ndarray, sigmas: np.ndarray) -> tuple[float, float]:
+def fit_kind(table: SignatureTable, kind: str, vec: np.ndarray, sigmas: np.ndarray, sign: int = 0) -> tuple[float, float]:
     """Best magnitude of `kind` for feature changes `vec` and its chi-square (magnitude interpolated
-    linearly in the table, through zero)."""
+    linearly in the table, through zero); `sign` restricts a signed kind to one side."""
     mags, feats = table.magnitudes[kind], table.features[kind]
+    if sign:
+        keep = np.sign(mags) == sign
+        mags, feats = mags[keep], feats[keep]
     order = np.argsort(mags)
     mags, feats = mags[order], feats[order]
     grid_m, grid_f = _dense_curve(mags, feats)
@@ -130,6 +134,11 @@ def classify(table: SignatureTable, vec: np.ndarray, shift_dir: float, sigmas: n
         if fits[other][1] - fits[best][1] < _CHI2_AMBIGUOUS:  # report the pitch reading, list both
             readings = {k: (k, fits[k][0], "µm", (shift_dir - table.phi0_deg[k]) % 360.0) for k in ("pitch", "decenter")}
             return "position", fits["pitch"][0], "µm", readings["pitch"][3], (readings["pitch"], readings["decenter"])
+    if not kind.directional and np.any(table.magnitudes[best] < 0) and np.any(table.magnitudes[best] > 0):
+        # both signs blur the sub-image: if the other sign fits nearly as well, say so
+        other_mag, other_chi2 = fit_kind(table, best, vec, sigmas, sign=-int(np.sign(fits[best][0]) or 1))
+        if other_chi2 - fits[best][1] < _CHI2_AMBIGUOUS:
+            alternatives = ((best, other_mag, kind.unit, None),)
     return best, fits[best][0], kind.unit, direction, alternatives
 
 
