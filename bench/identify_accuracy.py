@@ -76,11 +76,12 @@ def main() -> int:
             if d is None:
                 continue
             st[0] += 1
-            readings = {a[0]: a[1] for a in d.alternatives}
             ok = d.error_type == kind or (d.error_type == "position" and kind in ("pitch", "decenter"))
             st[2] += ok
-            est = readings.get(kind, d.magnitude) if ok else np.nan
-            if ok and kind == "radius" and d.alternatives and np.sign(d.magnitude) != np.sign(mag):
+            est = d.magnitude if ok else np.nan
+            if d.error_type == "position":  # both readings are listed: take the seeded type's
+                est = {a[0]: a[1] for a in d.alternatives}[kind]
+            elif ok and d.alternatives and np.sign(d.magnitude) != np.sign(mag):
                 est = d.alternatives[0][1]  # the sign was ambiguous and the other reading is listed
                 st[4] += 1
             st[3].append(abs(est - mag) / abs(mag))

@@ -27,18 +27,20 @@ DETECT = {"offset": 0, "asym": 0, "blur": +1, "flux": 0, "ssim": -1, "sharpness"
 _CHI2_AMBIGUOUS = 9.0  # pitch and decenter fits closer than this (3 sigma) -> 'position'
 
 
-def local_deviation(values: np.ndarray, size: int = 5) -> np.ndarray:
+def local_deviation(values: np.ndarray, size: int = 5, axis: str = "") -> np.ndarray:
     """values minus a NaN-robust local baseline: the median over size x size lenses inside the array;
-    along an edge the running median of that edge (its lenses miss the same neighbours); the corners
-    against each other (vignetting is symmetric about the axis)."""
+    along an edge the running median of that edge (its lenses miss the same neighbours). A corner lens
+    misses neighbours on two sides: for an x index (axis='x') it is compared along its left/right edge,
+    otherwise along its top/bottom edge (and flagged only at 1.5 x the threshold, see `identify`)."""
     fill = np.where(np.isfinite(values), values, np.nanmedian(values))
     base = median_filter(fill, size=size, mode="nearest")
     rows, cols = fill.shape
     if rows >= size and cols >= size:
-        for sl in ((0, slice(None)), (-1, slice(None)), (slice(None), 0), (slice(None), -1)):
+        horizontal = ((0, slice(None)), (-1, slice(None)))
+        vertical = ((slice(None), 0), (slice(None), -1))
+        order = horizontal + vertical if axis == "x" else vertical + horizontal  # the last one wins at corners
+        for sl in order:
             base[sl] = median_filter(fill[sl], size=size, mode="nearest")
-        corners = (np.array([0, 0, -1, -1]), np.array([0, -1, 0, -1]))
-        base[corners] = np.median(fill[corners])
     return values - base
 
 
@@ -52,8 +54,8 @@ def robust_sigma(dev: np.ndarray) -> float:
 
 def deviations(metrics: LensMetrics) -> tuple[dict[str, np.ndarray], dict[str, float]]:
     """Local deviations of the classification features and their robust spreads."""
-    dev = {k: local_deviation(metrics[k]) for k in
-           ("offset_x_px", "offset_y_px", "asym_x", "asym_y", "blur", "flux", "ssim", "sharpness")}
+    dev = {k: local_deviation(metrics[k], axis=k.split("_")[1][0] if k in ("offset_x_px", "offset_y_px", "asym_x", "asym_y") else "")
+           for k in ("offset_x_px", "offset_y_px", "asym_x", "asym_y", "blur", "flux", "ssim", "sharpness")}
     sig = {k: robust_sigma(v) for k, v in dev.items()}
     return dev, sig
 
