@@ -8,8 +8,8 @@ Classification inverts the signature table: the flagged lens' feature changes, t
 its own shift, are fitted by every error kind over its magnitude (noise-weighted least squares); the
 best kind gives type, magnitude and direction. In a white image a pitch (position) error and a surface
 decenter shift the sub-image almost identically (both only redirect the chief ray of a lens whose cell
-aperture stays on the grid), so when both fit about equally the lens is reported as 'position' with
-both readings, not as a guess. Likewise a radius or thickness error whose opposite sign fits about as
+aperture stays on the grid; measured: the same asymmetry, blur, flux and SSIM change per pixel of shift),
+so such a lens is reported as 'position' with both readings, never as a guess between them. Likewise a radius or thickness error whose opposite sign fits about as
 well (both signs defocus the lens) carries the other reading in `alternatives`.
 """
 
@@ -24,7 +24,7 @@ from mlaqc.signatures import FEATURES, KIND_BY_NAME, SignatureTable
 
 # Features whose change is tested for detection, and on which side (+1 up, -1 down, 0 both).
 DETECT = {"offset": 0, "asym": 0, "blur": +1, "flux": 0, "ssim": -1, "sharpness": 0}
-_CHI2_AMBIGUOUS = 9.0  # pitch and decenter fits closer than this (3 sigma) -> 'position'
+_CHI2_AMBIGUOUS = 9.0  # an opposite-sign reading closer than this (3 sigma) is listed as an alternative
 
 
 def local_deviation(values: np.ndarray, size: int = 5, axis: str = "") -> np.ndarray:
@@ -132,10 +132,9 @@ def classify(table: SignatureTable, vec: np.ndarray, shift_dir: float, sigmas: n
     direction = (shift_dir - table.phi0_deg[best]) % 360.0 if kind.directional else None
     alternatives: tuple = ()
     if best in ("pitch", "decenter") and "pitch" in fits and "decenter" in fits:
-        other = "decenter" if best == "pitch" else "pitch"
-        if fits[other][1] - fits[best][1] < _CHI2_AMBIGUOUS:  # report the pitch reading, list both
-            readings = {k: (k, fits[k][0], "µm", (shift_dir - table.phi0_deg[k]) % 360.0) for k in ("pitch", "decenter")}
-            return "position", fits["pitch"][0], "µm", readings["pitch"][3], (readings["pitch"], readings["decenter"])
+        # a white image cannot tell them apart (see the module note): report the pitch reading, list both
+        readings = {k: (k, fits[k][0], "µm", (shift_dir - table.phi0_deg[k]) % 360.0) for k in ("pitch", "decenter")}
+        return "position", fits["pitch"][0], "µm", readings["pitch"][3], (readings["pitch"], readings["decenter"])
     if not kind.directional and np.any(table.magnitudes[best] < 0) and np.any(table.magnitudes[best] > 0):
         # both signs blur the sub-image: if the other sign fits nearly as well, say so
         other_mag, other_chi2 = fit_kind(table, best, vec, sigmas, sign=-int(np.sign(fits[best][0]) or 1))

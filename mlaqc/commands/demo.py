@@ -74,9 +74,19 @@ def compare(errors, result) -> str:
     for m, n in zip(*np.nonzero(seeded)):
         d = by_lens.get((m + 1, n + 1))
         truth = _truth(errors, kinds[m, n], m, n)
-        got = "MISSED" if d is None else f"{d.error_type} {d.magnitude:.3g} {d.unit}".strip()
+        got = "MISSED" if d is None else describe(d)
         lines.append(f"    U({m + 1},{n + 1}): seeded {truth}; found {got}")
     return "\n".join(lines)
+
+
+def describe(d) -> str:
+    """'position 2.1 µm (pitch) or 4.4 µm (decenter)', 'radius -0.05 rel (or +0.17)', ..."""
+    if d.error_type == "position":
+        return "position " + " or ".join(f"{v:.3g} {u} ({t})" for t, v, u, _ in d.alternatives)
+    text = f"{d.error_type} {d.magnitude:+.3g} {d.unit}" if d.unit == "rel" else f"{d.error_type} {d.magnitude:.3g} {d.unit}"
+    if d.alternatives:
+        text += " (or " + ", ".join(f"{v:+.3g}" for _, v, _, _ in d.alternatives) + ")"
+    return text.strip()
 
 
 def _truth(errors, kind: str, m: int, n: int) -> str:
