@@ -1,0 +1,1178 @@
+"""Microlens calibration from a white image: find every microlens' sub-image, index it U(m,n), fit a
+global grid and keep every lens' own measurement (centre, residual, flux, size) as the QC signal.
+
+Pipeline (DESIGN.md §6), vectorized over all lenses at once (no per-lens Python loop):
+
+1. Lattice from the Fourier transform of the (Hann-windowed, for big frames 2x2-binned) white image: the
+   two fundamental peaks give pitch and rotation (refined to ~0.01 bin with a local DTFT), their phases
+   the lattice offset (the remaining half-period ambiguity is settled by where the cell corners are dark).
+2. Every sub-image is measured by a joint least-squares fit of the frame by a sum of discs, one per lens:
+   lens k adds (a_k + slope . (x - c_k)) * e((R_k - |x - c_k|) / s) to the model, e a logistic edge.
+   Gauss-Newton on (a_k, c_k, R_k) of all lenses at once, in array passes over blocks of lenses.
+   Why not a thresholded centre of gravity: in the f-number-matched camera the sub-images touch and even
+   overlap (radius 10.2 px at a 20.05 px pitch), so a cell-window centroid is governed by where the window
+   is put, not by the lens (it even moves the wrong way). The position information sits in each disc's
+   rim; the joint model separates a lens' rim from its neighbours' in the overlap zones, so a shifted
+   lens reads its full shift and its neighbours read ~2 % of it. Details that matter:
+   - each lens is fitted on an annulus round its rim, tapered and centred on its current estimate (a
+     window fixed to the pixel grid would pull a not-yet-right model off centre);
+   - red-black sweeps: side neighbours (whose discs overlap) never step together;
+   - noise weights ~ 1 / signal (Monte-Carlo and photon noise), except round lenses far off the lattice;
+   - intensity slopes across each sub-image (illumination falloff, vignetting) come from the smooth
+     field of the lens amplitudes and are held fixed (fitting them per lens costs precision);
+   - the edge width and typical radius come from a central block first; lenses the sharp edge cannot
+     pull in (more than ~1.5 px off the lattice) are captured with a wide edge of their own;
+   - pixels outside the frame are simply left out, so lenses cut by the frame are measured unbiased.
+3. Indexing: lattice rows/columns; with an expected MLA shape the window of N_H x N_W lattice lines with
+   the most light (then the fewest lines seen dark, then nearest the frame centre) is U(1,1)..U(N_H,N_W).
+4. Global model: a projective map of the lattice (pitch x/y, rotation, shear, offset, keystone from an
+   MLA tilt) plus a radial term about the frame centre, fitted robustly (defective lenses are outliers).
+   Lenses predicted by the model but dark or dim are reported in `missing`, never an error.
+
+Measured on the Table 1 camera (50 rays/pixel, noise on): per-lens centres 0.029 px RMS (0.021 px per
+axis, Monte-Carlo-noise limited) and grid centres 0.003 px RMS from the ray-traced sub-image centres.
+
+Conventions: pixel (0, 0) is the centre of the top-left pixel, x to the right, y down. Lens U(m,n) is row m
+from the top, column n from the left (1-based), arrays index [m-1, n-1]. Rotation is counterclockwise as
+the image is displayed (as `ErrorMap`'s mla_rotation_deg).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import scipy.fft
+from scipy import ndimage
+
+from mlaqc.atomic import write_json_atomic
+from mlaqc.errors import InputError
+
+FORMAT = "mlaqc-grid"
+VERSION = 1
+
+# Thresholds (relative units unless stated).
+MISSING_RELATIVE_FLUX = 0.3  # a lens under 30 % of its neighbourhood's amplitude is 'missing/dim'
+MIN_VALID_FRACTION = 0.35  # lenses with less of their rim than this inside the frame are not measured
+PITCH_TOLERANCE = 0.10  # the found pitch may differ from the expected one by 10 %
+MIN_LENSES = 9
+MIN_PITCH_PX = 4.0
+
+# The disc fit (see _measure). Lengths in pixels.
+BLOCK_SWEEPS = 5  # sweeps on the central block that sets the edge width and typical radius
+SUBSET = 16  # that block is SUBSET x SUBSET lenses
+N_SWEEPS = 3  # sweeps over every lens (the first unweighted)
+MAX_EXTRA = 10  # more sweeps, for the lenses not yet settled and their neighbours only
+SETTLED_PX = 0.02  # a lens has settled when its step is under this
+BAND = 1.5  # each lens is fitted on |r - R| <= BAND (+ a 0.5 px taper) round its rim
+GATHER_MARGIN = 1.0  # its pixel set reaches this far beyond the window ...
+REGATHER = 0.5  # ... so it is re-centred once the lens moved this far (margin - taper)
+WEIGHT_FLOOR = 0.05  # noise weights ~ 1 / signal, the signal floored at this fraction of the plateau
+COUPLED_PX = 0.3  # lenses this far off the lattice, and their neighbours, are fitted unweighted
+WIDE_EDGE = 1.0  # lenses the sharp edge cannot capture get an edge at least this wide for a while
+N_LENS_PARAMS = 4  # amplitude, centre x, centre y, radius
+BLOCK_LENSES = 512  # lenses per work block (a block's arrays stay in cache)
+
+
+# ------------------------------------------------------------------------------------------------ Grid
+
+
+@dataclass(frozen=True, eq=False)
+class Grid:
+    """The calibrated microlens grid: the global model and every lens' own measurement.
+
+    Per-lens arrays have shape (rows, cols); [m-1, n-1] is lens U(m,n). `measured_*` and the per-lens
+    measurements are NaN where `missing` (dark/dim, or mostly outside the frame). `grid_*` is the global
+    model's prediction for every lens. The model maps lattice coordinates (u, v) = (n-1, m-1) to pixels:
+    (x', y') = projective(homography, u, v), then a radial term about `radial_centre_px`:
+    p = c + (p' - c) * (1 + radial_k * |p' - c|^2 / radial_scale_px^2).
+    """
+
+    rows: int
+    cols: int
+    pitch_px: tuple[float, float]  # (x, y) lattice spacing at the array centre
+    rotation_deg: float  # lattice x axis, counterclockwise as displayed
+    shear_deg: float  # deviation of the angle between the lattice axes from 90 degrees
+    origin_px: tuple[float, float]  # predicted centre (x, y) of U(1,1)
+    homography: np.ndarray  # (3, 3)
+    radial_k: float
+    radial_centre_px: tuple[float, float]
+    radial_scale_px: float
+    edge_width_px: float  # logistic scale of the sub-image rim (global)
+    image_shape: tuple[int, int]  # (height, width) of the calibrated frame
+    measured_x_px: np.ndarray
+    measured_y_px: np.ndarray
+    grid_x_px: np.ndarray
+    grid_y_px: np.ndarray
+    residual_px: np.ndarray  # |measured - grid|
+    flux: np.ndarray  # fitted disc amplitude * area (normalized signal * px^2)
+    radius_px: np.ndarray  # fitted sub-image radius (size)
+    missing: np.ndarray  # bool: predicted by the grid, not found (dark, dim or out of frame)
+    clipped: np.ndarray  # bool: part of the sub-image lies outside the frame
+    rms_residual_px: float  # over the lenses used in the fit
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        return (self.rows, self.cols)
+
+    @property
+    def residual_x_px(self) -> np.ndarray:
+        """measured - grid, x (NaN where missing)."""
+        return self.measured_x_px - self.grid_x_px
+
+    @property
+    def residual_y_px(self) -> np.ndarray:
+        """measured - grid, y (NaN where missing)."""
+        return self.measured_y_px - self.grid_y_px
+
+    @property
+    def lenses_found(self) -> int:
+        return int(np.count_nonzero(~self.missing))
+
+    @property
+    def lenses_missing(self) -> int:
+        return int(np.count_nonzero(self.missing))
+
+    def predict(self, m, n) -> tuple[np.ndarray, np.ndarray]:
+        """Model centre (x, y) in pixels of lens U(m,n) (1-based; arrays broadcast; may extrapolate)."""
+        u = np.asarray(n, dtype=np.float64) - 1.0
+        v = np.asarray(m, dtype=np.float64) - 1.0
+        return _model_xy(self.homography, self.radial_k, self.radial_centre_px, self.radial_scale_px, u, v)
+
+    # ------------------------------------------------------------------ JSON
+
+    def to_json_dict(self) -> dict[str, Any]:
+        """The grid.json form: model terms and every lens' measured and predicted centre (null = NaN)."""
+        lenses = []
+        fx = lambda v: None if not np.isfinite(v) else round(float(v), 6)  # noqa: E731
+        for m in range(self.rows):
+            for n in range(self.cols):
+                lenses.append({
+                    "m": m + 1, "n": n + 1,
+                    "measured_x_px": fx(self.measured_x_px[m, n]), "measured_y_px": fx(self.measured_y_px[m, n]),
+                    "grid_x_px": fx(self.grid_x_px[m, n]), "grid_y_px": fx(self.grid_y_px[m, n]),
+                    "residual_px": fx(self.residual_px[m, n]), "flux": fx(self.flux[m, n]),
+                    "radius_px": fx(self.radius_px[m, n]),
+                    "missing": bool(self.missing[m, n]), "clipped": bool(self.clipped[m, n]),
+                })
+        return {
+            "format": FORMAT,
+            "version": VERSION,
+            "conventions": "pixel (0,0) = centre of the top-left pixel, x right, y down; U(m,n): row m from "
+                           "the top, column n from the left, 1-based; rotation counterclockwise as displayed",
+            "image": {"height_px": self.image_shape[0], "width_px": self.image_shape[1]},
+            "shape": {"rows": self.rows, "cols": self.cols},
+            "pitch_px": {"x": self.pitch_px[0], "y": self.pitch_px[1]},
+            "rotation_deg": self.rotation_deg,
+            "shear_deg": self.shear_deg,
+            "origin_px": {"x": self.origin_px[0], "y": self.origin_px[1]},
+            "model": {
+                "type": "projective+radial",
+                "lattice": "u = n - 1, v = m - 1; [x', y', w] = homography @ [u, v, 1]; x' /= w, y' /= w",
+                "homography": [[float(v) for v in row] for row in self.homography],
+                "radial": "p = c + (p' - c) * (1 + k * |p' - c|^2 / scale^2)",
+                "radial_k": self.radial_k,
+                "radial_centre_px": {"x": self.radial_centre_px[0], "y": self.radial_centre_px[1]},
+                "radial_scale_px": self.radial_scale_px,
+                "edge_width_px": self.edge_width_px,
+            },
+            "summary": {"lenses_found": self.lenses_found, "lenses_missing": self.lenses_missing,
+                        "lenses_clipped": int(np.count_nonzero(self.clipped)),
+                        "rms_residual_px": self.rms_residual_px},
+            "lenses": lenses,
+        }
+
+    @classmethod
+    def from_json_dict(cls, data: Any, source: str = "grid") -> Grid:
+        """Rebuild a Grid from its JSON dict; InputError naming the problem."""
+        if not isinstance(data, dict) or data.get("format") != FORMAT:
+            raise InputError(f"{source}: not an mlaqc grid (missing \"format\": \"{FORMAT}\")")
+        if data.get("version") != VERSION:
+            raise InputError(f"{source}: grid version {data.get('version')!r} is not supported (expected {VERSION})")
+        try:
+            rows, cols = _pos_int(data["shape"]["rows"]), _pos_int(data["shape"]["cols"])
+            height, width = _pos_int(data["image"]["height_px"]), _pos_int(data["image"]["width_px"])
+            model = data["model"]
+            hom = np.array(model["homography"], dtype=np.float64)
+            if hom.shape != (3, 3):
+                raise ValueError("homography is not 3x3")
+            head = {
+                "pitch_px": (_num(data["pitch_px"]["x"]), _num(data["pitch_px"]["y"])),
+                "rotation_deg": _num(data["rotation_deg"]),
+                "shear_deg": _num(data["shear_deg"]),
+                "origin_px": (_num(data["origin_px"]["x"]), _num(data["origin_px"]["y"])),
+                "radial_k": _num(model["radial_k"]),
+                "radial_centre_px": (_num(model["radial_centre_px"]["x"]), _num(model["radial_centre_px"]["y"])),
+                "radial_scale_px": _num(model["radial_scale_px"]),
+                "edge_width_px": _num(model["edge_width_px"]),
+                "rms_residual_px": _num(data["summary"]["rms_residual_px"], allow_none=True),
+            }
+        except (KeyError, TypeError, ValueError) as exc:
+            raise InputError(f"{source}: grid header is incomplete or malformed ({_describe(exc)})") from None
+        if not np.all(np.isfinite(hom)) or head["radial_scale_px"] <= 0:
+            raise InputError(f"{source}: grid model terms must be finite numbers with a positive radial scale")
+        lenses = data.get("lenses")
+        if not isinstance(lenses, list) or len(lenses) != rows * cols:
+            raise InputError(f"{source}: \"lenses\" must list all {rows}x{cols} = {rows * cols} lenses")
+        arrays = {k: np.full((rows, cols), np.nan) for k in _LENS_FLOATS}
+        flags = {k: np.zeros((rows, cols), bool) for k in ("missing", "clipped")}
+        seen = np.zeros((rows, cols), bool)
+        for i, entry in enumerate(lenses):
+            if not isinstance(entry, dict):
+                raise InputError(f"{source}: lenses[{i}] must be an object")
+            m, n = entry.get("m"), entry.get("n")
+            if not (isinstance(m, int) and isinstance(n, int) and 1 <= m <= rows and 1 <= n <= cols):
+                raise InputError(f"{source}: lenses[{i}] needs integer m in 1..{rows} and n in 1..{cols}, got m={m!r}, n={n!r}")
+            if seen[m - 1, n - 1]:
+                raise InputError(f"{source}: lens U({m},{n}) is listed twice")
+            seen[m - 1, n - 1] = True
+            for key in _LENS_FLOATS:
+                v = entry.get(key)
+                if v is None:
+                    continue
+                if not (isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)):
+                    raise InputError(f"{source}: lens U({m},{n}) field {key!r} must be a number or null, got {v!r}")
+                arrays[key][m - 1, n - 1] = float(v)
+            for key in flags:
+                v = entry.get(key, False)
+                if not isinstance(v, bool):
+                    raise InputError(f"{source}: lens U({m},{n}) field {key!r} must be true or false")
+                flags[key][m - 1, n - 1] = v
+        if np.isnan(arrays["grid_x_px"]).any() or np.isnan(arrays["grid_y_px"]).any():
+            m, n = (int(v) + 1 for v in np.argwhere(np.isnan(arrays["grid_x_px"]) | np.isnan(arrays["grid_y_px"]))[0])
+            raise InputError(f"{source}: lens U({m},{n}) has no grid (predicted) centre")
+        lost = ~flags["missing"] & (np.isnan(arrays["measured_x_px"]) | np.isnan(arrays["measured_y_px"]))
+        if lost.any():
+            m, n = (int(v) + 1 for v in np.argwhere(lost)[0])
+            raise InputError(f"{source}: lens U({m},{n}) is not marked missing but has no measured centre")
+        return cls(rows=rows, cols=cols, homography=hom, image_shape=(height, width), **head, **arrays, **flags)
+
+    def save(self, path: str | Path) -> None:
+        """Write grid.json atomically (a reader never sees half a file)."""
+        write_json_atomic(path, self.to_json_dict())
+
+
+_LENS_FLOATS = ("measured_x_px", "measured_y_px", "grid_x_px", "grid_y_px", "residual_px", "flux", "radius_px")
+
+
+def _pos_int(v: Any) -> int:
+    if not isinstance(v, int) or isinstance(v, bool) or v <= 0:
+        raise ValueError(f"{v!r} is not a positive integer")
+    return v
+
+
+def _num(v: Any, allow_none: bool = False) -> float:
+    if v is None and allow_none:
+        return float("nan")
+    if not isinstance(v, (int, float)) or isinstance(v, bool) or not math.isfinite(v):
+        raise ValueError(f"{v!r} is not a finite number")
+    return float(v)
+
+
+def _describe(exc: BaseException) -> str:
+    if isinstance(exc, KeyError):
+        return f"missing key {exc.args[0]!r}"
+    return str(exc)
+
+
+def load_grid(path: str | Path) -> Grid:
+    """Read and validate grid.json; InputError naming the file and the problem."""
+    p = Path(path)
+    try:
+        data = json.loads(p.read_text(encoding="utf-8"))
+    except FileNotFoundError:
+        raise InputError(f"grid file {str(p)!r} does not exist") from None
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise InputError(f"grid file {str(p)!r} is not readable JSON ({exc.__class__.__name__})") from None
+    return Grid.from_json_dict(data, source=f"grid file {str(p)!r}")
+
+
+# ------------------------------------------------------------------------------------------- the model
+
+
+def _model_xy(hom: np.ndarray, k: float, centre: tuple[float, float], scale: float, u, v):
+    """Lattice (u, v) -> pixel (x, y): projective map, then the radial term."""
+    w = hom[2, 0] * u + hom[2, 1] * v + hom[2, 2]
+    x = (hom[0, 0] * u + hom[0, 1] * v + hom[0, 2]) / w
+    y = (hom[1, 0] * u + hom[1, 1] * v + hom[1, 2]) / w
+    if k:
+        dx, dy = x - centre[0], y - centre[1]
+        f = 1.0 + k * (dx * dx + dy * dy) / (scale * scale)
+        x, y = centre[0] + dx * f, centre[1] + dy * f
+    return x, y
+
+
+# --------------------------------------------------------------------------------------------- checks
+
+
+def _as_image(img: Any) -> np.ndarray:
+    """A float32 2-D view of the input; InputError for anything a white image cannot be."""
+    if not isinstance(img, np.ndarray):
+        raise InputError(f"the white image must be a 2-D array, not {type(img).__name__}")
+    if img.ndim != 2:
+        raise InputError(f"the white image must be a 2-D array, not of shape {img.shape}")
+    if img.dtype.kind not in "fiu":
+        raise InputError(f"the white image must hold numbers, not {img.dtype}")
+    if min(img.shape) < 16:
+        raise InputError(f"the white image ({img.shape[0]}x{img.shape[1]} px) is too small to hold a microlens grid")
+    out = np.ascontiguousarray(img, dtype=np.float32)
+    if not np.all(np.isfinite(out)):
+        raise InputError("the white image contains NaN or infinite values")
+    return out
+
+
+def _check_levels(img: np.ndarray) -> None:
+    """InputError if the (normalized, black-subtracted) frame is black or saturated."""
+    step = max(1, int(math.sqrt(img.size / 250_000)))  # a quarter million pixels are plenty
+    sample = img[::step, ::step]
+    hi = float(np.percentile(sample, 99.5))
+    lo = float(np.percentile(sample, 0.5))
+    diff = img[::step, 1:][:, ::step] - img[::step, :-1][:, ::step]
+    noise = 1.4826 * float(np.median(np.abs(diff))) / math.sqrt(2.0)
+    saturated = float(np.count_nonzero(sample >= 0.999)) / sample.size
+    if saturated > 0.05:
+        raise InputError(f"the white image is saturated ({saturated:.0%} of pixels at full scale); reduce the exposure")
+    if hi <= 0.005 or (hi <= 6.0 * noise and hi <= 0.05) or hi - lo <= 0.005:
+        raise InputError("the white image is black (nothing rises above the black level); check the light and exposure")
+
+
+# -------------------------------------------------------------------------------------------- lattice
+
+
+@dataclass(frozen=True)
+class _Lattice:
+    basis: np.ndarray  # (2, 2): columns a1 (along n, ~x) and a2 (along m, ~y), px
+    origin: np.ndarray  # (2,) a lattice point (sub-image centre) near the frame centre, px
+
+
+def _hann(n: int) -> np.ndarray:
+    return (0.5 - 0.5 * np.cos(2.0 * np.pi * (np.arange(n) + 0.5) / n)).astype(np.float32)
+
+
+def _dtft(a: np.ndarray, kxs: np.ndarray, kys: np.ndarray) -> np.ndarray:
+    """DTFT of `a` (coordinates about the frame centre) on the grid kys x kxs (cycles/px), real matmuls."""
+    h, w = a.shape
+    x = (np.arange(w) - 0.5 * (w - 1)).astype(np.float64)
+    y = (np.arange(h) - 0.5 * (h - 1)).astype(np.float64)
+    px = 2.0 * np.pi * np.outer(x, kxs)
+    t = a @ np.concatenate([np.cos(px), -np.sin(px)], axis=1).astype(np.float32)  # (h, 2 nx)
+    row = (t[:, : len(kxs)] + 1j * t[:, len(kxs):]).astype(np.complex128)
+    ey = np.exp(-2j * np.pi * np.outer(kys, y))
+    return ey @ row
+
+
+def _refine_peak(a: np.ndarray, k: np.ndarray) -> tuple[np.ndarray, complex]:
+    """Sub-bin peak of |DTFT|^2 near k: quadratic fits of log power on shrinking 5x5 grids."""
+    h, w = a.shape
+    k = np.array(k, dtype=np.float64)
+    off = np.arange(-2, 3, dtype=np.float64)
+    gy, gx = np.meshgrid(off, off, indexing="ij")
+    design = np.stack([np.ones(25), gx.ravel(), gy.ravel(), gx.ravel() ** 2, (gx * gy).ravel(), gy.ravel() ** 2], 1)
+    for step in (0.3, 0.08, 0.02):
+        f = _dtft(a, k[0] + off * step / w, k[1] + off * step / h)
+        lp = np.log(np.abs(f) ** 2 + 1e-300).ravel()
+        c = np.linalg.lstsq(design, lp, rcond=None)[0]
+        hess = np.array([[2 * c[3], c[4]], [c[4], 2 * c[5]]])
+        try:
+            d = np.linalg.solve(hess, -c[1:3])
+        except np.linalg.LinAlgError:
+            d = np.zeros(2)
+        if not (hess[0, 0] < 0 and np.linalg.det(hess) > 0):
+            d = np.array(np.unravel_index(np.argmax(lp), (5, 5))[::-1], float) - 2.0
+        d = np.clip(d, -2.0, 2.0)
+        k = k + d * step / np.array([w, h])
+    return k, complex(_dtft(a, k[:1], k[1:])[0, 0])
+
+
+def _fft_lattice(img: np.ndarray, expected_pitch_px: float | None) -> _Lattice:
+    """Pitch, rotation and offset of the sub-image lattice from the image's Fourier transform."""
+    full_h, full_w = img.shape
+    # large frames of coarse lattices: 2x2 binning keeps every period (and the frame centre) but costs a
+    # quarter of the transform
+    binned = expected_pitch_px is not None and expected_pitch_px >= 10.0 and min(full_h, full_w) >= 1024
+    if binned:
+        src = img[: full_h // 2 * 2, : full_w // 2 * 2]
+        src = 0.25 * (src[0::2, 0::2] + src[1::2, 0::2] + src[0::2, 1::2] + src[1::2, 1::2])
+        expected_pitch_px = 0.5 * expected_pitch_px
+    else:
+        src = img
+    h, w = src.shape
+    a = (src - np.float32(src.mean())) * _hann(h)[:, None] * _hann(w)[None, :]
+    spec = scipy.fft.rfft2(a, workers=_workers())
+    power = spec.real ** 2 + spec.imag ** 2
+    ky = scipy.fft.fftfreq(h).astype(np.float32)
+    kx = scipy.fft.rfftfreq(w).astype(np.float32)
+    kr = np.hypot(ky[:, None], kx[None, :])
+    band = (kr >= 6.0 / min(h, w)) & (kr <= 1.0 / MIN_PITCH_PX)
+    pb = np.where(band, power, 0.0)
+    if not pb.any():
+        raise InputError("the white image shows no periodic microlens structure")
+    iy, ix = np.nonzero(pb >= 0.03 * pb.max())
+    if iy.size > 20000:  # a noise-like spectrum: no clear peaks
+        raise InputError("the white image shows no periodic microlens structure")
+    pv = pb[iy, ix]
+    nb = np.stack([pb[(iy + dy) % h, np.clip(ix + dx, 0, pb.shape[1] - 1)]
+                   for dy in (-1, 0, 1) for dx in (-1, 0, 1) if dy or dx])
+    is_peak = pv >= nb.max(axis=0)
+    iy, ix, pv = iy[is_peak], ix[is_peak], pv[is_peak]
+    floor = float(np.median(power[::4, ::4][band[::4, ::4]]))
+    if pv.size == 0 or pv.max() <= 200.0 * max(floor, 1e-30):
+        raise InputError("the white image shows no periodic microlens structure")
+    strong = pv >= 0.03 * pv.max()
+    iy, ix, pv = iy[strong], ix[strong], pv[strong]
+    kvec = np.stack([kx[ix], ky[iy]], 1).astype(np.float64)
+    kmag = np.hypot(kvec[:, 0], kvec[:, 1])
+    order = np.argsort(kmag)
+    kvec, kmag, pv = kvec[order], kmag[order], pv[order]
+    first = kvec[0]
+    if expected_pitch_px is not None:
+        near = np.abs(kmag * expected_pitch_px - 1.0) <= PITCH_TOLERANCE
+        if not near.any():
+            unit = 2.0 if binned else 1.0
+            raise InputError(f"the microlens pitch in the image ({unit / kmag[0]:.2f} px) is far from the expected "
+                             f"{unit * expected_pitch_px:.2f} px; check the camera config and the image")
+        first = kvec[np.argmax(near)]
+    # its partner: the strongest peak roughly perpendicular with a similar length
+    cosang = np.abs(kvec @ first) / (np.hypot(kvec[:, 0], kvec[:, 1]) * np.hypot(*first))
+    ratio = np.hypot(kvec[:, 0], kvec[:, 1]) / np.hypot(*first)
+    partner = (cosang < math.sin(math.radians(10))) & (np.abs(ratio - 1) < 0.1)
+    if not partner.any():
+        raise InputError("the white image shows no square microlens lattice (only one periodic direction found)")
+    second = kvec[np.argmax(np.where(partner, pv, -1))]
+    k1, f1 = _refine_peak(a, first)
+    k2, f2 = _refine_peak(a, second)
+    # order: k1 along x (n), k2 along y (m); signs so that the real-space axes point +x and +y
+    if abs(k1[0]) < abs(k2[0]):
+        k1, k2, f1, f2 = k2, k1, f2, f1
+    kmat = np.array([k1, k2])  # rows: reciprocal vectors; basis = inverse
+    basis = np.linalg.inv(kmat)  # columns a1, a2 with k_i . a_j = delta_ij
+    phase = -np.angle([f1, f2]) / (2.0 * np.pi)
+    if basis[0, 0] < 0:
+        basis[:, 0] *= -1
+        phase[0] *= -1
+    if basis[1, 1] < 0:
+        basis[:, 1] *= -1
+        phase[1] *= -1
+    if binned:  # back to frame pixels: x = 2 x_binned + 0.5, the same centre for even frame sizes
+        basis *= 2.0
+        expected_pitch_px *= 2.0
+        h, w = full_h // 2 * 2, full_w // 2 * 2
+    pitch = np.hypot(basis[0], basis[1])
+    if pitch.min() < MIN_PITCH_PX:
+        raise InputError(f"the periodic structure in the image ({pitch.min():.2f} px) is too fine for microlenses")
+    if expected_pitch_px is not None and np.any(np.abs(pitch / expected_pitch_px - 1) > PITCH_TOLERANCE):
+        raise InputError(f"the microlens pitch in the image ({pitch[0]:.2f} x {pitch[1]:.2f} px) is far from the expected "
+                         f"{expected_pitch_px:.2f} px; check the camera config and the image")
+    centre = np.array([0.5 * (w - 1), 0.5 * (h - 1)])
+    base = centre + basis @ phase
+    origin = _resolve_half_period(img, basis, base)
+    return _Lattice(basis, origin)
+
+
+def _resolve_half_period(img: np.ndarray, basis: np.ndarray, base: np.ndarray) -> np.ndarray:
+    """The Fourier phase fixes the lattice up to half a period per axis (the sign of the sub-image's
+    transform); pick the shift whose points are bright with dark cell corners around them."""
+    h, w = img.shape
+    jj, ii = np.meshgrid(np.arange(-6, 7), np.arange(-6, 7))
+    best, score_best = base, -np.inf
+    for sx in (0.0, 0.5):
+        for sy in (0.0, 0.5):
+            o = base + basis @ np.array([sx, sy])
+            pts = o[:, None] + basis @ np.stack([jj.ravel(), ii.ravel()])
+            corners = [pts + basis @ np.array([cx, cy])[:, None] for cx in (-0.5, 0.5) for cy in (-0.5, 0.5)]
+            inside = lambda p: (p[0] > 1) & (p[0] < w - 2) & (p[1] > 1) & (p[1] < h - 2)  # noqa: E731
+            ok = inside(pts) & np.all([inside(c) for c in corners], axis=0)
+            if not ok.any():
+                continue
+            sample = lambda p: ndimage.map_coordinates(img, [p[1][ok], p[0][ok]], order=1)  # noqa: E731
+            score = float(np.mean(sample(pts)) - np.mean([sample(c) for c in corners]))
+            if score > score_best:
+                best, score_best = o, score
+    return best
+
+
+# --------------------------------------------------------------------------------------- disc fitting
+
+
+def _workers() -> int:
+    return max(1, min(4, os.cpu_count() or 1))
+
+
+@dataclass
+class _Discs:
+    """What the disc fit found, per candidate lattice position."""
+
+    cx: np.ndarray
+    cy: np.ndarray
+    amp: np.ndarray
+    radius: np.ndarray
+    edge: float
+    valid_fraction: np.ndarray
+
+
+def _disc_offsets(reach: float, inner: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+    hw = int(math.ceil(reach))
+    dy, dx = np.mgrid[-hw:hw + 1, -hw:hw + 1]
+    r = np.hypot(dx, dy)
+    keep = (r <= reach) & (r >= inner)
+    return dy[keep].astype(np.int32), dx[keep].astype(np.int32)
+
+
+class _DiscFit:
+    """Joint fit of the frame by one logistic-edged disc per lens (see the module docstring).
+
+    Each lens is fitted on the pixels of an annulus about its rim (the plateau inside carries no position
+    information); the model of the whole frame (all lenses' discs summed) is rebuilt every iteration so
+    that overlapping neighbours are accounted for. Work is split over threads by lens (NumPy releases the
+    GIL), one fused pass per chunk per iteration.
+    """
+
+    def __init__(self, img: np.ndarray, cx: np.ndarray, cy: np.ndarray, radius0: float,
+                 colour: np.ndarray | None = None) -> None:
+        self.img = img
+        self.h, self.w = img.shape
+        self.cx, self.cy = cx.astype(np.float64).copy(), cy.astype(np.float64).copy()
+        self.n = cx.size
+        self.radius = np.full(self.n, radius0)
+        self.edge = 0.8
+        self.amp = np.zeros(self.n)
+        self.slope_x = np.zeros(self.n)  # plateau level change per radius, x and y
+        self.slope_y = np.zeros(self.n)
+        self.r_norm = float(radius0)
+        self.sloped = False
+        self.prev_step = np.zeros((self.n, N_LENS_PARAMS))
+        self.last_step = np.zeros(self.n)
+        self.drift = np.zeros(self.n)
+        self.rss = np.zeros(self.n)
+        self.model = None  # the frame model (all lenses' discs), float64, flat
+        self.dirty = np.zeros(self.n, bool)  # lenses that moved since the model was rendered
+        self._model_edge = None
+        self.colour = np.zeros(self.n, np.int8) if colour is None else colour.astype(np.int8)
+        if np.any(np.diff(self.colour) < 0):
+            raise ValueError("lenses must be sorted by colour")
+        self.n_red = int(np.count_nonzero(self.colour == 0))
+        self.coupled = np.zeros(self.n, bool)  # lenses next to (or being) a lens far off the lattice
+        self.wide = None  # lenses fitted with a wide edge (capture of far-off lenses)
+        self.wide_edge = 1.0
+        # blocks of lenses small enough for their working set to stay in cache
+        self.chunks = [slice(b, min(b + BLOCK_LENSES, self.n)) for b in range(0, self.n, BLOCK_LENSES)]
+        workers = min(_workers(), len(self.chunks))
+        self.pool = ThreadPoolExecutor(workers) if workers > 1 else None
+
+    def _map(self, fn, *args, lenses=None):
+        """fn(block, *args) over blocks of lenses (all, a slice, or an index array), on the thread pool."""
+        if lenses is None:
+            lenses = slice(0, self.n)
+        if isinstance(lenses, slice):
+            blocks = [slice(b, min(b + BLOCK_LENSES, lenses.stop)) for b in range(lenses.start, lenses.stop, BLOCK_LENSES)]
+        else:
+            blocks = [lenses[b:b + BLOCK_LENSES] for b in range(0, lenses.size, BLOCK_LENSES)]
+        if self.pool is None or len(blocks) == 1:
+            return [fn(c, *args) for c in blocks]
+        return list(self.pool.map(lambda c: fn(c, *args), blocks))
+
+    def gather(self, band: float) -> None:
+        """Pixel sets of every lens: the annulus |r - R| <= band (+ margin) about its rounded centre."""
+        r0 = float(np.median(self.radius))
+        self.band = band
+        dy, dx = _disc_offsets(r0 + band + GATHER_MARGIN, max(0.0, r0 - band - GATHER_MARGIN))
+        self.dx, self.dy = dx.astype(np.float32), dy.astype(np.float32)
+        self._dflat = dy.astype(np.int64) * self.w + dx
+        self._hw = int(max(np.abs(dy).max(), np.abs(dx).max()))
+        self.rim = np.abs(np.hypot(dx, dy) - r0) <= 1.0
+        n, p = self.n, dx.size
+        self.flat = np.empty((n, p), np.int64)
+        self.vf = np.empty((n, p), np.float32)
+        self.vals = np.empty((n, p), np.float32)
+        self.gx, self.gy = np.empty(n), np.empty(n)
+        self.valid_fraction = np.empty(n)
+        self.regather(np.arange(n))
+        self.m = np.empty((n, p), np.float32)  # each lens' model on its pixels
+        self.e = np.empty((n, p), np.float32)  # its edge profile
+        self.dm = np.zeros((n, p), np.float32)  # the last change of m
+
+    def regather(self, lenses: np.ndarray) -> None:
+        """Re-centre the pixel sets of `lenses` on their current centres."""
+        gx, gy = np.rint(self.cx[lenses]), np.rint(self.cy[lenses])
+        self.gx[lenses], self.gy[lenses] = gx, gy
+        ix0, iy0 = gx.astype(np.int64), gy.astype(np.int64)
+        flat = (iy0 * self.w + ix0)[:, None] + self._dflat[None, :]
+        vf = np.ones(flat.shape, np.float32)
+        hw = self._hw
+        edge = np.flatnonzero((ix0 - hw < 0) | (ix0 + hw >= self.w) | (iy0 - hw < 0) | (iy0 + hw >= self.h))
+        if edge.size:  # lenses near the frame border: mask the pixels outside
+            iy = iy0[edge, None] + self.dy[None, :].astype(np.int64)
+            ix = ix0[edge, None] + self.dx[None, :].astype(np.int64)
+            valid = (iy >= 0) & (iy < self.h) & (ix >= 0) & (ix < self.w)
+            vf[edge] = valid
+            flat[edge] = np.where(valid, flat[edge], 0)
+        self.flat[lenses] = flat
+        self.vf[lenses] = vf
+        self.vals[lenses] = self.img.ravel()[flat] * vf
+        self.valid_fraction[lenses] = vf[:, self.rim].mean(axis=1)  # of each sub-image's rim in the frame
+
+    def recentre(self, active: np.ndarray) -> None:
+        """Re-centre the pixel sets of the lenses that moved too far for their window."""
+        moved = np.flatnonzero(active & (self.drift > REGATHER))
+        if not moved.size:
+            return
+        if self.model is not None:  # take their discs out of the model, put them back on the new pixels
+            _scatter_add(self.model, self.flat[moved], -self.m[moved])
+        self.regather(moved)
+        self.drift[moved] = np.maximum(np.abs(self.cx[moved] - self.gx[moved]), np.abs(self.cy[moved] - self.gy[moved]))
+        if self.model is not None:
+            self._map(self._model_part, self.edge, lenses=moved)
+            _scatter_add(self.model, self.flat[moved], self.m[moved])
+            self.dirty[moved] = False
+
+    def init_amplitude(self, radius: float) -> None:
+        """Amplitude guess: the mean level of the pixels well inside each lens' disc (0 off the frame)."""
+        hw = max(1, int(0.4 * radius))
+        dy, dx = _disc_offsets(hw)
+        iy = np.rint(self.cy).astype(np.int64)[:, None] + dy[None, :]
+        ix = np.rint(self.cx).astype(np.int64)[:, None] + dx[None, :]
+        ok = (iy >= 0) & (iy < self.h) & (ix >= 0) & (ix < self.w)
+        vals = np.where(ok, self.img.ravel()[np.where(ok, iy * self.w + ix, 0)], 0.0)
+        self.amp = vals.sum(axis=1) / np.maximum(ok.sum(axis=1), 1)
+
+    def _uv(self, c):
+        u = self.dx[None, :] - (self.cx[c] - self.gx[c]).astype(np.float32)[:, None]
+        v = self.dy[None, :] - (self.cy[c] - self.gy[c]).astype(np.float32)[:, None]
+        return u, v
+
+    def set_slopes(self, lat_j: np.ndarray, lat_i: np.ndarray, basis: np.ndarray, active: np.ndarray) -> None:
+        """Intensity slope across each sub-image from the smooth field of lens amplitudes (non-uniform
+        illumination, vignetting): central differences over lattice neighbours, turned into x/y slopes per
+        disc radius. Held fixed in the fit (fitting them per lens would cost precision)."""
+        j0, i0 = lat_j.min(), lat_i.min()
+        shape = (lat_i.max() - i0 + 1, lat_j.max() - j0 + 1)
+        amp = np.full(shape, np.nan)
+        amp[lat_i - i0, lat_j - j0] = np.where(active, self.amp, np.nan)
+        pad = np.pad(amp, 1, constant_values=np.nan)
+        dj = 0.5 * (pad[1:-1, 2:] - pad[1:-1, :-2])
+        di = 0.5 * (pad[2:, 1:-1] - pad[:-2, 1:-1])
+        # one-sided where a neighbour is missing
+        dj = np.where(np.isnan(dj), np.where(np.isnan(pad[1:-1, 2:]), amp - pad[1:-1, :-2], pad[1:-1, 2:] - amp), dj)
+        di = np.where(np.isnan(di), np.where(np.isnan(pad[2:, 1:-1]), amp - pad[:-2, 1:-1], pad[2:, 1:-1] - amp), di)
+        dj, di = np.nan_to_num(dj[lat_i - i0, lat_j - j0]), np.nan_to_num(di[lat_i - i0, lat_j - j0])
+        grad = np.linalg.solve(basis.T, np.stack([dj, di]))  # d amp / d(x, y) per px
+        self.slope_x = np.where(active, grad[0] * self.r_norm, 0.0)
+        self.slope_y = np.where(active, grad[1] * self.r_norm, 0.0)
+        self.sloped = True
+
+    def _inv_edge(self, c, edge):
+        """1 / edge width per lens (column), the global one or, for lenses being captured, a wide one."""
+        if self.wide is None:
+            return np.float32(1.0 / edge)
+        return np.where(self.wide[c], np.float32(1.0 / self.wide_edge), np.float32(1.0 / edge))[:, None]
+
+    def _local_amp(self, c, u, v):
+        """Each pixel's plateau level: amplitude plus the lens' linear intensity slope (vignetting, cos^4)."""
+        k = np.float32(1.0 / self.r_norm)
+        return (self.amp[c, None].astype(np.float32) + self.slope_x[c, None].astype(np.float32) * k * u
+                + self.slope_y[c, None].astype(np.float32) * k * v)
+
+    def _model_part(self, c, edge):
+        """Each lens' disc on its own pixels, for the frame model (block `c` of lenses)."""
+        u, v = self._uv(c)
+        r = np.sqrt(u * u + v * v)
+        r -= self.radius[c, None].astype(np.float32)
+        r *= self._inv_edge(c, edge)
+        np.minimum(r, np.float32(50.0), out=r)
+        e = np.exp(r, out=r)
+        e += 1.0
+        np.reciprocal(e, out=e)
+        self.e[c] = e
+        e *= self._local_amp(c, u, v)
+        e *= self.vf[c]
+        self.dm[c] = e - self.m[c]  # the change, for an incremental frame model
+        self.m[c] = e
+
+    def _normals(self, c, model, edge, weighted, fit_edge):
+        """Normal equations of block `c` of lenses against the residual of the frame model.
+
+        Parameters per lens: amplitude, centre x and y, radius (+ the global edge width)."""
+        u, v = self._uv(c)
+        r = np.sqrt(u * u + v * v)
+        r += np.float32(1e-4)
+        e = self.e[c]
+        a = self._local_amp(c, u, v)
+        mod = model[self.flat[c]].astype(np.float32)
+        res = self.vals[c] - mod
+        res *= self.vf[c]
+        # a window about the lens' current centre and radius (1 px taper): symmetric, so a model that is
+        # still wrong (edge width, neighbours) cannot pull the centre off
+        rad = self.radius[c, None].astype(np.float32)
+        wt = np.clip(np.float32(self.band + 0.5) - np.abs(r - rad), 0.0, 1.0)
+        wt *= self.vf[c]
+        if weighted:
+            # variance ~ signal (photon and Monte-Carlo noise), floored at 5 % of the plateau. Not for lenses
+            # coupled to a displaced neighbour: the weights would then differ from one side to the other
+            # and, with any model error, pull the pair together
+            amp = np.maximum(self.amp[c, None].astype(np.float32), np.float32(1e-6))
+            noise = np.where(self.coupled[c, None], amp, np.maximum(mod, np.float32(WEIGHT_FLOOR) * amp))
+            wt = wt * (amp / noise)
+        k = np.float32(1.0 / self.r_norm)
+        ag = e * (1.0 - e)
+        inv = self._inv_edge(c, edge)
+        ag *= a * inv
+        jx = ag * (u / r)
+        jy = ag * (v / r)
+        if self.sloped:  # fixed slopes move with the lens
+            jx -= e * (k * self.slope_x[c, None].astype(np.float32))
+            jy -= e * (k * self.slope_y[c, None].astype(np.float32))
+        jac = [e, jx, jy, ag]
+        if fit_edge:
+            d = r - self.radius[c, None].astype(np.float32)
+            d *= ag
+            d *= inv
+            if self.wide is not None:  # lenses on a private wide edge say nothing about the global one
+                d *= ~self.wide[c, None]
+            jac.append(d)
+        nk, n = len(jac), res.shape[0]
+        normal = np.empty((n, nk, nk))
+        rhs = np.empty((n, nk))
+        for i in range(nk):
+            wj = jac[i] * wt
+            rhs[:, i] = np.einsum("lp,lp->l", wj, res)
+            for j in range(i, nk):
+                normal[:, i, j] = normal[:, j, i] = np.einsum("lp,lp->l", wj, jac[j])
+        return normal, rhs, np.einsum("lp,lp->l", res, res)
+
+    def _refresh(self) -> None:
+        """Bring the frame model up to date: rebuild it, or re-render only the lenses that moved."""
+        if self.model is None or self._model_edge != self.edge:
+            self._model_edge = self.edge
+            self._map(self._model_part, self.edge)
+            self.model = np.bincount(self.flat.ravel(), weights=self.m.ravel(), minlength=self.h * self.w)
+        else:
+            d = np.flatnonzero(self.dirty)
+            if d.size:
+                if d[-1] - d[0] + 1 == d.size:  # one colour of a full sweep: a slice, no copies
+                    d = slice(int(d[0]), int(d[-1]) + 1)
+                self._map(self._model_part, self.edge, lenses=d)
+                _scatter_add(self.model, self.flat[d], self.dm[d])
+        self.dirty[:] = False
+
+    def sweep(self, edge: float | None, active: np.ndarray, weighted: bool, lenses: np.ndarray | None = None) -> None:
+        """One Gauss-Newton step for every lens (or `lenses`), red-black: lenses of one lattice colour step
+        together, then the model is updated and the other colour steps (side neighbours, whose discs
+        overlap, never step at the same time, so strongly overlapping pairs cannot run away). Lenses are
+        stored sorted by colour, so a full sweep works on two contiguous halves."""
+        if lenses is None:
+            for part in (slice(0, self.n_red), slice(self.n_red, self.n)):
+                if part.stop > part.start:
+                    self.iterate(edge, active, weighted, part)
+            return
+        idx = np.asarray(lenses)
+        for colour in (0, 1):
+            part = idx[self.colour[idx] == colour]
+            if part.size:
+                self.iterate(edge, active, weighted, part)
+
+    def iterate(self, edge: float | None, active: np.ndarray, weighted: bool, idx: np.ndarray) -> None:
+        """One Gauss-Newton step for lenses `idx` (inactive ones: amplitude only), the others held; with
+        `edge` None the global edge width steps too (eliminated exactly through each lens' block)."""
+        if edge is not None:
+            self.edge = edge
+        s = self.edge
+        self._refresh()
+        parts = self._map(self._normals, self.model, s, weighted, edge is None, lenses=idx)
+        normal = np.concatenate([p[0] for p in parts])
+        rhs = np.concatenate([p[1] for p in parts])
+        self.rss[idx] = np.concatenate([p[2] for p in parts])
+        act = active[idx]
+        npar = N_LENS_PARAMS
+        diag = np.arange(npar)
+        normal[:, diag, diag] += 1e-6 * (1.0 + normal[:, diag, diag])
+        frozen = ~act
+        normal[frozen, 1:, :] = 0.0
+        normal[frozen, :, 1:] = 0.0
+        normal[np.ix_(np.flatnonzero(frozen), np.arange(1, normal.shape[1]), np.arange(1, normal.shape[1]))] = \
+            np.eye(normal.shape[1] - 1)
+        rhs[frozen, 1:] = 0.0
+        if edge is None:
+            cross = normal[:, :npar, npar]
+            sol = np.linalg.solve(normal[:, :npar, :npar], np.stack([rhs[:, :npar], cross], axis=2))
+            num = float(np.sum(rhs[act, npar]) - np.sum(np.einsum("li,li->l", cross, sol[:, :, 0])[act]))
+            den = float(np.sum(normal[act, npar, npar]) - np.sum(np.einsum("li,li->l", cross, sol[:, :, 1])[act]))
+            ds = float(np.clip(num / den, -0.5 * s, 0.5 * s)) if den > 0 else 0.0
+            step = sol[:, :, 0] - sol[:, :, 1] * np.where(act, ds, 0.0)[:, None]
+            self.edge = float(np.clip(s + ds, 0.05, 5.0))
+        else:
+            step = np.linalg.solve(normal, rhs[..., None])[..., 0]
+        step = step[:, :npar]
+        step[:, 1:] = np.clip(step[:, 1:], -1.0, 1.0)
+        # damp lenses that oscillate (the step reverses the last one)
+        flip = np.einsum("li,li->l", step[:, 1:3], self.prev_step[idx, 1:3]) < 0
+        step[flip, 1:] *= 0.5
+        self.amp[idx] += step[:, 0]
+        self.cx[idx] += step[:, 1]
+        self.cy[idx] += step[:, 2]
+        # a lens' sub-image radius may differ from the typical one by a pixel (size defects), no more:
+        # two strongly overlapping discs could otherwise trade radius against amplitude without end
+        self.radius[idx] = np.clip(self.radius[idx] + step[:, 3], self.r_norm - 1.0, self.r_norm + 1.0)
+        self.prev_step[idx] = step
+        self.drift[idx] = np.maximum(np.abs(self.cx[idx] - self.gx[idx]), np.abs(self.cy[idx] - self.gy[idx]))
+        self.last_step[idx] = np.hypot(step[:, 1], step[:, 2])
+        self.dirty[idx] = True
+
+    def close(self) -> None:
+        if self.pool is not None:
+            self.pool.shutdown()
+
+
+# ------------------------------------------------------------------------------------------ calibrate
+
+
+def calibrate(img: np.ndarray, *, expected_pitch_px: float | None = None,
+              expected_shape: tuple[int, int] | None = None) -> Grid:
+    """Find, measure and index every microlens of a white image; fit the global grid.
+
+    `img`: float, black-subtracted, normalized (1 = full scale) white image. `expected_pitch_px`: the
+    config's sub-image pitch (the found pitch must lie within 10 %). `expected_shape`: (N_H, N_W) of the
+    MLA; the grid then has exactly that many rows and columns, U(1,1) being the array's top-left lens even
+    if border lenses are dim or cut by the frame. Raises InputError for an image that cannot be calibrated.
+    """
+    img = _as_image(img)
+    if expected_pitch_px is not None and not (np.isfinite(expected_pitch_px) and expected_pitch_px >= MIN_PITCH_PX):
+        raise InputError(f"expected pitch must be a number of at least {MIN_PITCH_PX} px, got {expected_pitch_px!r}")
+    if expected_shape is not None:
+        if (len(expected_shape) != 2 or any(not isinstance(v, (int, np.integer)) or v < 1 for v in expected_shape)):
+            raise InputError(f"expected shape must be two positive integers (N_H, N_W), got {expected_shape!r}")
+        expected_shape = (int(expected_shape[0]), int(expected_shape[1]))
+    _check_levels(img)
+    lattice = _fft_lattice(img, expected_pitch_px)
+    lat_j, lat_i, px, py = _candidates(img.shape, lattice)
+    order = np.argsort((lat_i + lat_j) % 2, kind="stable")  # red-black colours, each contiguous
+    lat_j, lat_i, px, py = lat_j[order], lat_i[order], px[order], py[order]
+    pitch = float(np.sqrt(abs(np.linalg.det(lattice.basis))))
+    radius0 = _radius_guess(img, pitch)
+    discs, active = _measure(img, px, py, lat_j, lat_i, lattice.basis, radius0)
+    return _assemble(img.shape, lattice, lat_j, lat_i, discs, active, expected_shape)
+
+
+def _candidates(shape: tuple[int, int], lattice: _Lattice):
+    """Every lattice point whose sub-image centre lies within half a pitch of the frame."""
+    h, w = shape
+    inv = np.linalg.inv(lattice.basis)
+    corners = np.array([[0, 0], [w - 1, 0], [0, h - 1], [w - 1, h - 1]], float) - lattice.origin
+    lc = inv @ corners.T
+    j = np.arange(math.floor(lc[0].min()) - 1, math.ceil(lc[0].max()) + 2)
+    i = np.arange(math.floor(lc[1].min()) - 1, math.ceil(lc[1].max()) + 2)
+    jj, ii = np.meshgrid(j, i)
+    jj, ii = jj.ravel(), ii.ravel()
+    pts = lattice.origin[:, None] + lattice.basis @ np.stack([jj, ii]).astype(float)
+    margin = 0.5 * float(np.sqrt(abs(np.linalg.det(lattice.basis))))
+    keep = (pts[0] >= -margin) & (pts[0] <= w - 1 + margin) & (pts[1] >= -margin) & (pts[1] <= h - 1 + margin)
+    return jj[keep], ii[keep], pts[0][keep], pts[1][keep]
+
+
+def _radius_guess(img: np.ndarray, pitch: float) -> float:
+    """Sub-image radius from the lit area fraction of the frame's central part (the lenses cover it)."""
+    h, w = img.shape
+    core = img[h // 4: 3 * h // 4: 2, w // 4: 3 * w // 4: 2]
+    level = float(np.percentile(core, 90))
+    frac = float(np.count_nonzero(core > 0.5 * level)) / max(1, core.size)
+    return float(np.clip(pitch * math.sqrt(frac / math.pi), 0.2 * pitch, 0.75 * pitch))
+
+
+def _measure(img: np.ndarray, px: np.ndarray, py: np.ndarray, lat_j: np.ndarray, lat_i: np.ndarray,
+             basis: np.ndarray, radius0: float) -> tuple[_Discs, np.ndarray]:
+    """Joint disc fit of every lens (see the module docstring), in two stages:
+
+    1. a central block of lenses, from a wide edge down: the edge width, the typical radius and a lattice
+       good to a few hundredths of a pixel everywhere (the Fourier one is good to ~0.1 px at the corners);
+    2. every lens, from there: N_SWEEPS sweeps, the capture of lenses far off the lattice, then more
+       sweeps for the lenses that still move and their neighbours only.
+    """
+    pitch = float(np.sqrt(abs(np.linalg.det(basis))))
+    band = BAND * max(1.0, pitch / 20.0)
+    # stage 1: a block of about SUBSET x SUBSET lenses round the brightest part of the centre
+    cj, ci = np.median(lat_j), np.median(lat_i)
+    half = SUBSET // 2
+    block = (np.abs(lat_j - cj) <= half + 1) & (np.abs(lat_i - ci) <= half + 1)
+    inner = (np.abs(lat_j - cj) <= half) & (np.abs(lat_i - ci) <= half)
+    colour = (lat_i + lat_j) % 2
+    px, py = px.copy(), py.copy()
+    lattice_x, lattice_y = px, py
+    sub = _DiscFit(img, px[block], py[block], radius0, colour[block])
+    try:
+        sub.init_amplitude(radius0)
+        sub.gather(band)
+        ref = float(np.percentile(sub.amp, 90)) if sub.amp.size else 0.0
+        act = inner[block] & (sub.amp > 0.2 * ref) & (sub.valid_fraction >= MIN_VALID_FRACTION)
+        if np.count_nonzero(act) >= MIN_LENSES:
+            sub.sweep(max(0.8, 0.05 * pitch), act, weighted=False)
+            sub.edge = max(0.4, 0.025 * pitch)
+            for it in range(BLOCK_SWEEPS):
+                sub.sweep(None, act, weighted=it >= 1)
+            radius0 = float(np.median(sub.radius[act]))
+            edge0 = sub.edge
+            # a better lattice from the block's centres (the Fourier pitch is good to ~1e-4): every lens
+            # then starts within a few hundredths of a pixel; the block's lenses start where they were found
+            design = np.stack([np.ones(act.sum()), lat_j[block][act], lat_i[block][act]], 1)
+            coef = np.linalg.lstsq(design, np.stack([sub.cx[act], sub.cy[act]], 1), rcond=None)[0]
+            if np.count_nonzero(act) >= 25:
+                px = coef[0, 0] + coef[1, 0] * lat_j + coef[2, 0] * lat_i
+                py = coef[0, 1] + coef[1, 1] * lat_j + coef[2, 1] * lat_i
+            lattice_x, lattice_y = px.copy(), py.copy()
+            done = np.flatnonzero(block)[act]
+            px[done], py[done] = sub.cx[act], sub.cy[act]
+        else:
+            edge0 = max(0.4, 0.025 * pitch)
+    finally:
+        sub.close()
+    # stage 2: every lens
+    fit = _DiscFit(img, px, py, radius0, colour)
+    try:
+        fit.edge = edge0
+        fit.init_amplitude(radius0)
+        ref = float(np.percentile(fit.amp, 90)) if fit.amp.size else 0.0
+        fit.gather(band)
+        active = (fit.amp > 0.2 * ref) & (fit.valid_fraction >= MIN_VALID_FRACTION)
+        if np.count_nonzero(active) < MIN_LENSES:
+            raise InputError(f"only {int(np.count_nonzero(active))} microlens sub-images found in the white image "
+                             f"(at least {MIN_LENSES} are needed)")
+        neighbours = _lattice_neighbours(lat_j, lat_i)
+        for it in range(N_SWEEPS):
+            if it:
+                fit.recentre(active)
+            if it == 1:
+                fit.set_slopes(lat_j, lat_i, basis, active)
+                off = active & (np.hypot(fit.cx - lattice_x, fit.cy - lattice_y) > COUPLED_PX)
+                fit.coupled[_with_neighbours(np.flatnonzero(off), neighbours)] = True
+            fit.sweep(fit.edge, active, weighted=it >= 1)  # the edge width is known from the block
+        # lenses the sharp edge cannot pull in (beyond ~1 px off the lattice: big defects) fit badly; they
+        # are captured with a wide edge of their own, then refined; only they and their neighbours step
+        per_px = fit.rss / np.maximum(fit.valid_fraction * fit.vf.shape[1], 1.0)
+        typical = float(np.median(per_px[active]))
+        far = active & ((per_px > 3.0 * typical) | (fit.last_step > 0.3))
+        if far.any():
+            fit.wide, fit.wide_edge = far, max(WIDE_EDGE, 4.0 * fit.edge)
+            fit.dirty |= far
+            group = _with_neighbours(np.flatnonzero(far), neighbours)
+            fit.coupled[group] = True
+            for _ in range(3):
+                fit.recentre(active)
+                fit.sweep(fit.edge, active, weighted=True, lenses=group)
+            fit.wide = None
+            fit.dirty |= far
+        for _ in range(MAX_EXTRA):  # until every lens has settled
+            moving = np.flatnonzero(active & (fit.last_step > SETTLED_PX))
+            if not moving.size:
+                break
+            group = _with_neighbours(moving, neighbours)
+            fit.recentre(active)
+            fit.sweep(fit.edge, active, weighted=True, lenses=group)
+        discs = _Discs(fit.cx, fit.cy, fit.amp, fit.radius, fit.edge, fit.valid_fraction)
+    finally:
+        fit.close()
+    return discs, active
+
+
+def _scatter_add(target: np.ndarray, flat: np.ndarray, values: np.ndarray) -> None:
+    """target[flat] += values with repeated indices summed (bincount for many, add.at for few)."""
+    if flat.size > 200_000:
+        target += np.bincount(flat.ravel(), weights=values.ravel(), minlength=target.size)
+    else:
+        np.add.at(target, flat.ravel(), values.ravel().astype(np.float64))
+
+
+def _lattice_neighbours(lat_j: np.ndarray, lat_i: np.ndarray) -> np.ndarray:
+    """(n, 8) indices of each candidate's 8 lattice neighbours (-1 where there is none)."""
+    j0, i0 = lat_j.min(), lat_i.min()
+    table = np.full((lat_i.max() - i0 + 3, lat_j.max() - j0 + 3), -1)
+    table[lat_i - i0 + 1, lat_j - j0 + 1] = np.arange(lat_j.size)
+    return np.stack([table[lat_i - i0 + 1 + di, lat_j - j0 + 1 + dj]
+                     for di in (-1, 0, 1) for dj in (-1, 0, 1) if di or dj], axis=1)
+
+
+def _with_neighbours(lenses: np.ndarray, neighbours: np.ndarray) -> np.ndarray:
+    out = np.concatenate([lenses, neighbours[lenses].ravel()])
+    return np.unique(out[out >= 0])
+
+
+def _neighbourhood_median(values: np.ndarray, size: int = 5) -> np.ndarray:
+    """NaN-ignoring median over a size x size window of a 2-D array (NaN where the window is empty)."""
+    pad = size // 2
+    padded = np.pad(values.astype(np.float64), pad, constant_values=np.nan)
+    win = np.sort(np.lib.stride_tricks.sliding_window_view(padded, (size, size)).reshape(*values.shape, -1), axis=-1)
+    count = np.count_nonzero(~np.isnan(win), axis=-1)  # NaNs sort last
+    lo = np.take_along_axis(win, np.maximum(count - 1, 0)[..., None] // 2, axis=-1)[..., 0]
+    hi = np.take_along_axis(win, (count // 2)[..., None], axis=-1)[..., 0]
+    return np.where(count > 0, 0.5 * (lo + hi), np.nan)
+
+
+def _assemble(shape, lattice, lat_j, lat_i, discs: _Discs, active, expected_shape) -> Grid:
+    h, w = shape
+    pitch = float(np.sqrt(abs(np.linalg.det(lattice.basis))))
+    j0, i0 = int(lat_j.min()), int(lat_i.min())
+    nj, ni = int(lat_j.max()) - j0 + 1, int(lat_i.max()) - i0 + 1
+    table = lambda v, fill: _scatter(v, lat_i - i0, lat_j - j0, (ni, nj), fill)  # noqa: E731
+    amp = table(np.where(active, discs.amp, np.nan), np.nan)
+    local = _neighbourhood_median(amp)
+    t_act = table(active, False)
+    predicted = lattice.origin[:, None] + lattice.basis @ np.stack([lat_j, lat_i]).astype(float)
+    off_lattice = np.hypot(discs.cx - predicted[0], discs.cy - predicted[1])
+    rmed = float(np.median(discs.radius[active]))
+    sane = (np.abs(discs.radius - rmed) < 0.3 * rmed) & (off_lattice < 0.4 * pitch)
+    found = t_act & table(sane, False) & (amp >= MISSING_RELATIVE_FLUX * local)
+    if np.count_nonzero(found) < MIN_LENSES:
+        raise InputError(f"only {int(np.count_nonzero(found))} microlens sub-images could be measured in the white "
+                         f"image (at least {MIN_LENSES} are needed)")
+    weight = np.where(t_act, amp, 0.0)  # light of every lit lens (dim ones included)
+    seen = table(discs.valid_fraction >= MIN_VALID_FRACTION, False)
+    dark_seen = seen & ~t_act  # looked at, and nothing there: beyond the MLA
+    rows_used = np.flatnonzero(found.any(axis=1))
+    cols_used = np.flatnonzero(found.any(axis=0))
+    axis_centre = np.linalg.inv(lattice.basis) @ (np.array([0.5 * (w - 1), 0.5 * (h - 1)]) - lattice.origin)
+    if expected_shape is None:
+        r0, c0 = int(rows_used[0]), int(cols_used[0])
+        rows, cols = int(rows_used[-1]) - r0 + 1, int(cols_used[-1]) - c0 + 1
+    else:
+        rows, cols = expected_shape
+        r0 = _anchor(weight.sum(axis=1), dark_seen.any(axis=1) & ~t_act.any(axis=1), rows, axis_centre[1] - i0)
+        c0 = _anchor(weight.sum(axis=0), dark_seen.any(axis=0) & ~t_act.any(axis=0), cols, axis_centre[0] - j0)
+    if rows < 3 or cols < 3:
+        raise InputError(f"the microlens sub-images found span only {rows}x{cols} lenses; at least 3x3 are needed")
+    # (rows, cols) views into the lattice tables, padded where the window leaves the candidate range
+    def window(table_2d, fill):
+        out = np.full((rows, cols), fill, dtype=np.asarray(table_2d).dtype)
+        rr = np.arange(rows) + r0
+        cc = np.arange(cols) + c0
+        okr = (rr >= 0) & (rr < ni)
+        okc = (cc >= 0) & (cc < nj)
+        out[np.ix_(okr, okc)] = table_2d[np.ix_(rr[okr], cc[okc])]
+        return out
+
+    found_w = window(found, False)
+    n_found = int(np.count_nonzero(found_w))
+    if n_found < MIN_LENSES:
+        raise InputError(f"only {n_found} microlens sub-images lie inside the expected {rows}x{cols} array "
+                         f"(at least {MIN_LENSES} are needed)")
+    if expected_shape is not None and n_found < 0.5 * rows * cols:
+        raise InputError(f"only {n_found} of the expected {rows}x{cols} microlenses were found in the "
+                         f"{h}x{w} px image; check the camera config (MLA shape) and the image")
+    mx = np.where(found_w, window(table(discs.cx, np.nan), np.nan), np.nan)
+    my = np.where(found_w, window(table(discs.cy, np.nan), np.nan), np.nan)
+    vfrac = window(table(discs.valid_fraction, 0.0), 0.0)
+    flux = np.where(found_w, window(table(discs.amp * np.pi * discs.radius ** 2, np.nan), np.nan), np.nan)
+    radius = np.where(found_w, window(table(discs.radius, np.nan), np.nan), np.nan)
+    vv, uu = np.mgrid[0:rows, 0:cols].astype(float)
+    centre = (0.5 * (w - 1), 0.5 * (h - 1))
+    hom, k, scale, used, rms = _fit_model(uu[found_w], vv[found_w], mx[found_w], my[found_w], centre,
+                                          lattice, (r0 + i0, c0 + j0), (rows, cols))
+    gx, gy = _model_xy(hom, k, centre, scale, uu, vv)
+    # lenses whose predicted window leaves the frame entirely were never candidates: clipped + missing
+    clipped = (vfrac < 1.0) | ~np.isfinite(vfrac)
+    jac = _local_jacobian(hom, k, centre, scale, 0.5 * (cols - 1), 0.5 * (rows - 1))
+    pitch_x, pitch_y = float(np.hypot(*jac[:, 0])), float(np.hypot(*jac[:, 1]))
+    rotation = math.degrees(math.atan2(-jac[1, 0], jac[0, 0]))
+    angle = math.degrees(math.acos(float(np.clip(jac[:, 0] @ jac[:, 1] / (pitch_x * pitch_y), -1, 1))))
+    ox, oy = _model_xy(hom, k, centre, scale, 0.0, 0.0)
+    return Grid(
+        rows=rows, cols=cols, pitch_px=(pitch_x, pitch_y), rotation_deg=rotation, shear_deg=angle - 90.0,
+        origin_px=(float(ox), float(oy)), homography=hom, radial_k=float(k), radial_centre_px=centre,
+        radial_scale_px=float(scale), edge_width_px=float(discs.edge), image_shape=(h, w),
+        measured_x_px=mx, measured_y_px=my, grid_x_px=gx, grid_y_px=gy,
+        residual_px=np.hypot(mx - gx, my - gy), flux=flux, radius_px=radius,
+        missing=~found_w, clipped=clipped, rms_residual_px=float(rms),
+    )
+
+
+def _scatter(values, rows, cols, shape, fill):
+    values = np.asarray(values)
+    out = np.full(shape, fill, dtype=values.dtype if values.dtype != bool else bool)
+    out[rows, cols] = values
+    return out
+
+
+def _anchor(line_weight: np.ndarray, line_dark: np.ndarray, count: int, axis_pos: float) -> int:
+    """Start of the `count`-long window of lattice lines (rows or columns) holding the MLA: the most light;
+    among equals, the fewest lines seen dark inside the frame (beyond the array's edge), then the window
+    centred nearest the frame centre (the optical axis). Windows may reach beyond the frame, where lines
+    cut off by a cropped frame are unobserved, not dark."""
+    pad = np.zeros(count)
+    light = np.convolve(np.concatenate([pad, line_weight, pad]), np.ones(count), mode="valid")
+    dark = np.convolve(np.concatenate([pad, line_dark.astype(float), pad]), np.ones(count), mode="valid")
+    starts = np.arange(light.size) - count
+    best = light >= light.max() * (1 - 1e-9) - 1e-12
+    best &= dark <= dark[best].min()
+    cand = starts[best]
+    return int(cand[np.argmin(np.abs(cand + 0.5 * (count - 1) - axis_pos))])
+
+
+def _local_jacobian(hom, k, centre, scale, u, v) -> np.ndarray:
+    d = 1e-3
+    x1, y1 = _model_xy(hom, k, centre, scale, u + d, v)
+    x0, y0 = _model_xy(hom, k, centre, scale, u - d, v)
+    x3, y3 = _model_xy(hom, k, centre, scale, u, v + d)
+    x2, y2 = _model_xy(hom, k, centre, scale, u, v - d)
+    return np.array([[x1 - x0, x3 - x2], [y1 - y0, y3 - y2]]) / (2 * d)
+
+
+def _fit_model(u, v, x, y, centre, lattice: _Lattice, start, shape):
+    """Robust least-squares fit of the global model to the measured centres.
+
+    Returns (homography for raw lattice coordinates, radial k, radial scale, used mask, rms residual)."""
+    from scipy.optimize import least_squares
+
+    rows, cols = shape
+    full = u.size >= 100 and rows >= 8 and cols >= 8
+    uc, vc = 0.5 * (cols - 1), 0.5 * (rows - 1)
+    us, vs = max(uc, 1.0), max(vc, 1.0)
+    un, vn = (u - uc) / us, (v - vc) / vs
+    corners_u = np.array([0, cols - 1, 0, cols - 1], float)
+    corners_v = np.array([0, 0, rows - 1, rows - 1], float)
+    # initial affine from the Fourier lattice
+    design = np.stack([np.ones_like(un), un, vn], 1)
+    used = np.ones(u.size, bool)
+    px = np.linalg.lstsq(design, x, rcond=None)[0]
+    py = np.linalg.lstsq(design, y, rcond=None)[0]
+    ext = np.array([centre[0], centre[1]])
+    hn = np.array([[px[1], px[2], px[0]], [py[1], py[2], py[0]], [0.0, 0.0, 1.0]])
+    cx_, cy_ = _model_xy(hn, 0.0, centre, 1.0, (corners_u - uc) / us, (corners_v - vc) / vs)
+    scale = float(np.max(np.hypot(cx_ - ext[0], cy_ - ext[1]))) or 1.0
+
+    def unpack(p):
+        hm = np.array([[p[0], p[1], p[2]], [p[3], p[4], p[5]], [p[6], p[7], 1.0]])
+        return hm, (p[8] if full else 0.0)
+
+    def resid(p, sel):
+        hm, kk = unpack(p)
+        mx_, my_ = _model_xy(hm, kk, centre, scale, un[sel], vn[sel])
+        return np.concatenate([mx_ - x[sel], my_ - y[sel]])
+
+    p = np.array([hn[0, 0], hn[0, 1], hn[0, 2], hn[1, 0], hn[1, 1], hn[1, 2], 0.0, 0.0, 0.0])
+    for _ in range(4):
+        if full:
+            p = least_squares(resid, p, args=(used,), method="lm", x_scale="jac").x
+        else:
+            d = np.stack([np.ones(used.sum()), un[used], vn[used]], 1)
+            ax = np.linalg.lstsq(d, x[used], rcond=None)[0]
+            ay = np.linalg.lstsq(d, y[used], rcond=None)[0]
+            p = np.array([ax[1], ax[2], ax[0], ay[1], ay[2], ay[0], 0.0, 0.0, 0.0])
+        r = resid(p, np.ones(u.size, bool))
+        dist = np.hypot(r[: u.size], r[u.size:])
+        sigma = 1.4826 * float(np.median(dist[used])) / 1.1774  # median of a 2-D Rayleigh ~ 1.1774 sigma
+        new_used = dist <= max(5.0 * sigma, 0.05)
+        if np.array_equal(new_used, used):
+            break
+        used = new_used
+        if used.sum() < max(4, u.size // 4):
+            raise InputError("the microlens centres do not follow a regular grid; the white image is not usable")
+    hm, kk = unpack(p)
+    norm = np.array([[1.0 / us, 0.0, -uc / us], [0.0, 1.0 / vs, -vc / vs], [0.0, 0.0, 1.0]])
+    hom = hm @ norm
+    hom = hom / hom[2, 2]
+    r = resid(p, used)
+    rms = float(np.sqrt(np.mean(r[: used.sum()] ** 2 + r[used.sum():] ** 2))) if used.any() else float("nan")
+    del lattice, start
+    return hom, float(kk), scale, used, rms
