@@ -75,8 +75,9 @@ class RenderCache:
 
 
 @pytest.fixture(scope="session")
-def render_cache(request) -> RenderCache:
-    return RenderCache(request.config.cache.mkdir("mlaqc-calib"))
+def render_cache(request, tmp_path_factory) -> RenderCache:
+    cache = getattr(request.config, "cache", None)  # None with -p no:cacheprovider: render per session
+    return RenderCache(cache.mkdir("mlaqc-calib") if cache is not None else tmp_path_factory.mktemp("mlaqc-calib"))
 
 
 # ------------------------------------------------------------------------------------------ ground truth
