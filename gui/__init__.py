@@ -1,1 +1,7 @@
-"""PySide6 desktop QC app. Imports `mlaqc` and `drivers`."""
+"""PySide6 desktop QC app (`mlaqc gui`). Imports `mlaqc` and `drivers`; nothing imports `gui`.
+
+Modules: `commands` (the CLI entry; no Qt import until the command runs), `app` (main window and the
+wiring), `workers` (one thread per device and per kind of long job; see its docstring for the threading
+model), `panels` and `widgets` (pure widgets), `qt` (Qt import point with a guard against a PySide6 6.12
+reference-count bug on Python 3.11), `screenshot` (regenerates docs/screenshot.png offscreen).
+"""

@@ -1,0 +1,934 @@
+"""Workers of the QC app: every device and every long job runs off the GUI thread.
+
+Threads (one QThread each, the worker QObject moved into it):
+
+- ``camera``: `CameraWorker` owns the camera. Opens, closes, reconnects it, reads back and applies
+  exposure/gain/format, captures single frames, and runs live view as a zero-interval QTimer in its own
+  thread, so a stop or a settings change is handled between two frames. Live frames go through a
+  `FrameMailbox` (the newest frame wins): the worker only signals when the GUI has taken the previous
+  frame, so a slow display drops frames instead of queueing them without bound.
+- ``stage``: `StageWorker` owns the stage's commands (connect, home, move, go-to). Commands block in that
+  thread only. An idle poll reads the position back now and then, so a pulled cable is noticed.
+- ``stage-control``: `StageControl` never runs a blocking command. It calls `stage.stop()` (documented
+  as safe from any thread: an out-of-band halt) the moment STOP is pressed even while the stage thread
+  is blocked in a move, and it publishes `last_position` (no I/O) at 20 Hz for the live display.
+- ``inspection``: `InspectionWorker` loads, calibrates and inspects, then precomputes everything the
+  display needs (levels, ring positions, a k-d tree of lens centres) so the GUI thread only draws.
+  Cancel is a `CancelToken` checked between stages; a cancelled job's result is never shown.
+- ``io``: `IoWorker` writes report sets (`mlaqc.report.write_report`) and saves frames; on close the
+  app waits for it, so a report is never left half written.
+- ``scan``: `ScanWorker` runs `drivers.scan.ScanRunner` with the devices the app already has open (the
+  device panels are locked meanwhile, STOP excepted). Pause waits between positions; abort raises
+  inside the runner, which stops the stage and leaves the manifest consistent.
+
+The GUI talks to workers only by signals connected with queued connections; the only objects shared
+across threads are thread-safe by contract: the stage (its command lock and any-thread `stop()`),
+the mock camera's stage attachment (reads `last_position`), `FrameMailbox`, `CancelToken` and
+`ScanControl` (threading primitives).
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import threading
+import time
+import traceback
+from collections import Counter
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import gui.qt  # noqa: F401 - first: the PySide6 reference-count guard
+import numpy as np
+from PySide6.QtCore import QObject, QThread, QTimer, Signal, Slot
+
+from mlaqc.errors import DeviceError, InputError, MlaqcError
+
+log = logging.getLogger(__name__)
+
+LIVE_CAPTURE_TIMEOUT_S = 5.0
+STAGE_MONITOR_MS = 50
+STAGE_IDLE_POLL_MS = 1000
+HOME_TIMEOUT_S = 120.0
+MOVE_TIMEOUT_S = 60.0
+
+
+def one_sentence(exc: BaseException) -> str:
+    """An operator-facing sentence for an exception: mlaqc errors are already one; others get a prefix."""
+    if isinstance(exc, MlaqcError):
+        text = str(exc).strip()
+    else:
+        text = f"unexpected {type(exc).__name__}: {exc}".strip()
+        log.error("unexpected error in a worker:\n%s", "".join(traceback.format_exception(exc)))
+    text = " ".join(text.split())
+    return text if text.endswith((".", "!", "?")) else text + "."
+
+
+class WorkerThread:
+    """A QThread owning one worker QObject; `stop()` quits its event loop and joins it."""
+
+    def __init__(self, worker: QObject, name: str) -> None:
+        self.worker = worker
+        self.thread = QThread()
+        self.thread.setObjectName(name)
+        self.name = name
+        worker.moveToThread(self.thread)
+        self.thread.start()
+
+    def stop(self, timeout_s: float) -> bool:
+        """Quit the thread's event loop (after the events already queued) and wait; False on timeout."""
+        self.thread.quit()
+        ok = self.thread.wait(int(timeout_s * 1000))
+        if not ok:
+            log.error("thread %s did not finish within %.1f s", self.name, timeout_s)
+        return ok
+
+
+# ============================================================================================ camera
+
+
+class FrameMailbox:
+    """Hands the newest live frame from the camera thread to the GUI: one slot, newest wins."""
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self._frame: Any = None
+        self._pending = False
+        self.put_count = 0
+        self.dropped = 0
+
+    def put(self, frame: Any) -> bool:
+        """Store `frame`; True if the GUI has to be told (it had taken the previous one)."""
+        with self._lock:
+            self.put_count += 1
+            if self._pending:
+                self.dropped += 1
+            self._frame = frame
+            was_pending, self._pending = self._pending, True
+            return not was_pending
+
+    def take(self) -> Any:
+        """The newest frame (None if there is none); the next put signals again."""
+        with self._lock:
+            frame, self._frame, self._pending = self._frame, None, False
+            return frame
+
+
+def _lists(obj: Any) -> Any:
+    """Tuples to lists, recursively (a config dict as TOML would give it)."""
+    if isinstance(obj, dict):
+        return {k: _lists(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [_lists(v) for v in obj]
+    return obj
+
+
+class CameraWorker(QObject):
+    """Owns one camera in the ``camera`` thread; see the module docstring."""
+
+    stateChanged = Signal(str, str)  # state ('disconnected', 'connecting', 'connected', 'error'), detail
+    settingsRead = Signal(object)  # dict read back from the camera
+    error = Signal(str)  # one sentence
+    frameCaptured = Signal(object)  # a drivers.camera.Frame from "capture"
+    liveFrameReady = Signal()  # take the frame from the mailbox
+    liveChanged = Signal(bool)
+    cameraChanged = Signal(object)  # the Camera object (or None): for the scan worker
+
+    def __init__(self, mailbox: FrameMailbox) -> None:
+        super().__init__()
+        self.mailbox = mailbox
+        self.camera: Any = None
+        self.url: str | None = None
+        self._stage: Any = None
+        self._live = False
+        self._live_timer = QTimer(self)
+        self._live_timer.setInterval(0)
+        self._live_timer.timeout.connect(self._live_tick)
+        self.live_frames = 0
+        self.live_started = 0.0
+
+    # ------------------------------------------------------------------ connection
+
+    @Slot(str)
+    def connectCamera(self, url: str) -> None:
+        """Open the camera at `url`; reopen it if it is the same URL (keeps e.g. the mock's render cache)."""
+        self._stop_live()
+        self.stateChanged.emit("connecting", url)
+        try:
+            if self.camera is not None and url == self.url:
+                self.camera.reopen(timeout_s=LIVE_CAPTURE_TIMEOUT_S)
+            else:
+                self._close_camera()
+                from drivers.camera import open_camera
+
+                self.camera = open_camera(url)
+                self.url = url
+            self._attach()
+            settings = self._settings()
+        except Exception as exc:  # noqa: BLE001 - every failure becomes one sentence in the panel
+            msg = one_sentence(exc)
+            self.stateChanged.emit("error", msg)
+            self.error.emit(msg)
+            return
+        self.cameraChanged.emit(self.camera)
+        self.stateChanged.emit("connected", str(getattr(self.camera, "name", url)))
+        self.settingsRead.emit(settings)
+
+    def _settings(self) -> dict[str, Any]:
+        """Settings read back, plus the camera's optics config when it has one (the mock does)."""
+        settings = dict(self.camera.settings())
+        cfg = getattr(self.camera, "cfg", None)
+        if cfg is None and isinstance(settings.get("config"), dict):
+            try:
+                from mlaqc.config import config_from_dict
+
+                cfg = config_from_dict(_lists(settings["config"]), f"camera {self.url}")
+            except InputError:
+                cfg = None
+        settings["camera_config"] = cfg
+        return settings
+
+    @Slot()
+    def disconnectCamera(self) -> None:
+        self._stop_live()
+        self._close_camera()
+        self.stateChanged.emit("disconnected", "")
+
+    def _close_camera(self) -> None:
+        cam, self.camera = self.camera, None
+        if cam is not None:
+            self.cameraChanged.emit(None)
+            try:
+                cam.close()
+            except Exception as exc:  # noqa: BLE001
+                log.warning("closing the camera: %s", exc)
+
+    @Slot(object)
+    def attachStage(self, stage: Any) -> None:
+        """Follow `stage` (a mock camera renders what lies under it); None detaches."""
+        self._stage = stage
+        self._attach()
+
+    def _attach(self) -> None:
+        attach = getattr(self.camera, "attach_stage", None)
+        if callable(attach):
+            stage = self._stage
+            attach(None if stage is None else (lambda: stage.last_position))
+
+    # ------------------------------------------------------------------ settings
+
+    @Slot()
+    def readSettings(self) -> None:
+        if self._require():
+            self._guard(lambda: self.settingsRead.emit(self._settings()))
+
+    @Slot(float)
+    def setExposure(self, exposure_us: float) -> None:
+        if self._require():
+            self._guard(lambda: (self.camera.set_exposure_us(exposure_us), self.settingsRead.emit(self._settings())))
+
+    @Slot(float)
+    def setGain(self, gain: float) -> None:
+        if self._require():
+            self._guard(lambda: (self.camera.set_gain(gain), self.settingsRead.emit(self._settings())))
+
+    @Slot(str)
+    def setFormat(self, pixel_format: str) -> None:
+        if self._require():
+            self._guard(lambda: (self.camera.set_format(pixel_format), self.settingsRead.emit(self._settings())))
+
+    def _require(self) -> bool:
+        if self.camera is None:
+            self.error.emit("The camera is not connected; press Connect first.")
+            return False
+        return True
+
+    def _guard(self, fn: Any) -> bool:
+        """Run a camera call; report a failure as one sentence (and a lost device as state 'error')."""
+        try:
+            fn()
+            return True
+        except Exception as exc:  # noqa: BLE001
+            msg = one_sentence(exc)
+            self.error.emit(msg)
+            if isinstance(exc, DeviceError) and not getattr(self.camera, "is_open", True):
+                self.stateChanged.emit("error", msg)
+            return False
+
+    # ------------------------------------------------------------------ frames
+
+    @Slot()
+    def capture(self) -> None:
+        """One frame, delivered by `frameCaptured` (live view keeps running)."""
+        if not self._require():
+            return
+        frames: list[Any] = []
+        if self._guard(lambda: frames.append(self.camera.capture(LIVE_CAPTURE_TIMEOUT_S))):
+            self.frameCaptured.emit(frames[0])
+
+    @Slot()
+    def startLive(self) -> None:
+        if not self._require() or self._live:
+            return
+        self._live = True
+        self.live_frames = 0
+        self.live_started = time.perf_counter()
+        self._live_timer.start()
+        self.liveChanged.emit(True)
+
+    @Slot()
+    def stopLive(self) -> None:
+        self._stop_live()
+
+    def _stop_live(self) -> None:
+        if self._live:
+            self._live = False
+            self._live_timer.stop()
+            self.liveChanged.emit(False)
+
+    def _live_tick(self) -> None:
+        if not self._live or self.camera is None:
+            self._stop_live()
+            return
+        try:
+            frame = self.camera.capture(LIVE_CAPTURE_TIMEOUT_S)
+        except Exception as exc:  # noqa: BLE001
+            self._stop_live()
+            msg = one_sentence(exc)
+            self.error.emit(msg)
+            if not getattr(self.camera, "is_open", True):
+                self.stateChanged.emit("error", msg)
+            return
+        self.live_frames += 1
+        if self.mailbox.put(frame):
+            self.liveFrameReady.emit()
+
+    @Slot()
+    def shutdown(self) -> None:
+        """Stop live view and close the camera; then end this thread's event loop."""
+        self._stop_live()
+        self._close_camera()
+        QThread.currentThread().quit()
+
+
+# ============================================================================================= stage
+
+
+class StageWorker(QObject):
+    """Owns the stage's commands in the ``stage`` thread (blocking calls happen here only)."""
+
+    stateChanged = Signal(str, str)  # 'disconnected', 'connecting', 'connected', 'error'; detail
+    info = Signal(object)  # {'name', 'limits': (x0, x1, y0, y1), 'homed'}
+    busyChanged = Signal(bool, str)  # busy, what
+    error = Signal(str)
+    message = Signal(str)
+    stageChanged = Signal(object)  # the Stage object (or None)
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.stage: Any = None
+        self.url: str | None = None
+        self._poll = QTimer(self)
+        self._poll.setInterval(STAGE_IDLE_POLL_MS)
+        self._poll.timeout.connect(self._idle_poll)
+        self._lent = False  # the scan worker is using the stage: no polling meanwhile
+
+    @Slot(str)
+    def connectStage(self, url: str) -> None:
+        """(Re)connect: a stage on a simulator cannot be re-plugged, so reconnect = close and open anew."""
+        self.stateChanged.emit("connecting", url)
+        self._close_stage()
+        try:
+            from drivers.stage import open_stage
+
+            self.stage = open_stage(url)
+            self.url = url
+        except Exception as exc:  # noqa: BLE001
+            msg = one_sentence(exc)
+            self.stateChanged.emit("error", msg)
+            self.error.emit(msg)
+            return
+        self.stageChanged.emit(self.stage)
+        self.stateChanged.emit("connected", self.stage.name)
+        self._emit_info()
+        if not self._poll.isActive():
+            self._poll.start()
+
+    @Slot()
+    def disconnectStage(self) -> None:
+        self._close_stage()
+        self.stateChanged.emit("disconnected", "")
+
+    def _close_stage(self) -> None:
+        stage, self.stage = self.stage, None
+        if stage is not None:
+            self.stageChanged.emit(None)
+            try:
+                stage.close()
+            except Exception as exc:  # noqa: BLE001
+                log.warning("closing the stage: %s", exc)
+
+    def _emit_info(self) -> None:
+        s = self.stage
+        if s is None:
+            return
+        lim = s.limits
+        self.info.emit({"name": s.name, "limits": (lim.x_min_mm, lim.x_max_mm, lim.y_min_mm, lim.y_max_mm),
+                        "homed": s.homed, "connected": s.is_connected})
+
+    @Slot(bool)
+    def setLent(self, lent: bool) -> None:
+        self._lent = lent
+
+    def _command(self, what: str, fn: Any) -> None:
+        if self.stage is None:
+            self.error.emit("The stage is not connected; press Connect first.")
+            return
+        if self._lent:
+            self.error.emit(f"The stage is busy with a scan; {what} was not sent.")
+            return
+        self.busyChanged.emit(True, what)
+        try:
+            fn()
+        except Exception as exc:  # noqa: BLE001
+            from drivers.stage import StageStopped
+
+            msg = one_sentence(exc)
+            if isinstance(exc, StageStopped):
+                self.message.emit(msg)
+            else:
+                self.error.emit(msg)
+                if not self.stage.is_connected:
+                    self.stateChanged.emit("error", msg)
+        finally:
+            self.busyChanged.emit(False, "")
+            self._emit_info()
+
+    @Slot()
+    def home(self) -> None:
+        self._command("homing", lambda: self.stage.home(timeout_s=HOME_TIMEOUT_S))
+
+    @Slot(float, float)
+    def moveTo(self, x_mm: float, y_mm: float) -> None:
+        self._command(f"a move to ({x_mm:g}, {y_mm:g}) mm", lambda: self.stage.move_to(x_mm, y_mm, timeout_s=MOVE_TIMEOUT_S))
+
+    @Slot(float, float)
+    def moveBy(self, dx_mm: float, dy_mm: float) -> None:
+        self._command(f"a jog by ({dx_mm:g}, {dy_mm:g}) mm",
+                      lambda: self.stage.move_by(dx_mm, dy_mm, timeout_s=MOVE_TIMEOUT_S))
+
+    def _idle_poll(self) -> None:
+        """Ask the device for its position now and then, so a dead link shows without a command."""
+        s = self.stage
+        if s is None or self._lent or not s.is_connected:
+            return
+        try:
+            s.position(timeout_s=1.0)
+        except Exception as exc:  # noqa: BLE001
+            if not s.is_connected:
+                msg = one_sentence(exc)
+                self.error.emit(msg)
+                self.stateChanged.emit("error", msg)
+                self._emit_info()
+
+    @Slot()
+    def shutdown(self) -> None:
+        self._poll.stop()
+        self._close_stage()
+        QThread.currentThread().quit()
+
+
+class StageControl(QObject):
+    """The ``stage-control`` thread: STOP at once, and the live position (no blocking commands)."""
+
+    position = Signal(object)  # {'pos': (x, y) | None, 'connected', 'homed'}
+    error = Signal(str)
+    message = Signal(str)
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.stage: Any = None
+        self._timer = QTimer(self)
+        self._timer.setInterval(STAGE_MONITOR_MS)
+        self._timer.timeout.connect(self._publish)
+        self._last: Any = None
+
+    @Slot(object)
+    def setStage(self, stage: Any) -> None:
+        self.stage = stage
+        self._last = None
+        if not self._timer.isActive():
+            self._timer.start()
+        self._publish()
+
+    @Slot()
+    def stop(self) -> None:
+        """Halt the stage now (out-of-band; cancels the running and queued moves)."""
+        s = self.stage
+        if s is None:
+            return
+        try:
+            s.stop()
+            self.message.emit(f"STOP sent to {s.name}.")
+        except Exception as exc:  # noqa: BLE001
+            self.error.emit(one_sentence(exc))
+
+    def _publish(self) -> None:
+        s = self.stage
+        state = {"pos": None, "connected": False, "homed": False} if s is None else {
+            "pos": s.last_position, "connected": s.is_connected, "homed": s.homed}
+        if state != self._last:
+            self._last = state
+            self.position.emit(state)
+
+    @Slot()
+    def shutdown(self) -> None:
+        self._timer.stop()
+        QThread.currentThread().quit()
+
+
+# ======================================================================================== inspection
+
+
+class CancelToken:
+    """Set by the GUI, read by a worker between stages."""
+
+    def __init__(self) -> None:
+        self._event = threading.Event()
+
+    def cancel(self) -> None:
+        self._event.set()
+
+    @property
+    def cancelled(self) -> bool:
+        return self._event.is_set()
+
+
+class Cancelled(Exception):
+    """Internal: the job was cancelled between two stages."""
+
+
+@dataclass
+class InspectionRequest:
+    """What to inspect: a raw file or an in-memory frame (`Grab`-like), optionally a white file."""
+
+    cfg: Any  # mlaqc.config.CameraConfig
+    raw: str | None = None
+    frame: Any = None  # drivers.camera.Frame
+    white: str | None = None
+    token: CancelToken = field(default_factory=CancelToken)
+
+
+@dataclass
+class Ring:
+    """One defect mark for the overlay."""
+
+    m: int
+    n: int
+    x: float
+    y: float
+    error_type: str
+    out_of_tolerance: bool
+    missing: bool
+    tick: tuple[float, float] | None  # end of the direction tick
+
+
+@dataclass
+class InspectionView:
+    """An inspection result plus everything the GUI needs to draw it without computing."""
+
+    result: Any  # mlaqc.results.InspectionResult
+    cfg: Any
+    source: str
+    levels: tuple[float, float]
+    centres_x: np.ndarray  # (rows, cols): measured centre, grid centre where not found
+    centres_y: np.ndarray
+    grid_x: np.ndarray  # finite grid centres (1-D) for the grid overlay
+    grid_y: np.ndarray
+    pitch_px: float
+    rings: list[Ring]
+    medians: dict[str, float]
+    summary: str
+    headline: str
+    detail: str
+    elapsed_s: float
+    _tree: Any = None
+    _tree_index: np.ndarray | None = None
+
+    def lens_at(self, x: float, y: float) -> tuple[int, int] | None:
+        """U(m,n) of the lens whose centre is nearest to pixel (x, y), if within its cell."""
+        if self._tree is None:
+            return None
+        dist, i = self._tree.query((x, y))
+        if not math.isfinite(dist) or dist > 0.72 * self.pitch_px:
+            return None
+        flat = int(self._tree_index[i])
+        cols = self.centres_x.shape[1]
+        return flat // cols + 1, flat % cols + 1
+
+    def centre(self, m: int, n: int) -> tuple[float, float]:
+        return float(self.centres_x[m - 1, n - 1]), float(self.centres_y[m - 1, n - 1])
+
+    def reference_of(self, m: int, n: int) -> np.ndarray:
+        ref = np.asarray(self.result.reference)
+        return ref if ref.ndim == 2 else ref[m - 1, n - 1]
+
+
+def frame_to_image(frame: Any) -> np.ndarray:
+    """A camera Frame as the prepared float32 image the inspection takes (exposure checked)."""
+    from drivers.capture import Grab
+    from mlaqc.inspect import prepare
+    from mlaqc.rawio import RawFrame, check_exposure
+
+    g = Grab(frame.data, (frame,), "")
+    bits = max(8, int(frame.bits))
+    raw = RawFrame(frame.data, bits, frame.cfa, g.black_level, max(g.white_level, g.black_level + 1), {},
+                   f"frame {frame.sequence}")
+    check_exposure(raw)
+    return prepare(raw)
+
+
+def build_view(result: Any, cfg: Any, source: str, elapsed_s: float) -> InspectionView:
+    """Precompute the display data of an inspection (runs in the worker)."""
+    from scipy.spatial import cKDTree
+
+    from mlaqc.results import METRICS
+
+    g = result.grid
+    mx, my = np.asarray(g.measured_x_px, float), np.asarray(g.measured_y_px, float)
+    gx, gy = np.asarray(g.grid_x_px, float), np.asarray(g.grid_y_px, float)
+    found = np.isfinite(mx) & np.isfinite(my)
+    cx, cy = np.where(found, mx, gx), np.where(found, my, gy)
+    ok = np.isfinite(cx) & np.isfinite(cy)
+    idx = np.flatnonzero(ok.ravel())
+    tree = cKDTree(np.column_stack([cx.ravel()[idx], cy.ravel()[idx]])) if idx.size else None
+    pitch = float(np.mean(g.pitch_px)) if np.all(np.isfinite(g.pitch_px)) else 20.0
+    img = np.asarray(result.image, np.float32)
+    step = max(1, int(math.sqrt(img.size / 250_000)))
+    sample = img[::step, ::step]
+    sample = sample[np.isfinite(sample)]
+    lo, hi = (np.percentile(sample, [0.5, 99.5]) if sample.size else (0.0, 1.0))
+    if not hi > lo:
+        hi = lo + 1.0
+    missing = np.asarray(g.missing, bool)
+    rings: list[Ring] = []
+    seen = set()
+    for d in result.defects:
+        x, y = float(cx[d.m - 1, d.n - 1]), float(cy[d.m - 1, d.n - 1])
+        seen.add((d.m, d.n))
+        if not (math.isfinite(x) and math.isfinite(y)):
+            continue
+        is_missing = d.error_type == "missing" or bool(missing[d.m - 1, d.n - 1])
+        tick = None
+        if d.direction_deg is not None and math.isfinite(d.direction_deg) and not is_missing:
+            a = math.radians(d.direction_deg)
+            tick = (x + 0.4 * pitch * math.cos(a), y - 0.4 * pitch * math.sin(a))
+        rings.append(Ring(d.m, d.n, x, y, d.error_type, not d.within_tolerance, is_missing, tick))
+    for m, n in zip(*np.nonzero(missing)):
+        if (m + 1, n + 1) not in seen and math.isfinite(cx[m, n]) and math.isfinite(cy[m, n]):
+            rings.append(Ring(int(m) + 1, int(n) + 1, float(cx[m, n]), float(cy[m, n]), "missing", False, True, None))
+    medians = {}
+    for name in METRICS:
+        a = np.asarray(result.metrics[name], float)
+        a = a[np.isfinite(a)]
+        medians[name] = float(np.median(a)) if a.size else math.nan
+    by_type = Counter(d.error_type for d in result.defects)
+    out_tol = sum(1 for d in result.defects if not d.within_tolerance)
+    kinds = ", ".join(f"{k} {v}" for k, v in sorted(by_type.items())) or "none"
+    headline = (f"{len(result.defects)} flagged of {g.rows}×{g.cols} lenses · {out_tol} out of tolerance · "
+                f"{g.lenses_missing} missing")
+    detail = (f"{kinds}; grid pitch {g.pitch_px[0]:.3f} × {g.pitch_px[1]:.3f} px, rotation {g.rotation_deg:+.3f}°, "
+              f"RMS residual {g.rms_residual_px:.3f} px")
+    summary = f"{headline} ({detail})"
+    ok_grid = np.isfinite(gx) & np.isfinite(gy)
+    return InspectionView(result, cfg, source, (float(lo), float(hi)), cx, cy, gx[ok_grid], gy[ok_grid], pitch, rings,
+                          medians, summary, headline, detail, elapsed_s, tree, idx)
+
+
+class InspectionWorker(QObject):
+    """Calibration + inspection in the ``inspection`` thread, in stages with progress and cancel."""
+
+    progress = Signal(int, int, str)  # job, percent, stage text
+    finished = Signal(int, object)  # job, InspectionView
+    failed = Signal(int, str)
+    cancelled = Signal(int)
+    previewReady = Signal(int, object)  # job, raw counts (H, W) for display
+    previewFailed = Signal(int, str)
+
+    @Slot(int, str)
+    def preview(self, job: int, path: str) -> None:
+        """Load a raw file for display only (its counts, as stored)."""
+        try:
+            from mlaqc.rawio import load_raw
+
+            frame = load_raw(path)
+        except Exception as exc:  # noqa: BLE001
+            self.previewFailed.emit(job, one_sentence(exc))
+            return
+        self.previewReady.emit(job, frame.data)
+
+    @Slot(int, object)
+    def run(self, job: int, req: InspectionRequest) -> None:
+        t0 = time.perf_counter()
+        token = req.token
+
+        def stage(pct: int, text: str) -> None:
+            if token.cancelled:
+                raise Cancelled()
+            self.progress.emit(job, pct, text)
+
+        try:
+            from mlaqc.calibrate import calibrate
+            from mlaqc.inspect import inspect_image, load_frame
+
+            cfg = req.cfg
+            stage(5, "loading the image")
+            if req.frame is not None:
+                img = frame_to_image(req.frame)
+                source = f"captured frame #{req.frame.sequence}"
+            elif req.raw:
+                img = load_frame(req.raw, cfg)
+                source = str(req.raw)
+            else:
+                raise InputError("there is nothing to inspect: open a raw file or capture a frame first")
+            s = cfg.sensor
+            if img.shape != (s.height_px, s.width_px):
+                raise InputError(f"the image is {img.shape[1]}x{img.shape[0]} px but the camera config's sensor is "
+                                 f"{s.width_px}x{s.height_px} px; choose the matching camera config")
+            white = img
+            if req.white:
+                stage(15, "loading the white image")
+                white = load_frame(req.white, cfg)
+            stage(25, "calibrating the microlens grid")
+            grid = calibrate(white, expected_pitch_px=cfg.layout.subimage_pitch_px,
+                             expected_shape=(cfg.mla.count_h, cfg.mla.count_w))
+            stage(60, "measuring and identifying every lens")
+            result = inspect_image(img, cfg, grid=grid, source=source)
+            stage(90, "preparing the view")
+            view = build_view(result, cfg, source, time.perf_counter() - t0)
+            stage(100, "done")
+        except Cancelled:
+            self.cancelled.emit(job)
+            return
+        except Exception as exc:  # noqa: BLE001
+            self.failed.emit(job, one_sentence(exc))
+            return
+        if token.cancelled:
+            self.cancelled.emit(job)
+        else:
+            self.finished.emit(job, view)
+
+
+# ================================================================================================ io
+
+
+class IoWorker(QObject):
+    """Writes report sets and frames in the ``io`` thread; the app waits for it on close."""
+
+    reportWritten = Signal(int, object)  # job, {key: path}
+    frameSaved = Signal(int, str)
+    failed = Signal(int, str)
+    busyChanged = Signal(bool)
+
+    @Slot(int, object, str, object)
+    def writeReport(self, job: int, result: Any, out_dir: str, config_dict: Any) -> None:
+        from mlaqc.report import write_report
+
+        self.busyChanged.emit(True)
+        try:
+            paths = write_report(result, out_dir, config_dict=config_dict)
+        except Exception as exc:  # noqa: BLE001
+            self.failed.emit(job, one_sentence(exc))
+        else:
+            self.reportWritten.emit(job, {k: str(v) for k, v in paths.items()})
+        finally:
+            self.busyChanged.emit(False)
+
+    @Slot(int, object, str, object)
+    def saveFrame(self, job: int, frame: Any, path: str, position_mm: Any) -> None:
+        from drivers.capture import Grab, save_frame
+
+        self.busyChanged.emit(True)
+        try:
+            saved = save_frame(path, Grab(frame.data, (frame,), frame.device), position_mm=position_mm)
+        except Exception as exc:  # noqa: BLE001
+            self.failed.emit(job, one_sentence(exc))
+        else:
+            self.frameSaved.emit(job, str(saved.path))
+        finally:
+            self.busyChanged.emit(False)
+
+
+# ============================================================================================== scan
+
+
+class ScanAborted(KeyboardInterrupt):
+    """Raised inside the scan runner when the operator aborts (the runner treats it like Ctrl-C)."""
+
+
+class ScanControl:
+    """Pause/abort flags shared by the GUI (sets) and the scan worker (waits/reads)."""
+
+    def __init__(self) -> None:
+        self._abort = threading.Event()
+        self._running = threading.Event()
+        self._running.set()
+
+    def abort(self) -> None:
+        self._abort.set()
+        self._running.set()
+
+    def pause(self) -> None:
+        self._running.clear()
+
+    def resume(self) -> None:
+        self._running.set()
+
+    @property
+    def aborted(self) -> bool:
+        return self._abort.is_set()
+
+    @property
+    def paused(self) -> bool:
+        return not self._running.is_set()
+
+    def check(self) -> None:
+        if self._abort.is_set():
+            raise ScanAborted()
+
+    def wait_while_paused(self, on_pause: Any = None) -> None:
+        """Block while paused (abort wakes it); raise ScanAborted if aborted."""
+        self.check()
+        if not self._running.is_set():
+            if on_pause is not None:
+                on_pause(True)
+            while not self._running.wait(0.05):
+                pass
+            if on_pause is not None:
+                on_pause(False)
+        self.check()
+
+
+class _AbortableStage:
+    """The stage as the scan runner sees it: motion raises ScanAborted once the operator aborted."""
+
+    def __init__(self, stage: Any, control: ScanControl) -> None:
+        self._stage = stage
+        self._control = control
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self._stage, name)
+
+    def _motion(self, fn: Any, *args: Any, **kwargs: Any) -> Any:
+        from drivers.stage import StageStopped
+
+        self._control.check()
+        try:
+            return fn(*args, **kwargs)
+        except StageStopped:
+            if self._control.aborted:
+                raise ScanAborted() from None
+            raise
+
+    def home(self, *a: Any, **k: Any) -> None:
+        return self._motion(self._stage.home, *a, **k)
+
+    def move_to(self, *a: Any, **k: Any) -> None:
+        return self._motion(self._stage.move_to, *a, **k)
+
+    def move_by(self, *a: Any, **k: Any) -> None:
+        return self._motion(self._stage.move_by, *a, **k)
+
+
+class _AbortableCamera:
+    """The camera as the scan runner sees it: no new capture starts once the operator aborted."""
+
+    def __init__(self, camera: Any, control: ScanControl) -> None:
+        self._camera = camera
+        self._control = control
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self._camera, name)
+
+    def capture(self, *a: Any, **k: Any) -> Any:
+        self._control.check()
+        return self._camera.capture(*a, **k)
+
+
+@dataclass
+class ScanRequest:
+    plan: Any  # drivers.scan.ScanPlan
+    out_dir: str
+    camera: Any
+    stage: Any
+    cfg: Any = None  # inspect each position when set
+    resume: bool = False
+    control: ScanControl = field(default_factory=ScanControl)
+
+
+class ScanWorker(QObject):
+    """Runs one scan at a time in the ``scan`` thread."""
+
+    positionStarted = Signal(int)  # plan index
+    positionDone = Signal(int, object)  # plan index, {'verdict', 'flagged', 'out_of_tolerance', 'file'}
+    progress = Signal(int, int)  # done, total
+    event = Signal(object)  # the runner's event dicts
+    pausedChanged = Signal(bool)
+    finished = Signal(str, object)  # outcome ('finished', 'aborted', 'failed'), message
+
+    @Slot(object)
+    def run(self, req: ScanRequest) -> None:
+        from drivers.scan import ScanRunner
+
+        control = req.control
+        verdicts: dict[int, dict[str, Any]] = {}
+        current: list[Any] = []  # the position being attempted
+
+        def before(runner: Any, pos: Any) -> None:
+            control.wait_while_paused(self.pausedChanged.emit)
+            current[:] = [pos]
+            self.positionStarted.emit(pos.index)
+
+        def progress(done: int, total: int) -> None:
+            if current:  # called after each recorded (and inspected) position
+                pos = current.pop()
+                info = dict(verdicts.get(pos.index, {}))
+                info.setdefault("verdict", None)
+                name = pos.file_names(req.plan.frames_per_position, req.plan.suffix)[0]
+                info["file"] = str(Path(req.out_dir) / name)
+                self.positionDone.emit(pos.index, info)
+            self.progress.emit(done, total)
+            control.check()
+
+        def on_event(ev: dict) -> None:
+            if ev.get("event") == "inspect_failed" and "index" in ev:
+                verdicts[int(ev["index"])] = {"verdict": "ERROR", "error": str(ev.get("error", ""))}
+            self.event.emit(ev)
+
+        inspect_hook = None
+        if req.cfg is not None:
+            cfg = req.cfg
+
+            def inspect_hook(frame: Any) -> dict:
+                from mlaqc.inspect import inspect_image, load_frame
+
+                result = inspect_image(load_frame(frame.path, cfg), cfg, source=str(frame.path))
+                out = sum(1 for d in result.defects if not d.within_tolerance)
+                info = {"verdict": result.verdict, "flagged": len(result.defects), "out_of_tolerance": out,
+                        "defects": [d.to_json_dict() for d in result.defects], "source": frame.path.name}
+                verdicts[int(frame.record["index"])] = info
+                return info
+
+        try:
+            runner = ScanRunner(req.plan, req.out_dir, camera=_AbortableCamera(req.camera, control),
+                                stage=_AbortableStage(req.stage, control), resume=req.resume, inspect=inspect_hook,
+                                progress=progress, before_position=before, on_event=on_event)
+            result = runner.run()
+        except KeyboardInterrupt as exc:  # ScanInterrupted (our abort, via the runner)
+            self.finished.emit("aborted", str(exc) or "scan aborted; the stage was stopped.")
+            return
+        except Exception as exc:  # noqa: BLE001
+            self.finished.emit("failed", one_sentence(exc))
+            return
+        self.finished.emit("finished", result.summary())
