@@ -18,6 +18,7 @@ from mlaqc.rawio import RawFrame, check_exposure, load_raw, normalized, suppress
 from mlaqc.reference import ReferenceModel, reference_model
 from mlaqc.results import InspectionResult
 from mlaqc.signatures import SignatureTable, signature_table, um_per_px_at_mla
+from mlaqc.subimages import divide
 
 
 def prepare(frame: RawFrame) -> np.ndarray:
@@ -33,20 +34,6 @@ def load_frame(path: str | Path, cfg: CameraConfig) -> np.ndarray:
     frame = load_raw(path, expected_shape=(s.height_px, s.width_px))
     check_exposure(frame)
     return prepare(frame)
-
-
-def windows(img: np.ndarray, gx: np.ndarray, gy: np.ndarray, half: int):
-    """(rows, cols, 2*half+1, 2*half+1) windows cut around (gx, gy) (NaN outside the frame), and each
-    centre in its window's pixel coordinates: one gather for all lenses."""
-    ok_c = np.isfinite(gx) & np.isfinite(gy)
-    ox = np.where(ok_c, np.rint(np.nan_to_num(gx)), 0).astype(np.int64) - half
-    oy = np.where(ok_c, np.rint(np.nan_to_num(gy)), 0).astype(np.int64) - half
-    ii = oy[..., None, None] + np.arange(2 * half + 1)[:, None]
-    jj = ox[..., None, None] + np.arange(2 * half + 1)[None, :]
-    h, w = img.shape
-    ok = (ii >= 0) & (ii < h) & (jj >= 0) & (jj < w) & ok_c[..., None, None]
-    win = np.where(ok, img[np.clip(ii, 0, h - 1), np.clip(jj, 0, w - 1)], np.nan).astype(np.float32)
-    return win, gx - ox, gy - oy
 
 
 def inspect_image(img: np.ndarray, cfg: CameraConfig, *, grid: Grid | None = None, source: str = "",
@@ -72,7 +59,8 @@ def inspect_image(img: np.ndarray, cfg: CameraConfig, *, grid: Grid | None = Non
                          expected_shape=(cfg.mla.count_h, cfg.mla.count_w))
         lap("calibrate")
     half = int(np.floor(cfg.layout.subimage_pitch_px / 2))
-    sub, cx, cy = windows(img, grid.grid_x_px, grid.grid_y_px, half)
+    subs = divide(img, grid, 2 * half + 1)
+    sub, cx, cy = subs.data, subs.centre_x_px, subs.centre_y_px
     lap("divide")
     metrics = compute_metrics(sub, cx, cy, model, um_per_px_at_mla=um_per_px_at_mla(cfg))
     lap("indexes")

@@ -95,16 +95,14 @@ def patch_config(cfg: CameraConfig, lenses: int = PATCH) -> CameraConfig:
 def nominal_windows(img: np.ndarray, cfg: CameraConfig, half: int = 10):
     """(rows, cols, h, w) windows around each lens' nominal sub-image centre, and that centre in window
     coordinates: for simulated images whose grid is known exactly (signatures, tests)."""
+    from mlaqc.subimages import cut_windows
+
     rows, cols = cfg.mla.count_h, cfg.mla.count_w
     pitch = cfg.layout.subimage_pitch_px
     m, n = np.meshgrid(np.arange(rows), np.arange(cols), indexing="ij")
     gx = (img.shape[1] - 1) / 2 + (n - (cols - 1) / 2) * pitch
     gy = (img.shape[0] - 1) / 2 + (m - (rows - 1) / 2) * pitch
-    ox, oy = np.rint(gx).astype(int) - half, np.rint(gy).astype(int) - half
-    ii = oy[..., None, None] + np.arange(2 * half + 1)[:, None]
-    jj = ox[..., None, None] + np.arange(2 * half + 1)[None, :]
-    ok = (ii >= 0) & (ii < img.shape[0]) & (jj >= 0) & (jj < img.shape[1])
-    win = np.where(ok, img[np.clip(ii, 0, img.shape[0] - 1), np.clip(jj, 0, img.shape[1] - 1)], np.nan)
+    win, _, ox, oy = cut_windows(img, gx, gy, 2 * half + 1, 2 * half + 1)
     return win, gx - ox, gy - oy
 
 

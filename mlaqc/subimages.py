@@ -87,9 +87,16 @@ def divide(img: np.ndarray, grid: Grid, size_px: int | tuple[int, int] | None = 
         if not all(isinstance(v, (int, np.integer)) and 1 <= v <= 4 * max(grid.pitch_px) + 1 for v in (h, w)):
             raise InputError(f"sub-image size must be a positive integer of at most 4 pitches, got {size_px!r}")
         h, w = int(h), int(w)
+    data, valid, ox, oy = cut_windows(img, grid.grid_x_px, grid.grid_y_px, h, w)
+    return SubImages(data=data, valid=valid, origin_x_px=ox, origin_y_px=oy, grid=grid)
+
+
+def cut_windows(img: np.ndarray, x_px: np.ndarray, y_px: np.ndarray, h: int, w: int):
+    """(data, valid, origin_x, origin_y): h x w windows centred on the pixels nearest (x_px, y_px), one
+    fancy-index gather for all of them; float32 data, NaN outside the frame."""
     height, width = img.shape
-    ox = np.floor(grid.grid_x_px - 0.5 * (w - 1) + 0.5).astype(np.int64)  # nearest pixel, ties up
-    oy = np.floor(grid.grid_y_px - 0.5 * (h - 1) + 0.5).astype(np.int64)
+    ox = np.floor(x_px - 0.5 * (w - 1) + 0.5).astype(np.int64)  # nearest pixel, ties up
+    oy = np.floor(y_px - 0.5 * (h - 1) + 0.5).astype(np.int64)
     ys = oy[..., None] + np.arange(h)  # (rows, cols, h)
     xs = ox[..., None] + np.arange(w)  # (rows, cols, w)
     vy = (ys >= 0) & (ys < height)
@@ -97,4 +104,4 @@ def divide(img: np.ndarray, grid: Grid, size_px: int | tuple[int, int] | None = 
     valid = vy[..., :, None] & vx[..., None, :]
     data = img[np.clip(ys, 0, height - 1)[..., :, None], np.clip(xs, 0, width - 1)[..., None, :]].astype(np.float32)
     data[~valid] = np.nan
-    return SubImages(data=data, valid=valid, origin_x_px=ox, origin_y_px=oy, grid=grid)
+    return data, valid, ox, oy

@@ -9,7 +9,7 @@ import pytest
 from mlaqc.cli import main
 from mlaqc.config import load_config
 from mlaqc.errormap import ErrorMap
-from mlaqc.inspect import inspect_image, prepare, windows
+from mlaqc.inspect import inspect_image, prepare
 from mlaqc.metrics import compute_metrics, reference_windows
 from mlaqc.rawio import RawFrame
 from mlaqc.reference import reference_model
@@ -133,15 +133,14 @@ def test_a_perfect_array_passes_with_no_flags():
     assert result.verdict == "PASS" and len(result.defects) == 0
 
 
-def test_windows_gather_the_right_lens():
+def test_cut_windows_gather_the_right_lens():
+    from mlaqc.subimages import cut_windows
     img = np.zeros((60, 80), np.float32)
     img[30, 50] = 7.0
-    gx = np.array([[50.2, 10.0]])
-    gy = np.array([[29.6, 10.0]])
-    win, cx, cy = windows(img, gx, gy, 4)
-    assert win[0, 0, 4, 4] == 7.0 and np.isclose(cx[0, 0], 4.2) and np.isclose(cy[0, 0], 3.6)
-    edge, _, _ = windows(img, np.array([[1.0]]), np.array([[1.0]]), 4)
-    assert np.isnan(edge[0, 0, 0, 0]) and not np.isnan(edge[0, 0, 4, 4])
+    win, valid, ox, oy = cut_windows(img, np.array([[50.2, 10.0]]), np.array([[29.6, 10.0]]), 9, 9)
+    assert win[0, 0, 4, 4] == 7.0 and (ox[0, 0], oy[0, 0]) == (46, 26)
+    edge, valid, _, _ = cut_windows(img, np.array([[1.0]]), np.array([[1.0]]), 9, 9)
+    assert np.isnan(edge[0, 0, 0, 0]) and not valid[0, 0, 0, 0] and not np.isnan(edge[0, 0, 4, 4])
 
 
 # --- command line ------------------------------------------------------------------------------
