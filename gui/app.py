@@ -95,6 +95,7 @@ class MainWindow(QMainWindow):
         self.scan_control: ScanControl | None = None
         self.scan_plan: Any = None
         self.scan_plan_path: str | None = None
+        self.scan_plan_text: str | None = None  # set when the plan in use came from the editor
         self.scan_out: str | None = None
         self.scan_files: dict[int, str] = {}
         self.scan_current: int | None = None
@@ -244,6 +245,7 @@ class MainWindow(QMainWindow):
         ip.cancelRequested.connect(self.cancel_inspection)
         ip.exportRequested.connect(self.browse_export)
         sc.loadPlanRequested.connect(self.browse_plan)
+        sc.editPlanRequested.connect(self.edit_plan)
         sc.chooseOutRequested.connect(self.browse_scan_out)
         sc.runRequested.connect(lambda: self.start_scan())
         sc.pauseToggled.connect(self.pause_scan)
@@ -757,6 +759,34 @@ class MainWindow(QMainWindow):
         if path:
             self.scan_panel.out.setText(path)
 
+    def edit_plan(self) -> None:
+        """Open the plan editor on the loaded plan's text (or the raster example) and apply the result."""
+        from gui.plan_editor import TEMPLATE, PlanEditor
+
+        text = self.scan_plan_text
+        if text is None:
+            try:
+                text = Path(self.scan_plan_path or TEMPLATE).read_text(encoding="utf-8")
+            except OSError:
+                text = ""
+        dialog = PlanEditor(text, self)
+        if dialog.exec():
+            self.apply_plan_text(dialog.text.toPlainText())
+
+    def apply_plan_text(self, text: str, label: str = "edited plan") -> bool:
+        """Use TOML text as the scan plan (after the runner's own validation); False with the error shown."""
+        from gui.plan_editor import parse_plan_text
+
+        try:
+            plan = parse_plan_text(text, label)
+        except InputError as exc:
+            self.scan_panel.error.show_error(str(exc))
+            self.log(str(exc), "error")
+            return False
+        self._set_plan(plan, label)
+        self.scan_plan_text = text
+        return True
+
     def load_plan(self, path: str) -> bool:
         from drivers.scan import load_plan
 
@@ -766,7 +796,13 @@ class MainWindow(QMainWindow):
             self.scan_panel.error.show_error(str(exc))
             self.log(str(exc), "error")
             return False
-        self.scan_plan, self.scan_plan_path = plan, str(path)
+        self.scan_plan_text = None
+        self._set_plan(plan, str(path))
+        return True
+
+    def _set_plan(self, plan: Any, path: str) -> None:
+        """Show a plan (loaded or edited) in the scan panel and the wafer map."""
+        self.scan_plan, self.scan_plan_path = plan, (path if Path(path).suffix == ".toml" else None)
         self.scan_panel.error.clear_error()
         n = len(plan.positions)
         self.scan_panel.plan.setText(f"{Path(path).name}: {plan.kind}, {n} position{'s' if n != 1 else ''}, "
@@ -778,8 +814,7 @@ class MainWindow(QMainWindow):
         self.scan_files = {}
         self.can_resume = False
         self._scan_buttons()
-        self.log(f"Scan plan {path} loaded ({n} positions).")
-        return True
+        self.log(f"Scan plan {path} in use ({n} positions).")
 
     def _scan_buttons(self) -> None:
         self.scan_panel.set_running(self.scan_running, can_resume=self.can_resume, has_plan=self.scan_plan is not None)
@@ -822,7 +857,7 @@ class MainWindow(QMainWindow):
         req = ScanRequest(self.scan_plan, out, self.camera_obj, self.stage_obj,
                           cfg=self.cfg if sp.inspect.isChecked() else None, resume=resume, control=self.scan_control)
         self._scan.emit(req)
-        self.log(f"Scan {'resumed' if resume else 'started'}: {self.scan_plan_path} → {out}")
+        self.log(f"Scan {'resumed' if resume else 'started'}: {self.scan_plan_path or 'edited plan'} → {out}")
         return True
 
     def pause_scan(self, on: bool) -> None:

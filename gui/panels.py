@@ -444,6 +444,7 @@ class ScanPanel(QWidget):
     """Scan plan, output folder, run/pause/abort/resume, progress and the wafer map."""
 
     loadPlanRequested = Signal()
+    editPlanRequested = Signal()
     chooseOutRequested = Signal()
     runRequested = Signal()
     pauseToggled = Signal(bool)
@@ -474,6 +475,7 @@ class ScanPanel(QWidget):
         left.addWidget(self.inspect)
         row = QHBoxLayout()
         self.load = QPushButton("Load plan…")
+        self.edit = QPushButton("Edit plan…")
         self.run = _button("Run scan", primary=True)
         self.pause = QPushButton("Pause")
         self.pause.setCheckable(True)
@@ -481,7 +483,7 @@ class ScanPanel(QWidget):
         self.abort.setStyleSheet("QPushButton:enabled { color: #cf222e; font-weight: bold; }")
         self.resume = QPushButton("Resume")
         self.resume.setToolTip("continue the last aborted or failed scan in the same folder")
-        for w in (self.load, self.run, self.pause, self.abort, self.resume):
+        for w in (self.load, self.edit, self.run, self.pause, self.abort, self.resume):
             row.addWidget(w)
         left.addLayout(row)
         self.progress = QProgressBar()
@@ -505,6 +507,7 @@ class ScanPanel(QWidget):
         outer.addWidget(self.wafer, 1)
 
         self.load.clicked.connect(self.loadPlanRequested)
+        self.edit.clicked.connect(self.editPlanRequested)
         self.choose_out.clicked.connect(self.chooseOutRequested)
         self.run.clicked.connect(self.runRequested)
         self.pause.toggled.connect(self._pause_clicked)

@@ -377,3 +377,24 @@ def test_close_while_moving_and_live_stops_the_stage_and_joins(qtbot):
     assert not stage.is_connected and sim.state != "Run"
     x, y = sim.position_mm
     assert x < 185.0 and y < 185.0
+
+
+def test_scan_plan_can_be_edited_and_is_validated(qtbot, tmp_path):
+    """The plan editor's text is checked by the scan runner's parser; a bad edit changes nothing."""
+    w = open_window(qtbot)
+    try:
+        text = ("[scan]\nsettle_s = 0.0\n\n[raster]\norigin_mm = [10.0, 10.0]\nstep_mm = [5.0, 5.0]\n"
+                "count = [2, 3]\nserpentine = true\nfast_axis = \"x\"\n")
+        assert w.apply_plan_text(text)
+        assert len(w.scan_plan.positions) == 6 and w.scan_panel.wafer.status == ["pending"] * 6
+        assert not w.apply_plan_text(text.replace("count = [2, 3]", "count = [2, -3]"))
+        assert "raster.count" in w.scan_panel.error.text() and w.scan_panel.error.isVisible()
+        assert len(w.scan_plan.positions) == 6  # unchanged
+        assert not w.apply_plan_text("[raster\n")
+        assert "not valid TOML" in w.scan_panel.error.text()
+        from gui.plan_editor import PlanEditor
+        dialog = PlanEditor(text)
+        qtbot.addWidget(dialog)
+        assert dialog.check() and len(dialog.plan.positions) == 6
+    finally:
+        w.close()
