@@ -11,7 +11,6 @@ import tempfile
 import time
 from pathlib import Path
 
-import numpy as np
 
 from mlaqc.calibrate import calibrate
 from mlaqc.config import default_config

@@ -60,8 +60,12 @@ def deviations(metrics: LensMetrics) -> tuple[dict[str, np.ndarray], dict[str, f
     return dev, sig
 
 
-def detection_score(dev: dict[str, np.ndarray], sig: dict[str, float]) -> np.ndarray:
-    """Largest robust z over the detection features, per lens."""
+def detection_score(dev: dict[str, np.ndarray], sig: dict[str, float], position=None) -> np.ndarray:
+    """Largest robust z over the detection features, per lens. `position` (dx, dy): a lower-noise
+    position signal to detect shifts with (the calibration's per-lens residual on the same frame)."""
+    if position is not None:
+        dev = dict(dev, offset_x_px=local_deviation(position[0], axis="x"), offset_y_px=local_deviation(position[1], axis="y"))
+        sig = dict(sig, offset_x_px=robust_sigma(dev["offset_x_px"]), offset_y_px=robust_sigma(dev["offset_y_px"]))
     s_off = 0.5 * (sig["offset_x_px"] + sig["offset_y_px"])
     s_asym = 0.5 * (sig["asym_x"] + sig["asym_y"])
     zs = [np.hypot(dev["offset_x_px"], dev["offset_y_px"]) / s_off,
@@ -149,10 +153,13 @@ def tolerance_for(error_type: str, qc: QC) -> float:
             "tilt": qc.tilt_deg, "thickness": qc.thickness_um}.get(error_type, 0.0)
 
 
-def identify(metrics: LensMetrics, missing: np.ndarray, qc: QC, table: SignatureTable):
-    """Flag, classify and size the defective lenses; returns (defects, flagged mask, type per lens)."""
+def identify(metrics: LensMetrics, missing: np.ndarray, qc: QC, table: SignatureTable, position=None):
+    """Flag, classify and size the defective lenses; returns (defects, flagged mask, type per lens, score).
+
+    `position`: optional (dx, dy) per-lens position residuals measured on this frame (see
+    `detection_score`); classification always uses the registration features the table was built with."""
     dev, sig = deviations(metrics)
-    score = detection_score(dev, sig)
+    score = detection_score(dev, sig, position)
     threshold = np.full(score.shape, qc.detect_sigma)
     threshold[[0, 0, -1, -1], [0, -1, 0, -1]] *= 1.5  # corner windows hold dark margin on two sides: noisier
     flagged = (score > threshold) | missing

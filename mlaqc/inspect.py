@@ -54,7 +54,8 @@ def inspect_image(img: np.ndarray, cfg: CameraConfig, *, grid: Grid | None = Non
     model = model or reference_model(cfg)
     table = table or signature_table(cfg)
     lap("models")
-    if grid is None:
+    own_grid = grid is None
+    if own_grid:
         grid = calibrate(img, expected_pitch_px=cfg.layout.subimage_pitch_px,
                          expected_shape=(cfg.mla.count_h, cfg.mla.count_w))
         lap("calibrate")
@@ -64,7 +65,14 @@ def inspect_image(img: np.ndarray, cfg: CameraConfig, *, grid: Grid | None = Non
     lap("divide")
     metrics = compute_metrics(sub, cx, cy, model, um_per_px_at_mla=um_per_px_at_mla(cfg))
     lap("indexes")
-    defects, flagged, error_type, _score = identify(metrics, grid.missing | ~np.isfinite(metrics["flux"]), cfg.qc, table)
+    # A grid fitted on this very frame measured every lens' position with its joint disc fit. Averaged
+    # with the registration offset it is the lowest-noise shift signal (0.0197 px per axis at 50 rays/pixel
+    # vs 0.023 px registered alone), and an outlier of either method is halved (the fit alone has a tail).
+    position = None
+    if own_grid:
+        position = (0.5 * (grid.residual_x_px + metrics["offset_x_px"]), 0.5 * (grid.residual_y_px + metrics["offset_y_px"]))
+    defects, flagged, error_type, _score = identify(metrics, grid.missing | ~np.isfinite(metrics["flux"]), cfg.qc,
+                                                    table, position)
     lap("identify")
     qc = cfg.qc
     out_of_tol = sum(1 for d in defects if d.error_type != "missing" and not d.within_tolerance)

@@ -12,7 +12,6 @@ the camera); like any camera, the main lens forms an inverted image on the MLA.
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass, field
 from pathlib import Path
 
