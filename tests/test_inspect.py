@@ -195,3 +195,19 @@ def test_demo_runs_the_whole_chain(tmp_path, capsys):
     assert "seeded 4, found" in err
     for name in ("report.json", "lenses.csv", "defect_map.png", "report.html", "demo_white.dng", "demo_white.dng.sim.json"):
         assert (out / name).is_file(), name
+
+
+def test_inspect_with_a_separate_white_image(raw_files, tmp_path):
+    """The grid comes from a white image of the same MLA; the raw's defects are still found."""
+    white = raw_files / "white_defects.npy"
+    ph = Renderer(SMALL, seeded_map()).render(WhiteScene(), rays_per_pixel=30, seed=77).photons
+    np.save(white, frame_of(ph, seed=5).data)
+    out = tmp_path / "rep"
+    code = main(["inspect", str(raw_files / "defects.npy"), "--white", str(white), "-c",
+                 str(FIXTURES / "small_camera.toml"), "-o", str(out), "-q"])
+    assert code == 1
+    rep = json.loads((out / "report.json").read_text())
+    assert {(d["row"], d["col"]) for d in rep["defects"]} == set(SEEDED)
+    bad = tmp_path / "nowhite.npy"
+    assert main(["inspect", str(raw_files / "defects.npy"), "--white", str(bad), "-c",
+                 str(FIXTURES / "small_camera.toml"), "-o", str(tmp_path / "rep2"), "-q"]) == 2
