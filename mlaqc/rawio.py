@@ -657,7 +657,8 @@ def check_exposure(
             f"Frame {frame.source or '(in memory)'} is saturated: {saturated:.1%} of pixels are at the white level "
             f"{frame.white_level} (limit {max_saturated_fraction:.1%}); reduce the exposure or the light."
         )
-    excess = data.astype(np.float32) - np.float32(frame.black_level)
+    sample = data[::3, ::3] if min(data.shape) >= 300 else data  # robust statistics need no more
+    excess = sample.astype(np.float32) - np.float32(frame.black_level)
     bright = float(np.percentile(excess, 99.9))
     median = float(np.median(excess))
     lower = excess[excess <= median]
@@ -738,14 +739,14 @@ def suppress_hot_pixels(
 
 
 _RING = np.array([[1, 1, 1], [1, 0, 1], [1, 1, 1]], dtype=bool)
-_KX = np.array([[-1.0, 0.0, 1.0]] * 3)  # x-gradient of the ring (sum of squares over the ring: 6)
+_KX = np.array([[-1.0, 0.0, 1.0]] * 3, dtype=np.float32)  # x-gradient of the ring (sum of squares over the ring: 6)
 
 
 def _plane_outliers(plane: np.ndarray, nsigma: float, *, integer: bool) -> tuple[np.ndarray, np.ndarray]:
     """Outlier mask of one same-colour plane and the 3x3 median at the outliers (mirror borders: no
     pixel is its own neighbour). The median is only computed where it replaces a pixel."""
-    x = plane.astype(np.float64)
-    ring = _RING.astype(np.float64)
+    x = plane.astype(np.float32)  # float32 halves the memory traffic; the sums below stay well conditioned
+    ring = _RING.astype(np.float32)
     s1 = ndimage.correlate(x, ring, mode="mirror")
     # plane noise: robust sigma of the residual against the ring mean (var = sigma^2 * (1 + 1/8))
     resid = (x - s1 / 8.0)[::3, ::3]  # a 1-in-9 sample is plenty for a robust sigma
