@@ -10,6 +10,9 @@ NCC) are computed alongside for the report.
 
 from __future__ import annotations
 
+import os
+from concurrent.futures import ThreadPoolExecutor
+
 import numpy as np
 
 from mlaqc.reference import ReferenceModel
@@ -80,9 +83,34 @@ def register(img: np.ndarray, valid: np.ndarray, model: ReferenceModel, cx: np.n
 
 
 def compute_metrics(img: np.ndarray, cx: np.ndarray, cy: np.ndarray, model: ReferenceModel, *,
-                    um_per_px_at_mla: float) -> LensMetrics:
+                    um_per_px_at_mla: float, threads: int | None = None) -> LensMetrics:
     """All indexes for sub-images `img` (rows, cols, h, w; NaN outside the frame) whose grid-predicted
-    centres are (cx, cy) in window pixel coordinates."""
+    centres are (cx, cy) in window pixel coordinates. Blocks of lens rows run on a thread pool (NumPy
+    releases the GIL); only the flux normalization needs all lenses and is done after."""
+    _template_stack(model)  # build the shared tables once, before the threads read them
+    rows = img.shape[0]
+    n = max(1, min(threads or os.cpu_count() or 1, rows // 8 or 1))
+    edges = np.linspace(0, rows, n + 1).astype(int)
+    blocks = [(a, b) for a, b in zip(edges[:-1], edges[1:]) if b > a]
+
+    def block(ab):
+        a, b = ab
+        return _block_metrics(img[a:b], cx[a:b], cy[a:b], model, um_per_px_at_mla)
+
+    if len(blocks) == 1:
+        parts = [block(blocks[0])]
+    else:
+        with ThreadPoolExecutor(len(blocks)) as pool:
+            parts = list(pool.map(block, blocks))
+    out = {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}
+    flux = out["flux"]
+    rel = flux / model.flux if model.flux.shape == flux.shape else flux
+    out["flux"] = rel / np.nanmedian(np.where(flux > 0, rel, np.nan))
+    return LensMetrics(out)
+
+
+def _block_metrics(img, cx, cy, model: ReferenceModel, um_per_px_at_mla: float) -> dict[str, np.ndarray]:
+    """Every index of a block of lens rows; 'flux' is left raw (normalized over all lenses later)."""
     valid = np.isfinite(img)
     x = np.where(valid, img, 0.0).astype(np.float32)
     vf = valid.astype(np.float32)
@@ -95,10 +123,7 @@ def compute_metrics(img: np.ndarray, cx: np.ndarray, cy: np.ndarray, model: Refe
     xx = np.arange(w)[None, :] - qx[..., None, None]
     out: dict[str, np.ndarray] = {}
     flux = _sum(x)
-    norm = flux / model.flux if model.flux.shape == flux.shape else flux
-    out["flux"] = flux / np.nanmedian(np.where(flux > 0, norm, np.nan))
-    if model.flux.shape == flux.shape:
-        out["flux"] = out["flux"] / model.flux
+    out["flux"] = flux.astype(np.float64)
     out["mean_gray"] = flux / np.maximum(_sum(vf), 1)
     out.update(_disc_stats(x, vf, xx, yy, h))
     out["entropy"] = _entropy(x, valid)
@@ -115,7 +140,7 @@ def compute_metrics(img: np.ndarray, cx: np.ndarray, cy: np.ndarray, model: Refe
     lost = ~(flux > 0) | (_sum(vf) < 0.5 * h * w)
     for v in out.values():
         v[lost] = np.nan
-    return LensMetrics(out)
+    return out
 
 
 def _disc_stats(x, vf, xx, yy, h):
