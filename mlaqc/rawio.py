@@ -25,6 +25,7 @@ import logging
 import os
 import zlib
 from collections.abc import Iterator
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -747,20 +748,24 @@ def _plane_outliers(plane: np.ndarray, nsigma: float, *, integer: bool) -> tuple
     pixel is its own neighbour). The median is only computed where it replaces a pixel."""
     x = plane.astype(np.float32)  # float32 halves the memory traffic; the sums below stay well conditioned
     ring = _RING.astype(np.float32)
-    s1 = ndimage.correlate(x, ring, mode="mirror")
+    # six independent neighbourhood filters; ndimage releases the GIL, so they share the cores
+    filters = (lambda: ndimage.correlate(x, ring, mode="mirror"),
+               lambda: ndimage.correlate(x * x, ring, mode="mirror"),
+               lambda: ndimage.correlate(x, _KX, mode="mirror"),
+               lambda: ndimage.correlate(x, _KX.T, mode="mirror"),
+               lambda: ndimage.maximum_filter(x, footprint=_RING, mode="mirror"),
+               lambda: ndimage.minimum_filter(x, footprint=_RING, mode="mirror"))
+    with ThreadPoolExecutor(min(len(filters), os.cpu_count() or 1)) as pool:
+        s1, s2, gx, gy, nb_max, nb_min = pool.map(lambda f: f(), filters)
+    gx, gy = gx / 6.0, gy / 6.0
     # plane noise: robust sigma of the residual against the ring mean (var = sigma^2 * (1 + 1/8))
     resid = (x - s1 / 8.0)[::3, ::3]  # a 1-in-9 sample is plenty for a robust sigma
     noise = 1.4826 * float(np.median(np.abs(resid - np.median(resid)))) / np.sqrt(1.125)
     noise = max(noise, 1.0 if integer else 1e-6 * float(np.ptp(x) or 1.0))
-    s2 = ndimage.correlate(x * x, ring, mode="mirror")
-    gx = ndimage.correlate(x, _KX, mode="mirror") / 6.0
-    gy = ndimage.correlate(x, _KX.T, mode="mirror") / 6.0
     # ring residual sum of squares after fitting a + gx*dx + gy*dy (8 samples, 3 parameters -> 5 dof)
     rss = s2 - s1 * s1 / 8.0 - 6.0 * (gx * gx + gy * gy)
     structure = np.sqrt(np.maximum(rss, 0.0) / 5.0)
     limit = nsigma * np.maximum(noise, structure)
-    nb_max = ndimage.maximum_filter(x, footprint=_RING, mode="mirror")
-    nb_min = ndimage.minimum_filter(x, footprint=_RING, mode="mirror")
     bad = (x - nb_max > limit) | (nb_min - x > limit)
     med = x.copy()
     if bad.any():
