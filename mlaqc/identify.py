@@ -20,7 +20,7 @@ from scipy.ndimage import maximum_filter, median_filter
 
 from mlaqc.config import QC
 from mlaqc.results import Defect, LensMetrics
-from mlaqc.signatures import FEATURES, KIND_BY_NAME, SignatureTable
+from mlaqc.signatures import FEATURES, KIND_BY_NAME, SignatureTable, lens_features
 
 # Features whose change is tested for detection, and on which side (+1 up, -1 down, 0 both).
 DETECT = {"offset": 0, "asym": 0, "blur": +1, "flux": 0, "ssim": -1, "sharpness": 0}
@@ -86,13 +86,7 @@ def spill(score: np.ndarray, flagged: np.ndarray, ratio: float = 0.5) -> np.ndar
 
 def _feature_vector(dev: dict[str, np.ndarray], m: int, n: int) -> tuple[np.ndarray, float]:
     """FEATURES of lens [m, n] from its deviations, along its own shift; and that shift's direction."""
-    dx, dy = dev["offset_x_px"][m, n], dev["offset_y_px"][m, n]
-    r = max(float(np.hypot(dx, dy)), 1e-12)
-    ux, uy = dx / r, dy / r
-    ax, ay = dev["asym_x"][m, n], dev["asym_y"][m, n]
-    vec = np.array([r, 0.0, ax * ux + ay * uy, ay * ux - ax * uy, dev["blur"][m, n], dev["flux"][m, n],
-                    dev["ssim"][m, n], dev["sharpness"][m, n]])
-    return vec, float(np.degrees(np.arctan2(-dy, dx)))
+    return lens_features(dev, m, n), float(np.degrees(np.arctan2(-dev["offset_y_px"][m, n], dev["offset_x_px"][m, n])))
 
 
 def _feature_sigmas(sig: dict[str, float]) -> np.ndarray:

@@ -112,8 +112,9 @@ def um_per_px_at_mla(cfg: CameraConfig) -> float:
 
 
 def lens_features(metrics, m: int, n: int, direction_deg: float | None = None) -> np.ndarray:
-    """FEATURES of lens [m, n] (0-based); shift/asymmetry taken along/across `direction_deg` (image
-    convention, counterclockwise from +x towards the top) or along the lens' own shift if None."""
+    """FEATURES of lens [m, n] (0-based) from a mapping of (rows, cols) arrays (metrics or their local
+    deviations); shift/asymmetry taken along/across `direction_deg` (image convention, counterclockwise
+    from +x towards the top) or along the lens' own shift if None."""
     dx, dy = metrics["offset_x_px"][m, n], metrics["offset_y_px"][m, n]
     if direction_deg is None:
         ux, uy = (dx, dy) / max(np.hypot(dx, dy), 1e-12)
@@ -138,7 +139,7 @@ def build_signatures(cfg: CameraConfig, *, rays_per_pixel: float = 400.0, kinds=
         win, cx, cy = nominal_windows(img / img.max(), patch)
         return compute_metrics(win, cx, cy, model, um_per_px_at_mla=um_px)
 
-    base = lens_features(metrics_for(ErrorMap.zeros(PATCH, PATCH)), c, c, 0.0)
+    base = metrics_for(ErrorMap.zeros(PATCH, PATCH))
     mags, feats, phi0 = {}, {}, {}
     total, done = sum(len(k.magnitudes) for k in kinds), 0
     for kind in kinds:
@@ -153,23 +154,11 @@ def build_signatures(cfg: CameraConfig, *, rays_per_pixel: float = 400.0, kinds=
             big = mets[len(mets) // 2:]
             phi = float(np.degrees(np.angle(sum(np.exp(1j * np.arctan2(-m_["offset_y_px"][c, c], m_["offset_x_px"][c, c]))
                                                     for m_ in big))))
-        base_phi = lens_features_base(base, phi)
+        base_phi = lens_features(base, c, c, phi)
         mags[kind.name] = np.asarray(kind.magnitudes, float)
         feats[kind.name] = np.asarray([lens_features(m_, c, c, phi) - base_phi for m_ in mets])
         phi0[kind.name] = phi
     return SignatureTable(mags, feats, phi0, signature_key(cfg))
-
-
-def lens_features_base(base_dir0: np.ndarray, phi_deg: float) -> np.ndarray:
-    """The perfect lens' features seen along direction phi (only the vector parts rotate)."""
-    out = base_dir0.copy()
-    a = np.radians(phi_deg)
-    c, s = np.cos(a), np.sin(a)
-    sx, sy = base_dir0[0], base_dir0[1]
-    ax, ay = base_dir0[2], base_dir0[3]
-    out[0], out[1] = sx * c + sy * s, sy * c - sx * s
-    out[2], out[3] = ax * c + ay * s, ay * c - ax * s
-    return out
 
 
 def signature_table(cfg: CameraConfig, *, build_if_missing: bool = True, progress=None) -> SignatureTable:

@@ -211,3 +211,15 @@ def test_inspect_with_a_separate_white_image(raw_files, tmp_path):
     bad = tmp_path / "nowhite.npy"
     assert main(["inspect", str(raw_files / "defects.npy"), "--white", str(bad), "-c",
                  str(FIXTURES / "small_camera.toml"), "-o", str(tmp_path / "rep2"), "-q"]) == 2
+
+
+def test_signature_table_is_rendered_from_the_tracer():
+    """A pitch error's signature: the shift grows with the error and points along +x for direction 0."""
+    from mlaqc.signatures import FEATURES, KINDS, build_signatures
+    table = build_signatures(SMALL, rays_per_pixel=30, kinds=(KINDS[0],))
+    shift = table.features["pitch"][:, FEATURES.index("shift_par")]
+    assert np.all(np.diff(shift) > 0)
+    assert abs(table.phi0_deg["pitch"]) < 5.0
+    mags = table.magnitudes["pitch"]
+    gain = SMALL.layout.subimage_pitch_px / (SMALL.mla.pitch_um / SMALL.sensor.pixel_um) / SMALL.sensor.pixel_um
+    assert shift[mags == 2.0][0] == pytest.approx(2.0 * gain, rel=0.25)  # ~0.40 px for 2 um
