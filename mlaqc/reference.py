@@ -99,14 +99,14 @@ def build_reference(cfg: CameraConfig, *, rays_per_lens: int = 4_000_000, seed: 
     the flux of every ideal lens from a full-frame render, smoothed by a low-order fit."""
     os_ = OVERSAMPLE
     s = cfg.sensor
-    fine = dataclasses.replace(cfg, sensor=dataclasses.replace(s, pixel_um=s.pixel_um / os_, width_px=s.width_px * os_,
-                                                                height_px=s.height_px * os_))
     rows, cols = cfg.mla.count_h, cfg.mla.count_w
-    renderer = Renderer(fine, ErrorMap.zeros(rows, cols))
     p = cfg.mla.pitch_um * 1e-3
     m0, n0 = rows // 2, cols // 2  # 0-based lens just up-left of (or on) the axis
     x_c = (n0 + 0.5) * p - 0.5 * cols * p
     y_c = (m0 + 0.5) * p - 0.5 * rows * p
+    fine = dataclasses.replace(cfg, sensor=dataclasses.replace(s, pixel_um=s.pixel_um / os_,
+                                                                **_fine_crop(cfg, x_c, y_c)))
+    renderer = Renderer(fine, ErrorMap.zeros(rows, cols))
     tile = (x_c - 1.5 * p, x_c + 1.5 * p, y_c - 1.5 * p, y_c + 1.5 * p)
     fine_img = np.zeros(fine.sensor.width_px * fine.sensor.height_px)
     for i in range(max(1, rays_per_lens * 9 // (1 << 20))):
@@ -123,6 +123,21 @@ def build_reference(cfg: CameraConfig, *, rays_per_lens: int = 4_000_000, seed: 
     template /= template.max()
     flux = _flux_map(cfg)
     return ReferenceModel(template, float(half), os_, flux, config_key(cfg))
+
+
+def _fine_crop(cfg: CameraConfig, x_c: float, y_c: float) -> dict[str, int]:
+    """Width and height of the 8x-finer sensor, cropped about the axis to just hold the 3 x 3 lenses
+    around (x_c, y_c) mm: memory stays a few MiB whatever the real sensor's size. Each crop removes an
+    even number of fine pixels per axis (whole coarse pixels per side), so pixel centres stay on the
+    full sensor's lattice and the template is the one the full-size fine sensor would give."""
+    s, os_ = cfg.sensor, OVERSAMPLE
+    gain = cfg.layout.subimage_pitch_px / (cfg.mla.pitch_um / s.pixel_um)
+    reach_px = 2.5 * cfg.layout.subimage_pitch_px + 4  # 1.5 pitches of lenses, the template's rim, blur
+    out = {}
+    for name, full, c_mm in (("width_px", s.width_px, x_c), ("height_px", s.height_px, y_c)):
+        half = int(np.ceil(abs(c_mm) * gain / (s.pixel_um * 1e-3) + reach_px))
+        out[name] = min(full, full % 2 + 2 * half) * os_
+    return out
 
 
 def _cut(img: np.ndarray, cx: float, cy: float, half: int) -> np.ndarray:
