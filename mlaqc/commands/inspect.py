@@ -1,25 +1,42 @@
-"""`mlaqc inspect`: find, classify and size defective microlenses in a raw image; write the report set."""
+"""`mlaqc inspect`: find, classify and size defective microlenses in raw images; write the report sets.
+
+One raw writes its report set into --out. Several raws (a production batch) share one calibration —
+from --white, from a saved --grid, or else each frame calibrates itself — and each writes its report set
+into --out/<raw name>/, plus --out/batch.csv with one line per frame. A bad frame in a batch is reported
+and skipped; the others are still inspected.
+"""
 
 from __future__ import annotations
 
 import argparse
+import csv
+import io
 import sys
+import time
 from pathlib import Path
 
-from mlaqc.config import load_config
+from mlaqc.atomic import write_bytes_atomic
+from mlaqc.config import CameraConfig, load_config
 from mlaqc.errors import InputError
+
+BATCH_COLUMNS = ("raw", "verdict", "flagged", "out_of_tolerance", "missing", "seconds", "report", "error")
 
 
 def register(sub: argparse._SubParsersAction) -> None:
     """Add the `inspect` subcommand."""
-    p = sub.add_parser("inspect", help="inspect a raw image: defective lenses, type, size, PASS/FAIL",
+    p = sub.add_parser("inspect", help="inspect raw images: defective lenses, type, size, PASS/FAIL",
                        description="Calibrate the microlens grid, compute every lens' indexes, flag and classify "
                                    "defective lenses, and write report.json, lenses.csv, defect_map.png and "
-                                   "report.html. Exit status 0 = PASS, 1 = FAIL, 2 = input error.")
-    p.add_argument("raw", help="raw image (DNG, vendor raw, TIFF, PNG, NPY)")
-    p.add_argument("--white", "-w", help="white image to calibrate the grid on (default: the raw itself)")
+                                   "report.html. Several raws share one calibration (--white or --grid) and get "
+                                   "one report folder each under --out, plus batch.csv. Exit status 0 = every "
+                                   "frame PASS, 1 = some frame FAIL, 2 = input error (in a batch: some frame "
+                                   "could not be inspected; the others still are).")
+    p.add_argument("raw", nargs="+", help="raw image(s) (DNG, vendor raw, TIFF, PNG, NPY)")
+    src = p.add_mutually_exclusive_group()
+    src.add_argument("--white", "-w", help="white image to calibrate the grid on (default: each raw itself)")
+    src.add_argument("--grid", "-g", help="grid.json from `mlaqc calibrate`, reused without recalibrating")
     p.add_argument("--config", "-c", help="camera config TOML (default: the paper's Table 1 camera)")
-    p.add_argument("--out", "-o", required=True, help="output folder for the report set")
+    p.add_argument("--out", "-o", required=True, help="output folder for the report set(s)")
     p.add_argument("--quiet", "-q", action="store_true", help="no summary on stderr")
     p.set_defaults(func=run)
 
@@ -49,16 +66,91 @@ def summary(result) -> str:
     return "\n".join(lines)
 
 
-def run(args: argparse.Namespace) -> int:
-    """Inspect and report; 0 PASS, 1 FAIL."""
-    from mlaqc.inspect import inspect_file
+def shared_grid(args: argparse.Namespace, cfg: CameraConfig):
+    """The calibration every raw reuses: loaded from --grid, fitted on --white, or None (self-calibrate)."""
+    from mlaqc.calibrate import calibrate, load_grid
+    from mlaqc.inspect import load_frame
+
+    if args.grid:
+        grid = load_grid(args.grid)
+        want = (cfg.sensor.height_px, cfg.sensor.width_px)
+        if (grid.rows, grid.cols) != (cfg.mla.count_h, cfg.mla.count_w) or tuple(grid.image_shape) != want:
+            raise InputError(f"grid file {args.grid!r} is for {grid.cols}x{grid.rows} lenses on a "
+                             f"{grid.image_shape[1]}x{grid.image_shape[0]} px frame, but the camera has "
+                             f"{cfg.mla.count_w}x{cfg.mla.count_h} lenses on {want[1]}x{want[0]} px")
+        return grid
+    if args.white:
+        return calibrate(load_frame(args.white, cfg), expected_pitch_px=cfg.layout.subimage_pitch_px,
+                         expected_shape=(cfg.mla.count_h, cfg.mla.count_w))
+    return None
+
+
+def report_folders(out: Path, raws: list[str]) -> list[Path]:
+    """--out itself for one raw; --out/<name> for several, names made unique where stems collide."""
+    if len(raws) == 1:
+        return [out]
+    seen: dict[str, int] = {}
+    folders = []
+    for raw in raws:
+        stem = Path(raw).stem or "raw"
+        seen[stem] = seen.get(stem, 0) + 1
+        folders.append(out / (stem if seen[stem] == 1 else f"{stem}-{seen[stem]}"))
+    return folders
+
+
+def inspect_one(raw: str, cfg: CameraConfig, grid, folder: Path) -> dict:
+    """Load, inspect and report one raw; a row of batch.csv (InputError propagates)."""
+    from mlaqc.inspect import inspect_image, load_frame
     from mlaqc.report import write_report
 
+    t0 = time.perf_counter()
+    img = load_frame(raw, cfg)
+    load_s = time.perf_counter() - t0
+    result = inspect_image(img, cfg, grid=grid, source=str(raw))
+    result.timings_s["load"] = round(load_s, 4)  # the dict is mutable; the result is frozen
+    write_report(result, folder, config_dict=cfg.to_dict())
+    return {"result": result, "verdict": result.verdict, "flagged": len(result.defects),
+            "out_of_tolerance": sum(1 for d in result.defects if not d.within_tolerance),
+            "missing": sum(1 for d in result.defects if d.error_type == "missing"),
+            "seconds": round(time.perf_counter() - t0, 3), "report": str(folder), "error": ""}
+
+
+def write_batch_csv(path: Path, rows: list[dict]) -> None:
+    """One line per frame, written atomically."""
+    buf = io.StringIO()
+    w = csv.DictWriter(buf, fieldnames=BATCH_COLUMNS, extrasaction="ignore", lineterminator="\n")
+    w.writeheader()
+    w.writerows(rows)
+    write_bytes_atomic(path, buf.getvalue().encode())
+
+
+def run(args: argparse.Namespace) -> int:
+    """Inspect and report; 0 all PASS, 1 some FAIL, 2 some frame was bad input (batch) or bad input."""
     out = check_out_dir(args.out)
     cfg = load_config(args.config)
-    result = inspect_file(args.raw, cfg, white=args.white)
-    write_report(result, out, config_dict=cfg.to_dict())
+    grid = shared_grid(args, cfg)
+    if len(args.raw) == 1:
+        row = inspect_one(args.raw[0], cfg, grid, out)
+        if not args.quiet:
+            print(summary(row["result"]), file=sys.stderr)
+            print(f"  report: {out / 'report.html'}", file=sys.stderr)
+        return 1 if row["result"].failed else 0
+    out.mkdir(exist_ok=True)
+    rows, t0 = [], time.perf_counter()
+    for i, (raw, folder) in enumerate(zip(args.raw, report_folders(out, args.raw)), 1):
+        try:
+            row = inspect_one(raw, cfg, grid, folder)
+            line = f"{row['verdict']}, {row['flagged']} flagged ({row['seconds']:.2f} s)"
+        except InputError as exc:
+            row = {"raw": raw, "verdict": "ERROR", "error": str(exc), "report": ""}
+            line = f"ERROR: {exc}"
+        rows.append({**row, "raw": raw})
+        if not args.quiet:
+            print(f"[{i}/{len(args.raw)}] {raw}: {line}", file=sys.stderr)
+    write_batch_csv(out / "batch.csv", rows)
+    verdicts = [r["verdict"] for r in rows]
     if not args.quiet:
-        print(summary(result), file=sys.stderr)
-        print(f"  report: {out / 'report.html'}", file=sys.stderr)
-    return 1 if result.failed else 0
+        dt = time.perf_counter() - t0
+        print(f"{verdicts.count('PASS')} PASS, {verdicts.count('FAIL')} FAIL, {verdicts.count('ERROR')} ERROR "
+              f"in {dt:.1f} s ({dt / len(rows):.2f} s/frame); {out / 'batch.csv'}", file=sys.stderr)
+    return 2 if "ERROR" in verdicts else (1 if "FAIL" in verdicts else 0)
