@@ -13,7 +13,7 @@ from mlaqc.calibrate import Grid, calibrate
 from mlaqc.config import CameraConfig
 from mlaqc.errors import InputError
 from mlaqc.identify import identify
-from mlaqc.metrics import compute_metrics, reference_windows
+from mlaqc.metrics import compute_metrics, reference_images
 from mlaqc.rawio import RawFrame, check_exposure, load_raw, normalized, suppress_hot_pixels
 from mlaqc.reference import ReferenceModel, reference_model
 from mlaqc.results import InspectionResult
@@ -23,9 +23,9 @@ from mlaqc.subimages import divide
 
 def prepare(frame: RawFrame) -> np.ndarray:
     """Black-subtracted, normalized float32 image with hot pixels suppressed (per CFA channel)."""
-    img = normalized(frame)
-    cleaned, _ = suppress_hot_pixels(img, frame.cfa)
-    return cleaned.astype(np.float32)
+    img = normalized(frame)  # a fresh float32 array this function owns: clean it in place
+    cleaned, _ = suppress_hot_pixels(img, frame.cfa, inplace=True)
+    return cleaned.astype(np.float32, copy=False)
 
 
 def load_frame(path: str | Path, cfg: CameraConfig) -> np.ndarray:
@@ -78,9 +78,10 @@ def inspect_image(img: np.ndarray, cfg: CameraConfig, *, grid: Grid | None = Non
     out_of_tol = sum(1 for d in defects if d.error_type != "missing" and not d.within_tolerance)
     n_missing = sum(1 for d in defects if d.error_type == "missing")
     verdict = "FAIL" if (out_of_tol > qc.max_out_of_tolerance or n_missing > qc.max_missing) else "PASS"
-    ref = reference_windows(model, cx, cy, 2 * half + 1, 2 * half + 1)[0][0]
-    return InspectionResult(verdict, grid, metrics, defects, flagged, error_type, img.astype(np.float32), sub,
-                            ref.astype(np.float32), source, _tolerance_dict(cfg), t)
+    ref = reference_images(model, cx, cy, 2 * half + 1, 2 * half + 1)
+    # the frame is kept as given when already float32 (no 16 MB copy): callers hand over a prepared frame
+    return InspectionResult(verdict, grid, metrics, defects, flagged, error_type, np.asarray(img, dtype=np.float32),
+                            sub, ref, source, _tolerance_dict(cfg), t)
 
 
 def _tolerance_dict(cfg: CameraConfig) -> dict[str, float]:

@@ -27,14 +27,14 @@ import zlib
 from collections.abc import Iterator
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
+from functools import partial
 from pathlib import Path
 from typing import Any
 
 import numpy as np
-from scipy import ndimage
-
 from mlaqc.atomic import atomic_path
 from mlaqc.errors import InputError
+from mlaqc.raw_kernels import hot_pixel_rows, ring_residual_sample
 
 CFA_PATTERNS = ("RGGB", "BGGR", "GRBG", "GBRG")
 
@@ -708,17 +708,18 @@ def normalized(frame: RawFrame) -> np.ndarray:
 
 
 def suppress_hot_pixels(
-    img: np.ndarray, cfa: str | None, *, nsigma: float = 6.0
+    img: np.ndarray, cfa: str | None, *, nsigma: float = 6.0, inplace: bool = False
 ) -> tuple[np.ndarray, np.ndarray]:
     """Replace isolated hot (and dead) pixels by their 3x3 same-channel median; return (cleaned, mask).
 
-    Works per CFA site plane (or on the whole mono frame), fully vectorized. A pixel is an outlier when it
-    stands above the brightest (or below the darkest) of its 8 same-channel neighbours by more than
-    `nsigma` * max(plane noise, local structure). Plane noise is the robust sigma (1.4826 * MAD) of the
-    residual against the 3x3 median, at least 1 count for integer data. Local structure is the rms
-    residual of the 8 neighbours about their own least-squares plane: zero on flat areas and gradients,
-    large at sub-image edges, corners and gaps, so genuine structure is never "cleaned" (PlenoptiCam's
-    cfa_outliers idea: judge a pixel against its same-channel window's spread).
+    Works per CFA site plane (or on the whole mono frame), one compiled pass per plane
+    (mlaqc.raw_kernels). A pixel is an outlier when it stands above the brightest (or below the darkest)
+    of its 8 same-channel neighbours by more than `nsigma` * max(plane noise, local structure). Plane
+    noise is the robust sigma (1.4826 * MAD) of the residual against the ring mean on a 1-in-9 sample, at
+    least 1 count for integer data. Local structure is the rms residual of the 8 neighbours about their
+    own least-squares plane: zero on flat areas and gradients, large at sub-image edges, corners and
+    gaps, so genuine structure is never "cleaned" (PlenoptiCam's cfa_outliers idea: judge a pixel
+    against its same-channel window's spread). `inplace`: clean `img` itself (the caller owns it).
     Limits: two outliers adjacent in the same plane shield each other; at the frame border the mirrored
     window is less sensitive.
     """
@@ -727,50 +728,42 @@ def suppress_hot_pixels(
         raise InputError(f"suppress_hot_pixels needs a 2-D image, not shape {img.shape}.")
     if cfa is not None and cfa not in CFA_PATTERNS:
         raise InputError(f"suppress_hot_pixels: cfa={cfa!r} must be None or one of {', '.join(CFA_PATTERNS)}.")
-    cleaned = img.copy()
+    x = np.ascontiguousarray(img, dtype=np.float32)  # float32 halves the memory traffic (no copy if already)
     mask = np.zeros(img.shape, dtype=bool)
-    for sl in cfa_planes(cfa):
-        plane = img[sl]
-        if min(plane.shape) < 3:
+    med = np.empty(img.shape, dtype=np.float32)  # written only at outliers
+    step = 1 if cfa is None else 2
+    integer = img.dtype.kind in "ui"
+    bad_rows: list[np.ndarray] = []
+    for r0, c0 in ((0, 0),) if cfa is None else ((0, 0), (0, 1), (1, 0), (1, 1)):
+        ph, pw = len(range(r0, img.shape[0], step)), len(range(c0, img.shape[1], step))
+        if min(ph, pw) < 3:
             continue
-        bad, med = _plane_outliers(plane, nsigma, integer=img.dtype.kind in "ui")
-        cleaned[sl][bad] = med[bad].astype(img.dtype)
-        mask[sl] = bad
+        noise = _plane_noise(x, r0, c0, step, ph, pw, integer)
+        if not np.isfinite(noise):
+            continue  # NaN pixels: no threshold can be judged (as the filter formulation)
+        row_bad = np.zeros(ph, dtype=np.int64)
+        run = partial(hot_pixel_rows, x, r0, c0, step, float(noise), float(nsigma))
+        edges = np.linspace(0, ph, 2 * (os.cpu_count() or 1) + 1).astype(int) if ph >= 64 else np.array([0, ph])
+        jobs = [(int(a), int(b)) for a, b in zip(edges[:-1], edges[1:]) if b > a]
+        if len(jobs) == 1:
+            run(0, ph, mask, med, row_bad)
+        else:
+            with ThreadPoolExecutor(min(len(jobs), os.cpu_count() or 1)) as pool:
+                list(pool.map(lambda ab: run(ab[0], ab[1], mask, med, row_bad), jobs))
+        bad_rows.append(r0 + step * np.flatnonzero(row_bad))
+    cleaned = img if inplace else img.copy()
+    rows = np.unique(np.concatenate(bad_rows)) if bad_rows else np.zeros(0, np.int64)
+    if rows.size:  # replace after detection, so every median saw the original neighbours
+        i, j = np.nonzero(mask[rows])
+        cleaned[rows[i], j] = med[rows[i], j].astype(img.dtype)
     return cleaned, mask
 
 
-_RING = np.array([[1, 1, 1], [1, 0, 1], [1, 1, 1]], dtype=bool)
-_KX = np.array([[-1.0, 0.0, 1.0]] * 3, dtype=np.float32)  # x-gradient of the ring (sum of squares over the ring: 6)
-
-
-def _plane_outliers(plane: np.ndarray, nsigma: float, *, integer: bool) -> tuple[np.ndarray, np.ndarray]:
-    """Outlier mask of one same-colour plane and the 3x3 median at the outliers (mirror borders: no
-    pixel is its own neighbour). The median is only computed where it replaces a pixel."""
-    x = plane.astype(np.float32)  # float32 halves the memory traffic; the sums below stay well conditioned
-    ring = _RING.astype(np.float32)
-    # six independent neighbourhood filters; ndimage releases the GIL, so they share the cores
-    filters = (lambda: ndimage.correlate(x, ring, mode="mirror"),
-               lambda: ndimage.correlate(x * x, ring, mode="mirror"),
-               lambda: ndimage.correlate(x, _KX, mode="mirror"),
-               lambda: ndimage.correlate(x, _KX.T, mode="mirror"),
-               lambda: ndimage.maximum_filter(x, footprint=_RING, mode="mirror"),
-               lambda: ndimage.minimum_filter(x, footprint=_RING, mode="mirror"))
-    with ThreadPoolExecutor(min(len(filters), os.cpu_count() or 1)) as pool:
-        s1, s2, gx, gy, nb_max, nb_min = pool.map(lambda f: f(), filters)
-    gx, gy = gx / 6.0, gy / 6.0
-    # plane noise: robust sigma of the residual against the ring mean (var = sigma^2 * (1 + 1/8))
-    resid = (x - s1 / 8.0)[::3, ::3]  # a 1-in-9 sample is plenty for a robust sigma
-    noise = 1.4826 * float(np.median(np.abs(resid - np.median(resid)))) / np.sqrt(1.125)
-    noise = max(noise, 1.0 if integer else 1e-6 * float(np.ptp(x) or 1.0))
-    # ring residual sum of squares after fitting a + gx*dx + gy*dy (8 samples, 3 parameters -> 5 dof)
-    rss = s2 - s1 * s1 / 8.0 - 6.0 * (gx * gx + gy * gy)
-    structure = np.sqrt(np.maximum(rss, 0.0) / 5.0)
-    limit = nsigma * np.maximum(noise, structure)
-    bad = (x - nb_max > limit) | (nb_min - x > limit)
-    med = x.copy()
-    if bad.any():
-        padded = np.pad(x, 1, mode="reflect")  # 'reflect' here is ndimage's 'mirror'
-        i, j = np.nonzero(bad)
-        hood = np.stack([padded[i + di, j + dj] for di in range(3) for dj in range(3)])
-        med[i, j] = np.median(hood, axis=0)
-    return bad, med
+def _plane_noise(x: np.ndarray, r0: int, c0: int, step: int, ph: int, pw: int, integer: bool) -> float:
+    """Robust sigma of one plane's residual against its 8-neighbour ring mean (var = sigma^2 (1 + 1/8)),
+    from a 1-in-9 sample; floored at 1 count (integer data) or 1e-6 of the plane's range."""
+    sample = np.empty(((ph + 2) // 3, (pw + 2) // 3), dtype=np.float32)
+    lo, hi = ring_residual_sample(x, r0, c0, step, sample)
+    centre = np.median(sample)
+    noise = 1.4826 * float(np.median(np.abs(sample - centre))) / np.sqrt(1.125)
+    return max(noise, 1.0 if integer else 1e-6 * ((hi - lo) or 1.0))

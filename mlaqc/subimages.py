@@ -1,6 +1,6 @@
 """Divide a frame into one window per microlens, cut around each lens' grid-predicted centre.
 
-One fancy-index gather builds the whole (rows, cols, h, w) stack (no per-lens loop). Window [m-1, n-1]
+One compiled loop cuts the whole (rows, cols, h, w) stack (no per-lens Python loop). Window [m-1, n-1]
 is centred on the pixel nearest U(m,n)'s predicted centre; the sub-pixel remainder is kept, so metrics can
 work in sub-pixel coordinates: in window pixel coordinates (column j, row i) the lens centre sits at
 (`centre_x_px`, `centre_y_px`) = grid centre - window origin, i.e. ((w-1)/2 + offset_x, (h-1)/2 + offset_y)
@@ -15,6 +15,7 @@ import numpy as np
 
 from mlaqc.calibrate import Grid
 from mlaqc.errors import InputError
+from mlaqc.lens_kernels import cut_windows_kernel
 
 
 @dataclass(frozen=True, eq=False)
@@ -92,16 +93,13 @@ def divide(img: np.ndarray, grid: Grid, size_px: int | tuple[int, int] | None = 
 
 
 def cut_windows(img: np.ndarray, x_px: np.ndarray, y_px: np.ndarray, h: int, w: int):
-    """(data, valid, origin_x, origin_y): h x w windows centred on the pixels nearest (x_px, y_px), one
-    fancy-index gather for all of them; float32 data, NaN outside the frame."""
-    height, width = img.shape
-    ox = np.floor(x_px - 0.5 * (w - 1) + 0.5).astype(np.int64)  # nearest pixel, ties up
-    oy = np.floor(y_px - 0.5 * (h - 1) + 0.5).astype(np.int64)
-    ys = oy[..., None] + np.arange(h)  # (rows, cols, h)
-    xs = ox[..., None] + np.arange(w)  # (rows, cols, w)
-    vy = (ys >= 0) & (ys < height)
-    vx = (xs >= 0) & (xs < width)
-    valid = vy[..., :, None] & vx[..., None, :]
-    data = img[np.clip(ys, 0, height - 1)[..., :, None], np.clip(xs, 0, width - 1)[..., None, :]].astype(np.float32)
-    data[~valid] = np.nan
+    """(data, valid, origin_x, origin_y): h x w windows centred on the pixels nearest (x_px, y_px), cut by
+    one compiled loop for all of them (the fancy-index gather cost 25 ms per frame); float32 data, NaN
+    outside the frame."""
+    ox = np.floor(np.asarray(x_px, dtype=np.float64) - 0.5 * (w - 1) + 0.5).astype(np.int64)  # nearest pixel, ties up
+    oy = np.floor(np.asarray(y_px, dtype=np.float64) - 0.5 * (h - 1) + 0.5).astype(np.int64)
+    data = np.empty(ox.shape + (h, w), dtype=np.float32)
+    valid = np.empty(ox.shape + (h, w), dtype=bool)
+    src = np.ascontiguousarray(img, dtype=np.float32)  # one compiled specialization; no copy for the usual float32
+    cut_windows_kernel(src, ox.ravel(), oy.ravel(), int(h), int(w), data.reshape(-1, h, w), valid.reshape(-1, h, w))
     return data, valid, ox, oy

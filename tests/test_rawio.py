@@ -517,3 +517,51 @@ def test_hot_pixels_bad_arguments() -> None:
         suppress_hot_pixels(np.zeros((2, 3, 3)), None)
     with pytest.raises(InputError):
         suppress_hot_pixels(np.zeros((8, 8)), "XYZW")
+
+
+def _filter_outliers(plane: np.ndarray, nsigma: float, integer: bool) -> tuple[np.ndarray, np.ndarray]:
+    """The scipy.ndimage formulation of one plane's outlier test (the oracle of the compiled kernel)."""
+    from scipy import ndimage
+
+    x = plane.astype(np.float64)
+    ring = np.array([[1, 1, 1], [1, 0, 1], [1, 1, 1]], dtype=bool)
+    kx = np.array([[-1.0, 0.0, 1.0]] * 3)
+    s1 = ndimage.correlate(x, ring.astype(float), mode="mirror")
+    s2 = ndimage.correlate(x * x, ring.astype(float), mode="mirror")
+    gx = ndimage.correlate(x, kx, mode="mirror") / 6.0
+    gy = ndimage.correlate(x, kx.T, mode="mirror") / 6.0
+    nb_max = ndimage.maximum_filter(x, footprint=ring, mode="mirror")
+    nb_min = ndimage.minimum_filter(x, footprint=ring, mode="mirror")
+    resid = (plane.astype(np.float32) - (s1 / 8.0).astype(np.float32))[::3, ::3]
+    noise = 1.4826 * float(np.median(np.abs(resid - np.median(resid)))) / np.sqrt(1.125)
+    noise = max(noise, 1.0 if integer else 1e-6 * float(np.ptp(x) or 1.0))
+    structure = np.sqrt(np.maximum(s2 - s1 * s1 / 8.0 - 6.0 * (gx * gx + gy * gy), 0.0) / 5.0)
+    limit = nsigma * np.maximum(noise, structure)
+    bad = (x - nb_max > limit) | (nb_min - x > limit)
+    med = ndimage.median_filter(x, size=3, mode="mirror")
+    return bad, med
+
+
+@pytest.mark.parametrize("cfa", ["GBRG", None])
+@pytest.mark.parametrize("kind", ["uint16", "float32", "float64"])
+def test_hot_pixels_match_the_filter_formulation(cfa: str | None, kind: str) -> None:
+    """Compiled kernel == ndimage filters: discs with dark gaps (structure), gradients, noise, outliers."""
+    rng = np.random.default_rng(31)
+    yy, xx = np.mgrid[0:130, 0:150]
+    img = 200 + 2500 * ((np.hypot(xx % 20 - 9.5, yy % 20 - 9.5) < 8) * (1 + xx / 300)) + rng.normal(0, 30, yy.shape)
+    spots = rng.integers(0, 130, 120), rng.integers(0, 150, 120)
+    img[spots] = rng.choice([0, 4095, 1500], 120)
+    img = np.clip(img, 0, 4095).astype(np.uint16)
+    data = img if kind == "uint16" else (img / 4095).astype(kind)
+    cleaned, mask = suppress_hot_pixels(data, cfa)
+    want_mask = np.zeros(data.shape, bool)
+    want = data.copy()
+    for sl in [(slice(None), slice(None))] if cfa is None else [(slice(r, None, 2), slice(c, None, 2)) for r in (0, 1) for c in (0, 1)]:
+        bad, med = _filter_outliers(data[sl].astype(np.float32), 6.0, kind == "uint16")
+        want_mask[sl] = bad
+        want[sl][bad] = med[bad].astype(np.float32).astype(data.dtype)
+    assert 5 < mask.sum() < 120  # outliers found, structure left alone
+    assert np.array_equal(mask, want_mask)
+    assert cleaned.dtype == data.dtype and np.array_equal(cleaned, want)
+    again, mask2 = suppress_hot_pixels(data.copy(), cfa, inplace=True)
+    assert np.array_equal(again, want) and np.array_equal(mask2, mask)

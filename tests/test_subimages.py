@@ -120,3 +120,23 @@ def test_subimages_is_frozen(frame):
     assert isinstance(sub, SubImages) and sub.grid is grid
     with pytest.raises(Exception):
         sub.data = None  # type: ignore[misc]
+
+
+def test_cut_windows_match_the_fancy_index_gather():
+    """The compiled cut == one NumPy fancy-index gather, NaN and valid=False outside the frame."""
+    from mlaqc.subimages import cut_windows
+
+    rng = np.random.default_rng(4)
+    img = rng.normal(size=(57, 64))
+    x = rng.uniform(-8, 72, (5, 6))
+    y = rng.uniform(-8, 65, (5, 6))
+    for h, w in ((9, 9), (8, 11)):
+        data, valid, ox, oy = cut_windows(img, x, y, h, w)
+        ys = oy[..., None] + np.arange(h)
+        xs = ox[..., None] + np.arange(w)
+        inside = ((ys >= 0) & (ys < 57))[..., :, None] & ((xs >= 0) & (xs < 64))[..., None, :]
+        want = img[np.clip(ys, 0, 56)[..., :, None], np.clip(xs, 0, 63)[..., None, :]].astype(np.float32)
+        want[~inside] = np.nan
+        assert np.array_equal(ox, np.floor(x - 0.5 * (w - 1) + 0.5)) and np.array_equal(oy, np.floor(y - 0.5 * (h - 1) + 0.5))
+        assert data.dtype == np.float32 and np.array_equal(valid, inside) and not inside.all()
+        assert np.array_equal(data, want, equal_nan=True)

@@ -1,0 +1,417 @@
+"""Compiled (Numba) kernels of the inspection hot path: window cutting, all per-lens indexes in one pass
+over the sub-image stack, and the local median baselines of identification.
+
+Why: the NumPy formulation builds a dozen (N_H, N_W, h, w) temporaries per index (0.3 s for 10,404
+lenses); here every lens is handled start to finish while its 21 x 21 window sits in L1 cache. Kernels
+release the GIL and work on a [start, stop) range of lenses, so callers split the work over a thread
+pool (no Numba threading layer: safe to call from several threads at once). Sums are accumulated in
+float64; the discrete decisions (reference phase, entropy bins) follow the NumPy code's float32 rules.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit
+
+_jit = njit(cache=True, nogil=True, error_model="numpy")
+
+# Column order of the (N, N_INDEX) array `lens_indexes` fills (the order of results.METRICS).
+INDEX_NAMES = ("flux", "mean_gray", "uniformity", "entropy", "sharpness", "offset_x_px", "offset_y_px", "offset_um",
+               "size_px", "ellipticity", "blur", "asym_x", "asym_y", "psnr_db", "ssim", "ncc")
+N_INDEX = len(INDEX_NAMES)
+ENTROPY_BINS = 32
+
+
+@_jit
+def cut_windows_kernel(img, ox, oy, h, w, data, valid):
+    """data[k] = img[oy[k]:oy[k]+h, ox[k]:ox[k]+w] as float32, NaN (and valid False) outside the frame."""
+    height, width = img.shape
+    for k in range(ox.shape[0]):
+        x0, y0 = ox[k], oy[k]
+        for i in range(h):
+            y = y0 + i
+            inside_y = 0 <= y < height
+            for j in range(w):
+                x = x0 + j
+                if inside_y and 0 <= x < width:
+                    data[k, i, j] = np.float32(img[y, x])
+                    valid[k, i, j] = True
+                else:
+                    data[k, i, j] = np.float32(np.nan)
+                    valid[k, i, j] = False
+
+
+@_jit
+def gather_reference(stack, size, c, os_, cx, cy, h, w, out):
+    """out[k] = reference template (stack row 0) for a lens centred at (cx[k], cy[k]) quantized to 1/os_ px;
+    indices outside the template read its zero border (as metrics.reference_windows)."""
+    for k in range(cx.shape[0]):
+        qx = np.int64(np.rint(cx[k] * os_))
+        qy = np.int64(np.rint(cy[k] * os_))
+        for i in range(h):
+            ti = min(max(c + i * os_ - qy, 0), size - 1)
+            for j in range(w):
+                tj = min(max(c + j * os_ - qx, 0), size - 1)
+                out[k, i, j] = stack[0, ti * size + tj]
+
+
+@_jit
+def _gather_row(c, os_, q, n, size, idx):
+    """Clipped template indices c + i*os_ - q for i < n."""
+    for i in range(n):
+        idx[i] = min(max(c + i * os_ - q, 0), size - 1)
+
+
+@_jit
+def lens_indexes(data, cx, cy, stack, size, c, os_, um_per_px, steps, start, stop, out):
+    """Every index of lenses [start, stop) of `data` (N, h, w) float32 (NaN = outside the frame) into
+    out[k, :] (columns INDEX_NAMES; 'flux' raw, normalized over all lenses by the caller).
+
+    Same definitions as the NumPy formulation in tests/test_metrics_kernels.py: Lucas-Kanade registration
+    (`steps` Gauss-Newton steps) on the template gathered at the lens' 1/os_-px phase, then flux, mean,
+    disc uniformity, 32-bin entropy, gradient-energy sharpness, offsets, half-max second moments, blur and
+    tilt projections of the residual, PSNR/SSIM/NCC of the flux-scaled sub-image."""
+    n_lens, h, w = data.shape
+    npx = h * w
+    x = np.empty(npx, np.float32)
+    v = np.empty(npx)
+    r = np.empty(npx)
+    gx = np.empty(npx)
+    gy = np.empty(npx)
+    lap = np.empty(npx)
+    ti = np.empty(h, np.int64)
+    tj = np.empty(w, np.int64)
+    counts = np.empty(ENTROPY_BINS)
+    half = 0.5 * h
+    rdisc2 = (0.35 * h) ** 2
+    t0 = stack[0]
+    t1 = stack[1]
+    t2 = stack[2]
+    t3 = stack[3]
+    nan = np.nan
+    for k in range(start, stop):
+        nv = 0.0
+        for i in range(h):
+            for j in range(w):
+                val = data[k, i, j]
+                p = i * w + j
+                if math.isfinite(val):
+                    x[p] = val
+                    v[p] = 1.0
+                    nv += 1.0
+                else:
+                    x[p] = np.float32(0.0)
+                    v[p] = 0.0
+        # --- registration: I ~ a R(x - d) ~ a R - a d.grad R, so d = -(G'G)^-1 G'(I - a R) / a
+        dx = 0.0
+        dy = 0.0
+        for _ in range(steps):
+            qxi = np.int64(np.rint((cx[k] + dx) * os_))
+            qyi = np.int64(np.rint((cy[k] + dy) * os_))
+            _gather_row(c, os_, qyi, h, size, ti)
+            _gather_row(c, os_, qxi, w, size, tj)
+            sxr = srr = sxx = sxy = syy = sgxx = sgxr = sgyx = sgyr = 0.0
+            for i in range(h):
+                row = ti[i] * size
+                for j in range(w):
+                    p = i * w + j
+                    t = row + tj[j]
+                    vp = v[p]
+                    xp = np.float64(x[p])
+                    rp = t0[t] * vp
+                    gxp = t1[t] * vp
+                    gyp = t2[t] * vp
+                    sxr += xp * rp
+                    srr += rp * rp
+                    sxx += gxp * gxp
+                    sxy += gxp * gyp
+                    syy += gyp * gyp
+                    sgxx += gxp * xp
+                    sgxr += gxp * rp
+                    sgyx += gyp * xp
+                    sgyr += gyp * rp
+            a = sxr / max(srr, 1e-30)
+            bx = sgxx - a * sgxr
+            by = sgyx - a * sgyr
+            det = sxx * syy - sxy * sxy
+            safe = det if abs(det) > 1e-30 else np.inf
+            ax = a if abs(a) > 1e-30 else np.inf
+            step_x = -(syy * bx - sxy * by) / safe / ax
+            step_y = -(sxx * by - sxy * bx) / safe / ax
+            # the reference sat at (qx, qy), not at (cx + dx, cy + dy): the measured shift is from (qx, qy)
+            dx = qxi / os_ - cx[k] + step_x
+            dy = qyi / os_ - cy[k] + step_y
+        qxi = np.int64(np.rint((cx[k] + dx) * os_))
+        qyi = np.int64(np.rint((cy[k] + dy) * os_))
+        qx = qxi / os_
+        qy = qyi / os_
+        _gather_row(c, os_, qyi, h, size, ti)
+        _gather_row(c, os_, qxi, w, size, tj)
+        # --- pass 1: sums that need nothing but the pixels and the final reference tables
+        flux = sxr = srr = slap2 = sg2 = nd = sxd = tsxx = tsxy = tsyy = srv = ge = 0.0
+        top = np.float32(-np.inf)
+        peak = -np.inf
+        for i in range(h):
+            row = ti[i] * size
+            yy = i - qy
+            for j in range(w):
+                p = i * w + j
+                t = row + tj[j]
+                vp = v[p]
+                xp = np.float64(x[p])
+                rp = t0[t] * vp
+                lp = t3[t] * vp
+                gxp = np.float64(t1[t])
+                gyp = np.float64(t2[t])
+                r[p] = rp
+                lap[p] = lp
+                gx[p] = gxp
+                gy[p] = gyp
+                flux += xp
+                if x[p] > top:
+                    top = x[p]
+                if rp > peak:
+                    peak = rp
+                sxr += xp * rp
+                srr += rp * rp
+                slap2 += lp * lp
+                sg2 += gxp * gxp + gyp * gyp
+                xx = j - qx
+                if xx * xx + yy * yy <= rdisc2:
+                    nd += vp
+                    sxd += xp * vp
+                bxp = rp * xx / half
+                byp = rp * yy / half
+                tsxx += bxp * bxp
+                tsxy += bxp * byp
+                tsyy += byp * byp
+                srv += rp * vp
+                # np.gradient (edge_order 1) along both axes, squared
+                if w > 1:
+                    if j == 0:
+                        d1 = np.float64(x[p + 1]) - xp
+                    elif j == w - 1:
+                        d1 = xp - np.float64(x[p - 1])
+                    else:
+                        d1 = 0.5 * (np.float64(x[p + 1]) - np.float64(x[p - 1]))
+                    ge += d1 * d1
+                if h > 1:
+                    if i == 0:
+                        d2 = np.float64(x[p + w]) - xp
+                    elif i == h - 1:
+                        d2 = xp - np.float64(x[p - w])
+                    else:
+                        d2 = 0.5 * (np.float64(x[p + w]) - np.float64(x[p - w]))
+                    ge += d2 * d2
+        a = sxr / max(srr, 1e-30)
+        an = a if a != 0 else nan
+        n = max(nv, 1.0)
+        mean_d = sxd / max(nd, 1.0)
+        mr = srv / n
+        # entropy bins follow NumPy's float32 arithmetic: int(x / top * 32) clipped to 0..31
+        top_s = top if top > 0 else np.float32(1.0)
+        # --- pass 2: sums around the first-order means
+        sblur = tpx = tpy = sw = swx = swy = var_d = mse = sxs = 0.0
+        for b in range(ENTROPY_BINS):
+            counts[b] = 0.0
+        half_top = 0.5 * np.float64(top)
+        for i in range(h):
+            yy = i - qy
+            for j in range(w):
+                p = i * w + j
+                xp = np.float64(x[p])
+                vp = v[p]
+                rp = r[p]
+                xx = j - qx
+                resid = xp - a * rp
+                sblur += resid * lap[p]
+                tpx += rp * xx / half * resid
+                tpy += rp * yy / half * resid
+                wgt = max(xp - half_top, 0.0)
+                sw += wgt
+                swx += wgt * xx
+                swy += wgt * yy
+                if xx * xx + yy * yy <= rdisc2:
+                    var_d += (xp - mean_d) * (xp - mean_d) * vp
+                xs = xp / an
+                mse += (xs - rp) * (xs - rp) * vp
+                sxs += xs * vp
+                if vp > 0:
+                    bi = np.int64((x[p] / top_s) * np.float32(ENTROPY_BINS))
+                    counts[min(max(bi, 0), ENTROPY_BINS - 1)] += 1.0
+        s = max(sw, 1e-30)
+        mx = swx / s
+        my = swy / s
+        mxs = sxs / n
+        # --- pass 3: second moments and (co)variances about those means
+        cxx = cyy = cxy = vx = vr = cov = 0.0
+        for i in range(h):
+            uy = i - qy - my
+            for j in range(w):
+                p = i * w + j
+                xp = np.float64(x[p])
+                vp = v[p]
+                ux = j - qx - mx
+                wgt = max(xp - half_top, 0.0)
+                cxx += wgt * ux * ux
+                cyy += wgt * uy * uy
+                cxy += wgt * ux * uy
+                dxm = (xp / an - mxs) * vp
+                drm = (r[p] - mr) * vp
+                vx += dxm * dxm
+                vr += drm * drm
+                cov += dxm * drm
+        o = out[k]
+        lost = not (flux > 0) or nv < 0.5 * npx
+        if lost:
+            for q in range(N_INDEX):
+                o[q] = nan
+            continue
+        o[0] = flux
+        o[1] = flux / n
+        o[2] = 1.0 - math.sqrt(var_d / max(nd, 1.0)) / (mean_d if mean_d > 0 else nan)
+        total = 0.0
+        for b in range(ENTROPY_BINS):
+            total += counts[b]
+        total = max(total, 1.0)
+        ent = 0.0
+        for b in range(ENTROPY_BINS):
+            if counts[b] > 0:
+                pb = counts[b] / total
+                ent -= pb * math.log2(pb)
+        o[3] = ent
+        o[4] = ge / max(sg2 * a * a, 1e-30)
+        o[5] = dx
+        o[6] = dy
+        o[7] = math.hypot(dx, dy) * um_per_px
+        cxx /= s
+        cyy /= s
+        cxy /= s
+        tr = cxx + cyy
+        dt = cxx * cyy - cxy * cxy
+        disc = math.sqrt(max(tr * tr / 4 - dt, 0.0))
+        l1 = tr / 2 + disc
+        l2 = max(tr / 2 - disc, 0.0)
+        o[8] = math.sqrt(tr)
+        o[9] = 1.0 - math.sqrt(l2 / (l1 if l1 > 0 else nan))
+        o[10] = sblur / max(slap2, 1e-30) / an
+        tdet = tsxx * tsyy - tsxy * tsxy
+        tdet = tdet if abs(tdet) > 1e-30 else np.inf
+        o[11] = (tsyy * tpx - tsxy * tpy) / tdet / an
+        o[12] = (tsxx * tpy - tsxy * tpx) / tdet / an
+        mse /= n
+        vx /= n
+        vr /= n
+        cov /= n
+        c1 = (0.01 * peak) ** 2
+        c2 = (0.03 * peak) ** 2
+        o[13] = 10.0 * np.log10(peak * peak / mse)
+        o[14] = ((2 * mxs * mr + c1) * (2 * cov + c2)) / ((mxs * mxs + mr * mr + c1) * (vx + vr + c2))
+        o[15] = cov / math.sqrt(vx * vr)
+
+
+# Median-of-25 selection network (Paeth / Devillard opt_med25): after these 99 compare-exchanges wire 12
+# holds the median. Checked exhaustively on all 2^25 0-1 inputs (0-1 principle, tests/test_metrics_kernels.py).
+MEDIAN25_PAIRS = np.array([
+    (0, 1), (3, 4), (2, 4), (2, 3), (6, 7), (5, 7), (5, 6), (9, 10), (8, 10), (8, 9), (12, 13), (11, 13), (11, 12),
+    (15, 16), (14, 16), (14, 15), (18, 19), (17, 19), (17, 18), (21, 22), (20, 22), (20, 21), (23, 24), (2, 5),
+    (3, 6), (0, 6), (0, 3), (4, 7), (1, 7), (1, 4), (11, 14), (8, 14), (8, 11), (12, 15), (9, 15), (9, 12), (13, 16),
+    (10, 16), (10, 13), (20, 23), (17, 23), (17, 20), (21, 24), (18, 24), (18, 21), (19, 22), (8, 17), (9, 18),
+    (0, 18), (0, 9), (10, 19), (1, 19), (1, 10), (11, 20), (2, 20), (2, 11), (12, 21), (3, 21), (3, 12), (13, 22),
+    (4, 22), (4, 13), (14, 23), (5, 23), (5, 14), (15, 24), (6, 24), (6, 15), (7, 16), (7, 19), (13, 21), (15, 23),
+    (7, 13), (7, 15), (1, 9), (3, 11), (5, 17), (11, 17), (9, 17), (4, 10), (6, 12), (7, 14), (4, 6), (4, 7),
+    (12, 14), (10, 14), (6, 7), (10, 12), (6, 10), (6, 17), (12, 17), (7, 17), (7, 10), (12, 18), (7, 12), (10, 18),
+    (12, 20), (10, 20), (10, 12),
+], dtype=np.int64)
+
+
+@_jit
+def median_baselines(values, size, x_axis, out):
+    """Local median baseline of each (rows, cols) plane of `values` (F, rows, cols, no NaN) into `out`:
+    the size x size median (scipy median_filter, mode 'nearest'); along the array's edges the running
+    median of that edge line instead (when the array is at least size x size). Corners take the edge
+    written last: for planes with x_axis[f] the left/right columns, else the top/bottom rows. Size 5 runs
+    the median-25 network on a whole row at once (branch-free, vectorizes); other odd sizes sort."""
+    n_feat, rows, cols = values.shape
+    half = size // 2
+    buf = np.empty(size * size)
+    wires = np.empty((25, cols))
+    for f in range(n_feat):
+        a = values[f]
+        o = out[f]
+        for i in range(rows):
+            if size == 5:
+                q = 0
+                for di in range(-2, 3):
+                    ii = min(max(i + di, 0), rows - 1)
+                    for dj in range(-2, 3):
+                        for j in range(cols):
+                            wires[q, j] = a[ii, min(max(j + dj, 0), cols - 1)]
+                        q += 1
+                for e in range(MEDIAN25_PAIRS.shape[0]):
+                    lo_w = wires[MEDIAN25_PAIRS[e, 0]]
+                    hi_w = wires[MEDIAN25_PAIRS[e, 1]]
+                    for j in range(cols):
+                        u = lo_w[j]
+                        t = hi_w[j]
+                        lo_w[j] = u if u < t else t
+                        hi_w[j] = t if u < t else u
+                for j in range(cols):
+                    o[i, j] = wires[12, j]
+                continue
+            for j in range(cols):
+                m = 0
+                for di in range(-half, half + 1):
+                    ii = min(max(i + di, 0), rows - 1)
+                    for dj in range(-half, half + 1):
+                        jj = min(max(j + dj, 0), cols - 1)
+                        _insert(buf, m, a[ii, jj])
+                        m += 1
+                o[i, j] = buf[m // 2]
+        if rows >= size and cols >= size:
+            if x_axis[f]:
+                _edge_rows(a, o, size, buf)
+                _edge_cols(a, o, size, buf)
+            else:
+                _edge_cols(a, o, size, buf)
+                _edge_rows(a, o, size, buf)
+
+
+@_jit
+def _insert(buf, m, val):
+    """Insert val into the sorted buf[:m] (insertion sort step)."""
+    q = m
+    while q > 0 and buf[q - 1] > val:
+        buf[q] = buf[q - 1]
+        q -= 1
+    buf[q] = val
+
+
+@_jit
+def _edge_rows(a, o, size, buf):
+    """Running 1-D median (mode 'nearest') along the first and the last row."""
+    rows, cols = a.shape
+    half = size // 2
+    for i in (0, rows - 1):
+        for j in range(cols):
+            m = 0
+            for dj in range(-half, half + 1):
+                _insert(buf, m, a[i, min(max(j + dj, 0), cols - 1)])
+                m += 1
+            o[i, j] = buf[m // 2]
+
+
+@_jit
+def _edge_cols(a, o, size, buf):
+    """Running 1-D median (mode 'nearest') along the first and the last column."""
+    rows, cols = a.shape
+    half = size // 2
+    for j in (0, cols - 1):
+        for i in range(rows):
+            m = 0
+            for di in range(-half, half + 1):
+                _insert(buf, m, a[min(max(i + di, 0), rows - 1), j])
+                m += 1
+            o[i, j] = buf[m // 2]
