@@ -51,6 +51,7 @@ import numpy as np
 import scipy.fft
 from scipy import ndimage
 
+from mlaqc import calibrate_kernels as kernels
 from mlaqc.atomic import write_json_atomic
 from mlaqc.errors import InputError
 
@@ -71,8 +72,6 @@ N_SWEEPS = 3  # sweeps over every lens (the first unweighted)
 MAX_EXTRA = 10  # more sweeps, for the lenses not yet settled and their neighbours only
 SETTLED_PX = 0.02  # a lens has settled when its step is under this
 BAND = 1.5  # each lens is fitted on |r - R| <= BAND (+ a 0.5 px taper) round its rim
-GATHER_MARGIN = 1.0  # its pixel set reaches this far beyond the window ...
-REGATHER = 0.5  # ... so it is re-centred once the lens moved this far (margin - taper)
 WEIGHT_FLOOR = 0.05  # noise weights ~ 1 / signal, the signal floored at this fraction of the plateau
 COUPLED_PX = 0.3  # lenses this far off the lattice, and their neighbours, are fitted unweighted
 WIDE_EDGE = 1.0  # lenses the sharp edge cannot capture get an edge at least this wide for a while
@@ -527,14 +526,15 @@ def _disc_offsets(reach: float, inner: float = 0.0) -> tuple[np.ndarray, np.ndar
 class _DiscFit:
     """Joint fit of the frame by one logistic-edged disc per lens (see the module docstring).
 
-    Each lens is fitted on the pixels of an annulus about its rim (the plateau inside carries no position
-    information); the model of the whole frame (all lenses' discs summed) is rebuilt every iteration so
-    that overlapping neighbours are accounted for. Work is split over threads by lens (NumPy releases the
-    GIL), one fused pass per chunk per iteration.
+    Each lens is fitted on the pixels of an annulus about its current rim (the plateau inside carries no
+    position information). The model on those pixels is the lens' own disc plus the discs of its lattice
+    neighbours that reach them, evaluated afresh from the current parameters in one compiled pass per
+    lens (mlaqc.calibrate_kernels), so overlapping neighbours are accounted for without a frame-sized
+    model. Blocks of lenses run on a thread pool (the kernel releases the GIL).
     """
 
     def __init__(self, img: np.ndarray, cx: np.ndarray, cy: np.ndarray, radius0: float,
-                 colour: np.ndarray | None = None) -> None:
+                 neighbours: np.ndarray, colour: np.ndarray | None = None) -> None:
         self.img = img
         self.h, self.w = img.shape
         self.cx, self.cy = cx.astype(np.float64).copy(), cy.astype(np.float64).copy()
@@ -545,14 +545,13 @@ class _DiscFit:
         self.slope_x = np.zeros(self.n)  # plateau level change per radius, x and y
         self.slope_y = np.zeros(self.n)
         self.r_norm = float(radius0)
-        self.sloped = False
+        self.band = BAND
+        self.neighbours = np.ascontiguousarray(neighbours, dtype=np.int64)
         self.prev_step = np.zeros((self.n, N_LENS_PARAMS))
         self.last_step = np.zeros(self.n)
-        self.drift = np.zeros(self.n)
         self.rss = np.zeros(self.n)
-        self.model = None  # the frame model (all lenses' discs), float64, flat
-        self.dirty = np.zeros(self.n, bool)  # lenses that moved since the model was rendered
-        self._model_edge = None
+        self.npix = np.zeros(self.n, np.int64)
+        self.valid_fraction = np.ones(self.n)
         self.colour = np.zeros(self.n, np.int8) if colour is None else colour.astype(np.int8)
         if np.any(np.diff(self.colour) < 0):
             raise ValueError("lenses must be sorted by colour")
@@ -560,91 +559,39 @@ class _DiscFit:
         self.coupled = np.zeros(self.n, bool)  # lenses next to (or being) a lens far off the lattice
         self.wide = None  # lenses fitted with a wide edge (capture of far-off lenses)
         self.wide_edge = 1.0
-        # blocks of lenses small enough for their working set to stay in cache
-        self.chunks = [slice(b, min(b + BLOCK_LENSES, self.n)) for b in range(0, self.n, BLOCK_LENSES)]
-        workers = min(_workers(), len(self.chunks))
+        workers = min(_workers(), -(-self.n // BLOCK_LENSES))
         self.pool = ThreadPoolExecutor(workers) if workers > 1 else None
 
-    def _map(self, fn, *args, lenses=None):
-        """fn(block, *args) over blocks of lenses (all, a slice, or an index array), on the thread pool."""
-        if lenses is None:
-            lenses = slice(0, self.n)
-        if isinstance(lenses, slice):
-            blocks = [slice(b, min(b + BLOCK_LENSES, lenses.stop)) for b in range(lenses.start, lenses.stop, BLOCK_LENSES)]
-        else:
-            blocks = [lenses[b:b + BLOCK_LENSES] for b in range(0, lenses.size, BLOCK_LENSES)]
+    def _map(self, fn, lenses: np.ndarray) -> None:
+        """fn(block) over blocks of `lenses` (an index array), on the thread pool."""
+        blocks = [slice(b, min(b + BLOCK_LENSES, lenses.size)) for b in range(0, lenses.size, BLOCK_LENSES)]
         if self.pool is None or len(blocks) == 1:
-            return [fn(c, *args) for c in blocks]
-        return list(self.pool.map(lambda c: fn(c, *args), blocks))
+            for b in blocks:
+                fn(b)
+        else:
+            list(self.pool.map(fn, blocks))
 
-    def gather(self, band: float) -> None:
-        """Pixel sets of every lens: the annulus |r - R| <= band (+ margin) about its rounded centre."""
-        r0 = float(np.median(self.radius))
+    def set_band(self, band: float) -> None:
+        """Fit each lens on |r - R| <= band (+ a 0.5 px taper); note how much of each rim is in the frame."""
         self.band = band
-        dy, dx = _disc_offsets(r0 + band + GATHER_MARGIN, max(0.0, r0 - band - GATHER_MARGIN))
-        self.dx, self.dy = dx.astype(np.float32), dy.astype(np.float32)
-        self._dflat = dy.astype(np.int64) * self.w + dx
-        self._hw = int(max(np.abs(dy).max(), np.abs(dx).max()))
-        self.rim = np.abs(np.hypot(dx, dy) - r0) <= 1.0
-        n, p = self.n, dx.size
-        self.flat = np.empty((n, p), np.int64)
-        self.vf = np.empty((n, p), np.float32)
-        self.vals = np.empty((n, p), np.float32)
-        self.gx, self.gy = np.empty(n), np.empty(n)
-        self.valid_fraction = np.empty(n)
-        self.regather(np.arange(n))
-        self.m = np.empty((n, p), np.float32)  # each lens' model on its pixels
-        self.e = np.empty((n, p), np.float32)  # its edge profile
-        self.dm = np.zeros((n, p), np.float32)  # the last change of m
+        self.valid_fraction = self.rim_in_frame()
 
-    def regather(self, lenses: np.ndarray) -> None:
-        """Re-centre the pixel sets of `lenses` on their current centres."""
-        gx, gy = np.rint(self.cx[lenses]), np.rint(self.cy[lenses])
-        self.gx[lenses], self.gy[lenses] = gx, gy
-        ix0, iy0 = gx.astype(np.int64), gy.astype(np.int64)
-        flat = (iy0 * self.w + ix0)[:, None] + self._dflat[None, :]
-        vf = np.ones(flat.shape, np.float32)
-        hw = self._hw
-        edge = np.flatnonzero((ix0 - hw < 0) | (ix0 + hw >= self.w) | (iy0 - hw < 0) | (iy0 + hw >= self.h))
-        if edge.size:  # lenses near the frame border: mask the pixels outside
-            iy = iy0[edge, None] + self.dy[None, :].astype(np.int64)
-            ix = ix0[edge, None] + self.dx[None, :].astype(np.int64)
-            valid = (iy >= 0) & (iy < self.h) & (ix >= 0) & (ix < self.w)
-            vf[edge] = valid
-            flat[edge] = np.where(valid, flat[edge], 0)
-        self.flat[lenses] = flat
-        self.vf[lenses] = vf
-        self.vals[lenses] = self.img.ravel()[flat] * vf
-        self.valid_fraction[lenses] = vf[:, self.rim].mean(axis=1)  # of each sub-image's rim in the frame
-
-    def recentre(self, active: np.ndarray) -> None:
-        """Re-centre the pixel sets of the lenses that moved too far for their window."""
-        moved = np.flatnonzero(active & (self.drift > REGATHER))
-        if not moved.size:
-            return
-        if self.model is not None:  # take their discs out of the model, put them back on the new pixels
-            _scatter_add(self.model, self.flat[moved], -self.m[moved])
-        self.regather(moved)
-        self.drift[moved] = np.maximum(np.abs(self.cx[moved] - self.gx[moved]), np.abs(self.cy[moved] - self.gy[moved]))
-        if self.model is not None:
-            self._map(self._model_part, self.edge, lenses=moved)
-            _scatter_add(self.model, self.flat[moved], self.m[moved])
-            self.dirty[moved] = False
+    def rim_in_frame(self) -> np.ndarray:
+        """Fraction of each sub-image's rim (|r - R| <= 1 px about its rounded centre) inside the frame."""
+        out = np.ones(self.n)
+        r0 = float(np.median(self.radius))
+        dy, dx = _disc_offsets(r0 + 1.0, max(0.0, r0 - 1.0))
+        gx, gy = np.rint(self.cx).astype(np.int64), np.rint(self.cy).astype(np.int64)
+        hw = math.ceil(r0 + 1.0)
+        edge = np.flatnonzero((gx - hw < 0) | (gx + hw >= self.w) | (gy - hw < 0) | (gy + hw >= self.h))
+        if edge.size:
+            iy, ix = gy[edge, None] + dy[None, :], gx[edge, None] + dx[None, :]
+            out[edge] = ((iy >= 0) & (iy < self.h) & (ix >= 0) & (ix < self.w)).mean(axis=1)
+        return out
 
     def init_amplitude(self, radius: float) -> None:
         """Amplitude guess: the mean level of the pixels well inside each lens' disc (0 off the frame)."""
-        hw = max(1, int(0.4 * radius))
-        dy, dx = _disc_offsets(hw)
-        iy = np.rint(self.cy).astype(np.int64)[:, None] + dy[None, :]
-        ix = np.rint(self.cx).astype(np.int64)[:, None] + dx[None, :]
-        ok = (iy >= 0) & (iy < self.h) & (ix >= 0) & (ix < self.w)
-        vals = np.where(ok, self.img.ravel()[np.where(ok, iy * self.w + ix, 0)], 0.0)
-        self.amp = vals.sum(axis=1) / np.maximum(ok.sum(axis=1), 1)
-
-    def _uv(self, c):
-        u = self.dx[None, :] - (self.cx[c] - self.gx[c]).astype(np.float32)[:, None]
-        v = self.dy[None, :] - (self.cy[c] - self.gy[c]).astype(np.float32)[:, None]
-        return u, v
+        self.amp = kernels.plateau_mean(self.img, self.cx, self.cy, max(1, int(0.4 * radius)))
 
     def set_slopes(self, lat_j: np.ndarray, lat_i: np.ndarray, basis: np.ndarray, active: np.ndarray) -> None:
         """Intensity slope across each sub-image from the smooth field of lens amplitudes (non-uniform
@@ -664,113 +611,38 @@ class _DiscFit:
         grad = np.linalg.solve(basis.T, np.stack([dj, di]))  # d amp / d(x, y) per px
         self.slope_x = np.where(active, grad[0] * self.r_norm, 0.0)
         self.slope_y = np.where(active, grad[1] * self.r_norm, 0.0)
-        self.sloped = True
 
-    def _inv_edge(self, c, edge):
-        """1 / edge width per lens (column), the global one or, for lenses being captured, a wide one."""
-        if self.wide is None:
-            return np.float32(1.0 / edge)
-        return np.where(self.wide[c], np.float32(1.0 / self.wide_edge), np.float32(1.0 / edge))[:, None]
+    def _normals(self, idx: np.ndarray, edge: float, weighted: bool, fit_edge: bool):
+        """Normal equations (n, 5, 5), right-hand sides (n, 5) of lenses `idx` against the frame residual.
 
-    def _local_amp(self, c, u, v):
-        """Each pixel's plateau level: amplitude plus the lens' linear intensity slope (vignetting, cos^4)."""
-        k = np.float32(1.0 / self.r_norm)
-        return (self.amp[c, None].astype(np.float32) + self.slope_x[c, None].astype(np.float32) * k * u
-                + self.slope_y[c, None].astype(np.float32) * k * v)
+        Parameters per lens: amplitude, centre x and y, radius (+ the global edge width in slot 4)."""
+        inv_edge = np.full(self.n, 1.0 / edge)
+        wide = np.zeros(self.n, bool) if self.wide is None else self.wide
+        if self.wide is not None:
+            inv_edge[wide] = 1.0 / self.wide_edge
+        k = 1.0 / self.r_norm
+        sx, sy = self.slope_x * k, self.slope_y * k
+        normal = np.empty((idx.size, kernels.N_NORMAL, kernels.N_NORMAL))
+        rhs = np.empty((idx.size, kernels.N_NORMAL))
+        rss = np.empty(idx.size)
+        npix = np.empty(idx.size, np.int64)
 
-    def _model_part(self, c, edge):
-        """Each lens' disc on its own pixels, for the frame model (block `c` of lenses)."""
-        u, v = self._uv(c)
-        r = np.sqrt(u * u + v * v)
-        r -= self.radius[c, None].astype(np.float32)
-        r *= self._inv_edge(c, edge)
-        np.minimum(r, np.float32(50.0), out=r)
-        e = np.exp(r, out=r)
-        e += 1.0
-        np.reciprocal(e, out=e)
-        self.e[c] = e
-        e *= self._local_amp(c, u, v)
-        e *= self.vf[c]
-        self.dm[c] = e - self.m[c]  # the change, for an incremental frame model
-        self.m[c] = e
+        def block(b: slice) -> None:
+            kernels.disc_normals(self.img, idx[b], self.cx, self.cy, self.amp, self.radius, inv_edge, sx, sy,
+                                 self.neighbours, self.coupled, wide, self.band + 0.5, weighted, fit_edge,
+                                 WEIGHT_FLOOR, normal[b], rhs[b], rss[b], npix[b])
 
-    def _normals(self, c, model, edge, weighted, fit_edge):
-        """Normal equations of block `c` of lenses against the residual of the frame model.
-
-        Parameters per lens: amplitude, centre x and y, radius (+ the global edge width)."""
-        u, v = self._uv(c)
-        r = np.sqrt(u * u + v * v)
-        r += np.float32(1e-4)
-        e = self.e[c]
-        a = self._local_amp(c, u, v)
-        mod = model[self.flat[c]].astype(np.float32)
-        res = self.vals[c] - mod
-        res *= self.vf[c]
-        # a window about the lens' current centre and radius (1 px taper): symmetric, so a model that is
-        # still wrong (edge width, neighbours) cannot pull the centre off
-        rad = self.radius[c, None].astype(np.float32)
-        wt = np.clip(np.float32(self.band + 0.5) - np.abs(r - rad), 0.0, 1.0)
-        wt *= self.vf[c]
-        if weighted:
-            # variance ~ signal (photon and Monte-Carlo noise), floored at 5 % of the plateau. Not for lenses
-            # coupled to a displaced neighbour: the weights would then differ from one side to the other
-            # and, with any model error, pull the pair together
-            amp = np.maximum(self.amp[c, None].astype(np.float32), np.float32(1e-6))
-            noise = np.where(self.coupled[c, None], amp, np.maximum(mod, np.float32(WEIGHT_FLOOR) * amp))
-            wt = wt * (amp / noise)
-        k = np.float32(1.0 / self.r_norm)
-        ag = e * (1.0 - e)
-        inv = self._inv_edge(c, edge)
-        ag *= a * inv
-        jx = ag * (u / r)
-        jy = ag * (v / r)
-        if self.sloped:  # fixed slopes move with the lens
-            jx -= e * (k * self.slope_x[c, None].astype(np.float32))
-            jy -= e * (k * self.slope_y[c, None].astype(np.float32))
-        jac = [e, jx, jy, ag]
-        if fit_edge:
-            d = r - self.radius[c, None].astype(np.float32)
-            d *= ag
-            d *= inv
-            if self.wide is not None:  # lenses on a private wide edge say nothing about the global one
-                d *= ~self.wide[c, None]
-            jac.append(d)
-        nk, n = len(jac), res.shape[0]
-        normal = np.empty((n, nk, nk))
-        rhs = np.empty((n, nk))
-        for i in range(nk):
-            wj = jac[i] * wt
-            rhs[:, i] = np.einsum("lp,lp->l", wj, res)
-            for j in range(i, nk):
-                normal[:, i, j] = normal[:, j, i] = np.einsum("lp,lp->l", wj, jac[j])
-        return normal, rhs, np.einsum("lp,lp->l", res, res)
-
-    def _refresh(self) -> None:
-        """Bring the frame model up to date: rebuild it, or re-render only the lenses that moved."""
-        if self.model is None or self._model_edge != self.edge:
-            self._model_edge = self.edge
-            self._map(self._model_part, self.edge)
-            self.model = np.bincount(self.flat.ravel(), weights=self.m.ravel(), minlength=self.h * self.w)
-        else:
-            d = np.flatnonzero(self.dirty)
-            if d.size:
-                if d[-1] - d[0] + 1 == d.size:  # one colour of a full sweep: a slice, no copies
-                    d = slice(int(d[0]), int(d[-1]) + 1)
-                self._map(self._model_part, self.edge, lenses=d)
-                _scatter_add(self.model, self.flat[d], self.dm[d])
-        self.dirty[:] = False
+        self._map(block, idx)
+        self.rss[idx], self.npix[idx] = rss, npix
+        if not fit_edge:
+            return normal[:, :N_LENS_PARAMS, :N_LENS_PARAMS], rhs[:, :N_LENS_PARAMS]
+        return normal, rhs
 
     def sweep(self, edge: float | None, active: np.ndarray, weighted: bool, lenses: np.ndarray | None = None) -> None:
         """One Gauss-Newton step for every lens (or `lenses`), red-black: lenses of one lattice colour step
-        together, then the model is updated and the other colour steps (side neighbours, whose discs
-        overlap, never step at the same time, so strongly overlapping pairs cannot run away). Lenses are
-        stored sorted by colour, so a full sweep works on two contiguous halves."""
-        if lenses is None:
-            for part in (slice(0, self.n_red), slice(self.n_red, self.n)):
-                if part.stop > part.start:
-                    self.iterate(edge, active, weighted, part)
-            return
-        idx = np.asarray(lenses)
+        together, then the other colour steps against their new positions (side neighbours, whose discs
+        overlap, never step at the same time, so strongly overlapping pairs cannot run away)."""
+        idx = np.arange(self.n) if lenses is None else np.asarray(lenses)
         for colour in (0, 1):
             part = idx[self.colour[idx] == colour]
             if part.size:
@@ -782,21 +654,18 @@ class _DiscFit:
         if edge is not None:
             self.edge = edge
         s = self.edge
-        self._refresh()
-        parts = self._map(self._normals, self.model, s, weighted, edge is None, lenses=idx)
-        normal = np.concatenate([p[0] for p in parts])
-        rhs = np.concatenate([p[1] for p in parts])
-        self.rss[idx] = np.concatenate([p[2] for p in parts])
+        normal, rhs = self._normals(idx, s, weighted, edge is None)
         act = active[idx]
         npar = N_LENS_PARAMS
         diag = np.arange(npar)
         normal[:, diag, diag] += 1e-6 * (1.0 + normal[:, diag, diag])
-        frozen = ~act
-        normal[frozen, 1:, :] = 0.0
-        normal[frozen, :, 1:] = 0.0
-        normal[np.ix_(np.flatnonzero(frozen), np.arange(1, normal.shape[1]), np.arange(1, normal.shape[1]))] = \
-            np.eye(normal.shape[1] - 1)
-        rhs[frozen, 1:] = 0.0
+        frozen = np.flatnonzero(~act)
+        if frozen.size:
+            normal[frozen, 1:, :] = 0.0
+            normal[frozen, :, 1:] = 0.0
+            normal[np.ix_(frozen, np.arange(1, normal.shape[1]), np.arange(1, normal.shape[1]))] = \
+                np.eye(normal.shape[1] - 1)
+            rhs[frozen, 1:] = 0.0
         if edge is None:
             cross = normal[:, :npar, npar]
             sol = np.linalg.solve(normal[:, :npar, :npar], np.stack([rhs[:, :npar], cross], axis=2))
@@ -813,16 +682,14 @@ class _DiscFit:
         flip = np.einsum("li,li->l", step[:, 1:3], self.prev_step[idx, 1:3]) < 0
         step[flip, 1:] *= 0.5
         # idx holds each lens once (one colour class): a per-lens update, not an accumulation of hits
-        self.amp[idx] = self.amp[idx] + step[:, 0]
-        self.cx[idx] = self.cx[idx] + step[:, 1]
-        self.cy[idx] = self.cy[idx] + step[:, 2]
+        self.amp[idx] += step[:, 0]
+        self.cx[idx] += step[:, 1]
+        self.cy[idx] += step[:, 2]
         # a lens' sub-image radius may differ from the typical one by a pixel (size defects), no more:
         # two strongly overlapping discs could otherwise trade radius against amplitude without end
         self.radius[idx] = np.clip(self.radius[idx] + step[:, 3], self.r_norm - 1.0, self.r_norm + 1.0)
         self.prev_step[idx] = step
-        self.drift[idx] = np.maximum(np.abs(self.cx[idx] - self.gx[idx]), np.abs(self.cy[idx] - self.gy[idx]))
         self.last_step[idx] = np.hypot(step[:, 1], step[:, 2])
-        self.dirty[idx] = True
 
     def close(self) -> None:
         if self.pool is not None:
@@ -895,6 +762,10 @@ def _measure(img: np.ndarray, px: np.ndarray, py: np.ndarray, lat_j: np.ndarray,
     """
     pitch = float(np.sqrt(abs(np.linalg.det(basis))))
     band = BAND * max(1.0, pitch / 20.0)
+    # lattice neighbours whose discs can overlap a lens' fitting annulus: the first ring, and the second
+    # too for discs large against the pitch
+    spacing = float(np.min(np.hypot(basis[0], basis[1])))
+    ring = 1 if 2.0 * spacing > 2.0 * radius0 + band + 0.5 + 4.0 else 2
     # stage 1: a block of about SUBSET x SUBSET lenses round the brightest part of the centre
     cj, ci = np.median(lat_j), np.median(lat_i)
     half = SUBSET // 2
@@ -903,10 +774,11 @@ def _measure(img: np.ndarray, px: np.ndarray, py: np.ndarray, lat_j: np.ndarray,
     colour = (lat_i + lat_j) % 2
     px, py = px.copy(), py.copy()
     lattice_x, lattice_y = px, py
-    sub = _DiscFit(img, px[block], py[block], radius0, colour[block])
+    sub = _DiscFit(img, px[block], py[block], radius0, _lattice_neighbours(lat_j[block], lat_i[block], ring),
+                   colour[block])
     try:
         sub.init_amplitude(radius0)
-        sub.gather(band)
+        sub.set_band(band)
         ref = float(np.percentile(sub.amp, 90)) if sub.amp.size else 0.0
         act = inner[block] & (sub.amp > 0.2 * ref) & (sub.valid_fraction >= MIN_VALID_FRACTION)
         if np.count_nonzero(act) >= MIN_LENSES:
@@ -931,68 +803,57 @@ def _measure(img: np.ndarray, px: np.ndarray, py: np.ndarray, lat_j: np.ndarray,
     finally:
         sub.close()
     # stage 2: every lens
-    fit = _DiscFit(img, px, py, radius0, colour)
+    neighbours = _lattice_neighbours(lat_j, lat_i, ring)
+    fit = _DiscFit(img, px, py, radius0, neighbours, colour)
     try:
         fit.edge = edge0
         fit.init_amplitude(radius0)
         ref = float(np.percentile(fit.amp, 90)) if fit.amp.size else 0.0
-        fit.gather(band)
+        fit.set_band(band)
         active = (fit.amp > 0.2 * ref) & (fit.valid_fraction >= MIN_VALID_FRACTION)
         if np.count_nonzero(active) < MIN_LENSES:
             raise InputError(f"only {int(np.count_nonzero(active))} microlens sub-images found in the white image "
                              f"(at least {MIN_LENSES} are needed)")
-        neighbours = _lattice_neighbours(lat_j, lat_i)
+        side = neighbours[:, :8]  # the first ring: who is coupled to whom
         for it in range(N_SWEEPS):
-            if it:
-                fit.recentre(active)
             if it == 1:
                 fit.set_slopes(lat_j, lat_i, basis, active)
                 off = active & (np.hypot(fit.cx - lattice_x, fit.cy - lattice_y) > COUPLED_PX)
-                fit.coupled[_with_neighbours(np.flatnonzero(off), neighbours)] = True
+                fit.coupled[_with_neighbours(np.flatnonzero(off), side)] = True
             fit.sweep(fit.edge, active, weighted=it >= 1)  # the edge width is known from the block
         # lenses the sharp edge cannot pull in (beyond ~1 px off the lattice: big defects) fit badly; they
         # are captured with a wide edge of their own, then refined; only they and their neighbours step
-        per_px = fit.rss / np.maximum(fit.valid_fraction * fit.vf.shape[1], 1.0)
+        per_px = fit.rss / np.maximum(fit.npix, 1)
         typical = float(np.median(per_px[active]))
         far = active & ((per_px > 3.0 * typical) | (fit.last_step > 0.3))
         if far.any():
             fit.wide, fit.wide_edge = far, max(WIDE_EDGE, 4.0 * fit.edge)
-            fit.dirty |= far
-            group = _with_neighbours(np.flatnonzero(far), neighbours)
+            group = _with_neighbours(np.flatnonzero(far), side)
             fit.coupled[group] = True
             for _ in range(3):
-                fit.recentre(active)
                 fit.sweep(fit.edge, active, weighted=True, lenses=group)
             fit.wide = None
-            fit.dirty |= far
         for _ in range(MAX_EXTRA):  # until every lens has settled
             moving = np.flatnonzero(active & (fit.last_step > SETTLED_PX))
             if not moving.size:
                 break
-            group = _with_neighbours(moving, neighbours)
-            fit.recentre(active)
-            fit.sweep(fit.edge, active, weighted=True, lenses=group)
+            fit.sweep(fit.edge, active, weighted=True, lenses=_with_neighbours(moving, side))
+        fit.valid_fraction = fit.rim_in_frame()
         discs = _Discs(fit.cx, fit.cy, fit.amp, fit.radius, fit.edge, fit.valid_fraction)
     finally:
         fit.close()
     return discs, active
 
 
-def _scatter_add(target: np.ndarray, flat: np.ndarray, values: np.ndarray) -> None:
-    """target[flat] += values with repeated indices summed (bincount for many, add.at for few)."""
-    if flat.size > 200_000:
-        target += np.bincount(flat.ravel(), weights=values.ravel(), minlength=target.size)
-    else:
-        np.add.at(target, flat.ravel(), values.ravel().astype(np.float64))
-
-
-def _lattice_neighbours(lat_j: np.ndarray, lat_i: np.ndarray) -> np.ndarray:
-    """(n, 8) indices of each candidate's 8 lattice neighbours (-1 where there is none)."""
+def _lattice_neighbours(lat_j: np.ndarray, lat_i: np.ndarray, ring: int = 1) -> np.ndarray:
+    """(n, (2 ring + 1)^2 - 1) indices of each candidate's lattice neighbours within `ring` steps (-1 where
+    there is none); the first 8 columns are the first ring."""
     j0, i0 = lat_j.min(), lat_i.min()
-    table = np.full((lat_i.max() - i0 + 3, lat_j.max() - j0 + 3), -1)
-    table[lat_i - i0 + 1, lat_j - j0 + 1] = np.arange(lat_j.size)
-    return np.stack([table[lat_i - i0 + 1 + di, lat_j - j0 + 1 + dj]
-                     for di in (-1, 0, 1) for dj in (-1, 0, 1) if di or dj], axis=1)
+    table = np.full((lat_i.max() - i0 + 1 + 2 * ring, lat_j.max() - j0 + 1 + 2 * ring), -1)
+    table[lat_i - i0 + ring, lat_j - j0 + ring] = np.arange(lat_j.size)
+    offsets = sorted(((di, dj) for di in range(-ring, ring + 1) for dj in range(-ring, ring + 1) if di or dj),
+                     key=lambda o: max(abs(o[0]), abs(o[1])))
+    return np.stack([table[lat_i - i0 + ring + di, lat_j - j0 + ring + dj] for di, dj in offsets], axis=1)
 
 
 def _with_neighbours(lenses: np.ndarray, neighbours: np.ndarray) -> np.ndarray:
@@ -1151,10 +1012,37 @@ def _fit_model(u, v, x, y, centre, lattice: _Lattice, start, shape):
         mx_, my_ = _model_xy(hm, kk, centre, scale, un[sel], vn[sel])
         return np.concatenate([mx_ - x[sel], my_ - y[sel]])
 
+    def jac(p, sel):
+        """Analytic Jacobian of `resid` (rows: x then y residuals; columns: the 9 parameters)."""
+        hm, kk = unpack(p)
+        u_, v_ = un[sel], vn[sel]
+        w = hm[2, 0] * u_ + hm[2, 1] * v_ + 1.0
+        xp = (hm[0, 0] * u_ + hm[0, 1] * v_ + hm[0, 2]) / w
+        yp = (hm[1, 0] * u_ + hm[1, 1] * v_ + hm[1, 2]) / w
+        dx, dy = xp - centre[0], yp - centre[1]
+        rho2 = (dx * dx + dy * dy) / (scale * scale)
+        f = 1.0 + kk * rho2
+        g = 2.0 * kk / (scale * scale)
+        xx, xy, yy = f + g * dx * dx, g * dx * dy, f + g * dy * dy  # d(X, Y) / d(x', y')
+        hx = np.stack([u_ / w, v_ / w, 1.0 / w], 1)  # d x' / d h0*, and d y' / d h1*
+        hw = np.stack([-u_ / w, -v_ / w], 1)  # d x' / d h2* = x' * this, d y' / d h2* = y' * this
+        out = np.zeros((2 * u_.size, 9))
+        n_ = u_.size
+        out[:n_, 0:3] = xx[:, None] * hx
+        out[:n_, 3:6] = xy[:, None] * hx
+        out[:n_, 6:8] = (xx * xp + xy * yp)[:, None] * hw
+        out[n_:, 0:3] = xy[:, None] * hx
+        out[n_:, 3:6] = yy[:, None] * hx
+        out[n_:, 6:8] = (xy * xp + yy * yp)[:, None] * hw
+        if full:
+            out[:n_, 8] = dx * rho2
+            out[n_:, 8] = dy * rho2
+        return out
+
     p = np.array([hn[0, 0], hn[0, 1], hn[0, 2], hn[1, 0], hn[1, 1], hn[1, 2], 0.0, 0.0, 0.0])
     for _ in range(4):
         if full:
-            p = least_squares(resid, p, args=(used,), method="lm", x_scale="jac").x
+            p = least_squares(resid, p, jac=jac, args=(used,), method="lm", x_scale="jac").x
         else:
             d = np.stack([np.ones(used.sum()), un[used], vn[used]], 1)
             ax = np.linalg.lstsq(d, x[used], rcond=None)[0]

@@ -1,0 +1,226 @@
+"""Compiled kernels of the calibration's joint disc fit (mlaqc.calibrate._DiscFit).
+
+One fused pass per lens builds its Gauss-Newton normal equations straight from the frame: for each pixel
+of the lens' rim annulus it evaluates the lens' own logistic-edged disc and those of its lattice
+neighbours that reach the pixel (the overlapping sub-images), the residual, the noise weight and the
+Jacobian, and accumulates them. No frame-sized model, no gathered pixel sets, no scatter: a lens' work
+stays in registers and cache. The kernels release the GIL; the caller spreads blocks of lenses over its
+thread pool (no Numba threading layer, so concurrent callers are safe and compilation stays short).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit
+
+N_NORMAL = 5  # amplitude, centre x, centre y, radius, (global edge width)
+TAIL = 10.0  # a neighbour's disc is left out beyond this many edge widths outside its rim (< 5e-5 of its level)
+
+
+@njit(cache=True, nogil=True, error_model="numpy", inline="always", fastmath=True)
+def _logistic(t: float) -> float:
+    """1 / (1 + exp(t)) with t clipped to +-20 (off by < 3e-9 there): exp(t) = exp(t / 32)^32, the inner one
+    a Taylor polynomial (|t / 32| <= 0.625: relative error < 1e-7), so loops of it vectorize (no libm)."""
+    x = min(max(t, -20.0), 20.0) * (1.0 / 32.0)
+    p = 1.0 + x * (1.0 + x * (1.0 / 2.0 + x * (1.0 / 6.0 + x * (1.0 / 24.0 + x * (1.0 / 120.0 + x * (
+        1.0 / 720.0 + x * (1.0 / 5040.0 + x * (1.0 / 40320.0 + x * (1.0 / 362880.0)))))))))
+    p = p * p
+    p = p * p
+    p = p * p
+    p = p * p
+    p = p * p
+    return 1.0 / (1.0 + p)
+
+
+@njit(cache=True, nogil=True, error_model="numpy", inline="always", fastmath=True)
+def _disc(u: float, v: float, amp: float, radius: float, inv: float, sx: float, sy: float) -> float:
+    """One lens' model at offset (u, v) from its centre: plateau (amplitude + slope) times the logistic rim."""
+    r = math.sqrt(u * u + v * v) + 1e-4
+    e = _logistic((r - radius) * inv)
+    return (amp + sx * u + sy * v) * e
+
+
+@njit(cache=True, nogil=True, error_model="numpy", fastmath=True)
+def disc_normals(img, lenses, cx, cy, amp, radius, inv_edge, slope_x, slope_y, neighbours, coupled,
+                 wide, half_band, weighted, fit_edge, floor, normal, rhs, rss, npix):
+    """Normal equations of lenses `lenses` against the frame `img` (float32, (h, w)).
+
+    Per lens k, over the pixels with |r - radius_k| < half_band about its current centre (inside the
+    frame), with the taper weight clip(half_band - |r - radius_k|, 0, 1):
+    model = own disc + the discs of neighbours[k] (lattice neighbours, -1 = none) that reach the pixel;
+    weights (if `weighted`) amp / max(model, floor * amp), or 1 for `coupled` lenses;
+    Jacobian columns: amplitude, centre x, centre y, radius (+ the edge width if `fit_edge`, zero for
+    `wide` lenses). Slopes are per pixel of offset (the caller's slope per radius / radius).
+    Writes normal[t] (5, 5), rhs[t] (5,), rss[t] (unweighted residual sum of squares), npix[t].
+    Per lens: gather the annulus' pixels (row spans), evaluate its own disc, add the neighbours' on the
+    spans they reach, then one pass accumulates residuals, weights and Jacobian products."""
+    h, w = img.shape
+    n_nb = neighbours.shape[1]
+    nb = np.empty(n_nb, np.int64)
+    nb_reach2 = np.empty(n_nb)
+    side = 2 * math.ceil(np.max(radius) + half_band) + 3
+    cap = side * side
+    uu, vv, val = np.empty(cap), np.empty(cap), np.empty(cap)
+    ee, mod = np.empty(cap), np.empty(cap)  # the lens' own rim profile, the model of all discs
+    seg = np.empty((4 * side, 2), np.int64)  # pixel index ranges of the row spans
+    seg_u = np.empty((4 * side, 3))  # their v, first u, last u
+    for t in range(lenses.size):
+        k = lenses[t]
+        ck_x, ck_y, a_k, r_k, inv = cx[k], cy[k], amp[k], radius[k], inv_edge[k]
+        sx, sy = slope_x[k], slope_y[k]
+        outer = r_k + half_band
+        inner = max(r_k - half_band, 0.0)
+        # neighbours whose disc can reach this lens' annulus
+        count = 0
+        for q in range(n_nb):
+            j = neighbours[k, q]
+            if j < 0:
+                continue
+            reach = outer + radius[j] + TAIL / inv_edge[j]
+            dxj, dyj = cx[j] - ck_x, cy[j] - ck_y
+            if dxj * dxj + dyj * dyj < reach * reach:
+                nb[count] = j
+                nb_reach2[count] = (radius[j] + TAIL / inv_edge[j]) ** 2
+                count += 1
+        # the annulus' pixels inside the frame: per row, the spans left and right of the plateau
+        n = 0
+        n_seg = 0
+        y0 = max(math.ceil(ck_y - outer), 0)
+        y1 = min(math.floor(ck_y + outer), h - 1)
+        for y in range(y0, y1 + 1):
+            v = y - ck_y
+            span2 = outer * outer - v * v
+            if span2 < 0.0:
+                continue
+            span = math.sqrt(span2)
+            xa = max(math.ceil(ck_x - span), 0)
+            xb = min(math.floor(ck_x + span), w - 1)
+            hole2 = inner * inner - v * v
+            if hole2 > 0.0:
+                hole = math.sqrt(hole2)
+                xl = min(math.floor(ck_x - hole), xb)
+                xr = max(math.ceil(ck_x + hole), xa)
+            else:
+                xl, xr = xb, xb + 1
+            for lo, hi in ((xa, xl), (xr, xb)):
+                if hi < lo:
+                    continue
+                seg[n_seg, 0] = n
+                for x in range(lo, hi + 1):
+                    uu[n], vv[n], val[n] = x - ck_x, v, img[y, x]
+                    n += 1
+                seg[n_seg, 1] = n
+                seg_u[n_seg, 0], seg_u[n_seg, 1], seg_u[n_seg, 2] = v, lo - ck_x, hi - ck_x
+                n_seg += 1
+        # own disc
+        for p in range(n):
+            u = uu[p]
+            v = vv[p]
+            e = _logistic((math.sqrt(u * u + v * v) + 1e-4 - r_k) * inv)
+            ee[p] = e
+            mod[p] = (a_k + sx * u + sy * v) * e
+        # neighbours' discs, where they reach
+        for q in range(count):
+            j = nb[q]
+            ox, oy = ck_x - cx[j], ck_y - cy[j]
+            a_j, r_j, inv_j, sx_j, sy_j, lim = amp[j], radius[j], inv_edge[j], slope_x[j], slope_y[j], nb_reach2[q]
+            for g in range(n_seg):  # only the spans it can reach
+                vj = seg_u[g, 0] + oy
+                u0, u1 = seg_u[g, 1] + ox, seg_u[g, 2] + ox
+                near = 0.0 if u0 <= 0.0 <= u1 else min(abs(u0), abs(u1))
+                if near * near + vj * vj >= lim:
+                    continue
+                for p in range(seg[g, 0], seg[g, 1]):
+                    uj = uu[p] + ox
+                    r2 = uj * uj + vj * vj
+                    c = _disc(uj, vj, a_j, r_j, inv_j, sx_j, sy_j)
+                    mod[p] += c if r2 < lim else 0.0
+        # residuals, weights, Jacobian
+        a_w = max(a_k, 1e-6)
+        floor_a = floor * a_w
+        reweight = weighted and not coupled[k]
+        edge_gain = inv * (0.0 if wide[k] or not fit_edge else 1.0)
+        ss = 0.0
+        cnt = 0.0
+        n00 = n01 = n02 = n03 = n04 = n11 = n12 = n13 = n14 = 0.0
+        n22 = n23 = n24 = n33 = n34 = n44 = 0.0
+        b0 = b1 = b2 = b3 = b4 = 0.0
+        for p in range(n):
+            u = uu[p]
+            v = vv[p]
+            e = ee[p]
+            mp = mod[p]
+            r = math.sqrt(u * u + v * v) + 1e-4
+            d = r - r_k
+            wp = min(half_band - abs(d), 1.0)
+            inside = 1.0 if wp > 0.0 else 0.0
+            wp = max(wp, 0.0)
+            rp = val[p] - mp
+            ss += inside * rp * rp
+            cnt += inside
+            if reweight:
+                wp *= a_w / max(mp, floor_a)
+            ag = e * (1.0 - e) * (a_k + sx * u + sy * v) * inv
+            ir = ag / r
+            j1 = ir * u - e * sx
+            j2 = ir * v - e * sy
+            j4 = d * ag * edge_gain
+            we, wx, wy, wr, wd = wp * e, wp * j1, wp * j2, wp * ag, wp * j4
+            n00 += we * e
+            n01 += we * j1
+            n02 += we * j2
+            n03 += we * ag
+            n04 += we * j4
+            n11 += wx * j1
+            n12 += wx * j2
+            n13 += wx * ag
+            n14 += wx * j4
+            n22 += wy * j2
+            n23 += wy * ag
+            n24 += wy * j4
+            n33 += wr * ag
+            n34 += wr * j4
+            n44 += wd * j4
+            b0 += we * rp
+            b1 += wx * rp
+            b2 += wy * rp
+            b3 += wr * rp
+            b4 += wd * rp
+        m = normal[t]
+        m[0, 0], m[0, 1], m[0, 2], m[0, 3], m[0, 4] = n00, n01, n02, n03, n04
+        m[1, 1], m[1, 2], m[1, 3], m[1, 4] = n11, n12, n13, n14
+        m[2, 2], m[2, 3], m[2, 4] = n22, n23, n24
+        m[3, 3], m[3, 4] = n33, n34
+        m[4, 4] = n44
+        for i in range(N_NORMAL):
+            for jj in range(i):
+                m[i, jj] = m[jj, i]
+        rhs[t, 0], rhs[t, 1], rhs[t, 2], rhs[t, 3], rhs[t, 4] = b0, b1, b2, b3, b4
+        npix[t] = int(cnt)
+        rss[t] = ss
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def plateau_mean(img, cx, cy, half):
+    """Mean level of the pixels within `half` px of each rounded centre (0 where none is in the frame)."""
+    h, w = img.shape
+    out = np.zeros(cx.size)
+    lim = half * half
+    for k in range(cx.size):
+        ix, iy = round(cx[k]), round(cy[k])
+        s = 0.0
+        c = 0
+        for dy in range(-half, half + 1):
+            y = iy + dy
+            if y < 0 or y >= h:
+                continue
+            for dx in range(-half, half + 1):
+                x = ix + dx
+                if x < 0 or x >= w or dx * dx + dy * dy > lim:
+                    continue
+                s += img[y, x]
+                c += 1
+        out[k] = s / max(c, 1)
+    return out
