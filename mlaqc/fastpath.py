@@ -113,7 +113,7 @@ def from_lens(k, px, py, pz, L, M, N, tab, rot):
 
 @_jit_inline
 def lens_surface(k, x, y, z, L, M, N, rear, tab, rot, zfront):
-    """Hit of lens k's front/rear sphere: local hit, local dir, normal, ok."""
+    """Hit of lens k's front/rear sphere: local hit, local direction, distance t (NaN on a miss)."""
     px, py, pz, lL, lM, lN = to_lens(k, x, y, z, L, M, N, tab, rot)
     if rear:
         vx, vy, vz, c = tab[2, k], tab[3, k], tab[6, k], tab[5, k]
@@ -121,20 +121,7 @@ def lens_surface(k, x, y, z, L, M, N, rear, tab, rot, zfront):
         vx, vy, vz, c = 0.0, 0.0, zfront, tab[4, k]
     t = sphere_t(px - vx, py - vy, pz - vz, lL, lM, lN, c)
     hx, hy, hz = px + t * lL, py + t * lM, pz + t * lN
-    return hx, hy, hz, lL, lM, lN, c * (hx - vx), c * (hy - vy), c * (hz - vz) - 1.0, t == t
-
-
-@_jit_inline
-def lens_hit(k, x, y, z, L, M, N, rear, tab, rot, s):
-    """Intersect the right lens' surface, re-tracing once with the neighbour if the hit left the cell."""
-    out = lens_surface(k, x, y, z, L, M, N, rear, tab, rot, s[S_ZFRONT])
-    if out[9]:
-        gx, gy, _, _, _, _ = from_lens(k, out[0], out[1], out[2], out[3], out[4], out[5], tab, rot)
-        k2 = cell(gx, gy, s)
-        if k2 >= 0 and k2 != k:
-            k = k2
-            out = lens_surface(k, x, y, z, L, M, N, rear, tab, rot, s[S_ZFRONT])
-    return k, out
+    return hx, hy, hz, lL, lM, lN, t
 
 
 @_jit_inline
@@ -237,82 +224,203 @@ def stage1_forward(start, m, mode, s, key, buf, fres, texture):
         buf[7, j], buf[8, j] = ox, oy
 
 
+# Rows of the per-block scratch table `g`: the gathered parameters of each ray's lens (tab rows 0..6), its
+# current hit and direction in the lens frame, the distance t to it (NaN on a miss), and its pixel.
+G_FX, G_FY, G_DX, G_DY, G_C1, G_C2, G_ZR, G_HX, G_HY, G_HZ, G_LL, G_LM, G_LN, G_T, G_ROW, G_COL, G_COUNT = range(17)
+
+
 @_jit_inline
-def trace_mla_to_sensor(i, x, y, z, L, M, N, w, s, tab, rot, grot, clear, fres, n_mla, mu_mla_in, out_idx, out_w):
-    """Stage 2: one ray from behind the main lens through its microlens onto a pixel (writes slot i)."""
-    # --- into the MLA frame ---
-    x = x - s[S_SHIFTX]
-    y = y - s[S_SHIFTY]
-    z = z - s[S_ZMLA]
-    if grot is not None:
-        x, y, z = (grot[0, 0] * x + grot[1, 0] * y + grot[2, 0] * z, grot[0, 1] * x + grot[1, 1] * y + grot[2, 1] * z,
-                   grot[0, 2] * x + grot[1, 2] * y + grot[2, 2] * z)
-        L, M, N = (grot[0, 0] * L + grot[1, 0] * M + grot[2, 0] * N, grot[0, 1] * L + grot[1, 1] * M + grot[2, 1] * N,
-                   grot[0, 2] * L + grot[1, 2] * M + grot[2, 2] * N)
-    t = (s[S_ZFRONT] - z) / N
-    x += t * L
-    y += t * M
-    z += t * N
-    k = cell(x, y, s)
-    if k < 0:
-        return
-    # --- front surface ---
-    k, f = lens_hit(k, x, y, z, L, M, N, False, tab, rot, s)
-    if not f[9]:
-        return
-    hx, hy, hz = f[0], f[1], f[2]
-    rx, ry = hx - tab[2, k], hy - tab[3, k]
-    c2 = tab[5, k]
-    rho2 = rx * rx + ry * ry
-    arg = 1.0 - c2 * c2 * rho2
-    corner = True
-    if arg >= 0.0:
-        corner = not (tab[6, k] + c2 * rho2 / (1.0 + math.sqrt(arg)) > hz)
-    if corner and not clear:
-        return
-    if corner:
-        nL, nM, nN = f[3], f[4], f[5]
-    else:
-        nL, nM, nN, tr = refract(f[3], f[4], f[5], f[6], f[7], f[8], mu_mla_in, fres, 1.0, n_mla)
-        if tr < 0.0:
-            return
-        w *= tr
-    x, y, z, L, M, N = from_lens(k, hx, hy, hz, nL, nM, nN, tab, rot)
-    # --- rear surface ---
-    if not corner:
-        k, b = lens_hit(k, x, y, z, L, M, N, True, tab, rot, s)
-        if not b[9]:
-            return
-        nL, nM, nN, tr = refract(b[3], b[4], b[5], b[6], b[7], b[8], n_mla, fres, n_mla, 1.0)
-        if tr < 0.0:
-            return
-        w *= tr
-        x, y, z, L, M, N = from_lens(k, b[0], b[1], b[2], nL, nM, nN, tab, rot)
-    # --- back to the camera frame, onto the sensor ---
-    if grot is not None:
-        x, y, z = (grot[0, 0] * x + grot[0, 1] * y + grot[0, 2] * z, grot[1, 0] * x + grot[1, 1] * y + grot[1, 2] * z,
-                   grot[2, 0] * x + grot[2, 1] * y + grot[2, 2] * z)
-        L, M, N = (grot[0, 0] * L + grot[0, 1] * M + grot[0, 2] * N, grot[1, 0] * L + grot[1, 1] * M + grot[1, 2] * N,
-                   grot[2, 0] * L + grot[2, 1] * M + grot[2, 2] * N)
-    x = x + s[S_SHIFTX]
-    y = y + s[S_SHIFTY]
-    z = z + s[S_ZMLA]
-    t = (s[S_ZSENS] - z) / N
-    x += t * L
-    y += t * M
-    col = math.floor((x - s[S_SX0]) * s[S_INVPIX])
-    row = math.floor((y - s[S_SY0]) * s[S_INVPIX])
-    if w > 0.0 and col >= 0 and col < s[S_W] and row >= 0 and row < s[S_H]:
-        out_idx[i] = int(row * s[S_W] + col)
-        out_w[i] = w
+def rot_t(r00, r01, r02, r10, r11, r12, r20, r21, r22, x, y, z):
+    """R^T v, as to_lens writes it (scalars only: helpers of the vectorized passes never take arrays)."""
+    return r00 * x + r10 * y + r20 * z, r01 * x + r11 * y + r21 * z, r02 * x + r12 * y + r22 * z
 
 
-BLOCK = 256  # rays per block: stage 1 runs vectorized over a block held in L1, stage 2 ray by ray
+@_jit_inline
+def rot_n(r00, r01, r02, r10, r11, r12, r20, r21, r22, x, y, z):
+    """R v, as from_lens writes it."""
+    return r00 * x + r01 * y + r02 * z, r10 * x + r11 * y + r12 * z, r20 * x + r21 * y + r22 * z
+
+
+@_jit_inline
+def cell_f(x, y, ax0, ay0, invp, ncols, nrows):
+    """Flat lens index as a float, -1.0 off the array (NaN too): branch-free, unlike `cell`."""
+    col = math.floor((x - ax0) * invp)
+    row = math.floor((y - ay0) * invp)
+    on = (col >= 0.0) & (col < ncols) & (row >= 0.0) & (row < nrows)
+    return row * ncols + col if on else -1.0
+
+
+@_jit_inline
+def gather(j, k, tab, g):
+    """Copy lens k's parameters into column j of the scratch table."""
+    for r in range(7):
+        g[r, j] = tab[r, k]
+
+
+@_jit_inline
+def retrace_neighbours(m, flag, kk, buf, g, tab, rot, s, rear):
+    """Rays whose hit left their cell (near a cell edge, a few per cent) are re-traced once with the
+    lens of the cell they hit, as raytrace.MicrolensArray._hit does (scalar pass: it is rare)."""
+    for j in range(m):
+        if flag[j]:
+            gx, gy, _, _, _, _ = from_lens(kk[j], g[G_HX, j], g[G_HY, j], g[G_HZ, j], g[G_LL, j], g[G_LM, j],
+                                           g[G_LN, j], tab, rot)
+            k = cell(gx, gy, s)
+            kk[j] = k
+            gather(j, k, tab, g)
+            f = lens_surface(k, buf[0, j], buf[1, j], buf[2, j], buf[3, j], buf[4, j], buf[5, j], rear, tab, rot,
+                             s[S_ZFRONT])
+            g[G_HX, j], g[G_HY, j], g[G_HZ, j], g[G_LL, j], g[G_LM, j], g[G_LN, j], g[G_T, j] = f[:7]
+
+
+@_jit_inline
+def stage2_block(m, buf, s, tab, rot, grot, clear, fres, n_mla, mu_in, g, kk, flag, corner_of, rows, cols, wts,
+                 nout, box):
+    """Stage 2 for one block: MLA (per-lens errors, neighbour re-trace) -> sensor pixel, appending hits.
+
+    Done in passes over the block, each branch-free over rays so that it vectorizes (the ray-by-ray
+    version was bound by the latency of its chain of divisions and square roots); the rare re-trace near
+    cell edges is a scalar pass of its own. Operations are those of raytrace.MicrolensArray, in the same
+    order, so both engines agree to rounding."""
+    zfront, shx, shy, zmla, zsens = s[S_ZFRONT], s[S_SHIFTX], s[S_SHIFTY], s[S_ZMLA], s[S_ZSENS]
+    ax0, ay0, invp, ncols, nrows = s[S_AX0], s[S_AY0], s[S_INVP], s[S_COLS], s[S_ROWS]
+    sx0, sy0, invpix, width, height = s[S_SX0], s[S_SY0], s[S_INVPIX], s[S_W], s[S_H]
+    g00 = g01 = g02 = g10 = g11 = g12 = g20 = g21 = g22 = 0.0
+    if grot is not None:
+        g00, g01, g02, g10, g11, g12, g20, g21, g22 = (grot[0, 0], grot[0, 1], grot[0, 2], grot[1, 0], grot[1, 1],
+                                                       grot[1, 2], grot[2, 0], grot[2, 1], grot[2, 2])
+    r00 = r01 = r02 = r10 = r11 = r12 = r20 = r21 = r22 = 0.0
+    # --- A: into the MLA frame, onto the front plane, which cell ---
+    for j in range(m):
+        x, y, z, L, M, N, w = buf[0, j] - shx, buf[1, j] - shy, buf[2, j] - zmla, buf[3, j], buf[4, j], buf[5, j], buf[6, j]
+        if grot is not None:
+            x, y, z = rot_t(g00, g01, g02, g10, g11, g12, g20, g21, g22, x, y, z)
+            L, M, N = rot_t(g00, g01, g02, g10, g11, g12, g20, g21, g22, L, M, N)
+        t = (zfront - z) / N
+        x += t * L
+        y += t * M
+        z += t * N
+        kf = cell_f(x, y, ax0, ay0, invp, ncols, nrows)
+        alive = (w > 0.0) & (kf >= 0.0)  # w > 0 also rejects NaN
+        kk[j] = int(kf) if alive else 0
+        buf[0, j], buf[1, j], buf[2, j], buf[3, j], buf[4, j], buf[5, j] = x, y, z, L, M, N
+        buf[6, j] = w if alive else 0.0
+    for j in range(m):
+        gather(j, kk[j], tab, g)
+    # --- B: front surface of that lens; flag hits that fall in another cell ---
+    for j in range(m):
+        fx, fy, c = g[G_FX, j], g[G_FY, j], g[G_C1, j]
+        px, py, pz, L, M, N = buf[0, j] - fx, buf[1, j] - fy, buf[2, j], buf[3, j], buf[4, j], buf[5, j]
+        if rot is not None:
+            k = kk[j]
+            r00, r01, r02, r10, r11, r12, r20, r21, r22 = (rot[k, 0, 0], rot[k, 0, 1], rot[k, 0, 2], rot[k, 1, 0],
+                                                           rot[k, 1, 1], rot[k, 1, 2], rot[k, 2, 0], rot[k, 2, 1], rot[k, 2, 2])
+            px, py, pz = rot_t(r00, r01, r02, r10, r11, r12, r20, r21, r22, px, py, pz)
+            L, M, N = rot_t(r00, r01, r02, r10, r11, r12, r20, r21, r22, L, M, N)
+        t = sphere_t(px - 0.0, py - 0.0, pz - zfront, L, M, N, c)
+        hx, hy, hz = px + t * L, py + t * M, pz + t * N
+        g[G_HX, j], g[G_HY, j], g[G_HZ, j], g[G_LL, j], g[G_LM, j], g[G_LN, j], g[G_T, j] = hx, hy, hz, L, M, N, t
+        gx, gy = hx, hy
+        if rot is not None:
+            gx, gy, _ = rot_n(r00, r01, r02, r10, r11, r12, r20, r21, r22, hx, hy, hz)
+        k2 = cell_f(gx + fx, gy + fy, ax0, ay0, invp, ncols, nrows)
+        flag[j] = (buf[6, j] > 0.0) & (t == t) & (k2 >= 0.0) & (k2 != kk[j])
+    retrace_neighbours(m, flag, kk, buf, g, tab, rot, s, False)
+    # --- C: corner test, front refraction, back to the MLA frame, rear surface ---
+    for j in range(m):
+        w = buf[6, j]
+        hx, hy, hz, lL, lM, lN, t = g[G_HX, j], g[G_HY, j], g[G_HZ, j], g[G_LL, j], g[G_LM, j], g[G_LN, j], g[G_T, j]
+        fx, fy, vx, vy, c1, c2, vz = g[G_FX, j], g[G_FY, j], g[G_DX, j], g[G_DY, j], g[G_C1, j], g[G_C2, j], g[G_ZR, j]
+        rx, ry = hx - vx, hy - vy
+        rho2 = rx * rx + ry * ry
+        arg = 1.0 - c2 * c2 * rho2
+        corner = not ((arg >= 0.0) & (vz + c2 * rho2 / (1.0 + math.sqrt(max(arg, 0.0))) > hz))
+        nL, nM, nN, tr = refract(lL, lM, lN, c1 * hx, c1 * hy, c1 * (hz - zfront) - 1.0, mu_in, fres, 1.0, n_mla)
+        alive = (w > 0.0) & (t == t) & (clear | (not corner)) & (corner | (tr >= 0.0))
+        w = w if corner else w * tr
+        nL = lL if corner else nL
+        nM = lM if corner else nM
+        nN = lN if corner else nN
+        if rot is not None:
+            k = kk[j]
+            r00, r01, r02, r10, r11, r12, r20, r21, r22 = (rot[k, 0, 0], rot[k, 0, 1], rot[k, 0, 2], rot[k, 1, 0],
+                                                           rot[k, 1, 1], rot[k, 1, 2], rot[k, 2, 0], rot[k, 2, 1], rot[k, 2, 2])
+            hx, hy, hz = rot_n(r00, r01, r02, r10, r11, r12, r20, r21, r22, hx, hy, hz)
+            nL, nM, nN = rot_n(r00, r01, r02, r10, r11, r12, r20, r21, r22, nL, nM, nN)
+        x, y, z, L, M, N = hx + fx, hy + fy, hz, nL, nM, nN
+        buf[0, j], buf[1, j], buf[2, j], buf[3, j], buf[4, j], buf[5, j] = x, y, z, L, M, N
+        buf[6, j] = w if alive else 0.0
+        corner_of[j] = corner
+        # rear surface, same lens
+        px, py, pz = x - fx, y - fy, z
+        if rot is not None:
+            px, py, pz = rot_t(r00, r01, r02, r10, r11, r12, r20, r21, r22, px, py, pz)
+            L, M, N = rot_t(r00, r01, r02, r10, r11, r12, r20, r21, r22, L, M, N)
+        t = sphere_t(px - vx, py - vy, pz - vz, L, M, N, c2)
+        hx, hy, hz = px + t * L, py + t * M, pz + t * N
+        g[G_HX, j], g[G_HY, j], g[G_HZ, j], g[G_LL, j], g[G_LM, j], g[G_LN, j], g[G_T, j] = hx, hy, hz, L, M, N, t
+        gx, gy = hx, hy
+        if rot is not None:
+            gx, gy, _ = rot_n(r00, r01, r02, r10, r11, r12, r20, r21, r22, hx, hy, hz)
+        k2 = cell_f(gx + fx, gy + fy, ax0, ay0, invp, ncols, nrows)
+        flag[j] = alive & (not corner) & (t == t) & (k2 >= 0.0) & (k2 != kk[j])
+    retrace_neighbours(m, flag, kk, buf, g, tab, rot, s, True)
+    # --- D: rear refraction (corners go on straight), back to the camera frame, onto the sensor ---
+    for j in range(m):
+        w, corner = buf[6, j], corner_of[j]
+        hx, hy, hz, lL, lM, lN, t = g[G_HX, j], g[G_HY, j], g[G_HZ, j], g[G_LL, j], g[G_LM, j], g[G_LN, j], g[G_T, j]
+        fx, fy, vx, vy, c, vz = g[G_FX, j], g[G_FY, j], g[G_DX, j], g[G_DY, j], g[G_C2, j], g[G_ZR, j]
+        nL, nM, nN, tr = refract(lL, lM, lN, c * (hx - vx), c * (hy - vy), c * (hz - vz) - 1.0, n_mla, fres, n_mla, 1.0)
+        if rot is not None:
+            k = kk[j]
+            r00, r01, r02, r10, r11, r12, r20, r21, r22 = (rot[k, 0, 0], rot[k, 0, 1], rot[k, 0, 2], rot[k, 1, 0],
+                                                           rot[k, 1, 1], rot[k, 1, 2], rot[k, 2, 0], rot[k, 2, 1], rot[k, 2, 2])
+            hx, hy, hz = rot_n(r00, r01, r02, r10, r11, r12, r20, r21, r22, hx, hy, hz)
+            nL, nM, nN = rot_n(r00, r01, r02, r10, r11, r12, r20, r21, r22, nL, nM, nN)
+        bx, by, bz, bL, bM, bN = buf[0, j], buf[1, j], buf[2, j], buf[3, j], buf[4, j], buf[5, j]
+        alive = (w > 0.0) & (corner | ((t == t) & (tr >= 0.0)))
+        w = w if corner else w * tr
+        x = bx if corner else hx + fx
+        y = by if corner else hy + fy
+        z = bz if corner else hz
+        L = bL if corner else nL
+        M = bM if corner else nM
+        N = bN if corner else nN
+        if grot is not None:
+            x, y, z = rot_n(g00, g01, g02, g10, g11, g12, g20, g21, g22, x, y, z)
+            L, M, N = rot_n(g00, g01, g02, g10, g11, g12, g20, g21, g22, L, M, N)
+        x = x + shx
+        y = y + shy
+        z = z + zmla
+        t = (zsens - z) / N
+        x += t * L
+        y += t * M
+        col = math.floor((x - sx0) * invpix)
+        row = math.floor((y - sy0) * invpix)
+        landed = alive & (w > 0.0) & (col >= 0.0) & (col < width) & (row >= 0.0) & (row < height)
+        g[G_ROW, j] = row if landed else -1.0
+        g[G_COL, j] = col
+        buf[6, j] = w
+    # --- E: append the hits (in ray order) and grow the bounding box ---
+    for j in range(m):
+        if g[G_ROW, j] >= 0.0:
+            r, c = int(g[G_ROW, j]), int(g[G_COL, j])
+            rows[nout], cols[nout], wts[nout] = r, c, buf[6, j]
+            nout += 1
+            box[0] = min(box[0], r)
+            box[1] = max(box[1], r)
+            box[2] = min(box[2], c)
+            box[3] = max(box[3], c)
+    return nout
+
+
+BLOCK = 256  # rays per block: every pass works on a block held in L1
 
 
 @_jit
-def kernel(s, key, count, tab, rot, grot, texture, out_idx, out_w):
-    """Trace `count` rays drawn with `key`; out_idx = flat pixel (-1 if lost), out_w = weight."""
+def kernel(s, key, count, tab, rot, grot, texture, rows, cols, wts, box):
+    """Trace `count` rays drawn with `key`; appends the (row, col, weight) of those that landed, in ray
+    order, grows box = [row min, row max, col min, col max] and returns how many landed."""
     mode = int(s[S_MODE])
     fres = s[S_FRES] != 0.0
     clear = s[S_CLEAR] != 0.0
@@ -320,6 +428,11 @@ def kernel(s, key, count, tab, rot, grot, texture, out_idx, out_w):
     mu_mla_in = 1.0 / n_mla
     tex_hx, tex_hy = s[S_TEXHX], s[S_TEXHY]
     buf = np.empty((9, BLOCK))
+    g = np.empty((G_COUNT, BLOCK))
+    kk = np.empty(BLOCK, np.int64)
+    flag = np.empty(BLOCK, np.bool_)
+    corner_of = np.empty(BLOCK, np.bool_)
+    nout = 0
     for start in range(0, count, BLOCK):
         m = min(BLOCK, count - start)
         if mode == IMAGE_SIDE:
@@ -329,15 +442,21 @@ def kernel(s, key, count, tab, rot, grot, texture, out_idx, out_w):
         if texture is not None:
             for j in range(m):
                 buf[6, j] *= texel(texture, buf[7, j], buf[8, j], tex_hx, tex_hy)
-        for j in range(m):
-            i = start + j
-            out_idx[i] = -1
-            out_w[i] = 0.0
-            w = buf[6, j]
-            if not w > 0.0:  # also catches NaN
-                continue
-            trace_mla_to_sensor(i, buf[0, j], buf[1, j], buf[2, j], buf[3, j], buf[4, j], buf[5, j], w,
-                                s, tab, rot, grot, clear, fres, n_mla, mu_mla_in, out_idx, out_w)
+        nout = stage2_block(m, buf, s, tab, rot, grot, clear, fres, n_mla, mu_mla_in, g, kk, flag, corner_of,
+                            rows, cols, wts, nout, box)
+    return nout
+
+
+@_jit
+def bin_hits(rows, cols, wts, n, box):
+    """Sum the weights per pixel over the hits' bounding box, in hit order (as np.bincount would)."""
+    if n == 0:
+        return np.zeros((0, 0))
+    r0, c0 = box[0], box[2]
+    patch = np.zeros((box[1] - r0 + 1, box[3] - c0 + 1))
+    for i in range(n):
+        patch[rows[i] - r0, cols[i] - c0] += wts[i]
+    return patch
 
 
 class FastCamera:
@@ -364,8 +483,8 @@ class FastCamera:
         self.image_region = image_region
         self.source_region = source_region
 
-    def trace(self, mode: int, key: int, n: int, tile=None, point=None, texture=None):
-        """Trace one batch; returns (flat pixel index, weight) of the rays that reached the sensor."""
+    def trace_hits(self, mode: int, key: int, n: int, tile=None, point=None, texture=None):
+        """Trace one batch; (row, col, weight) of the rays that reached the sensor and their bounding box."""
         s = self.base.copy()
         s[S_MODE] = mode
         if mode == IMAGE_SIDE:
@@ -377,10 +496,22 @@ class FastCamera:
         if point is not None:
             s[S_PX], s[S_PY] = point
         tex = None if texture is None else np.ascontiguousarray(texture, dtype=np.float64)
-        idx = np.empty(n, np.int64)
-        w = np.empty(n)
         if not AVAILABLE:
             raise RuntimeError("numba is not installed; use the NumPy engine")
-        kernel(s, np.uint64(key), n, self.tab, self.rot, self.grot, tex, idx, w)
-        good = idx >= 0
-        return idx[good], w[good]
+        rows = np.empty(n, np.int32)
+        cols = np.empty(n, np.int32)
+        w = np.empty(n)
+        box = np.array([2 ** 31, -1, 2 ** 31, -1], np.int64)
+        k = kernel(s, np.uint64(key), n, self.tab, self.rot, self.grot, tex, rows, cols, w, box)
+        return rows[:k], cols[:k], w[:k], box
+
+    def trace(self, mode: int, key: int, n: int, tile=None, point=None, texture=None):
+        """Trace one batch; returns (flat pixel index, weight) of the rays that reached the sensor, in ray order."""
+        rows, cols, w, _ = self.trace_hits(mode, key, n, tile, point, texture)
+        return rows.astype(np.int64) * int(self.base[S_W]) + cols, w
+
+    def trace_binned(self, mode: int, key: int, n: int, tile=None, point=None, texture=None):
+        """Trace one batch and sum it per pixel: (row0, col0, patch, hits) over the hits' bounding box."""
+        rows, cols, w, box = self.trace_hits(mode, key, n, tile, point, texture)
+        patch = bin_hits(rows, cols, w, len(w), box)
+        return (int(box[0]), int(box[2]), patch, len(w)) if len(w) else (0, 0, patch, 0)

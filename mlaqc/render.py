@@ -212,6 +212,9 @@ class Renderer:
 
     def _trace_job(self, scene: Scene, job: _Job, key: int):
         """Sample, trace and bin one batch; returns the patch of the sensor it touched."""
+        if self.fast is not None:  # traced and binned in compiled code, no (index, weight) arrays in Python
+            texture = scene.radiance if isinstance(scene, TextureScene) else None
+            return self.fast.trace_binned(self._fast_mode(job.point), key, job.n, job.tile, job.point, texture)
         idx, wts = self.trace_batch(scene, key, job.n, job.tile, job.point)
         return _bin_patch(idx, wts, self.cfg.sensor.width_px)
 
@@ -219,9 +222,7 @@ class Renderer:
         """Trace n rays drawn with `key`; (flat pixel index, weight) of those that reached the sensor."""
         texture = scene.radiance if isinstance(scene, TextureScene) else None
         if self.fast is not None:
-            mode = (fastpath.POINT if point is not None else
-                    fastpath.IMAGE_SIDE if self.sampling == "image" else fastpath.OBJECT_SIDE)
-            return self.fast.trace(mode, key, n, tile, point, texture)
+            return self.fast.trace(self._fast_mode(point), key, n, tile, point, texture)
         u = counter_uniforms(key, n, 2 if point is not None else 4)
         if point is not None:
             r = sample_points(self.region, u, *point)
@@ -236,6 +237,10 @@ class Renderer:
                 r.w *= texture_weight(scene, *self.texture_half_mm, r.x, r.y)
             self.camera.trace(r)
         return self.camera.pixel_index(r)
+
+    def _fast_mode(self, point) -> int:
+        return (fastpath.POINT if point is not None else
+                fastpath.IMAGE_SIDE if self.sampling == "image" else fastpath.OBJECT_SIDE)
 
     def _weigh_by_main_lens(self, scene: Scene, r: Rays) -> None:
         """Trace image-side rays back through the main lens: vignetting, Fresnel, and the object radiance."""
