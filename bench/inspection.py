@@ -1,22 +1,29 @@
 """Inspection benchmark on the Table 1 camera (2048 x 2048 px, 10,404 lenses): seconds per stage for
-load + calibrate + divide + indexes + identify, with and without a calibration reused from a white image.
+load + calibrate + divide + indexes + identify, self-calibrated and with the grid reused from a white
+image, against the bars of issue #6 (<= 0.5 s including calibration, <= 0.25 s with it reused).
 
-    python bench/inspection.py        # renders one frame (cached in /tmp), then times 3 runs
+    python bench/inspection.py [--runs 7]   # renders two frames once (cached in /tmp), then times
+
+Wall-clock figures on a shared machine are noisy: each stage is the best of the runs, the totals are
+the best whole run, and the CPU seconds of that run (all threads) are printed beside them.
 """
 
 from __future__ import annotations
 
+import argparse
 import sys
 import tempfile
 import time
 from pathlib import Path
 
-
 from mlaqc.calibrate import calibrate
 from mlaqc.config import default_config
-from mlaqc.errormap import random_defects
+from mlaqc.errormap import ErrorMap, random_defects
 from mlaqc.inspect import inspect_image, load_frame
 from mlaqc.simulate import simulate, write_simulation
+
+BAR_SELF_S = 0.5  # issue #6, target 2: one frame including its calibration
+BAR_REUSED_S = 0.25  # issue #6, target 2: one frame, calibration reused from a white image
 
 
 def frame_path(cfg) -> Path:
@@ -28,29 +35,56 @@ def frame_path(cfg) -> Path:
     return path
 
 
-def main() -> int:
-    cfg = default_config()
-    path = frame_path(cfg)
-    inspect_image(load_frame(path, cfg), cfg)  # warm caches (reference, signatures, FFT plans)
-    rows = []
-    for _ in range(3):
-        t0 = time.perf_counter()
+def white_path(cfg) -> Path:
+    """A defect-free 50 rays/pixel white DNG (the calibration frame), rendered once into the temp folder."""
+    path = Path(tempfile.gettempdir()) / "mlaqc_bench_white.dng"
+    if not path.exists():
+        sim = simulate(cfg, None, ErrorMap.zeros(cfg.mla.count_h, cfg.mla.count_w), rays_per_pixel=50, seed=78)
+        write_simulation(path, sim, cfg)
+    return path
+
+
+def timed_runs(path: Path, cfg, grid, runs: int) -> tuple[dict[str, float], float, float, object]:
+    """Best seconds per stage over `runs`, the best total, that run's CPU seconds, and the last result."""
+    stages: dict[str, float] = {}
+    best_total, best_cpu, res = float("inf"), float("nan"), None
+    for _ in range(runs):
+        t0, c0 = time.perf_counter(), time.process_time()
         img = load_frame(path, cfg)
         load_s = time.perf_counter() - t0
-        res = inspect_image(img, cfg)
-        total = time.perf_counter() - t0
-        rows.append(({"load": load_s, **res.timings_s}, total))
-    best = min(rows, key=lambda r: r[1])
-    print(f"frame: {path} (2048x2048, 10,404 lenses); best of 3 runs")
-    for k, v in best[0].items():
+        res = inspect_image(img, cfg, grid=grid)
+        total, cpu = time.perf_counter() - t0, time.process_time() - c0
+        for k, v in {"load": load_s, **res.timings_s}.items():
+            stages[k] = min(stages.get(k, float("inf")), v)
+        if total < best_total:
+            best_total, best_cpu = total, cpu
+    return stages, best_total, best_cpu, res
+
+
+def report(title: str, stages: dict[str, float], total: float, cpu: float, bar: float) -> None:
+    """Print one configuration's per-stage seconds and its total against its bar."""
+    print(title)
+    for k, v in stages.items():
         print(f"  {k:10s} {v:7.3f} s")
-    print(f"  {'total':10s} {best[1]:7.3f} s   (load + calibrate + divide + indexes + identify)")
-    img = load_frame(path, cfg)
-    grid = calibrate(img, expected_pitch_px=cfg.layout.subimage_pitch_px, expected_shape=(102, 102))
-    t0 = time.perf_counter()
-    res = inspect_image(img, cfg, grid=grid)
-    print(f"  with the grid reused from a white image: {time.perf_counter() - t0:.3f} s "
-          f"({', '.join(f'{k} {v:.3f}' for k, v in res.timings_s.items())})")
+    verdict = "meets" if total <= bar else "MISSES"
+    print(f"  {'total':10s} {total:7.3f} s   (CPU {cpu:.3f} s over all threads)  bar <= {bar:.2f} s: {verdict}")
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--runs", type=int, default=7)
+    args = ap.parse_args()
+    cfg = default_config()
+    path, white = frame_path(cfg), white_path(cfg)
+    inspect_image(load_frame(path, cfg), cfg)  # warm caches (reference, signatures, FFT plans, compiled kernels)
+    print(f"frame: {path} (2048x2048, 10,404 lenses, 40 seeded defects); best of {args.runs} runs per figure")
+    stages, total, cpu, res = timed_runs(path, cfg, None, args.runs)
+    report("self-calibrated: load + calibrate + divide + indexes + identify", stages, total, cpu, BAR_SELF_S)
+    grid = calibrate(load_frame(white, cfg), expected_pitch_px=cfg.layout.subimage_pitch_px,
+                     expected_shape=(cfg.mla.count_h, cfg.mla.count_w))
+    stages, total, cpu, res = timed_runs(path, cfg, grid, args.runs)
+    report(f"grid reused from a white image ({white.name}): load + divide + indexes + identify",
+           stages, total, cpu, BAR_REUSED_S)
     print(f"  flagged {len(res.defects)}, verdict {res.verdict}")
     return 0
 

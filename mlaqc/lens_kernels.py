@@ -16,6 +16,9 @@ import numpy as np
 from numba import njit
 
 _jit = njit(cache=True, nogil=True, error_model="numpy")
+# reassociation lets LLVM vectorize the window sums (their order changes at the 1e-16 level); no
+# finite-math assumptions: NaN marks pixels outside the frame and lost lenses
+_jit_fast = njit(cache=True, nogil=True, error_model="numpy", fastmath={"reassoc", "contract"})
 
 # Column order of the (N, N_INDEX) array `lens_indexes` fills (the order of results.METRICS).
 INDEX_NAMES = ("flux", "mean_gray", "uniformity", "entropy", "sharpness", "offset_x_px", "offset_y_px", "offset_um",
@@ -58,80 +61,90 @@ def gather_reference(stack, size, c, os_, cx, cy, h, w, out):
 
 
 @_jit
-def _gather_row(c, os_, q, n, size, idx):
-    """Clipped template indices c + i*os_ - q for i < n."""
-    for i in range(n):
-        idx[i] = min(max(c + i * os_ - q, 0), size - 1)
+def _gather_tables(stack, size, c, os_, phases, pad, qx, qy, h, w, ntab, dst):
+    """dst[k, i*w + j] = template table k at template pixel (c + i*os_ - qy, c + j*os_ - qx), indices
+    clipped into the zero border: a contiguous copy from the phase-decimated tables unless the window
+    falls off them (a wild shift), then element by element from the full `stack`."""
+    u = c - qy
+    uc = c - qx
+    pr = u % os_
+    pc = uc % os_
+    r0 = pad + (u - pr) // os_
+    c0 = pad + (uc - pc) // os_
+    if 0 <= r0 and r0 + h <= phases.shape[3] and 0 <= c0 and c0 + w <= phases.shape[4]:
+        for k in range(ntab):
+            for i in range(h):
+                src = phases[k, pr, pc, r0 + i]
+                for j in range(w):
+                    dst[k, i * w + j] = src[c0 + j]
+    else:
+        for k in range(ntab):
+            for i in range(h):
+                row = min(max(c + i * os_ - qy, 0), size - 1) * size
+                for j in range(w):
+                    dst[k, i * w + j] = stack[k, row + min(max(c + j * os_ - qx, 0), size - 1)]
 
 
-@_jit
-def lens_indexes(data, cx, cy, stack, size, c, os_, um_per_px, steps, start, stop, out):
+@_jit_fast
+def lens_indexes(data, cx, cy, stack, size, c, os_, phases, pad, um_per_px, steps, start, stop, out):
     """Every index of lenses [start, stop) of `data` (N, h, w) float32 (NaN = outside the frame) into
     out[k, :] (columns INDEX_NAMES; 'flux' raw, normalized over all lenses by the caller).
 
     Same definitions as the NumPy formulation in tests/test_metrics_kernels.py: Lucas-Kanade registration
     (`steps` Gauss-Newton steps) on the template gathered at the lens' 1/os_-px phase, then flux, mean,
     disc uniformity, 32-bin entropy, gradient-energy sharpness, offsets, half-max second moments, blur and
-    tilt projections of the residual, PSNR/SSIM/NCC of the flux-scaled sub-image."""
+    tilt projections of the residual, PSNR/SSIM/NCC of the flux-scaled sub-image. Centred sums are
+    expanded into raw sums (float64: no precision lost at these sizes) so that a few short, branch-free
+    loops over the window do everything, and they vectorize."""
     n_lens, h, w = data.shape
     npx = h * w
-    x = np.empty(npx, np.float32)
+    x32 = np.empty(npx, np.float32)
+    x = np.empty(npx)
     v = np.empty(npx)
-    r = np.empty(npx)
-    gx = np.empty(npx)
-    gy = np.empty(npx)
-    lap = np.empty(npx)
-    ti = np.empty(h, np.int64)
-    tj = np.empty(w, np.int64)
-    counts = np.empty(ENTROPY_BINS)
-    half = 0.5 * h
+    tab = np.empty((4, npx), np.float32)
+    counts = np.empty((4, ENTROPY_BINS), np.int64)
+    inv_half = 1.0 / (0.5 * h)
     rdisc2 = (0.35 * h) ** 2
-    t0 = stack[0]
-    t1 = stack[1]
-    t2 = stack[2]
-    t3 = stack[3]
     nan = np.nan
     for k in range(start, stop):
         nv = 0.0
+        flux = 0.0
+        top = np.float32(-np.inf)
         for i in range(h):
             for j in range(w):
                 val = data[k, i, j]
                 p = i * w + j
-                if math.isfinite(val):
-                    x[p] = val
-                    v[p] = 1.0
-                    nv += 1.0
-                else:
-                    x[p] = np.float32(0.0)
-                    v[p] = 0.0
+                ok = math.isfinite(val)
+                xv = val if ok else np.float32(0.0)
+                x32[p] = xv
+                x[p] = xv
+                v[p] = 1.0 if ok else 0.0
+                nv += 1.0 if ok else 0.0
+                flux += xv
+                top = xv if xv > top else top
         # --- registration: I ~ a R(x - d) ~ a R - a d.grad R, so d = -(G'G)^-1 G'(I - a R) / a
         dx = 0.0
         dy = 0.0
         for _ in range(steps):
             qxi = np.int64(np.rint((cx[k] + dx) * os_))
             qyi = np.int64(np.rint((cy[k] + dy) * os_))
-            _gather_row(c, os_, qyi, h, size, ti)
-            _gather_row(c, os_, qxi, w, size, tj)
+            _gather_tables(stack, size, c, os_, phases, pad, qxi, qyi, h, w, 3, tab)
             sxr = srr = sxx = sxy = syy = sgxx = sgxr = sgyx = sgyr = 0.0
-            for i in range(h):
-                row = ti[i] * size
-                for j in range(w):
-                    p = i * w + j
-                    t = row + tj[j]
-                    vp = v[p]
-                    xp = np.float64(x[p])
-                    rp = t0[t] * vp
-                    gxp = t1[t] * vp
-                    gyp = t2[t] * vp
-                    sxr += xp * rp
-                    srr += rp * rp
-                    sxx += gxp * gxp
-                    sxy += gxp * gyp
-                    syy += gyp * gyp
-                    sgxx += gxp * xp
-                    sgxr += gxp * rp
-                    sgyx += gyp * xp
-                    sgyr += gyp * rp
+            for p in range(npx):
+                vp = v[p]
+                xp = x[p]
+                rp = tab[0, p] * vp
+                gxp = tab[1, p] * vp
+                gyp = tab[2, p] * vp
+                sxr += xp * rp
+                srr += rp * rp
+                sxx += gxp * gxp
+                sxy += gxp * gyp
+                syy += gyp * gyp
+                sgxx += gxp * xp
+                sgxr += gxp * rp
+                sgyx += gyp * xp
+                sgyr += gyp * rp
             a = sxr / max(srr, 1e-30)
             bx = sgxx - a * sgxr
             by = sgyx - a * sgyr
@@ -147,167 +160,151 @@ def lens_indexes(data, cx, cy, stack, size, c, os_, um_per_px, steps, start, sto
         qyi = np.int64(np.rint((cy[k] + dy) * os_))
         qx = qxi / os_
         qy = qyi / os_
-        _gather_row(c, os_, qyi, h, size, ti)
-        _gather_row(c, os_, qxi, w, size, tj)
-        # --- pass 1: sums that need nothing but the pixels and the final reference tables
-        flux = sxr = srr = slap2 = sg2 = nd = sxd = tsxx = tsxy = tsyy = srv = ge = 0.0
-        top = np.float32(-np.inf)
+        _gather_tables(stack, size, c, os_, phases, pad, qxi, qyi, h, w, 4, tab)
+        # --- reference products (r and lap masked by validity, gradients not)
+        sxr = srr = slap2 = sg2 = sxl = srl = srv = sx2 = 0.0
         peak = -np.inf
-        for i in range(h):
-            row = ti[i] * size
-            yy = i - qy
-            for j in range(w):
-                p = i * w + j
-                t = row + tj[j]
-                vp = v[p]
-                xp = np.float64(x[p])
-                rp = t0[t] * vp
-                lp = t3[t] * vp
-                gxp = np.float64(t1[t])
-                gyp = np.float64(t2[t])
-                r[p] = rp
-                lap[p] = lp
-                gx[p] = gxp
-                gy[p] = gyp
-                flux += xp
-                if x[p] > top:
-                    top = x[p]
-                if rp > peak:
-                    peak = rp
-                sxr += xp * rp
-                srr += rp * rp
-                slap2 += lp * lp
-                sg2 += gxp * gxp + gyp * gyp
-                xx = j - qx
-                if xx * xx + yy * yy <= rdisc2:
-                    nd += vp
-                    sxd += xp * vp
-                bxp = rp * xx / half
-                byp = rp * yy / half
-                tsxx += bxp * bxp
-                tsxy += bxp * byp
-                tsyy += byp * byp
-                srv += rp * vp
-                # np.gradient (edge_order 1) along both axes, squared
-                if w > 1:
-                    if j == 0:
-                        d1 = np.float64(x[p + 1]) - xp
-                    elif j == w - 1:
-                        d1 = xp - np.float64(x[p - 1])
-                    else:
-                        d1 = 0.5 * (np.float64(x[p + 1]) - np.float64(x[p - 1]))
-                    ge += d1 * d1
-                if h > 1:
-                    if i == 0:
-                        d2 = np.float64(x[p + w]) - xp
-                    elif i == h - 1:
-                        d2 = xp - np.float64(x[p - w])
-                    else:
-                        d2 = 0.5 * (np.float64(x[p + w]) - np.float64(x[p - w]))
-                    ge += d2 * d2
-        a = sxr / max(srr, 1e-30)
-        an = a if a != 0 else nan
-        n = max(nv, 1.0)
-        mean_d = sxd / max(nd, 1.0)
-        mr = srv / n
-        # entropy bins follow NumPy's float32 arithmetic: int(x / top * 32) clipped to 0..31
-        top_s = top if top > 0 else np.float32(1.0)
-        # --- pass 2: sums around the first-order means
-        sblur = tpx = tpy = sw = swx = swy = var_d = mse = sxs = 0.0
-        for b in range(ENTROPY_BINS):
-            counts[b] = 0.0
+        for p in range(npx):
+            vp = v[p]
+            xp = x[p]
+            rp = tab[0, p] * vp
+            lp = tab[3, p] * vp
+            gxp = np.float64(tab[1, p])
+            gyp = np.float64(tab[2, p])
+            sxr += xp * rp
+            srr += rp * rp
+            slap2 += lp * lp
+            sg2 += gxp * gxp + gyp * gyp
+            sxl += xp * lp
+            srl += rp * lp
+            srv += rp
+            sx2 += xp * xp * vp
+            peak = rp if rp > peak else peak
+        # --- position-weighted sums: central disc, tilt basis, half-maximum moments
+        nd = sxd = sx2d = tsxx = tsxy = tsyy = tbxx = tbxr = tbyx = tbyr = 0.0
+        sw = swx = swy = swxx = swyy = swxy = 0.0
         half_top = 0.5 * np.float64(top)
         for i in range(h):
             yy = i - qy
             for j in range(w):
                 p = i * w + j
-                xp = np.float64(x[p])
-                vp = v[p]
-                rp = r[p]
                 xx = j - qx
-                resid = xp - a * rp
-                sblur += resid * lap[p]
-                tpx += rp * xx / half * resid
-                tpy += rp * yy / half * resid
+                vp = v[p]
+                xp = x[p]
+                rp = tab[0, p] * vp
+                d = vp if xx * xx + yy * yy <= rdisc2 else 0.0
+                nd += d
+                sxd += xp * d
+                sx2d += xp * xp * d
+                bxp = rp * xx * inv_half
+                byp = rp * yy * inv_half
+                tsxx += bxp * bxp
+                tsxy += bxp * byp
+                tsyy += byp * byp
+                tbxx += bxp * xp
+                tbxr += bxp * rp
+                tbyx += byp * xp
+                tbyr += byp * rp
                 wgt = max(xp - half_top, 0.0)
                 sw += wgt
                 swx += wgt * xx
                 swy += wgt * yy
-                if xx * xx + yy * yy <= rdisc2:
-                    var_d += (xp - mean_d) * (xp - mean_d) * vp
-                xs = xp / an
-                mse += (xs - rp) * (xs - rp) * vp
-                sxs += xs * vp
-                if vp > 0:
-                    bi = np.int64((x[p] / top_s) * np.float32(ENTROPY_BINS))
-                    counts[min(max(bi, 0), ENTROPY_BINS - 1)] += 1.0
-        s = max(sw, 1e-30)
-        mx = swx / s
-        my = swy / s
-        mxs = sxs / n
-        # --- pass 3: second moments and (co)variances about those means
-        cxx = cyy = cxy = vx = vr = cov = 0.0
-        for i in range(h):
-            uy = i - qy - my
+                swxx += wgt * xx * xx
+                swyy += wgt * yy * yy
+                swxy += wgt * xx * yy
+        # --- gradient energy (np.gradient, edge_order 1, both axes)
+        ge = 0.0
+        if w > 1:
+            for i in range(h):
+                b0 = i * w
+                e = x[b0 + 1] - x[b0]
+                ge += e * e
+                e = x[b0 + w - 1] - x[b0 + w - 2]
+                ge += e * e
+                for j in range(1, w - 1):
+                    e = 0.5 * (x[b0 + j + 1] - x[b0 + j - 1])
+                    ge += e * e
+        if h > 1:
             for j in range(w):
-                p = i * w + j
-                xp = np.float64(x[p])
-                vp = v[p]
-                ux = j - qx - mx
-                wgt = max(xp - half_top, 0.0)
-                cxx += wgt * ux * ux
-                cyy += wgt * uy * uy
-                cxy += wgt * ux * uy
-                dxm = (xp / an - mxs) * vp
-                drm = (r[p] - mr) * vp
-                vx += dxm * dxm
-                vr += drm * drm
-                cov += dxm * drm
+                e = x[w + j] - x[j]
+                ge += e * e
+                e = x[(h - 1) * w + j] - x[(h - 2) * w + j]
+                ge += e * e
+            for i in range(1, h - 1):
+                for j in range(w):
+                    e = 0.5 * (x[(i + 1) * w + j] - x[(i - 1) * w + j])
+                    ge += e * e
+        # --- entropy: bins follow NumPy's float32 arithmetic, int(x / top * 32) clipped to 0..31
+        # (four interleaved histograms: neighbouring pixels often share a bin, and one histogram would
+        # serialize on its counter)
+        counts[:] = 0
+        top_s = top if top > 0 else np.float32(1.0)
+        for p in range(npx):
+            if v[p] > 0:
+                bi = np.int64((x32[p] / top_s) * np.float32(ENTROPY_BINS))
+                counts[p & 3, min(max(bi, 0), ENTROPY_BINS - 1)] += 1
         o = out[k]
-        lost = not (flux > 0) or nv < 0.5 * npx
-        if lost:
+        if not (flux > 0) or nv < 0.5 * npx:
             for q in range(N_INDEX):
                 o[q] = nan
             continue
+        a = sxr / max(srr, 1e-30)
+        an = a if a != 0 else nan
+        inv_an = 1.0 / an
+        n = max(nv, 1.0)
         o[0] = flux
         o[1] = flux / n
-        o[2] = 1.0 - math.sqrt(var_d / max(nd, 1.0)) / (mean_d if mean_d > 0 else nan)
-        total = 0.0
+        ndc = max(nd, 1.0)
+        mean_d = sxd / ndc
+        var_d = max((sx2d - 2.0 * mean_d * sxd + mean_d * mean_d * nd) / ndc, 0.0)
+        o[2] = 1.0 - math.sqrt(var_d) / (mean_d if mean_d > 0 else nan)
+        total = 0
         for b in range(ENTROPY_BINS):
-            total += counts[b]
-        total = max(total, 1.0)
+            total += counts[0, b] + counts[1, b] + counts[2, b] + counts[3, b]
+        total = max(total, 1)
         ent = 0.0
         for b in range(ENTROPY_BINS):
-            if counts[b] > 0:
-                pb = counts[b] / total
+            cb = counts[0, b] + counts[1, b] + counts[2, b] + counts[3, b]
+            if cb > 0:
+                pb = cb / total
                 ent -= pb * math.log2(pb)
         o[3] = ent
         o[4] = ge / max(sg2 * a * a, 1e-30)
         o[5] = dx
         o[6] = dy
         o[7] = math.hypot(dx, dy) * um_per_px
-        cxx /= s
-        cyy /= s
-        cxy /= s
+        s = max(sw, 1e-30)
+        mx = swx / s
+        my = swy / s
+        cxx = (swxx - 2.0 * mx * swx + mx * mx * sw) / s
+        cyy = (swyy - 2.0 * my * swy + my * my * sw) / s
+        cxy = (swxy - mx * swy - my * swx + mx * my * sw) / s
         tr = cxx + cyy
         dt = cxx * cyy - cxy * cxy
         disc = math.sqrt(max(tr * tr / 4 - dt, 0.0))
         l1 = tr / 2 + disc
         l2 = max(tr / 2 - disc, 0.0)
-        o[8] = math.sqrt(tr)
+        o[8] = math.sqrt(max(tr, 0.0))
         o[9] = 1.0 - math.sqrt(l2 / (l1 if l1 > 0 else nan))
-        o[10] = sblur / max(slap2, 1e-30) / an
+        o[10] = (sxl - a * srl) / max(slap2, 1e-30) * inv_an
+        tpx = tbxx - a * tbxr
+        tpy = tbyx - a * tbyr
         tdet = tsxx * tsyy - tsxy * tsxy
         tdet = tdet if abs(tdet) > 1e-30 else np.inf
-        o[11] = (tsyy * tpx - tsxy * tpy) / tdet / an
-        o[12] = (tsxx * tpy - tsxy * tpx) / tdet / an
-        mse /= n
-        vx /= n
-        vr /= n
-        cov /= n
+        o[11] = (tsyy * tpx - tsxy * tpy) / tdet * inv_an
+        o[12] = (tsxx * tpy - tsxy * tpx) / tdet * inv_an
+        # full reference against xs = x / a: means, mse, (co)variances from raw sums
+        mxs = flux * inv_an / n
+        mr = srv / n
+        sxs2 = sx2 * inv_an * inv_an
+        sxsr = sxr * inv_an
+        mse = (sxs2 - 2.0 * sxsr + srr) / n
+        vx = max((sxs2 - 2.0 * mxs * flux * inv_an + mxs * mxs * nv) / n, 0.0)
+        vr = max((srr - 2.0 * mr * srv + mr * mr * nv) / n, 0.0)
+        cov = (sxsr - mr * flux * inv_an - mxs * srv + mxs * mr * nv) / n
         c1 = (0.01 * peak) ** 2
         c2 = (0.03 * peak) ** 2
-        o[13] = 10.0 * np.log10(peak * peak / mse)
+        o[13] = 10.0 * np.log10(peak * peak / max(mse, 0.0))
         o[14] = ((2 * mxs * mr + c1) * (2 * cov + c2)) / ((mxs * mxs + mr * mr + c1) * (vx + vr + c2))
         o[15] = cov / math.sqrt(vx * vr)
 

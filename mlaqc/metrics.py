@@ -52,6 +52,28 @@ def _template_stack(model: ReferenceModel) -> tuple[np.ndarray, int, int]:
     return cached
 
 
+_PHASE_PAD = 8  # zero margin (coarse px) of the phase tables: windows shifted up to ~15 px stay on the fast path
+
+
+def _phase_tables(model: ReferenceModel) -> np.ndarray:
+    """The four template tables decimated per sub-pixel phase: [k, pr, pc] is table k's every
+    oversample-th row from pr and column from pc, zero-padded by _PHASE_PAD, so that a lens' window is a
+    contiguous block (cached on the model object)."""
+    cached = getattr(model, "_phases", None)
+    if cached is None:
+        stack, size, _c = _template_stack(model)
+        os_ = int(model.oversample)
+        full = stack.reshape(4, size, size)
+        n = -(-size // os_)
+        cached = np.zeros((4, os_, os_, n + 2 * _PHASE_PAD, n + 2 * _PHASE_PAD), np.float32)
+        for pr in range(os_):
+            for pc in range(os_):
+                blk = full[:, pr::os_, pc::os_]
+                cached[:, pr, pc, _PHASE_PAD:_PHASE_PAD + blk.shape[1], _PHASE_PAD:_PHASE_PAD + blk.shape[2]] = blk
+        object.__setattr__(model, "_phases", cached)
+    return cached
+
+
 def reference_images(model: ReferenceModel, cx: np.ndarray, cy: np.ndarray, h: int, w: int) -> np.ndarray:
     """Only the reference sub-image (float32, cx.shape + (h, w)) of `reference_windows`, gathered by a
     compiled loop: the report needs it for every lens, and the gradient tables would be 4x the work."""
@@ -71,13 +93,15 @@ def compute_metrics(img: np.ndarray, cx: np.ndarray, cy: np.ndarray, model: Refe
     One compiled pass per lens (mlaqc.lens_kernels.lens_indexes); chunks of lenses run on a thread pool
     (the kernel releases the GIL). Only the flux normalization needs all lenses and is done after."""
     stack, size, c = _template_stack(model)
+    phases = _phase_tables(model)
     rows, cols, h, w = img.shape
     n = rows * cols
     data = np.ascontiguousarray(img, dtype=np.float32).reshape(n, h, w)
     fx = np.ascontiguousarray(cx, dtype=np.float64).ravel()
     fy = np.ascontiguousarray(cy, dtype=np.float64).ravel()
     out = np.empty((n, N_INDEX))
-    run = partial(lens_indexes, data, fx, fy, stack, size, c, int(model.oversample), float(um_per_px_at_mla), steps)
+    run = partial(lens_indexes, data, fx, fy, stack, size, c, int(model.oversample), phases, _PHASE_PAD,
+                  float(um_per_px_at_mla), steps)
     workers = max(1, min(threads or os.cpu_count() or 1, n // 256 or 1))
     # a few chunks per worker keep both cores busy when one is slowed by other work on the machine
     edges = np.linspace(0, n, 4 * workers + 1 if workers > 1 else 2).astype(int)
