@@ -36,15 +36,17 @@ def ring_residual_sample(x, r0, c0, step, sample):
     pw = (width - c0 + step - 1) // step
     for a in range(sample.shape[0]):
         pi = 3 * a
+        above = x[r0 + step * _mirror(pi - 1, ph)]
+        row = x[r0 + step * pi]
+        below = x[r0 + step * _mirror(pi + 1, ph)]
         for b in range(sample.shape[1]):
             pj = 3 * b
-            s1 = 0.0
-            for di in range(-1, 2):
-                yi = r0 + step * _mirror(pi + di, ph)
-                for dj in range(-1, 2):
-                    if di != 0 or dj != 0:
-                        s1 += np.float64(x[yi, c0 + step * _mirror(pj + dj, pw)])
-            sample[a, b] = x[r0 + step * pi, c0 + step * pj] - np.float32(s1) / np.float32(8.0)
+            xm = c0 + step * _mirror(pj - 1, pw)
+            x0 = c0 + step * pj
+            xp = c0 + step * _mirror(pj + 1, pw)
+            s1 = (np.float64(above[xm]) + np.float64(above[x0]) + np.float64(above[xp]) + np.float64(row[xm])
+                  + np.float64(row[xp]) + np.float64(below[xm]) + np.float64(below[x0]) + np.float64(below[xp]))
+            sample[a, b] = row[x0] - np.float32(s1) / np.float32(8.0)
     lo = np.inf
     hi = -np.inf
     for pi in range(ph):
@@ -60,30 +62,52 @@ def hot_pixel_rows(x, r0, c0, step, noise, nsigma, row_start, row_stop, mask, me
     """Outliers of plane rows [row_start, row_stop): mask[y, x] = True and med[y, x] = the 3 x 3
     same-channel median (centre included) where a pixel stands more than nsigma * max(noise, structure)
     above the brightest or below the darkest of its 8 neighbours; structure = rms residual of the ring
-    about its least-squares plane (5 dof). row_bad[pi] counts the plane row's outliers."""
+    about its least-squares plane (5 dof). row_bad[pi] counts the plane row's outliers.
+
+    A first branch-free sweep over the row keeps only pixels outside their neighbours' range by more than
+    nsigma * noise (no pixel inside it can be an outlier, since structure >= 0); the full test runs on those."""
     height, width = x.shape
     ph = (height - r0 + step - 1) // step
     pw = (width - c0 + step - 1) // step
     ring = np.empty(8)
     nine = np.empty(9)
+    cand = np.empty(pw, np.bool_)
+    t = nsigma * noise
     for pi in range(row_start, row_stop):
         ym = r0 + step * _mirror(pi - 1, ph)
         y0 = r0 + step * pi
         yp = r0 + step * _mirror(pi + 1, ph)
+        above = x[ym]
+        row = x[y0]
+        below = x[yp]
+        for pj in range(1, pw - 1):
+            xm = c0 + step * (pj - 1)
+            x0 = xm + step
+            xp = x0 + step
+            hi = max(max(max(above[xm], above[x0]), max(above[xp], row[xm])),
+                     max(max(row[xp], below[xm]), max(below[x0], below[xp])))
+            lo = min(min(min(above[xm], above[x0]), min(above[xp], row[xm])),
+                     min(min(row[xp], below[xm]), min(below[x0], below[xp])))
+            centre = row[x0]
+            cand[pj] = (centre - hi > t) | (lo - centre > t)
+        cand[0] = True
+        cand[pw - 1] = True  # the mirrored edge columns go through the full test
         nbad = 0
         for pj in range(pw):
+            if not cand[pj]:
+                continue
             xm = c0 + step * _mirror(pj - 1, pw)
             x0 = c0 + step * pj
             xp = c0 + step * _mirror(pj + 1, pw)
-            ring[0] = x[ym, xm]
-            ring[1] = x[ym, x0]
-            ring[2] = x[ym, xp]
-            ring[3] = x[y0, xm]
-            ring[4] = x[y0, xp]
-            ring[5] = x[yp, xm]
-            ring[6] = x[yp, x0]
-            ring[7] = x[yp, xp]
-            centre = np.float64(x[y0, x0])
+            ring[0] = above[xm]
+            ring[1] = above[x0]
+            ring[2] = above[xp]
+            ring[3] = row[xm]
+            ring[4] = row[xp]
+            ring[5] = below[xm]
+            ring[6] = below[x0]
+            ring[7] = below[xp]
+            centre = np.float64(row[x0])
             s1 = 0.0
             lo = np.inf
             hi = -np.inf
@@ -91,8 +115,7 @@ def hot_pixel_rows(x, r0, c0, step, noise, nsigma, row_start, row_stop, mask, me
                 s1 += ring[q]
                 lo = min(lo, ring[q])
                 hi = max(hi, ring[q])
-            # cheap exit: inside the neighbours' range by more than nsigma * noise is never an outlier
-            if centre - hi <= nsigma * noise and lo - centre <= nsigma * noise:
+            if centre - hi <= t and lo - centre <= t:
                 continue
             mean = s1 / 8.0
             ss = 0.0

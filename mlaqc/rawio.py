@@ -659,17 +659,44 @@ def check_exposure(
             f"{frame.white_level} (limit {max_saturated_fraction:.1%}); reduce the exposure or the light."
         )
     sample = data[::3, ::3] if min(data.shape) >= 300 else data  # robust statistics need no more
-    excess = sample.astype(np.float32) - np.float32(frame.black_level)
-    bright = float(np.percentile(excess, 99.9))
-    median = float(np.median(excess))
-    lower = excess[excess <= median]
-    sigma = 1.4826 * float(np.median(median - lower)) if lower.size else 0.0
+    if sample.dtype.kind == "u":
+        bright, median, sigma = _integer_sample_stats(sample, frame.black_level)
+    else:
+        excess = sample.astype(np.float32) - np.float32(frame.black_level)
+        bright = float(np.percentile(excess, 99.9))
+        median = float(np.median(excess))
+        lower = excess[excess <= median]
+        sigma = 1.4826 * float(np.median(median - lower)) if lower.size else 0.0
     threshold = max(min(6.0 * sigma, 0.05 * span), min_signal_fraction * span, 1.0)
     if bright <= threshold:
         raise InputError(
             f"Frame {frame.source or '(in memory)'} is black: nothing rises above the black level "
             f"{frame.black_level} plus noise; check the light source, shutter and exposure."
         )
+
+
+def _integer_sample_stats(sample: np.ndarray, black: int) -> tuple[float, float, float]:
+    """(99.9th percentile, median, 1.4826 x median distance of the darker half below the median) of
+    sample - black, read from the histogram of the integer counts: the same order statistics as
+    np.percentile / np.median ('linear' interpolation), in about a millisecond instead of 15."""
+    hist = np.bincount(sample.ravel())
+    cum = np.cumsum(hist)
+    n = int(cum[-1])
+
+    def order(k: np.ndarray) -> np.ndarray:  # the k-th smallest counts (0-based)
+        return np.searchsorted(cum, np.asarray(k) + 1, side="left").astype(np.float64)
+
+    def quantile(q: float, m: int, offset: int = 0) -> float:  # numpy 'linear' quantile of the m smallest
+        pos = q * (m - 1)
+        lo = int(np.floor(pos))
+        a, b = order([offset + lo, offset + min(lo + 1, m - 1)])
+        return float(a + (b - a) * (pos - lo))
+
+    bright = quantile(0.999, n) - black
+    median = quantile(0.5, n) - black
+    m_low = int(cum[int(np.floor(median + black))]) if median + black >= 0 else 0  # counts <= median
+    sigma = 1.4826 * (median - (quantile(0.5, m_low) - black)) if m_low else 0.0
+    return bright, median, sigma
 
 
 # --------------------------------------------------------------------------------------------- processing
@@ -693,7 +720,9 @@ def normalized(frame: RawFrame) -> np.ndarray:
     colour) the gains are meaningless and the plain normalisation is returned.
     """
     span = np.float32(frame.white_level - frame.black_level)
-    out = (frame.data.astype(np.float32) - np.float32(frame.black_level)) / span
+    out = frame.data.astype(np.float32)  # then in place: the same float32 results, no temporaries
+    out -= np.float32(frame.black_level)
+    out /= span
     if frame.cfa is None:
         return out
     planes = cfa_planes(frame.cfa)
@@ -759,11 +788,22 @@ def suppress_hot_pixels(
     return cleaned, mask
 
 
+def _median(a: np.ndarray) -> np.floating:
+    """np.median of a 1-D array by one np.partition (np.median's own path is ~10x slower here)."""
+    if not np.isfinite(a).all():
+        return np.median(a)
+    k = a.size // 2
+    if a.size % 2:
+        return np.partition(a, k)[k]
+    part = np.partition(a, (k - 1, k))
+    return np.mean(part[k - 1 : k + 1])
+
+
 def _plane_noise(x: np.ndarray, r0: int, c0: int, step: int, ph: int, pw: int, integer: bool) -> float:
     """Robust sigma of one plane's residual against its 8-neighbour ring mean (var = sigma^2 (1 + 1/8)),
     from a 1-in-9 sample; floored at 1 count (integer data) or 1e-6 of the plane's range."""
     sample = np.empty(((ph + 2) // 3, (pw + 2) // 3), dtype=np.float32)
     lo, hi = ring_residual_sample(x, r0, c0, step, sample)
-    centre = np.median(sample)
-    noise = 1.4826 * float(np.median(np.abs(sample - centre))) / np.sqrt(1.125)
+    centre = _median(sample.ravel())
+    noise = 1.4826 * float(_median(np.abs(sample - centre).ravel())) / np.sqrt(1.125)
     return max(noise, 1.0 if integer else 1e-6 * ((hi - lo) or 1.0))
