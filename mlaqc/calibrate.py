@@ -72,6 +72,7 @@ N_SWEEPS = 3  # sweeps over every lens (the first unweighted)
 MAX_EXTRA = 10  # more sweeps, for the lenses not yet settled and their neighbours only
 SETTLED_PX = 0.02  # a lens has settled when its step is under this
 BAND = 1.5  # each lens is fitted on |r - R| <= BAND (+ a 0.5 px taper) round its rim
+RSS_MARGIN = 0.5  # its fit is rated this far beyond (a misfit rim shows just outside the band)
 WEIGHT_FLOOR = 0.05  # noise weights ~ 1 / signal, the signal floored at this fraction of the plateau
 COUPLED_PX = 0.3  # lenses this far off the lattice, and their neighbours, are fitted unweighted
 WIDE_EDGE = 1.0  # lenses the sharp edge cannot capture get an edge at least this wide for a while
@@ -392,13 +393,22 @@ def _refine_peak(a: np.ndarray, k: np.ndarray) -> tuple[np.ndarray, complex]:
 def _fft_lattice(img: np.ndarray, expected_pitch_px: float | None) -> _Lattice:
     """Pitch, rotation and offset of the sub-image lattice from the image's Fourier transform."""
     full_h, full_w = img.shape
-    # large frames of coarse lattices: 2x2 binning keeps every period (and the frame centre) but costs a
-    # quarter of the transform
-    binned = expected_pitch_px is not None and expected_pitch_px >= 10.0 and min(full_h, full_w) >= 1024
+    # large frames of coarse lattices: b x b binning keeps the fundamental periods (>= 5 binned px) and the
+    # frame centre, and costs 1 / b^2 of the transform and of the peak refinement
+    b = 1
+    if expected_pitch_px is not None:
+        while b < 4 and expected_pitch_px >= 10.0 * b and min(full_h, full_w) >= 1024 * b:
+            b *= 2
+    binned = b > 1
     if binned:
-        src = img[: full_h // 2 * 2, : full_w // 2 * 2]
-        src = 0.25 * (src[0::2, 0::2] + src[1::2, 0::2] + src[0::2, 1::2] + src[1::2, 1::2])
-        expected_pitch_px = 0.5 * expected_pitch_px
+        src = img[: full_h // b * b, : full_w // b * b]
+        acc = src[0::b, 0::b].copy()
+        for i in range(b):
+            for j in range(b):
+                if i or j:
+                    acc += src[i::b, j::b]  # strided adds: far faster than a reshaped mean
+        src = acc * np.float32(1.0 / (b * b))
+        expected_pitch_px = expected_pitch_px / b
     else:
         src = img
     h, w = src.shape
@@ -433,7 +443,7 @@ def _fft_lattice(img: np.ndarray, expected_pitch_px: float | None) -> _Lattice:
     if expected_pitch_px is not None:
         near = np.abs(kmag * expected_pitch_px - 1.0) <= PITCH_TOLERANCE
         if not near.any():
-            unit = 2.0 if binned else 1.0
+            unit = float(b)
             raise InputError(f"the microlens pitch in the image ({unit / kmag[0]:.2f} px) is far from the expected "
                              f"{unit * expected_pitch_px:.2f} px; check the camera config and the image")
         first = kvec[np.argmax(near)]
@@ -458,10 +468,10 @@ def _fft_lattice(img: np.ndarray, expected_pitch_px: float | None) -> _Lattice:
     if basis[1, 1] < 0:
         basis[:, 1] *= -1
         phase[1] *= -1
-    if binned:  # back to frame pixels: x = 2 x_binned + 0.5, the same centre for even frame sizes
-        basis *= 2.0
-        expected_pitch_px *= 2.0
-        h, w = full_h // 2 * 2, full_w // 2 * 2
+    if binned:  # back to frame pixels: x = b x_binned + (b - 1) / 2, the same centre for frame sizes of b n
+        basis *= b
+        expected_pitch_px *= b
+        h, w = full_h // b * b, full_w // b * b
     pitch = np.hypot(basis[0], basis[1])
     if pitch.min() < MIN_PITCH_PX:
         raise InputError(f"the periodic structure in the image ({pitch.min():.2f} px) is too fine for microlenses")
@@ -612,8 +622,9 @@ class _DiscFit:
         self.slope_x = np.where(active, grad[0] * self.r_norm, 0.0)
         self.slope_y = np.where(active, grad[1] * self.r_norm, 0.0)
 
-    def _normals(self, idx: np.ndarray, edge: float, weighted: bool, fit_edge: bool):
-        """Normal equations (n, 5, 5), right-hand sides (n, 5) of lenses `idx` against the frame residual.
+    def _normals(self, idx: np.ndarray, edge: float, weighted: bool, fit_edge: bool, rss_band: float = 0.0):
+        """Normal equations (n, 5, 5), right-hand sides (n, 5) of lenses `idx` against the frame residual;
+        notes each lens' residual sum of squares (over |r - R| < rss_band if that is wider than the fit).
 
         Parameters per lens: amplitude, centre x and y, radius (+ the global edge width in slot 4)."""
         inv_edge = np.full(self.n, 1.0 / edge)
@@ -629,7 +640,7 @@ class _DiscFit:
 
         def block(b: slice) -> None:
             kernels.disc_normals(self.img, idx[b], self.cx, self.cy, self.amp, self.radius, inv_edge, sx, sy,
-                                 self.neighbours, self.coupled, wide, self.band + 0.5, weighted, fit_edge,
+                                 self.neighbours, self.coupled, wide, self.band + 0.5, rss_band, weighted, fit_edge,
                                  WEIGHT_FLOOR, normal[b], rhs[b], rss[b], npix[b])
 
         self._map(block, idx)
@@ -638,7 +649,8 @@ class _DiscFit:
             return normal[:, :N_LENS_PARAMS, :N_LENS_PARAMS], rhs[:, :N_LENS_PARAMS]
         return normal, rhs
 
-    def sweep(self, edge: float | None, active: np.ndarray, weighted: bool, lenses: np.ndarray | None = None) -> None:
+    def sweep(self, edge: float | None, active: np.ndarray, weighted: bool, lenses: np.ndarray | None = None,
+              rss_band: float = 0.0) -> None:
         """One Gauss-Newton step for every lens (or `lenses`), red-black: lenses of one lattice colour step
         together, then the other colour steps against their new positions (side neighbours, whose discs
         overlap, never step at the same time, so strongly overlapping pairs cannot run away)."""
@@ -646,15 +658,16 @@ class _DiscFit:
         for colour in (0, 1):
             part = idx[self.colour[idx] == colour]
             if part.size:
-                self.iterate(edge, active, weighted, part)
+                self.iterate(edge, active, weighted, part, rss_band)
 
-    def iterate(self, edge: float | None, active: np.ndarray, weighted: bool, idx: np.ndarray) -> None:
+    def iterate(self, edge: float | None, active: np.ndarray, weighted: bool, idx: np.ndarray,
+                rss_band: float = 0.0) -> None:
         """One Gauss-Newton step for lenses `idx` (inactive ones: amplitude only), the others held; with
         `edge` None the global edge width steps too (eliminated exactly through each lens' block)."""
         if edge is not None:
             self.edge = edge
         s = self.edge
-        normal, rhs = self._normals(idx, s, weighted, edge is None)
+        normal, rhs = self._normals(idx, s, weighted, edge is None, rss_band)
         act = active[idx]
         npar = N_LENS_PARAMS
         diag = np.arange(npar)
@@ -820,7 +833,10 @@ def _measure(img: np.ndarray, px: np.ndarray, py: np.ndarray, lat_j: np.ndarray,
                 fit.set_slopes(lat_j, lat_i, basis, active)
                 off = active & (np.hypot(fit.cx - lattice_x, fit.cy - lattice_y) > COUPLED_PX)
                 fit.coupled[_with_neighbours(np.flatnonzero(off), side)] = True
-            fit.sweep(fit.edge, active, weighted=it >= 1)  # the edge width is known from the block
+                # a new objective (weights, slopes): its first step is no oscillation to damp
+                fit.prev_step[:] = 0.0
+            # the edge width is known from the block; the last sweep also rates each lens' fit
+            fit.sweep(fit.edge, active, weighted=it >= 1, rss_band=band + 0.5 + RSS_MARGIN if it == N_SWEEPS - 1 else 0.0)
         # lenses the sharp edge cannot pull in (beyond ~1 px off the lattice: big defects) fit badly; they
         # are captured with a wide edge of their own, then refined; only they and their neighbours step
         per_px = fit.rss / np.maximum(fit.npix, 1)
@@ -984,7 +1000,6 @@ def _fit_model(u, v, x, y, centre, lattice: _Lattice, start, shape):
     """Robust least-squares fit of the global model to the measured centres.
 
     Returns (homography for raw lattice coordinates, radial k, radial scale, used mask, rms residual)."""
-    from scipy.optimize import least_squares
 
     rows, cols = shape
     full = u.size >= 100 and rows >= 8 and cols >= 8
@@ -1012,37 +1027,61 @@ def _fit_model(u, v, x, y, centre, lattice: _Lattice, start, shape):
         mx_, my_ = _model_xy(hm, kk, centre, scale, un[sel], vn[sel])
         return np.concatenate([mx_ - x[sel], my_ - y[sel]])
 
-    def jac(p, sel):
-        """Analytic Jacobian of `resid` (rows: x then y residuals; columns: the 9 parameters)."""
+    def normal_equations(p, sel):
+        """Gauss-Newton normal equations J^T J, J^T r and the cost r^T r of `resid` (analytic Jacobian;
+        columns: the 9 parameters, the radial one only in the full model)."""
         hm, kk = unpack(p)
         u_, v_ = un[sel], vn[sel]
-        w = hm[2, 0] * u_ + hm[2, 1] * v_ + 1.0
-        xp = (hm[0, 0] * u_ + hm[0, 1] * v_ + hm[0, 2]) / w
-        yp = (hm[1, 0] * u_ + hm[1, 1] * v_ + hm[1, 2]) / w
+        inv_w = 1.0 / (hm[2, 0] * u_ + hm[2, 1] * v_ + 1.0)
+        xp = (hm[0, 0] * u_ + hm[0, 1] * v_ + hm[0, 2]) * inv_w
+        yp = (hm[1, 0] * u_ + hm[1, 1] * v_ + hm[1, 2]) * inv_w
         dx, dy = xp - centre[0], yp - centre[1]
-        rho2 = (dx * dx + dy * dy) / (scale * scale)
+        rho2 = (dx * dx + dy * dy) * (1.0 / (scale * scale))
         f = 1.0 + kk * rho2
         g = 2.0 * kk / (scale * scale)
         xx, xy, yy = f + g * dx * dx, g * dx * dy, f + g * dy * dy  # d(X, Y) / d(x', y')
-        hx = np.stack([u_ / w, v_ / w, 1.0 / w], 1)  # d x' / d h0*, and d y' / d h1*
-        hw = np.stack([-u_ / w, -v_ / w], 1)  # d x' / d h2* = x' * this, d y' / d h2* = y' * this
-        out = np.zeros((2 * u_.size, 9))
-        n_ = u_.size
-        out[:n_, 0:3] = xx[:, None] * hx
-        out[:n_, 3:6] = xy[:, None] * hx
-        out[:n_, 6:8] = (xx * xp + xy * yp)[:, None] * hw
-        out[n_:, 0:3] = xy[:, None] * hx
-        out[n_:, 3:6] = yy[:, None] * hx
-        out[n_:, 6:8] = (xy * xp + yy * yp)[:, None] * hw
+        rx, ry = centre[0] + dx * f - x[sel], centre[1] + dy * f - y[sel]
+        hx = np.stack([u_ * inv_w, v_ * inv_w, inv_w])  # d x' / d h0*, and d y' / d h1*
+        ax, ay = -(xx * xp + xy * yp), -(xy * xp + yy * yp)  # times hx[:2]: d / d h2*
+        npar = 9 if full else 8
+        jx, jy = np.empty((npar, u_.size)), np.empty((npar, u_.size))  # Jacobian rows of x and y, transposed
+        jx[0:3], jx[3:6], jx[6:8] = xx * hx, xy * hx, ax * hx[:2]
+        jy[0:3], jy[3:6], jy[6:8] = xy * hx, yy * hx, ay * hx[:2]
         if full:
-            out[:n_, 8] = dx * rho2
-            out[n_:, 8] = dy * rho2
-        return out
+            jx[8], jy[8] = dx * rho2, dy * rho2
+        jtj, jtr = np.zeros((9, 9)), np.zeros(9)
+        jtj[:npar, :npar] = jx @ jx.T + jy @ jy.T
+        jtr[:npar] = jx @ rx + jy @ ry
+        return jtj, jtr, float(rx @ rx + ry @ ry)
+
+    def gauss_newton(p, sel):
+        """Least squares from the affine start (the model is nearly linear: a few steps), column-scaled,
+        with step halving should a step not lower the cost."""
+        npar = 9 if full else 8
+        p = p.copy()
+        jtj, jtr, cost = normal_equations(p, sel)
+        for _ in range(20):
+            d = np.sqrt(np.diag(jtj)[:npar]) + 1e-300
+            a = jtj[:npar, :npar] / np.outer(d, d) + 1e-12 * np.eye(npar)
+            step = np.zeros(9)
+            step[:npar] = -np.linalg.solve(a, jtr[:npar] / d) / d
+            if -float(step @ jtr) <= 1e-12 * cost:  # the predicted decrease: nothing left to gain
+                break
+            for _ in range(10):
+                new = p + step
+                jtj_n, jtr_n, cost_n = normal_equations(new, sel)
+                if cost_n <= cost:
+                    break
+                step *= 0.5
+            else:
+                break
+            p, jtj, jtr, cost = new, jtj_n, jtr_n, cost_n
+        return p
 
     p = np.array([hn[0, 0], hn[0, 1], hn[0, 2], hn[1, 0], hn[1, 1], hn[1, 2], 0.0, 0.0, 0.0])
     for _ in range(4):
         if full:
-            p = least_squares(resid, p, jac=jac, args=(used,), method="lm", x_scale="jac").x
+            p = gauss_newton(p, used)
         else:
             d = np.stack([np.ones(used.sum()), un[used], vn[used]], 1)
             ax = np.linalg.lstsq(d, x[used], rcond=None)[0]

@@ -44,7 +44,7 @@ def _disc(u: float, v: float, amp: float, radius: float, inv: float, sx: float, 
 
 @njit(cache=True, nogil=True, error_model="numpy", fastmath=True)
 def disc_normals(img, lenses, cx, cy, amp, radius, inv_edge, slope_x, slope_y, neighbours, coupled,
-                 wide, half_band, weighted, fit_edge, floor, normal, rhs, rss, npix):
+                 wide, half_band, rss_band, weighted, fit_edge, floor, normal, rhs, rss, npix):
     """Normal equations of lenses `lenses` against the frame `img` (float32, (h, w)).
 
     Per lens k, over the pixels with |r - radius_k| < half_band about its current centre (inside the
@@ -53,14 +53,16 @@ def disc_normals(img, lenses, cx, cy, amp, radius, inv_edge, slope_x, slope_y, n
     weights (if `weighted`) amp / max(model, floor * amp), or 1 for `coupled` lenses;
     Jacobian columns: amplitude, centre x, centre y, radius (+ the edge width if `fit_edge`, zero for
     `wide` lenses). Slopes are per pixel of offset (the caller's slope per radius / radius).
-    Writes normal[t] (5, 5), rhs[t] (5,), rss[t] (unweighted residual sum of squares), npix[t].
+    Writes normal[t] (5, 5), rhs[t] (5,), and rss[t], npix[t]: the unweighted residual sum of squares over
+    the npix pixels with |r - radius_k| < max(half_band, rss_band) (a fit-quality figure).
     Per lens: gather the annulus' pixels (row spans), evaluate its own disc, add the neighbours' on the
     spans they reach, then one pass accumulates residuals, weights and Jacobian products."""
     h, w = img.shape
     n_nb = neighbours.shape[1]
     nb = np.empty(n_nb, np.int64)
     nb_reach2 = np.empty(n_nb)
-    side = 2 * math.ceil(np.max(radius) + half_band) + 3
+    reach_band = max(half_band, rss_band)
+    side = 2 * math.ceil(np.max(radius) + reach_band) + 3
     cap = side * side
     uu, vv, val = np.empty(cap), np.empty(cap), np.empty(cap)
     ee, mod = np.empty(cap), np.empty(cap)  # the lens' own rim profile, the model of all discs
@@ -70,8 +72,8 @@ def disc_normals(img, lenses, cx, cy, amp, radius, inv_edge, slope_x, slope_y, n
         k = lenses[t]
         ck_x, ck_y, a_k, r_k, inv = cx[k], cy[k], amp[k], radius[k], inv_edge[k]
         sx, sy = slope_x[k], slope_y[k]
-        outer = r_k + half_band
-        inner = max(r_k - half_band, 0.0)
+        outer = r_k + reach_band
+        inner = max(r_k - reach_band, 0.0)
         # neighbours whose disc can reach this lens' annulus
         count = 0
         for q in range(n_nb):
@@ -155,7 +157,7 @@ def disc_normals(img, lenses, cx, cy, amp, radius, inv_edge, slope_x, slope_y, n
             r = math.sqrt(u * u + v * v) + 1e-4
             d = r - r_k
             wp = min(half_band - abs(d), 1.0)
-            inside = 1.0 if wp > 0.0 else 0.0
+            inside = 1.0 if abs(d) < reach_band else 0.0
             wp = max(wp, 0.0)
             rp = val[p] - mp
             ss += inside * rp * rp
