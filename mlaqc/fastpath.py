@@ -39,6 +39,9 @@ IMAGE_SIDE, POINT, OBJECT_SIDE = 0, 1, 2
  S_C1, S_C2, S_T, S_N, S_RIM2, S_FRES, S_ZOBJ, S_TEXHX, S_TEXHY,
  S_P, S_AX0, S_AY0, S_ROWS, S_COLS, S_ZFRONT, S_NMLA, S_CLEAR, S_SHIFTX,
  S_ZMLA, S_SHIFTY, S_ZSENS, S_PIX, S_SX0, S_SY0, S_W, S_H, S_INVP, S_INVPIX, S_COUNT) = range(39)
+# Rows of the per-block scratch table `g`: the gathered parameters of each ray's lens (tab rows 0..6), its
+# current hit and direction in the lens frame, the distance t to it (NaN on a miss), and its pixel.
+G_FX, G_FY, G_DX, G_DY, G_C1, G_C2, G_ZR, G_HX, G_HY, G_HZ, G_LL, G_LM, G_LN, G_T, G_ROW, G_COL, G_COUNT = range(17)
 
 
 @_jit_inline
@@ -140,8 +143,11 @@ def draw(key, i, d):
     z = key + (np.uint64(4) * np.uint64(i) + np.uint64(d + 1)) * GAMMA
     z = (z ^ (z >> np.uint64(30))) * MIX1
     z = (z ^ (z >> np.uint64(27))) * MIX2
-    z = z ^ (z >> np.uint64(31))
-    return np.float64(z >> np.uint64(11)) * TO_UNIT
+    z = (z ^ (z >> np.uint64(31))) >> np.uint64(11)
+    # float64(z) exactly, from two halves that fit an int32: AVX2 converts those four at a time, not 64-bit ones
+    hi = np.float64(np.int32(z >> np.uint64(26)))
+    lo = np.float64(np.int32(z & np.uint64(0x3FFFFFF)))
+    return (hi * 67108864.0 + lo) * TO_UNIT
 
 
 @_jit_inline
@@ -152,20 +158,21 @@ def cos_sin_2pi(u):
     a = (v - q) * HALF_PI
     a2 = a * a
     c, sn = poly_cos(a2), poly_sin(a, a2)
-    iq = int(q) & 3
-    swap = (iq & 1) == 1
+    iq = q - 4.0 if q >= 4.0 else q  # q mod 4 (q is 0..4), kept a float so that the loop vectorizes
+    swap = (iq == 1.0) | (iq == 3.0)
     cc = sn if swap else c
     ss = c if swap else sn
-    cc = -cc if (iq == 1 or iq == 2) else cc
-    ss = -ss if iq >= 2 else ss
+    cc = -cc if ((iq == 1.0) | (iq == 2.0)) else cc
+    ss = -ss if iq >= 2.0 else ss
     return cc, ss
 
 
 @_jit_inline
-def stage1_image_side(start, m, s, key, buf, fres, texture):
+def stage1_image_side(start, m, s, key, buf, fres, texture, g):
     """Rays from the rear aperture to the MLA, traced back through the main lens for their weight.
 
-    Branch-free with loop-invariant scalars, so the loop vectorizes."""
+    Three branch-free loops (sampling, rear surface, front surface) that vectorize; split because one loop
+    holding the whole chain of square roots and divisions was bound by its latency. `g` is scratch."""
     x0, dx_span, y0, dy_span = s[S_X0], s[S_X1] - s[S_X0], s[S_Y0], s[S_Y1] - s[S_Y0]
     rp, zs, dz = s[S_RPUPIL], s[S_ZSTART], s[S_ZSTART] - s[S_ZEXIT]
     t_main, c1, c2, n, rim2, zobj = s[S_T], s[S_C1], s[S_C2], s[S_N], s[S_RIM2], s[S_ZOBJ]
@@ -180,12 +187,16 @@ def stage1_image_side(start, m, s, key, buf, fres, texture):
         dy = y - rad * sph
         inv = 1.0 / math.sqrt(dx * dx + dy * dy + dz * dz)
         L, M, N = dx * inv, dy * inv, dz * inv
-        w = (N * N) * (N * N)
-        bx, by, bz, bL, bM, bN, tr = main_surface(x, y, zs, -L, -M, -N, t_main, c2, 1.0, n, mu_in, rim2, fres)
-        w *= tr
-        bx, by, bz, bL, bM, bN, tr = main_surface(bx, by, bz, bL, bM, bN, 0.0, c1, n, 1.0, mu_out, rim2, fres)
-        w *= tr
-        buf[0, j], buf[1, j], buf[2, j], buf[3, j], buf[4, j], buf[5, j], buf[6, j] = x, y, zs, L, M, N, w
+        buf[0, j], buf[1, j], buf[2, j], buf[3, j], buf[4, j], buf[5, j], buf[6, j] = x, y, zs, L, M, N, (N * N) * (N * N)
+    for j in range(m):
+        bx, by, bz, bL, bM, bN, tr = main_surface(buf[0, j], buf[1, j], zs, -buf[3, j], -buf[4, j], -buf[5, j],
+                                                   t_main, c2, 1.0, n, mu_in, rim2, fres)
+        buf[6, j] *= tr
+        g[G_HX, j], g[G_HY, j], g[G_HZ, j], g[G_LL, j], g[G_LM, j], g[G_LN, j] = bx, by, bz, bL, bM, bN
+    for j in range(m):
+        bx, by, bz, bL, bM, bN, tr = main_surface(g[G_HX, j], g[G_HY, j], g[G_HZ, j], g[G_LL, j], g[G_LM, j],
+                                                   g[G_LN, j], 0.0, c1, n, 1.0, mu_out, rim2, fres)
+        buf[6, j] *= tr
         if texture is not None:  # pruned at compile time when there is no texture
             t = (zobj - bz) / bN
             buf[7, j], buf[8, j] = bx + t * bL, by + t * bM
@@ -224,11 +235,6 @@ def stage1_forward(start, m, mode, s, key, buf, fres, texture):
         buf[7, j], buf[8, j] = ox, oy
 
 
-# Rows of the per-block scratch table `g`: the gathered parameters of each ray's lens (tab rows 0..6), its
-# current hit and direction in the lens frame, the distance t to it (NaN on a miss), and its pixel.
-G_FX, G_FY, G_DX, G_DY, G_C1, G_C2, G_ZR, G_HX, G_HY, G_HZ, G_LL, G_LM, G_LN, G_T, G_ROW, G_COL, G_COUNT = range(17)
-
-
 @_jit_inline
 def rot_t(r00, r01, r02, r10, r11, r12, r20, r21, r22, x, y, z):
     """R^T v, as to_lens writes it (scalars only: helpers of the vectorized passes never take arrays)."""
@@ -244,8 +250,8 @@ def rot_n(r00, r01, r02, r10, r11, r12, r20, r21, r22, x, y, z):
 @_jit_inline
 def cell_f(x, y, ax0, ay0, invp, ncols, nrows):
     """Flat lens index as a float, -1.0 off the array (NaN too): branch-free, unlike `cell`."""
-    col = math.floor((x - ax0) * invp)
-    row = math.floor((y - ay0) * invp)
+    col = np.floor((x - ax0) * invp)  # np.floor stays a float: math.floor's int64 does not vectorize on AVX2
+    row = np.floor((y - ay0) * invp)
     on = (col >= 0.0) & (col < ncols) & (row >= 0.0) & (row < nrows)
     return row * ncols + col if on else -1.0
 
@@ -302,7 +308,7 @@ def stage2_block(m, buf, s, tab, rot, grot, clear, fres, n_mla, mu_in, g, kk, fl
         z += t * N
         kf = cell_f(x, y, ax0, ay0, invp, ncols, nrows)
         alive = (w > 0.0) & (kf >= 0.0)  # w > 0 also rejects NaN
-        kk[j] = int(kf) if alive else 0
+        kk[j] = np.int32(kf) if alive else np.int32(0)  # int32: converts four at a time on AVX2
         buf[0, j], buf[1, j], buf[2, j], buf[3, j], buf[4, j], buf[5, j] = x, y, z, L, M, N
         buf[6, j] = w if alive else 0.0
     for j in range(m):
@@ -326,7 +332,7 @@ def stage2_block(m, buf, s, tab, rot, grot, clear, fres, n_mla, mu_in, g, kk, fl
         k2 = cell_f(gx + fx, gy + fy, ax0, ay0, invp, ncols, nrows)
         flag[j] = (buf[6, j] > 0.0) & (t == t) & (k2 >= 0.0) & (k2 != kk[j])
     retrace_neighbours(m, flag, kk, buf, g, tab, rot, s, False)
-    # --- C: corner test, front refraction, back to the MLA frame, rear surface ---
+    # --- C: corner test, front refraction, back to the MLA frame ---
     for j in range(m):
         w = buf[6, j]
         hx, hy, hz, lL, lM, lN, t = g[G_HX, j], g[G_HY, j], g[G_HZ, j], g[G_LL, j], g[G_LM, j], g[G_LN, j], g[G_T, j]
@@ -351,9 +357,15 @@ def stage2_block(m, buf, s, tab, rot, grot, clear, fres, n_mla, mu_in, g, kk, fl
         buf[0, j], buf[1, j], buf[2, j], buf[3, j], buf[4, j], buf[5, j] = x, y, z, L, M, N
         buf[6, j] = w if alive else 0.0
         corner_of[j] = corner
-        # rear surface, same lens
+    # --- C': rear surface of the same lens; flag hits that fall in another cell ---
+    for j in range(m):
+        x, y, z, L, M, N = buf[0, j], buf[1, j], buf[2, j], buf[3, j], buf[4, j], buf[5, j]
+        fx, fy, vx, vy, c2, vz = g[G_FX, j], g[G_FY, j], g[G_DX, j], g[G_DY, j], g[G_C2, j], g[G_ZR, j]
         px, py, pz = x - fx, y - fy, z
         if rot is not None:
+            k = kk[j]
+            r00, r01, r02, r10, r11, r12, r20, r21, r22 = (rot[k, 0, 0], rot[k, 0, 1], rot[k, 0, 2], rot[k, 1, 0],
+                                                           rot[k, 1, 1], rot[k, 1, 2], rot[k, 2, 0], rot[k, 2, 1], rot[k, 2, 2])
             px, py, pz = rot_t(r00, r01, r02, r10, r11, r12, r20, r21, r22, px, py, pz)
             L, M, N = rot_t(r00, r01, r02, r10, r11, r12, r20, r21, r22, L, M, N)
         t = sphere_t(px - vx, py - vy, pz - vz, L, M, N, c2)
@@ -363,7 +375,7 @@ def stage2_block(m, buf, s, tab, rot, grot, clear, fres, n_mla, mu_in, g, kk, fl
         if rot is not None:
             gx, gy, _ = rot_n(r00, r01, r02, r10, r11, r12, r20, r21, r22, hx, hy, hz)
         k2 = cell_f(gx + fx, gy + fy, ax0, ay0, invp, ncols, nrows)
-        flag[j] = alive & (not corner) & (t == t) & (k2 >= 0.0) & (k2 != kk[j])
+        flag[j] = (buf[6, j] > 0.0) & (not corner_of[j]) & (t == t) & (k2 >= 0.0) & (k2 != kk[j])
     retrace_neighbours(m, flag, kk, buf, g, tab, rot, s, True)
     # --- D: rear refraction (corners go on straight), back to the camera frame, onto the sensor ---
     for j in range(m):
@@ -395,22 +407,25 @@ def stage2_block(m, buf, s, tab, rot, grot, clear, fres, n_mla, mu_in, g, kk, fl
         t = (zsens - z) / N
         x += t * L
         y += t * M
-        col = math.floor((x - sx0) * invpix)
-        row = math.floor((y - sy0) * invpix)
+        col = np.floor((x - sx0) * invpix)
+        row = np.floor((y - sy0) * invpix)
         landed = alive & (w > 0.0) & (col >= 0.0) & (col < width) & (row >= 0.0) & (row < height)
         g[G_ROW, j] = row if landed else -1.0
-        g[G_COL, j] = col
+        g[G_COL, j] = col if landed else 0.0
         buf[6, j] = w
-    # --- E: append the hits (in ray order) and grow the bounding box ---
+    # --- E: append the hits (in ray order) and grow the bounding box; branch-free (7 % are lost at random) ---
+    r0, r1, c0, c1 = box[0], box[1], box[2], box[3]
     for j in range(m):
-        if g[G_ROW, j] >= 0.0:
-            r, c = int(g[G_ROW, j]), int(g[G_COL, j])
-            rows[nout], cols[nout], wts[nout] = r, c, buf[6, j]
-            nout += 1
-            box[0] = min(box[0], r)
-            box[1] = max(box[1], r)
-            box[2] = min(box[2], c)
-            box[3] = max(box[3], c)
+        row = g[G_ROW, j]
+        hit = row >= 0.0
+        r, c = np.int32(row), np.int32(g[G_COL, j])
+        rows[nout], cols[nout], wts[nout] = r, c, buf[6, j]  # overwritten by the next ray unless it landed
+        nout += 1 if hit else 0
+        r0 = min(r0, r) if hit else r0
+        r1 = max(r1, r) if hit else r1
+        c0 = min(c0, c) if hit else c0
+        c1 = max(c1, c) if hit else c1
+    box[0], box[1], box[2], box[3] = r0, r1, c0, c1
     return nout
 
 
@@ -429,14 +444,14 @@ def kernel(s, key, count, tab, rot, grot, texture, rows, cols, wts, box):
     tex_hx, tex_hy = s[S_TEXHX], s[S_TEXHY]
     buf = np.empty((9, BLOCK))
     g = np.empty((G_COUNT, BLOCK))
-    kk = np.empty(BLOCK, np.int64)
+    kk = np.empty(BLOCK, np.int32)
     flag = np.empty(BLOCK, np.bool_)
     corner_of = np.empty(BLOCK, np.bool_)
     nout = 0
     for start in range(0, count, BLOCK):
         m = min(BLOCK, count - start)
         if mode == IMAGE_SIDE:
-            stage1_image_side(start, m, s, key, buf, fres, texture)
+            stage1_image_side(start, m, s, key, buf, fres, texture, g)
         else:
             stage1_forward(start, m, mode, s, key, buf, fres, texture)
         if texture is not None:
