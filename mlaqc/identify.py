@@ -15,6 +15,9 @@ well (both signs defocus the lens) carries the other reading in `alternatives`.
 
 from __future__ import annotations
 
+import os
+from concurrent.futures import ThreadPoolExecutor
+
 import numpy as np
 from scipy.ndimage import maximum_filter, median_filter
 
@@ -46,7 +49,15 @@ def local_deviations(planes: list[np.ndarray], axes: list[str], size: int = 5) -
     stack = np.array(fills, dtype=np.float64)
     if size % 2 == 1 and np.isfinite(stack).all():
         base = np.empty_like(stack)
-        median_baselines(stack, int(size), np.array([a == "x" for a in axes]), base)
+        x_axis = np.array([a == "x" for a in axes])
+        workers = min(len(stack) // 2, os.cpu_count() or 1)  # the kernel releases the GIL: planes in parallel
+        if workers > 1:
+            cuts = np.linspace(0, len(stack), workers + 1).astype(int)
+            with ThreadPoolExecutor(workers) as pool:
+                list(pool.map(lambda ab: median_baselines(stack[ab[0]:ab[1]], int(size), x_axis[ab[0]:ab[1]],
+                                                          base[ab[0]:ab[1]]), zip(cuts[:-1], cuts[1:])))
+        else:
+            median_baselines(stack, int(size), x_axis, base)
     else:
         base = np.stack([_scipy_baseline(f, size, a) for f, a in zip(stack, axes)])
     return [values - b for values, b in zip(planes, base)]
@@ -154,9 +165,24 @@ def _dense_curve(mags: np.ndarray, feats: np.ndarray, per_step: int = 40) -> tup
     return mags[i0] * (1 - w[:, 0]) + mags[i0 + 1] * w[:, 0], feats[i0] * (1 - w) + feats[i0 + 1] * w
 
 
-def classify(table: SignatureTable, vec: np.ndarray, shift_dir: float, sigmas: np.ndarray):
-    """(type, magnitude, unit, direction, alternatives) for one lens' feature changes."""
-    fits = {k: fit_kind(table, k, vec, sigmas) for k in table.magnitudes}
+def fit_all(table: SignatureTable, vecs: np.ndarray, sigmas: np.ndarray) -> list[dict[str, tuple[float, float]]]:
+    """`fit_kind` of every kind for many lenses' feature changes `vecs` (L, n_features) at once: per lens
+    {kind: (magnitude, chi2)}. Same arithmetic as fit_kind, one array operation per kind."""
+    out: list[dict[str, tuple[float, float]]] = [{} for _ in range(len(vecs))]
+    for kind in table.magnitudes:
+        grid_m, grid_f = _kind_curve(table, kind, 0)
+        chi2 = (((vecs[:, None, :] - grid_f[None]) / sigmas[None, None, :]) ** 2).sum(axis=2)
+        best = np.argmin(chi2, axis=1)
+        for q, i in enumerate(best):
+            out[q][kind] = (float(grid_m[i]), float(chi2[q, i]))
+    return out
+
+
+def classify(table: SignatureTable, vec: np.ndarray, shift_dir: float, sigmas: np.ndarray,
+             fits: dict[str, tuple[float, float]] | None = None):
+    """(type, magnitude, unit, direction, alternatives) for one lens' feature changes; `fits`: this lens'
+    `fit_all` entry when already computed."""
+    fits = fits if fits is not None else {k: fit_kind(table, k, vec, sigmas) for k in table.magnitudes}
     best = min(fits, key=lambda k: fits[k][1])
     kind = KIND_BY_NAME[best]
     direction = (shift_dir - table.phi0_deg[best]) % 360.0 if kind.directional else None
@@ -193,14 +219,19 @@ def identify(metrics: LensMetrics, missing: np.ndarray, qc: QC, table: Signature
     sigmas = _feature_sigmas(sig)
     error_type = np.full(flagged.shape, "", dtype=object)
     defects = []
+    lenses = list(zip(*np.nonzero(flagged & ~missing)))
+    features = [_feature_vector(dev, m, n) for m, n in lenses]
+    vecs = np.array([f[0] for f in features]) if features else np.zeros((0, len(sigmas)))
+    fits = dict(zip(lenses, fit_all(table, vecs, sigmas)))
+    shifts = dict(zip(lenses, features))
     for m, n in zip(*np.nonzero(flagged)):
         indexes = metrics.at(m + 1, n + 1)
         if missing[m, n]:
             defects.append(Defect(int(m) + 1, int(n) + 1, "missing", float("nan"), "", None, float("inf"), False, indexes))
             error_type[m, n] = "missing"
             continue
-        vec, shift_dir = _feature_vector(dev, m, n)
-        kind, mag, unit, direction, alts = classify(table, vec, shift_dir, sigmas)
+        vec, shift_dir = shifts[(m, n)]
+        kind, mag, unit, direction, alts = classify(table, vec, shift_dir, sigmas, fits[(m, n)])
         limit = tolerance_for(kind, qc)
         defects.append(Defect(int(m) + 1, int(n) + 1, kind, mag, unit, direction, float(score[m, n]),
                               abs(mag) <= limit, indexes, alternatives=alts))

@@ -15,9 +15,9 @@ from mlaqc.errors import InputError
 from mlaqc.identify import identify
 from mlaqc.metrics import compute_metrics, reference_images
 from mlaqc.rawio import RawFrame, check_exposure, load_raw, normalized, suppress_hot_pixels
-from mlaqc.reference import ReferenceModel, reference_model
+from mlaqc.reference import ReferenceModel, config_key, reference_model
 from mlaqc.results import InspectionResult
-from mlaqc.signatures import SignatureTable, signature_table, um_per_px_at_mla
+from mlaqc.signatures import SignatureTable, signature_key, signature_table, um_per_px_at_mla
 from mlaqc.subimages import divide
 
 
@@ -51,8 +51,9 @@ def inspect_image(img: np.ndarray, cfg: CameraConfig, *, grid: Grid | None = Non
     if img.shape != (cfg.sensor.height_px, cfg.sensor.width_px):
         raise InputError(f"image is {img.shape[1]}x{img.shape[0]} px but the camera's sensor is "
                          f"{cfg.sensor.width_px}x{cfg.sensor.height_px}")
-    model = model or reference_model(cfg)
-    table = table or signature_table(cfg)
+    if model is None or table is None:
+        cached_model, cached_table = _models(cfg)
+        model, table = model or cached_model, table or cached_table
     lap("models")
     own_grid = grid is None
     if own_grid:
@@ -82,6 +83,23 @@ def inspect_image(img: np.ndarray, cfg: CameraConfig, *, grid: Grid | None = Non
     # the frame is kept as given when already float32 (no 16 MB copy): callers hand over a prepared frame
     return InspectionResult(verdict, grid, metrics, defects, flagged, error_type, np.asarray(img, dtype=np.float32),
                             sub, ref, source, _tolerance_dict(cfg), t)
+
+
+_MODELS: dict[tuple[str, str], tuple[ReferenceModel, SignatureTable]] = {}
+
+
+def _models(cfg: CameraConfig) -> tuple[ReferenceModel, SignatureTable]:
+    """Reference model and signature table of `cfg`'s optics, kept in memory by their content keys: a
+    scan or a batch inspects many frames, and reloading them (plus rebuilding the model's derived
+    tables) cost 5 ms a frame."""
+    key = (config_key(cfg), signature_key(cfg))
+    hit = _MODELS.get(key)
+    if hit is None:
+        hit = (reference_model(cfg), signature_table(cfg))
+        if len(_MODELS) >= 4:
+            _MODELS.pop(next(iter(_MODELS)))
+        _MODELS[key] = hit
+    return hit
 
 
 def _tolerance_dict(cfg: CameraConfig) -> dict[str, float]:

@@ -9,6 +9,8 @@ with offsets in [-0.5, 0.5]. Pixels outside the frame are NaN and False in `vali
 
 from __future__ import annotations
 
+import os
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
 import numpy as np
@@ -101,5 +103,14 @@ def cut_windows(img: np.ndarray, x_px: np.ndarray, y_px: np.ndarray, h: int, w: 
     data = np.empty(ox.shape + (h, w), dtype=np.float32)
     valid = np.empty(ox.shape + (h, w), dtype=bool)
     src = np.ascontiguousarray(img, dtype=np.float32)  # one compiled specialization; no copy for the usual float32
-    cut_windows_kernel(src, ox.ravel(), oy.ravel(), int(h), int(w), data.reshape(-1, h, w), valid.reshape(-1, h, w))
+    fx, fy, flat_data, flat_valid = ox.ravel(), oy.ravel(), data.reshape(-1, h, w), valid.reshape(-1, h, w)
+    workers = min(os.cpu_count() or 1, max(1, fx.size // 2048))  # the kernel releases the GIL
+    cuts = np.linspace(0, fx.size, workers + 1).astype(int)
+    parts = [slice(a, b) for a, b in zip(cuts[:-1], cuts[1:])]
+    if workers == 1:
+        cut_windows_kernel(src, fx, fy, int(h), int(w), flat_data, flat_valid)
+    else:
+        with ThreadPoolExecutor(workers) as pool:
+            list(pool.map(lambda sl: cut_windows_kernel(src, fx[sl], fy[sl], int(h), int(w), flat_data[sl],
+                                                        flat_valid[sl]), parts))
     return data, valid, ox, oy
