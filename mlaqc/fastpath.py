@@ -179,24 +179,36 @@ def stage1_image_side(start, m, s, key, buf, fres, texture, g):
     mu_in, mu_out = 1.0 / n, n
     for j in range(m):
         i = start + j
-        x = x0 + dx_span * draw(key, i, 0)
-        y = y0 + dy_span * draw(key, i, 1)
-        rad = rp * math.sqrt(draw(key, i, 2))
-        cph, sph = cos_sin_2pi(draw(key, i, 3))
+        g[G_HX, j], g[G_HY, j], g[G_HZ, j], g[G_LL, j] = draw(key, i, 0), draw(key, i, 1), draw(key, i, 2), draw(key, i, 3)
+    for j in range(m):
+        x = x0 + dx_span * g[G_HX, j]
+        y = y0 + dy_span * g[G_HY, j]
+        rad = rp * math.sqrt(g[G_HZ, j])
+        cph, sph = cos_sin_2pi(g[G_LL, j])
         dx = x - rad * cph
         dy = y - rad * sph
         inv = 1.0 / math.sqrt(dx * dx + dy * dy + dz * dz)
         L, M, N = dx * inv, dy * inv, dz * inv
         buf[0, j], buf[1, j], buf[2, j], buf[3, j], buf[4, j], buf[5, j], buf[6, j] = x, y, zs, L, M, N, (N * N) * (N * N)
+    # rear surface (the ray travels -z): hit, then refraction, in two loops
     for j in range(m):
-        bx, by, bz, bL, bM, bN, tr = main_surface(buf[0, j], buf[1, j], zs, -buf[3, j], -buf[4, j], -buf[5, j],
-                                                   t_main, c2, 1.0, n, mu_in, rim2, fres)
-        buf[6, j] *= tr
-        g[G_HX, j], g[G_HY, j], g[G_HZ, j], g[G_LL, j], g[G_LM, j], g[G_LN, j] = bx, by, bz, bL, bM, bN
+        x, y, L, M, N = buf[0, j], buf[1, j], -buf[3, j], -buf[4, j], -buf[5, j]
+        t = sphere_t(x, y, zs - t_main, L, M, N, c2)
+        g[G_HX, j], g[G_HY, j], g[G_HZ, j] = x + t * L, y + t * M, zs + t * N
     for j in range(m):
-        bx, by, bz, bL, bM, bN, tr = main_surface(g[G_HX, j], g[G_HY, j], g[G_HZ, j], g[G_LL, j], g[G_LM, j],
-                                                   g[G_LN, j], 0.0, c1, n, 1.0, mu_out, rim2, fres)
-        buf[6, j] *= tr
+        x, y, z = g[G_HX, j], g[G_HY, j], g[G_HZ, j]
+        L, M, N, tr = refract(-buf[3, j], -buf[4, j], -buf[5, j], c2 * x, c2 * y, c2 * (z - t_main) - 1.0, mu_in, fres, 1.0, n)
+        buf[6, j] *= tr if (x * x + y * y <= rim2 and tr >= 0.0) else 0.0
+        g[G_LL, j], g[G_LM, j], g[G_LN, j] = L, M, N
+    # front surface
+    for j in range(m):
+        x, y, z, L, M, N = g[G_HX, j], g[G_HY, j], g[G_HZ, j], g[G_LL, j], g[G_LM, j], g[G_LN, j]
+        t = sphere_t(x, y, z - 0.0, L, M, N, c1)
+        g[G_HX, j], g[G_HY, j], g[G_HZ, j] = x + t * L, y + t * M, z + t * N
+    for j in range(m):
+        bx, by, bz = g[G_HX, j], g[G_HY, j], g[G_HZ, j]
+        bL, bM, bN, tr = refract(g[G_LL, j], g[G_LM, j], g[G_LN, j], c1 * bx, c1 * by, c1 * (bz - 0.0) - 1.0, mu_out, fres, n, 1.0)
+        buf[6, j] *= tr if (bx * bx + by * by <= rim2 and tr >= 0.0) else 0.0
         if texture is not None:  # pruned at compile time when there is no texture
             t = (zobj - bz) / bN
             buf[7, j], buf[8, j] = bx + t * bL, by + t * bM
