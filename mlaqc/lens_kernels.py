@@ -102,7 +102,8 @@ def lens_indexes(data, cx, cy, stack, size, c, os_, phases, pad, um_per_px, step
     x = np.empty(npx)
     v = np.empty(npx)
     tab = np.empty((4, npx), np.float32)
-    counts = np.empty((4, ENTROPY_BINS), np.int64)
+    counts = np.empty((4, ENTROPY_BINS + 1), np.int64)
+    bins = np.empty(npx, np.int32)
     inv_half = 1.0 / (0.5 * h)
     rdisc2 = (0.35 * h) ** 2
     nan = np.nan
@@ -121,7 +122,8 @@ def lens_indexes(data, cx, cy, stack, size, c, os_, phases, pad, um_per_px, step
                 v[p] = 1.0 if ok else 0.0
                 nv += 1.0 if ok else 0.0
                 flux += xv
-                top = xv if xv > top else top
+        for p in range(npx):  # (apart, as the max would keep the loop above from vectorizing)
+            top = x32[p] if x32[p] > top else top
         # --- registration: I ~ a R(x - d) ~ a R - a d.grad R, so d = -(G'G)^-1 G'(I - a R) / a
         dx = 0.0
         dy = 0.0
@@ -179,6 +181,8 @@ def lens_indexes(data, cx, cy, stack, size, c, os_, phases, pad, um_per_px, step
             srl += rp * lp
             srv += rp
             sx2 += xp * xp * vp
+        for p in range(npx):  # (apart: a max in the loop above would keep it from vectorizing)
+            rp = tab[0, p] * v[p]
             peak = rp if rp > peak else peak
         # --- position-weighted sums: central disc, tilt basis, half-maximum moments
         nd = sxd = sx2d = tsxx = tsxy = tsyy = tbxx = tbxr = tbyx = tbyr = 0.0
@@ -221,8 +225,9 @@ def lens_indexes(data, cx, cy, stack, size, c, os_, phases, pad, um_per_px, step
                 ge += e * e
                 e = x[b0 + w - 1] - x[b0 + w - 2]
                 ge += e * e
+                xr = x[b0:b0 + w]
                 for j in range(1, w - 1):
-                    e = 0.5 * (x[b0 + j + 1] - x[b0 + j - 1])
+                    e = 0.5 * (xr[j + 1] - xr[j - 1])
                     ge += e * e
         if h > 1:
             for j in range(w):
@@ -231,18 +236,24 @@ def lens_indexes(data, cx, cy, stack, size, c, os_, phases, pad, um_per_px, step
                 e = x[(h - 1) * w + j] - x[(h - 2) * w + j]
                 ge += e * e
             for i in range(1, h - 1):
+                up = x[(i - 1) * w:i * w]
+                dn = x[(i + 1) * w:(i + 2) * w]
                 for j in range(w):
-                    e = 0.5 * (x[(i + 1) * w + j] - x[(i - 1) * w + j])
+                    e = 0.5 * (dn[j] - up[j])
                     ge += e * e
         # --- entropy: bins follow NumPy's float32 arithmetic, int(x / top * 32) clipped to 0..31
         # (four interleaved histograms: neighbouring pixels often share a bin, and one histogram would
         # serialize on its counter)
+        # The bins are computed in a branch-free loop that vectorizes; pixels outside the frame go to an
+        # extra bin that is not counted.
         counts[:] = 0
         top_s = top if top > 0 else np.float32(1.0)
         for p in range(npx):
-            if v[p] > 0:
-                bi = np.int64((x32[p] / top_s) * np.float32(ENTROPY_BINS))
-                counts[p & 3, min(max(bi, 0), ENTROPY_BINS - 1)] += 1
+            bi = np.int32((x32[p] / top_s) * np.float32(ENTROPY_BINS))
+            bi = min(max(bi, 0), ENTROPY_BINS - 1)
+            bins[p] = bi if v[p] > 0 else ENTROPY_BINS
+        for p in range(npx):
+            counts[p & 3, bins[p]] += 1
         o = out[k]
         if not (flux > 0) or nv < 0.5 * npx:
             for q in range(N_INDEX):
