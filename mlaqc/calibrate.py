@@ -72,7 +72,6 @@ N_SWEEPS = 3  # sweeps over every lens (the first unweighted)
 MAX_EXTRA = 10  # more sweeps, for the lenses not yet settled and their neighbours only
 SETTLED_PX = 0.02  # a lens has settled when its step is under this
 BAND = 1.5  # each lens is fitted on |r - R| <= BAND (+ a 0.5 px taper) round its rim
-RSS_MARGIN = 0.5  # its fit is rated this far beyond (a misfit rim shows just outside the band)
 WEIGHT_FLOOR = 0.05  # noise weights ~ 1 / signal, the signal floored at this fraction of the plateau
 COUPLED_PX = 0.3  # lenses this far off the lattice, and their neighbours, are fitted unweighted
 WIDE_EDGE = 1.0  # lenses the sharp edge cannot capture get an edge at least this wide for a while
@@ -622,9 +621,9 @@ class _DiscFit:
         self.slope_x = np.where(active, grad[0] * self.r_norm, 0.0)
         self.slope_y = np.where(active, grad[1] * self.r_norm, 0.0)
 
-    def _normals(self, idx: np.ndarray, edge: float, weighted: bool, fit_edge: bool, rss_band: float = 0.0):
+    def _normals(self, idx: np.ndarray, edge: float, weighted: bool, fit_edge: bool):
         """Normal equations (n, 5, 5), right-hand sides (n, 5) of lenses `idx` against the frame residual;
-        notes each lens' residual sum of squares (over |r - R| < rss_band if that is wider than the fit).
+        notes each lens' residual sum of squares and pixel count (a fit-quality figure).
 
         Parameters per lens: amplitude, centre x and y, radius (+ the global edge width in slot 4)."""
         inv_edge = np.full(self.n, 1.0 / edge)
@@ -640,7 +639,7 @@ class _DiscFit:
 
         def block(b: slice) -> None:
             kernels.disc_normals(self.img, idx[b], self.cx, self.cy, self.amp, self.radius, inv_edge, sx, sy,
-                                 self.neighbours, self.coupled, wide, self.band + 0.5, rss_band, weighted, fit_edge,
+                                 self.neighbours, self.coupled, wide, self.band + 0.5, weighted, fit_edge,
                                  WEIGHT_FLOOR, normal[b], rhs[b], rss[b], npix[b])
 
         self._map(block, idx)
@@ -649,8 +648,7 @@ class _DiscFit:
             return normal[:, :N_LENS_PARAMS, :N_LENS_PARAMS], rhs[:, :N_LENS_PARAMS]
         return normal, rhs
 
-    def sweep(self, edge: float | None, active: np.ndarray, weighted: bool, lenses: np.ndarray | None = None,
-              rss_band: float = 0.0) -> None:
+    def sweep(self, edge: float | None, active: np.ndarray, weighted: bool, lenses: np.ndarray | None = None) -> None:
         """One Gauss-Newton step for every lens (or `lenses`), red-black: lenses of one lattice colour step
         together, then the other colour steps against their new positions (side neighbours, whose discs
         overlap, never step at the same time, so strongly overlapping pairs cannot run away)."""
@@ -658,16 +656,15 @@ class _DiscFit:
         for colour in (0, 1):
             part = idx[self.colour[idx] == colour]
             if part.size:
-                self.iterate(edge, active, weighted, part, rss_band)
+                self.iterate(edge, active, weighted, part)
 
-    def iterate(self, edge: float | None, active: np.ndarray, weighted: bool, idx: np.ndarray,
-                rss_band: float = 0.0) -> None:
+    def iterate(self, edge: float | None, active: np.ndarray, weighted: bool, idx: np.ndarray) -> None:
         """One Gauss-Newton step for lenses `idx` (inactive ones: amplitude only), the others held; with
         `edge` None the global edge width steps too (eliminated exactly through each lens' block)."""
         if edge is not None:
             self.edge = edge
         s = self.edge
-        normal, rhs = self._normals(idx, s, weighted, edge is None, rss_band)
+        normal, rhs = self._normals(idx, s, weighted, edge is None)
         act = active[idx]
         npar = N_LENS_PARAMS
         diag = np.arange(npar)
@@ -835,8 +832,7 @@ def _measure(img: np.ndarray, px: np.ndarray, py: np.ndarray, lat_j: np.ndarray,
                 fit.coupled[_with_neighbours(np.flatnonzero(off), side)] = True
                 # a new objective (weights, slopes): its first step is no oscillation to damp
                 fit.prev_step[:] = 0.0
-            # the edge width is known from the block; the last sweep also rates each lens' fit
-            fit.sweep(fit.edge, active, weighted=it >= 1, rss_band=band + 0.5 + RSS_MARGIN if it == N_SWEEPS - 1 else 0.0)
+            fit.sweep(fit.edge, active, weighted=it >= 1)  # the edge width is known from the block
         # lenses the sharp edge cannot pull in (beyond ~1 px off the lattice: big defects) fit badly; they
         # are captured with a wide edge of their own, then refined; only they and their neighbours step
         per_px = fit.rss / np.maximum(fit.npix, 1)
