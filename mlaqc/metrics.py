@@ -1,4 +1,5 @@
-"""Per-lens sub-image indexes, vectorized over all lenses at once.
+"""Per-lens sub-image indexes for all lenses at once: one compiled pass per lens over its window
+(mlaqc.lens_kernels.lens_indexes), lenses split over a thread pool; no per-lens Python.
 
 The reference sub-image of each lens is gathered from the oversampled reference template at that lens'
 sub-pixel phase (quantized to 1/8 px and compensated exactly). Against it each sub-image is registered

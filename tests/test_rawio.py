@@ -565,3 +565,22 @@ def test_hot_pixels_match_the_filter_formulation(cfa: str | None, kind: str) -> 
     assert cleaned.dtype == data.dtype and np.array_equal(cleaned, want)
     again, mask2 = suppress_hot_pixels(data.copy(), cfa, inplace=True)
     assert np.array_equal(again, want) and np.array_equal(mask2, mask)
+
+
+def test_exposure_statistics_from_the_histogram_match_numpy() -> None:
+    """check_exposure reads its order statistics from the histogram of integer counts: the same values as
+    np.percentile / np.median on the black-subtracted sample."""
+    from mlaqc.rawio import _integer_sample_stats
+
+    rng = np.random.default_rng(40)
+    for trial in range(60):
+        n = int(rng.integers(1, 5000))
+        sample = [rng.integers(0, 4096, n), rng.poisson(rng.uniform(0.3, 40), n),
+                  rng.integers(0, 4, n) * 1000 + 64][trial % 3]
+        sample = (sample % 256).astype(np.uint8) if trial % 7 == 0 else sample.astype(np.uint16)
+        black = int(rng.integers(0, 80))
+        excess = sample.astype(np.float32) - np.float32(black)
+        median = float(np.median(excess))
+        lower = excess[excess <= median]
+        want = (float(np.percentile(excess, 99.9)), median, 1.4826 * float(np.median(median - lower)))
+        np.testing.assert_allclose(_integer_sample_stats(sample.reshape(1, -1), black), want, rtol=1e-6, atol=1e-6)
