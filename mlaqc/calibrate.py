@@ -644,8 +644,6 @@ class _DiscFit:
 
         self._map(block, idx)
         self.rss[idx], self.npix[idx] = rss, npix
-        if not fit_edge:
-            return normal[:, :N_LENS_PARAMS, :N_LENS_PARAMS], rhs[:, :N_LENS_PARAMS]
         return normal, rhs
 
     def sweep(self, edge: float | None, active: np.ndarray, weighted: bool, lenses: np.ndarray | None = None) -> None:
@@ -663,8 +661,12 @@ class _DiscFit:
         `edge` None the global edge width steps too (eliminated exactly through each lens' block)."""
         if edge is not None:
             self.edge = edge
+            normal, rhs = self._normals(idx, edge, weighted, False)
+            kernels.apply_steps(idx, normal, rhs, active, self.amp, self.cx, self.cy, self.radius, self.prev_step,
+                                self.last_step, self.r_norm - 1.0, self.r_norm + 1.0)
+            return
         s = self.edge
-        normal, rhs = self._normals(idx, s, weighted, edge is None)
+        normal, rhs = self._normals(idx, s, weighted, True)
         act = active[idx]
         npar = N_LENS_PARAMS
         diag = np.arange(npar)
@@ -676,19 +678,15 @@ class _DiscFit:
             normal[np.ix_(frozen, np.arange(1, normal.shape[1]), np.arange(1, normal.shape[1]))] = \
                 np.eye(normal.shape[1] - 1)
             rhs[frozen, 1:] = 0.0
-        if edge is None:
-            cross = normal[:, :npar, npar]
-            sol = np.linalg.solve(normal[:, :npar, :npar], np.stack([rhs[:, :npar], cross], axis=2))
-            num = float(np.sum(rhs[act, npar]) - np.sum(np.einsum("li,li->l", cross, sol[:, :, 0])[act]))
-            den = float(np.sum(normal[act, npar, npar]) - np.sum(np.einsum("li,li->l", cross, sol[:, :, 1])[act]))
-            ds = float(np.clip(num / den, -0.5 * s, 0.5 * s)) if den > 0 else 0.0
-            step = sol[:, :, 0] - sol[:, :, 1] * np.where(act, ds, 0.0)[:, None]
-            self.edge = float(np.clip(s + ds, 0.05, 5.0))
-        else:
-            step = np.linalg.solve(normal, rhs[..., None])[..., 0]
-        step = step[:, :npar]
+        cross = normal[:, :npar, npar]
+        sol = np.linalg.solve(normal[:, :npar, :npar], np.stack([rhs[:, :npar], cross], axis=2))
+        num = float(np.sum(rhs[act, npar]) - np.sum(np.einsum("li,li->l", cross, sol[:, :, 0])[act]))
+        den = float(np.sum(normal[act, npar, npar]) - np.sum(np.einsum("li,li->l", cross, sol[:, :, 1])[act]))
+        ds = float(np.clip(num / den, -0.5 * s, 0.5 * s)) if den > 0 else 0.0
+        step = sol[:, :, 0] - sol[:, :, 1] * np.where(act, ds, 0.0)[:, None]
+        self.edge = float(np.clip(s + ds, 0.05, 5.0))
         step[:, 1:] = np.clip(step[:, 1:], -1.0, 1.0)
-        # damp lenses that oscillate (the step reverses the last one)
+        # damp lenses that oscillate (the step reverses the last one); as kernels.apply_steps
         flip = np.einsum("li,li->l", step[:, 1:3], self.prev_step[idx, 1:3]) < 0
         step[flip, 1:] *= 0.5
         # idx holds each lens once (one colour class): a per-lens update, not an accumulation of hits

@@ -232,3 +232,60 @@ def plateau_mean(img, cx, cy, half):
                 c += 1
         out[k] = s / max(c, 1)
     return out
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def apply_steps(idx, normal, rhs, active, amp, cx, cy, radius, prev_step, last_step, r_lo, r_hi):
+    """One Gauss-Newton step per lens idx[t] from its normal equations (normal[t][:4, :4], rhs[t][:4]):
+    a 1e-6 relative ridge, Cholesky solve (inactive lenses: amplitude only), centre and radius steps
+    clipped to 1 px and halved where they reverse the lens' last step (oscillation), radius kept in
+    [r_lo, r_hi]. Updates amp, cx, cy, radius, prev_step (n, 4) and last_step (|centre step|) in place."""
+    m = np.empty((4, 4))
+    b = np.empty(4)
+    for t in range(idx.size):
+        k = idx[t]
+        npar = 4 if active[k] else 1
+        for i in range(npar):
+            for j in range(npar):
+                m[i, j] = normal[t, i, j]
+            m[i, i] += 1e-6 * (1.0 + normal[t, i, i])
+            b[i] = rhs[t, i]
+        ok = True
+        for j in range(npar):  # Cholesky, lower triangle in place
+            d = m[j, j]
+            for q in range(j):
+                d -= m[j, q] * m[j, q]
+            if d <= 0.0:
+                ok = False
+                break
+            d = math.sqrt(d)
+            m[j, j] = d
+            for i in range(j + 1, npar):
+                s = m[i, j]
+                for q in range(j):
+                    s -= m[i, q] * m[j, q]
+                m[i, j] = s / d
+        step = np.zeros(4)
+        if ok:
+            for i in range(npar):  # forward
+                s = b[i]
+                for q in range(i):
+                    s -= m[i, q] * step[q]
+                step[i] = s / m[i, i]
+            for i in range(npar - 1, -1, -1):  # backward
+                s = step[i]
+                for q in range(i + 1, npar):
+                    s -= m[q, i] * step[q]
+                step[i] = s / m[i, i]
+        for i in range(1, 4):
+            step[i] = min(max(step[i], -1.0), 1.0)
+        if step[1] * prev_step[k, 1] + step[2] * prev_step[k, 2] < 0.0:
+            for i in range(1, 4):
+                step[i] *= 0.5
+        amp[k] += step[0]
+        cx[k] += step[1]
+        cy[k] += step[2]
+        radius[k] = min(max(radius[k] + step[3], r_lo), r_hi)
+        for i in range(4):
+            prev_step[k, i] = step[i]
+        last_step[k] = math.hypot(step[1], step[2])
