@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import os
 from concurrent.futures import ThreadPoolExecutor
+from itertools import pairwise
 
 import numpy as np
 from scipy.ndimage import maximum_filter, median_filter
@@ -55,7 +56,7 @@ def local_deviations(planes: list[np.ndarray], axes: list[str], size: int = 5) -
             cuts = np.linspace(0, len(stack), workers + 1).astype(int)
             with ThreadPoolExecutor(workers) as pool:
                 list(pool.map(lambda ab: median_baselines(stack[ab[0]:ab[1]], int(size), x_axis[ab[0]:ab[1]],
-                                                          base[ab[0]:ab[1]]), zip(cuts[:-1], cuts[1:])))
+                                                          base[ab[0]:ab[1]]), pairwise(cuts)))
         else:
             median_baselines(stack, int(size), x_axis, base)
     else:

@@ -96,7 +96,7 @@ def lens_indexes(data, cx, cy, stack, size, c, os_, phases, pad, um_per_px, step
     tilt projections of the residual, PSNR/SSIM/NCC of the flux-scaled sub-image. Centred sums are
     expanded into raw sums (float64: no precision lost at these sizes) so that a few short, branch-free
     loops over the window do everything, and they vectorize."""
-    n_lens, h, w = data.shape
+    h, w = data.shape[1:]
     npx = h * w
     x32 = np.empty(npx, np.float32)
     x = np.empty(npx)

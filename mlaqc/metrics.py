@@ -14,6 +14,7 @@ from __future__ import annotations
 import os
 from concurrent.futures import ThreadPoolExecutor
 from functools import partial
+from itertools import pairwise
 
 import numpy as np
 
@@ -106,7 +107,7 @@ def compute_metrics(img: np.ndarray, cx: np.ndarray, cy: np.ndarray, model: Refe
     workers = max(1, min(threads or os.cpu_count() or 1, n // 256 or 1))
     # a few chunks per worker keep both cores busy when one is slowed by other work on the machine
     edges = np.linspace(0, n, 4 * workers + 1 if workers > 1 else 2).astype(int)
-    chunks = [(int(a), int(b)) for a, b in zip(edges[:-1], edges[1:]) if b > a]
+    chunks = [(int(a), int(b)) for a, b in pairwise(edges) if b > a]
     if workers == 1:
         for a, b in chunks:
             run(a, b, out)

@@ -28,10 +28,12 @@ from collections.abc import Iterator
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from functools import partial
+from itertools import pairwise
 from pathlib import Path
 from typing import Any
 
 import numpy as np
+
 from mlaqc.atomic import atomic_path
 from mlaqc.errors import InputError
 from mlaqc.raw_kernels import hot_pixel_rows, ring_residual_sample
@@ -773,12 +775,12 @@ def suppress_hot_pixels(
         row_bad = np.zeros(ph, dtype=np.int64)
         run = partial(hot_pixel_rows, x, r0, c0, step, float(noise), float(nsigma))
         edges = np.linspace(0, ph, 2 * (os.cpu_count() or 1) + 1).astype(int) if ph >= 64 else np.array([0, ph])
-        jobs = [(int(a), int(b)) for a, b in zip(edges[:-1], edges[1:]) if b > a]
+        jobs = [(int(a), int(b)) for a, b in pairwise(edges) if b > a]
         if len(jobs) == 1:
             run(0, ph, mask, med, row_bad)
         else:
             with ThreadPoolExecutor(min(len(jobs), os.cpu_count() or 1)) as pool:
-                list(pool.map(lambda ab: run(ab[0], ab[1], mask, med, row_bad), jobs))
+                list(pool.map(lambda ab, run=run, row_bad=row_bad: run(ab[0], ab[1], mask, med, row_bad), jobs))
         bad_rows.append(r0 + step * np.flatnonzero(row_bad))
     cleaned = img if inplace else img.copy()
     rows = np.unique(np.concatenate(bad_rows)) if bad_rows else np.zeros(0, np.int64)

@@ -12,6 +12,7 @@ from __future__ import annotations
 import os
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
+from itertools import pairwise
 
 import numpy as np
 
@@ -106,7 +107,7 @@ def cut_windows(img: np.ndarray, x_px: np.ndarray, y_px: np.ndarray, h: int, w: 
     fx, fy, flat_data, flat_valid = ox.ravel(), oy.ravel(), data.reshape(-1, h, w), valid.reshape(-1, h, w)
     workers = min(os.cpu_count() or 1, max(1, fx.size // 2048))  # the kernel releases the GIL
     cuts = np.linspace(0, fx.size, workers + 1).astype(int)
-    parts = [slice(a, b) for a, b in zip(cuts[:-1], cuts[1:])]
+    parts = [slice(a, b) for a, b in pairwise(cuts)]
     if workers == 1:
         cut_windows_kernel(src, fx, fy, int(h), int(w), flat_data, flat_valid)
     else:
