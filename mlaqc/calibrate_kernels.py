@@ -289,3 +289,18 @@ def apply_steps(idx, normal, rhs, active, amp, cx, cy, radius, prev_step, last_s
         for i in range(4):
             prev_step[k, i] = step[i]
         last_step[k] = math.hypot(step[1], step[2])
+
+
+@njit(cache=True, nogil=True, error_model="numpy", fastmath=True)
+def row_dots(a, m):
+    """a (h, w) float32 times m.T, m (k, w) float32: (h, k) float64 (each row sum in float32). A narrow
+    product that multi-threaded BLAS handles poorly on a busy machine; this stays on one core."""
+    h, w = a.shape
+    out = np.zeros((h, m.shape[0]))
+    for y in range(h):
+        for j in range(m.shape[0]):
+            s = _ZERO
+            for x in range(w):
+                s += a[y, x] * m[j, x]
+            out[y, j] = s
+    return out
