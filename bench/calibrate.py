@@ -1,11 +1,14 @@
 """Benchmark: calibrate + divide on a 2048 x 2048 white frame of the Table 1 camera, and its accuracy.
 
-    python bench/calibrate.py [--rays-per-pixel 50] [--seed 1] [--no-noise] [--repeat 5]
-                              [--raw FILE [--config C]] [--threads N] [--no-truth]
+    python bench/calibrate.py [--rays-per-pixel 50] [--seed 1] [--no-noise] [--rotation-deg A]
+                              [--vignetting F] [--repeat 5] [--steps] [--raw FILE [--config C]]
+                              [--threads N] [--no-truth]
 
-The frame is rendered once (about 20-35 s at 50 rays/pixel) and kept in ~/.cache/mlaqc-bench, or read
-from --raw (any file mlaqc.rawio.load_raw reads). Timings: wall clock and process CPU, best and median
-of --repeat runs after one warm-up. Accuracy (rendered frames only): per-lens measured centres and grid
+The frame is rendered once (about 20-35 s at 50 rays/pixel; --rotation-deg renders a rotated MLA) and
+kept in ~/.cache/mlaqc-bench, or read from --raw (any file mlaqc.rawio.load_raw reads). --vignetting F
+multiplies the frame by 1 - F r^2 (r = distance from the centre / half the height; F = 0.3 leaves 40 %
+in the corners). Timings: wall clock and process CPU, best and median of --repeat runs after one
+warm-up; --steps adds the best wall time of each calibration step. Accuracy (rendered frames only): per-lens measured centres and grid
 centres against the ray-traced sub-image centres of tests/calib_images.py, and against the first-order
 layout (p(b+f)/b spacing about the sensor centre) for comparison.
 """
@@ -32,10 +35,21 @@ from mlaqc.rawio import load_raw, normalized, suppress_hot_pixels  # noqa: E402
 from mlaqc.subimages import divide  # noqa: E402
 
 
-def rendered_frame(rpp: float, seed: int, noise: bool) -> np.ndarray:
+def mla_errors(rotation_deg: float):
+    """The rendered MLA's global errors (None: a perfect MLA)."""
+    if not rotation_deg:
+        return None
+    from mlaqc.errormap import ErrorMap
+
+    cfg = default_config()
+    return ErrorMap.zeros(cfg.mla.count_h, cfg.mla.count_w).with_globals(mla_rotation_deg=rotation_deg)
+
+
+def rendered_frame(rpp: float, seed: int, noise: bool, rotation_deg: float = 0.0) -> np.ndarray:
     """Raw counts of the default camera's white image, rendered once and cached."""
     cfg = default_config()
-    key = hashlib.sha256(f"{rpp}-{seed}-{noise}".encode()).hexdigest()[:12]
+    tag = f"{rpp}-{seed}-{noise}" + (f"-rot{rotation_deg:g}" if rotation_deg else "")
+    key = hashlib.sha256(tag.encode()).hexdigest()[:12]
     cache = Path.home() / ".cache" / "mlaqc-bench"
     cache.mkdir(parents=True, exist_ok=True)
     path = cache / f"white-table1-{key}.npy"
@@ -43,7 +57,7 @@ def rendered_frame(rpp: float, seed: int, noise: bool) -> np.ndarray:
         from mlaqc.simulate import simulate
 
         t = time.perf_counter()
-        sim = simulate(cfg, rays_per_pixel=rpp, seed=seed, noise=noise)
+        sim = simulate(cfg, None, mla_errors(rotation_deg), rays_per_pixel=rpp, seed=seed, noise=noise)
         print(f"rendered the white frame ({rpp} rays/pixel, seed {seed}) in {time.perf_counter() - t:.1f} s -> {path}")
         np.save(path.with_suffix(".part.npy"), sim.raw)
         path.with_suffix(".part.npy").replace(path)
@@ -61,12 +75,56 @@ def timed(fn, repeat: int):
     return out, wall, cpu
 
 
+# calibration steps timed by --steps (module functions and disc-fit methods; nested ones included in their callers)
+STEPS = ("_check_levels", "_fft_lattice", "_candidates", "_radius_guess", "_measure", "_DiscFit._normals",
+         "_DiscFit.iterate", "_assemble", "_fit_model")
+
+
+def step_times(fn, repeat: int) -> dict[str, float]:
+    """Best wall seconds of each of STEPS (summed over its calls within one run) over `repeat` runs of fn."""
+    acc: dict[str, float] = {}
+    saved = []
+
+    def wrap(owner, attr, label):
+        f = getattr(owner, attr)
+        saved.append((owner, attr, f))
+
+        def timed_call(*a, **k):
+            t = time.perf_counter()
+            try:
+                return f(*a, **k)
+            finally:
+                acc[label] = acc.get(label, 0.0) + time.perf_counter() - t
+
+        setattr(owner, attr, timed_call)
+
+    for label in STEPS:
+        owner, _, attr = label.rpartition(".")
+        wrap(getattr(calibration, owner) if owner else calibration, attr, label)
+    best: dict[str, float] = {}
+    try:
+        for _ in range(repeat):
+            acc.clear()
+            t = time.perf_counter()
+            fn()
+            acc["total"] = time.perf_counter() - t
+            for k, v in acc.items():
+                best[k] = min(best.get(k, float("inf")), v)
+    finally:
+        for owner, attr, f in saved:
+            setattr(owner, attr, f)
+    return best
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--rays-per-pixel", type=float, default=50.0)
     ap.add_argument("--seed", type=int, default=1)
     ap.add_argument("--no-noise", action="store_true")
+    ap.add_argument("--rotation-deg", type=float, default=0.0, help="render an MLA rotated by this much")
+    ap.add_argument("--vignetting", type=float, default=0.0, help="multiply the frame by 1 - F r^2")
     ap.add_argument("--repeat", type=int, default=5)
+    ap.add_argument("--steps", action="store_true", help="also time each calibration step")
     ap.add_argument("--raw", help="a white raw file instead of the rendered one")
     ap.add_argument("--config", help="camera config of --raw (default: Table 1)")
     ap.add_argument("--threads", type=int, help="worker threads of the disc fit (default: one per core, max 4)")
@@ -82,8 +140,15 @@ def main() -> int:
     else:
         from calib_images import normalize
 
-        img = normalize(rendered_frame(args.rays_per_pixel, args.seed, not args.no_noise), cfg)
-        source = f"rendered, {args.rays_per_pixel:g} rays/pixel, seed {args.seed}, noise {'off' if args.no_noise else 'on'}"
+        img = normalize(rendered_frame(args.rays_per_pixel, args.seed, not args.no_noise, args.rotation_deg), cfg)
+        source = (f"rendered, {args.rays_per_pixel:g} rays/pixel, seed {args.seed}, noise {'off' if args.no_noise else 'on'}, "
+                  f"rotation {args.rotation_deg:g} deg")
+    if args.vignetting:
+        h, w = img.shape
+        yy, xx = np.mgrid[0:h, 0:w]
+        r2 = ((xx - 0.5 * (w - 1)) ** 2 + (yy - 0.5 * (h - 1)) ** 2) / (0.5 * h) ** 2
+        img = img * (1.0 - args.vignetting * r2).astype(np.float32)
+        source += f", vignetting 1 - {args.vignetting:g} r^2"
     kw = dict(expected_pitch_px=cfg.layout.subimage_pitch_px, expected_shape=(cfg.mla.count_h, cfg.mla.count_w))
     grid, cal_wall, cal_cpu = timed(lambda: calibrate(img, **kw), args.repeat)
     sub, div_wall, div_cpu = timed(lambda: divide(img, grid), args.repeat)
@@ -95,6 +160,9 @@ def main() -> int:
     for name, wall, cpu in (("calibrate", cal_wall, cal_cpu), ("divide", div_wall, div_cpu), ("both", both, None)):
         extra = f", cpu median {statistics.median(cpu) * 1e3:6.1f} ms" if cpu else ""
         print(f"  {name:9s} wall best {min(wall) * 1e3:6.1f} ms, median {statistics.median(wall) * 1e3:6.1f} ms{extra}")
+    if args.steps:
+        for name, best in step_times(lambda: calibrate(img, **kw), args.repeat).items():
+            print(f"    {name:28s} {best * 1e3:6.1f} ms")
     if args.raw or args.no_truth:
         return 0
     from calib_images import layout_centres, true_centres
@@ -107,13 +175,14 @@ def main() -> int:
               f"({per_axis:.4f} per axis), max {np.nanmax(np.hypot(ex, ey)):.3f}; "
               f"grid: RMS {np.sqrt(np.mean(gx ** 2 + gy ** 2)):.4f}, max {np.max(np.hypot(gx, gy)):.4f} px")
 
-    tx, ty = true_centres(cfg)
+    tx, ty = true_centres(cfg, mla_errors(args.rotation_deg))
     pitch_true = float(np.mean(np.hypot(np.diff(tx, axis=1), np.diff(ty, axis=1))))
     print("accuracy:")
     report("ray-traced sub-image centres", tx, ty)
     report("first-order layout (p(b+f)/b)", *layout_centres(cfg))
     print(f"  pitch: measured {grid.pitch_px[0]:.5f} / {grid.pitch_px[1]:.5f} px, ray-traced mean spacing "
-          f"{pitch_true:.5f}, layout {cfg.layout.subimage_pitch_px:.5f}; rotation {grid.rotation_deg:+.5f} deg (true 0)")
+          f"{pitch_true:.5f}, layout {cfg.layout.subimage_pitch_px:.5f}; rotation {grid.rotation_deg:+.5f} deg "
+          f"(true {args.rotation_deg:g})")
     return 0
 
 
