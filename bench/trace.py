@@ -1,59 +1,105 @@
 """Tracer benchmark: end-to-end rays/s (source -> main lens -> MLA with per-lens errors -> sensor) and
 peak memory on the default camera, for each engine and thread count; then the issue's full-frame bar.
 
-    python bench/trace.py            # all figures (about a minute on 2 cores)
+    python bench/trace.py            # all figures (about a minute on 2 idle cores)
     python bench/trace.py --quick    # fewer rays
+    python bench/trace.py --huge     # also 10^9 rays in the memory table
+
+Wall-clock rates depend on what else runs on the machine; the CPU time per ray (single thread) does not
+much, so it is printed too: compare that between revisions on a shared machine.
 """
 
 from __future__ import annotations
 
 import argparse
+import json
 import os
 import resource
+import subprocess
 import sys
 import time
-import tracemalloc
 
-from mlaqc.config import default_config
-from mlaqc.errormap import random_defects
+from mlaqc.config import CameraConfig, default_config
+from mlaqc.errormap import ErrorMap, random_defects
 from mlaqc.render import Renderer
 from mlaqc.scene import WhiteScene
 
+DEFECTS = dict(types=("pitch", "decenter", "radius", "thickness"))
 
-def rate(renderer: Renderer, rays: int, threads: int) -> tuple[float, float]:
-    """(M rays/s, seconds) for one white render."""
-    t = time.perf_counter()
-    renderer.render(WhiteScene(), rays=rays, seed=1, threads=threads)
-    dt = time.perf_counter() - t
-    return rays / dt / 1e6, dt
+
+def camera() -> tuple[CameraConfig, ErrorMap]:
+    """The benchmark camera: Table 1, 200 defective lenses, Fresnel on."""
+    return default_config(), random_defects(102, 102, 200, seed=3, **DEFECTS)
+
+
+def rate(renderer: Renderer, rays: int, threads: int | None, seed: int = 1) -> tuple[float, float, float]:
+    """(M rays/s wall, seconds wall, CPU ns per ray) for one white render."""
+    t, c = time.perf_counter(), time.process_time()
+    renderer.render(WhiteScene(), rays=rays, seed=seed, threads=threads)
+    dt, dc = time.perf_counter() - t, time.process_time() - c
+    return rays / dt / 1e6, dt, dc / rays * 1e9
+
+
+def _status_mib(field: str) -> float:
+    """A memory figure of this process from /proc/self/status (Linux), in MiB."""
+    with open("/proc/self/status") as f:
+        for line in f:
+            if line.startswith(field + ":"):
+                return int(line.split()[1]) / 1024
+    return float("nan")
+
+
+def memory_child(rays: int) -> None:
+    """Run in a fresh process: one render of `rays` rays on all cores; print the resident set before it and
+    its peak during it (the peak is reset after the warm-up, which loads LLVM and the compiled kernels)."""
+    cfg, errors = camera()
+    r = Renderer(cfg, errors)
+    r.render(WhiteScene(), rays=1000, seed=0)
+    base = _status_mib("VmRSS")
+    try:
+        with open("/proc/self/clear_refs", "w") as f:
+            f.write("5")  # reset VmHWM, the peak resident set size
+    except OSError:
+        pass
+    mrs, dt, _ = rate(r, rays, None)
+    peak = _status_mib("VmHWM")
+    print(json.dumps({"base": base, "peak": peak, "mrs": mrs, "seconds": dt}))
 
 
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--quick", action="store_true")
+    ap.add_argument("--quick", action="store_true", help="fewer rays everywhere")
+    ap.add_argument("--huge", action="store_true", help="add 10^9 rays to the memory table")
+    ap.add_argument("--memory-child", type=int, help=argparse.SUPPRESS)
     args = ap.parse_args()
-    cfg = default_config()
-    errors = random_defects(102, 102, 200, seed=3, types=("pitch", "decenter", "radius", "thickness"))
+    if args.memory_child:
+        memory_child(args.memory_child)
+        return 0
+    cfg, errors = camera()
     cores = os.cpu_count() or 1
-    print(f"machine: {cores} cores; camera: Table 1 (102x102 lenses, 2048x2048 px), 200 defective lenses, Fresnel on")
-    print(f"{'engine':8s} {'threads':>7s} {'rays':>12s} {'M rays/s':>9s} {'seconds':>8s}")
+    print(f"machine: {cores} cores, load average {os.getloadavg()[0]:.1f}; camera: Table 1 (102x102 lenses, "
+          f"2048x2048 px), 200 defective lenses, Fresnel on")
+    print(f"{'engine':8s} {'threads':>7s} {'rays':>12s} {'M rays/s':>9s} {'seconds':>8s} {'CPU ns/ray':>11s}")
     rays = 10_000_000 if args.quick else 40_000_000
     for engine in ("numba", "numpy"):
         r = Renderer(cfg, errors, engine=engine)
         r.render(WhiteScene(), rays=200_000, seed=0)  # compile / warm up
         n = rays if engine == "numba" else rays // 8
         for threads in sorted({1, cores}):
-            mrs, dt = rate(r, n, threads)
-            print(f"{engine:8s} {threads:7d} {n:12,d} {mrs:9.2f} {dt:8.2f}")
+            mrs, dt, ns = rate(r, n, threads)
+            print(f"{engine:8s} {threads:7d} {n:12,d} {mrs:9.2f} {dt:8.2f} {ns:11.1f}")
+
+    print("\npeak memory vs rays (numba, all cores, each in a fresh process; the image itself is 32 MiB):")
+    sizes = [10 ** 6, 10 ** 7] + ([] if args.quick else [10 ** 8]) + ([10 ** 9] if args.huge else [])
+    for n in sizes:
+        out = subprocess.run([sys.executable, __file__, "--memory-child", str(n)], capture_output=True, text=True,
+                             check=True).stdout
+        m = json.loads(out.strip().splitlines()[-1])
+        print(f"  {n:>14,d} rays: peak RSS {m['peak']:6.0f} MiB = {m['peak'] - m['base']:5.0f} MiB above the loaded "
+              f"process ({m['base']:.0f} MiB: interpreter, NumPy, LLVM, kernels); {m['mrs']:6.2f} M rays/s")
+
     r = Renderer(cfg, errors)
-    print("\npeak traced memory vs rays (numba, all cores):")
-    for n in ((1_000_000, 10_000_000) if args.quick else (1_000_000, 10_000_000, 100_000_000)):
-        tracemalloc.start()
-        mrs, dt = rate(r, n, cores)
-        peak = tracemalloc.get_traced_memory()[1] / 2 ** 20
-        tracemalloc.stop()
-        print(f"  {n:>12,d} rays: {peak:7.1f} MiB peak (image itself 32 MiB), {mrs:6.2f} M rays/s")
-    rpp = 10 if args.quick else 50
+    rpp = 10 if args.quick else 100
     t = time.perf_counter()
     res = r.render(WhiteScene(), rays_per_pixel=rpp, seed=2)
     dt = time.perf_counter() - t

@@ -1,9 +1,12 @@
 """Monte-Carlo rendering of raw images: batched, threaded, seeded, memory-bounded.
 
 Plane scenes are sampled from the image side (see `mlaqc.scene`); the MLA area is cut into tiles, one
-batch of rays per tile (stratified sampling: each batch lands on a compact patch of the sensor, so it is accumulated with `np.bincount` over that patch only). Batches run
-on a thread pool (NumPy releases the GIL) and are summed in batch order, so a seed gives a bit-identical
-image whatever the thread count. Memory is bounded by the batch size times the number of batches in flight.
+batch of rays per tile (stratified sampling: each batch lands on a compact patch of the sensor, so it is
+summed per pixel over that patch only: `np.bincount` in the NumPy engine, the same sums in ray order in
+compiled code in the Numba engine). Batches run on a thread pool (NumPy and the compiled kernel release
+the GIL) and are added into the image in batch order, so a seed gives a bit-identical image whatever the
+thread count. Memory is bounded by the batch size times the number of batches in flight (2 per thread),
+plus one patch per batch in flight; there is no per-thread copy of the frame.
 """
 
 from __future__ import annotations
