@@ -141,8 +141,8 @@ def main() -> int:
         from calib_images import normalize
 
         img = normalize(rendered_frame(args.rays_per_pixel, args.seed, not args.no_noise, args.rotation_deg), cfg)
-        source = (f"rendered, {args.rays_per_pixel:g} rays/pixel, seed {args.seed}, noise {'off' if args.no_noise else 'on'}, "
-                  f"rotation {args.rotation_deg:g} deg")
+        source = (f"rendered, {args.rays_per_pixel:g} rays/pixel, seed {args.seed}, "
+                  f"noise {'off' if args.no_noise else 'on'}, rotation {args.rotation_deg:g} deg")
     if args.vignetting:
         h, w = img.shape
         yy, xx = np.mgrid[0:h, 0:w]

@@ -3,12 +3,16 @@ global grid and keep every lens' own measurement (centre, residual, flux, size) 
 
 Pipeline (DESIGN.md §6), vectorized over all lenses at once (no per-lens Python loop):
 
-1. Lattice from the Fourier transform of the (Hann-windowed, for big frames 2x2-binned) white image: the
-   two fundamental peaks give pitch and rotation (refined to ~0.01 bin with a local DTFT), their phases
-   the lattice offset (the remaining half-period ambiguity is settled by where the cell corners are dark).
+1. Lattice from the Fourier transform of the (Hann-windowed, for big frames 2x2- or 4x4-binned) white
+   image: the two fundamental peaks give pitch and rotation (refined to ~0.01 bin with a local DTFT),
+   their phases the lattice offset (the remaining half-period ambiguity is settled by where the cell
+   corners are dark).
 2. Every sub-image is measured by a joint least-squares fit of the frame by a sum of discs, one per lens:
    lens k adds (a_k + slope . (x - c_k)) * e((R_k - |x - c_k|) / s) to the model, e a logistic edge.
-   Gauss-Newton on (a_k, c_k, R_k) of all lenses at once, in array passes over blocks of lenses.
+   Gauss-Newton on (a_k, c_k, R_k) of all lenses at once: one compiled pass per lens
+   (mlaqc.calibrate_kernels) builds its normal equations straight from the frame, evaluating its own
+   disc and its lattice neighbours' where they reach its pixels (no frame-sized model, no scatter),
+   blocks of lenses on a thread pool.
    Why not a thresholded centre of gravity: in the f-number-matched camera the sub-images touch and even
    overlap (radius 10.2 px at a 20.05 px pitch), so a cell-window centroid is governed by where the window
    is put, not by the lens (it even moves the wrong way). The position information sits in each disc's
@@ -22,11 +26,14 @@ Pipeline (DESIGN.md §6), vectorized over all lenses at once (no per-lens Python
      field of the lens amplitudes and are held fixed (fitting them per lens costs precision);
    - the edge width and typical radius come from a central block first; lenses the sharp edge cannot
      pull in (more than ~1.5 px off the lattice) are captured with a wide edge of their own;
-   - pixels outside the frame are simply left out, so lenses cut by the frame are measured unbiased.
+   - pixels outside the frame are simply left out, so lenses cut by the frame are measured unbiased;
+   - the first weighted sweep is not damped as an oscillation (it answers a new objective), so three
+     sweeps settle nearly every lens.
 3. Indexing: lattice rows/columns; with an expected MLA shape the window of N_H x N_W lattice lines with
    the most light (then the fewest lines seen dark, then nearest the frame centre) is U(1,1)..U(N_H,N_W).
 4. Global model: a projective map of the lattice (pitch x/y, rotation, shear, offset, keystone from an
-   MLA tilt) plus a radial term about the frame centre, fitted robustly (defective lenses are outliers).
+   MLA tilt) plus a radial term about the frame centre, fitted robustly (defective lenses are outliers)
+   by Gauss-Newton with the analytic Jacobian.
    Lenses predicted by the model but dark or dim are reported in `missing`, never an error.
 
 Measured on the Table 1 camera (50 rays/pixel, noise on): per-lens centres 0.029 px RMS (0.021 px per
@@ -76,7 +83,7 @@ WEIGHT_FLOOR = 0.05  # noise weights ~ 1 / signal, the signal floored at this fr
 COUPLED_PX = 0.3  # lenses this far off the lattice, and their neighbours, are fitted unweighted
 WIDE_EDGE = 1.0  # lenses the sharp edge cannot capture get an edge at least this wide for a while
 N_LENS_PARAMS = 4  # amplitude, centre x, centre y, radius
-BLOCK_LENSES = 512  # lenses per work block (a block's arrays stay in cache)
+BLOCK_LENSES = 512  # lenses per work block of the thread pool
 
 
 # ------------------------------------------------------------------------------------------------ Grid

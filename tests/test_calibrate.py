@@ -230,6 +230,81 @@ def test_synthetic_shifted_lens_reads_its_full_shift(shift):
     assert near.max() < 0.03 * math.hypot(*shift)
 
 
+# ------------------------------------------------------------------------------------ the compiled disc fit
+
+
+def _reference_normals(img, k, cx, cy, amp, radius, edge, sx, sy, half_band, weighted, floor=0.05):
+    """NumPy reference of calibrate_kernels.disc_normals for lens k: every lens' disc everywhere (no tail
+    cut, double precision), the taper window, noise weights and Jacobian as the kernel's docstring says."""
+    h, w = img.shape
+    yy, xx = np.mgrid[0:h, 0:w].astype(float)
+    model = np.zeros((h, w))
+    for j in range(cx.size):
+        u, v = xx - cx[j], yy - cy[j]
+        e = 1.0 / (1.0 + np.exp(np.clip((np.hypot(u, v) + 1e-4 - radius[j]) / edge, -50, 50)))
+        model += (amp[j] + sx[j] * u + sy[j] * v) * e
+    u, v = xx - cx[k], yy - cy[k]
+    r = np.hypot(u, v) + 1e-4
+    d = r - radius[k]
+    wt = np.clip(half_band - np.abs(d), 0.0, 1.0)
+    sel = wt > 0
+    u, v, r, d, wt, mod = u[sel], v[sel], r[sel], d[sel], wt[sel], model[sel]
+    res = img[sel] - mod
+    if weighted:
+        wt = wt * amp[k] / np.maximum(mod, floor * amp[k])
+    e = 1.0 / (1.0 + np.exp(d / edge))
+    ag = e * (1 - e) * (amp[k] + sx[k] * u + sy[k] * v) / edge
+    jac = np.stack([e, ag * u / r - e * sx[k], ag * v / r - e * sy[k], ag, d * ag / edge])
+    return (jac * wt) @ jac.T, (jac * wt) @ res, float(res @ res), int(sel.sum())
+
+
+@pytest.mark.parametrize("weighted", [False, True])
+def test_disc_kernel_matches_a_numpy_reference(weighted):
+    """The fused kernel (float32 profiles, neighbours' discs cut 10 edge widths out) against plain NumPy."""
+    from mlaqc import calibrate_kernels as kernels
+    from mlaqc.calibrate import _lattice_neighbours
+
+    img, tx, ty = synthetic_white(shape=(110, 130), rows=5, cols=6, noise=0.05, seed=7)
+    rng = np.random.default_rng(1)
+    cx, cy = tx.ravel() + rng.normal(0, 0.1, tx.size), ty.ravel() + rng.normal(0, 0.1, tx.size)
+    n = cx.size
+    amp = 0.6 + rng.normal(0, 0.02, n)
+    radius = 10.2 + rng.normal(0, 0.1, n)
+    sx, sy = rng.normal(0, 2e-3, n), rng.normal(0, 2e-3, n)
+    edge, half_band = 0.3, 2.0
+    jj, ii = np.meshgrid(np.arange(6), np.arange(5))
+    neighbours = _lattice_neighbours(jj.ravel(), ii.ravel())
+    lenses = np.arange(n)
+    normal, rhs = np.empty((n, 5, 5)), np.empty((n, 5))
+    rss, npix = np.empty(n), np.empty(n, np.int64)
+    kernels.disc_normals(img, lenses, cx, cy, amp, radius, np.full(n, 1 / edge), sx, sy, neighbours,
+                         np.zeros(n, bool), np.zeros(n, bool), half_band, weighted, True, 0.05, normal, rhs, rss, npix)
+    for k in (0, 8, 14, 29):  # corner (cut by the frame), edge, inner lenses
+        ref_n, ref_r, ref_rss, ref_npix = _reference_normals(img, k, cx, cy, amp, radius, edge, sx, sy, half_band,
+                                                             weighted)
+        assert npix[k] == ref_npix
+        np.testing.assert_allclose(normal[k], ref_n, rtol=1e-4, atol=1e-5 * np.abs(ref_n).max())
+        np.testing.assert_allclose(rhs[k], ref_r, rtol=1e-3, atol=1e-4 * np.sqrt(np.abs(ref_n).max() * ref_rss))
+        assert rss[k] == pytest.approx(ref_rss, rel=1e-4)
+        # the Gauss-Newton centre step agrees to far below the noise
+        step = np.linalg.solve(normal[k][:4, :4], rhs[k][:4])
+        ref_step = np.linalg.solve(ref_n[:4, :4], ref_r[:4])
+        assert np.abs(step[1:3] - ref_step[1:3]).max() < 1e-4
+
+
+def test_second_ring_of_neighbours_changes_nothing_where_discs_do_not_reach(monkeypatch):
+    """Large discs bring the second ring of lattice neighbours in; where it is out of reach, the fit is the same."""
+    import mlaqc.calibrate as calibration
+
+    img, tx, ty = synthetic_white(noise=0.05, seed=5)
+    first = calibrate(img, expected_shape=tx.shape)
+    table = calibration._lattice_neighbours
+    monkeypatch.setattr(calibration, "_lattice_neighbours", lambda j, i, ring=1: table(j, i, 2))
+    second = calibrate(img, expected_shape=tx.shape)
+    np.testing.assert_allclose(second.measured_x_px, first.measured_x_px, atol=1e-9)
+    np.testing.assert_allclose(second.measured_y_px, first.measured_y_px, atol=1e-9)
+
+
 # ------------------------------------------------------------------------------------ JSON
 
 
