@@ -36,7 +36,6 @@ import numpy as np
 
 from mlaqc.atomic import atomic_path
 from mlaqc.errors import InputError
-from mlaqc.raw_kernels import hot_pixel_rows, ring_residual_sample
 
 CFA_PATTERNS = ("RGGB", "BGGR", "GRBG", "GBRG")
 
@@ -759,6 +758,8 @@ def suppress_hot_pixels(
         raise InputError(f"suppress_hot_pixels needs a 2-D image, not shape {img.shape}.")
     if cfa is not None and cfa not in CFA_PATTERNS:
         raise InputError(f"suppress_hot_pixels: cfa={cfa!r} must be None or one of {', '.join(CFA_PATTERNS)}.")
+    from mlaqc.raw_kernels import hot_pixel_rows  # lazily: capture and I/O alone need no Numba import
+
     x = np.ascontiguousarray(img, dtype=np.float32)  # float32 halves the memory traffic (no copy if already)
     mask = np.zeros(img.shape, dtype=bool)
     med = np.empty(img.shape, dtype=np.float32)  # written only at outliers
@@ -804,6 +805,8 @@ def _median(a: np.ndarray) -> np.floating:
 def _plane_noise(x: np.ndarray, r0: int, c0: int, step: int, ph: int, pw: int, integer: bool) -> float:
     """Robust sigma of one plane's residual against its 8-neighbour ring mean (var = sigma^2 (1 + 1/8)),
     from a 1-in-9 sample; floored at 1 count (integer data) or 1e-6 of the plane's range."""
+    from mlaqc.raw_kernels import ring_residual_sample
+
     sample = np.empty(((ph + 2) // 3, (pw + 2) // 3), dtype=np.float32)
     lo, hi = ring_residual_sample(x, r0, c0, step, sample)
     centre = _median(sample.ravel())
