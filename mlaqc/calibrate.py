@@ -421,7 +421,7 @@ def _fft_lattice(img: np.ndarray, expected_pitch_px: float | None) -> _Lattice:
         src = img
     h, w = src.shape
     a = (src - np.float32(src.mean())) * _hann(h)[:, None] * _hann(w)[None, :]
-    spec = scipy.fft.rfft2(a, workers=_workers())
+    spec = scipy.fft.rfft2(a, workers=_workers() if a.size > 1 << 20 else 1)  # small: threads cost more
     power = spec.real ** 2 + spec.imag ** 2
     ky = scipy.fft.fftfreq(h).astype(np.float32)
     kx = scipy.fft.rfftfreq(w).astype(np.float32)
@@ -577,12 +577,16 @@ class _DiscFit:
         self.coupled = np.zeros(self.n, bool)  # lenses next to (or being) a lens far off the lattice
         self.wide = None  # lenses fitted with a wide edge (capture of far-off lenses)
         self.wide_edge = 1.0
-        workers = min(_workers(), -(-self.n // BLOCK_LENSES))
+        workers = min(_workers(), -(-self.n // 16))
         self.pool = ThreadPoolExecutor(workers) if workers > 1 else None
+        self.workers = workers
 
     def _map(self, fn, lenses: np.ndarray) -> None:
-        """fn(block) over blocks of `lenses` (an index array), on the thread pool."""
-        blocks = [slice(b, min(b + BLOCK_LENSES, lenses.size)) for b in range(0, lenses.size, BLOCK_LENSES)]
+        """fn(block) over blocks of `lenses` (an index array), on the thread pool: a multiple of the worker
+        count of equal blocks (small sets are split too), so the workers finish together."""
+        n_blocks = self.workers * -(-lenses.size // (self.workers * BLOCK_LENSES))
+        size = max(16, -(-lenses.size // max(n_blocks, 1)))
+        blocks = [slice(b, min(b + size, lenses.size)) for b in range(0, lenses.size, size)]
         if self.pool is None or len(blocks) == 1:
             for b in blocks:
                 fn(b)
@@ -1053,8 +1057,9 @@ def _fit_model(u, v, x, y, centre, lattice: _Lattice, start, shape):
         if full:
             jx[8], jy[8] = dx * rho2, dy * rho2
         jtj, jtr = np.zeros((9, 9)), np.zeros(9)
-        jtj[:npar, :npar] = jx @ jx.T + jy @ jy.T
-        jtr[:npar] = jx @ rx + jy @ ry
+        # einsum's own loops: multi-threaded BLAS stalls on products this narrow when the cores are busy
+        jtj[:npar, :npar] = np.einsum("in,jn->ij", jx, jx) + np.einsum("in,jn->ij", jy, jy)
+        jtr[:npar] = np.einsum("in,n->i", jx, rx) + np.einsum("in,n->i", jy, ry)
         return jtj, jtr, float(rx @ rx + ry @ ry)
 
     def gauss_newton(p, sel):
