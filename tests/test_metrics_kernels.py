@@ -210,3 +210,22 @@ def test_local_deviations_fill_nan_with_the_median():
     assert np.isnan(a[3, 4]) and np.isnan(a[0, 0])
     assert np.array_equal(a, values - _scipy_baseline(fill, 5, "x"), equal_nan=True)
     assert np.array_equal(b, values.T - _scipy_baseline(fill.T.copy(), 5, ""), equal_nan=True)
+
+
+def test_phase_table_gather_equals_the_clipped_template_gather(model):
+    """The contiguous phase-table copy and its element-wise fallback (windows far off the template) give
+    exactly the clipped gather of `reference_windows`, for every phase and shifts up to +-40 px."""
+    from mlaqc.lens_kernels import _gather_tables
+    from mlaqc.metrics import _PHASE_PAD, _phase_tables, _template_stack
+
+    stack, size, c = _template_stack(model)
+    phases = _phase_tables(model)
+    os_ = int(model.oversample)
+    rng = np.random.default_rng(8)
+    h, w = 21, 19
+    q = np.concatenate([np.arange(80, 96), rng.integers(-240, 400, 40)])  # every phase near centre, then wild
+    dst = np.empty((4, h * w), np.float32)
+    for qx, qy in zip(q, rng.permutation(q)):
+        _gather_tables(stack, size, c, os_, phases, _PHASE_PAD, int(qx), int(qy), h, w, 4, dst)
+        want = reference_windows(model, np.array([[qx / os_]]), np.array([[qy / os_]]), h, w)[0][:, 0, 0]
+        assert np.array_equal(dst.reshape(4, h, w), want), (qx, qy)
