@@ -1035,32 +1035,11 @@ def _fit_model(u, v, x, y, centre, lattice: _Lattice, start, shape):
         return np.concatenate([mx_ - x[sel], my_ - y[sel]])
 
     def normal_equations(p, sel):
-        """Gauss-Newton normal equations J^T J, J^T r and the cost r^T r of `resid` (analytic Jacobian;
-        columns: the 9 parameters, the radial one only in the full model)."""
+        """Gauss-Newton normal equations J^T J, J^T r and the cost r^T r of `resid` (analytic Jacobian,
+        compiled; the radial parameter only in the full model)."""
         hm, kk = unpack(p)
-        u_, v_ = un[sel], vn[sel]
-        inv_w = 1.0 / (hm[2, 0] * u_ + hm[2, 1] * v_ + 1.0)
-        xp = (hm[0, 0] * u_ + hm[0, 1] * v_ + hm[0, 2]) * inv_w
-        yp = (hm[1, 0] * u_ + hm[1, 1] * v_ + hm[1, 2]) * inv_w
-        dx, dy = xp - centre[0], yp - centre[1]
-        rho2 = (dx * dx + dy * dy) * (1.0 / (scale * scale))
-        f = 1.0 + kk * rho2
-        g = 2.0 * kk / (scale * scale)
-        xx, xy, yy = f + g * dx * dx, g * dx * dy, f + g * dy * dy  # d(X, Y) / d(x', y')
-        rx, ry = centre[0] + dx * f - x[sel], centre[1] + dy * f - y[sel]
-        hx = np.stack([u_ * inv_w, v_ * inv_w, inv_w])  # d x' / d h0*, and d y' / d h1*
-        ax, ay = -(xx * xp + xy * yp), -(xy * xp + yy * yp)  # times hx[:2]: d / d h2*
-        npar = 9 if full else 8
-        jx, jy = np.empty((npar, u_.size)), np.empty((npar, u_.size))  # Jacobian rows of x and y, transposed
-        jx[0:3], jx[3:6], jx[6:8] = xx * hx, xy * hx, ax * hx[:2]
-        jy[0:3], jy[3:6], jy[6:8] = xy * hx, yy * hx, ay * hx[:2]
-        if full:
-            jx[8], jy[8] = dx * rho2, dy * rho2
-        jtj, jtr = np.zeros((9, 9)), np.zeros(9)
-        # einsum's own loops: multi-threaded BLAS stalls on products this narrow when the cores are busy
-        jtj[:npar, :npar] = np.einsum("in,jn->ij", jx, jx) + np.einsum("in,jn->ij", jy, jy)
-        jtr[:npar] = np.einsum("in,n->i", jx, rx) + np.einsum("in,n->i", jy, ry)
-        return jtj, jtr, float(rx @ rx + ry @ ry)
+        return kernels.grid_normal_equations(un[sel], vn[sel], x[sel], y[sel], hm, float(kk), float(centre[0]),
+                                             float(centre[1]), float(scale), 9 if full else 8)
 
     def gauss_newton(p, sel):
         """Least squares from the affine start (the model is nearly linear: a few steps), column-scaled,

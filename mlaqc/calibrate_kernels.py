@@ -304,3 +304,42 @@ def row_dots(a, m):
                 s += a[y, x] * m[j, x]
             out[y, j] = s
     return out
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def grid_normal_equations(u, v, x, y, hom, k, cx, cy, scale, n_par):
+    """Gauss-Newton normal equations of the global grid model (mlaqc.calibrate._model_xy: projective map
+    hom of the lattice (u, v), then the radial term k about (cx, cy) / scale) against centres (x, y).
+    Parameters: hom[0, :], hom[1, :], hom[2, :2], k (the first n_par of them). Returns J^T J (9, 9),
+    J^T r (9,) and r^T r, in one pass (no Jacobian array)."""
+    jtj = np.zeros((9, 9))
+    jtr = np.zeros(9)
+    cost = 0.0
+    jx = np.zeros(9)
+    jy = np.zeros(9)
+    s2 = 1.0 / (scale * scale)
+    for i in range(u.size):
+        inv_w = 1.0 / (hom[2, 0] * u[i] + hom[2, 1] * v[i] + 1.0)
+        xp = (hom[0, 0] * u[i] + hom[0, 1] * v[i] + hom[0, 2]) * inv_w
+        yp = (hom[1, 0] * u[i] + hom[1, 1] * v[i] + hom[1, 2]) * inv_w
+        dx, dy = xp - cx, yp - cy
+        rho2 = (dx * dx + dy * dy) * s2
+        f = 1.0 + k * rho2
+        g = 2.0 * k * s2
+        xx, xy, yy = f + g * dx * dx, g * dx * dy, f + g * dy * dy  # d(X, Y) / d(x', y')
+        rx, ry = cx + dx * f - x[i], cy + dy * f - y[i]
+        h0, h1, h2 = u[i] * inv_w, v[i] * inv_w, inv_w  # d x' / d hom[0, :], d y' / d hom[1, :]
+        ax, ay = -(xx * xp + xy * yp), -(xy * xp + yy * yp)  # times h0, h1: d / d hom[2, :2]
+        jx[0], jx[1], jx[2], jx[3], jx[4], jx[5], jx[6], jx[7], jx[8] = (
+            xx * h0, xx * h1, xx * h2, xy * h0, xy * h1, xy * h2, ax * h0, ax * h1, dx * rho2)
+        jy[0], jy[1], jy[2], jy[3], jy[4], jy[5], jy[6], jy[7], jy[8] = (
+            xy * h0, xy * h1, xy * h2, yy * h0, yy * h1, yy * h2, ay * h0, ay * h1, dy * rho2)
+        for a in range(n_par):
+            jtr[a] += jx[a] * rx + jy[a] * ry
+            for b in range(a, n_par):
+                jtj[a, b] += jx[a] * jx[b] + jy[a] * jy[b]
+        cost += rx * rx + ry * ry
+    for a in range(n_par):
+        for b in range(a):
+            jtj[a, b] = jtj[b, a]
+    return jtj, jtr, cost
