@@ -114,9 +114,15 @@ def ray_count(cfg: CameraConfig, rays: int | None, rays_per_pixel: float | None)
     return rays
 
 
-def _plane_jobs(region: SourceRegion | ImageRegion, total: int, batch: int) -> list[_Job]:
-    """Tiles of the sampled rectangle, about `batch` rays each, rays shared out exactly."""
-    n_batches = max(1, math.ceil(total / batch))
+PATCH_PIXELS = 1 << 22  # at most about this many sensor pixels per tile (a 32 MiB patch in flight)
+
+
+def _plane_jobs(region: SourceRegion | ImageRegion, total: int, batch: int, sensor_pixels: int = 0) -> list[_Job]:
+    """Tiles of the sampled rectangle, about `batch` rays each, rays shared out exactly.
+
+    Few rays on a large sensor still get enough tiles that no batch's patch approaches the whole frame
+    (no change below 2^22 sensor pixels, e.g. the 2048 x 2048 Table 1 sensor)."""
+    n_batches = max(1, math.ceil(total / batch), math.ceil(sensor_pixels / PATCH_PIXELS))
     aspect = region.half_x_mm / region.half_y_mm
     nx = max(1, round(math.sqrt(n_batches * aspect)))
     ny = max(1, math.ceil(n_batches / nx))
@@ -181,7 +187,8 @@ class Renderer:
                 raise InputError("a point scene needs at least one point")
             jobs = _point_jobs(scene, total, batch)
         else:
-            jobs = _plane_jobs(self.image_region if self.sampling == "image" else self.region, total, batch)
+            jobs = _plane_jobs(self.image_region if self.sampling == "image" else self.region, total, batch,
+                               self.cfg.sensor.width_px * self.cfg.sensor.height_px)
         total = sum(j.n for j in jobs)
         keys = np.random.SeedSequence(seed).generate_state(len(jobs), np.uint64)
         h, w = self.cfg.sensor.height_px, self.cfg.sensor.width_px
