@@ -226,7 +226,9 @@ def stage1_image_side(start, m, s, key, buf, fres, texture, g):
 
 @_jit_inline
 def stage1_forward(start, m, mode, s, key, buf, fres, texture):
-    """Rays from object points (a point source, or points of the object plane) through the main lens."""
+    """Rays from object points (a point source, or points of the object plane) through the main lens.
+
+    A sampling loop, then one loop per surface (see stage1_image_side)."""
     x0, dx_span, y0, dy_span = s[S_X0], s[S_X1] - s[S_X0], s[S_Y0], s[S_Y1] - s[S_Y0]
     rp, zs = s[S_RPUPIL], s[S_ZSTART]
     t_main, c1, c2, n, rim2 = s[S_T], s[S_C1], s[S_C2], s[S_N], s[S_RIM2]
@@ -249,12 +251,18 @@ def stage1_forward(start, m, mode, s, key, buf, fres, texture):
         w = N * N * N
         if not point:
             w *= N
-        x, y, z, L, M, N, tr = main_surface(ox, oy, zs, L, M, N, 0.0, c1, 1.0, n, mu_in, rim2, fres)
-        w *= tr
-        x, y, z, L, M, N, tr = main_surface(x, y, z, L, M, N, t_main, c2, n, 1.0, mu_out, rim2, fres)
-        w *= tr
-        buf[0, j], buf[1, j], buf[2, j], buf[3, j], buf[4, j], buf[5, j], buf[6, j] = x, y, z, L, M, N, w
+        buf[0, j], buf[1, j], buf[2, j], buf[3, j], buf[4, j], buf[5, j], buf[6, j] = ox, oy, zs, L, M, N, w
         buf[7, j], buf[8, j] = ox, oy
+    for j in range(m):
+        x, y, z, L, M, N, tr = main_surface(buf[0, j], buf[1, j], buf[2, j], buf[3, j], buf[4, j], buf[5, j], 0.0, c1,
+                                            1.0, n, mu_in, rim2, fres)
+        buf[0, j], buf[1, j], buf[2, j], buf[3, j], buf[4, j], buf[5, j] = x, y, z, L, M, N
+        buf[6, j] *= tr
+    for j in range(m):
+        x, y, z, L, M, N, tr = main_surface(buf[0, j], buf[1, j], buf[2, j], buf[3, j], buf[4, j], buf[5, j], t_main,
+                                            c2, n, 1.0, mu_out, rim2, fres)
+        buf[0, j], buf[1, j], buf[2, j], buf[3, j], buf[4, j], buf[5, j] = x, y, z, L, M, N
+        buf[6, j] *= tr
 
 
 @_jit_inline
