@@ -62,8 +62,7 @@ def test_hits_come_in_ray_order_with_their_bounding_box():
     assert len(w) > 20_000 and np.all(w > 0)
     assert list(box) == [rows.min(), rows.max(), cols.min(), cols.max()]
     assert np.array_equal(idx, rows.astype(np.int64) * SMALL.sensor.width_px + cols) and np.array_equal(w, w2)
-    # the same rays one by one, each in a batch of its own key, are not what is checked here; but a
-    # batch's first rays must not depend on how many rays follow them
+    # counter-based draws: a batch's first rays do not depend on how many rays follow them
     idx_short, _ = r.fast.trace(fastpath.IMAGE_SIDE, 11, 1000, tile=(-0.4, 0.1, 0.2, 0.5))
     assert np.array_equal(idx_short, idx[:len(idx_short)])
 
