@@ -117,7 +117,8 @@ def lens_features(metrics, m: int, n: int, direction_deg: float | None = None) -
     from +x towards the top) or along the lens' own shift if None."""
     dx, dy = metrics["offset_x_px"][m, n], metrics["offset_y_px"][m, n]
     if direction_deg is None:
-        ux, uy = (dx, dy) / max(np.hypot(dx, dy), 1e-12)
+        r = max(float(np.hypot(dx, dy)), 1e-12)  # no shift at all: along/across projections are 0
+        ux, uy = dx / r, dy / r
     else:
         a = np.radians(direction_deg)
         ux, uy = np.cos(a), -np.sin(a)
