@@ -266,6 +266,13 @@ def stage1_forward(start, m, mode, s, key, buf, fres, texture):
 
 
 @_jit_inline
+def rot_of(rot, k):
+    """The nine entries of lens k's rotation matrix, row by row."""
+    return (rot[k, 0, 0], rot[k, 0, 1], rot[k, 0, 2], rot[k, 1, 0], rot[k, 1, 1], rot[k, 1, 2],
+            rot[k, 2, 0], rot[k, 2, 1], rot[k, 2, 2])
+
+
+@_jit_inline
 def rot_t(r00, r01, r02, r10, r11, r12, r20, r21, r22, x, y, z):
     """R^T v, as to_lens writes it (scalars only: helpers of the vectorized passes never take arrays)."""
     return r00 * x + r10 * y + r20 * z, r01 * x + r11 * y + r21 * z, r02 * x + r12 * y + r22 * z
@@ -349,8 +356,7 @@ def stage2_block(m, buf, s, tab, rot, grot, clear, fres, n_mla, mu_in, g, kk, fl
         px, py, pz, L, M, N = buf[0, j] - fx, buf[1, j] - fy, buf[2, j], buf[3, j], buf[4, j], buf[5, j]
         if rot is not None:
             k = kk[j]
-            r00, r01, r02, r10, r11, r12, r20, r21, r22 = (rot[k, 0, 0], rot[k, 0, 1], rot[k, 0, 2], rot[k, 1, 0],
-                                                           rot[k, 1, 1], rot[k, 1, 2], rot[k, 2, 0], rot[k, 2, 1], rot[k, 2, 2])
+            r00, r01, r02, r10, r11, r12, r20, r21, r22 = rot_of(rot, k)
             px, py, pz = rot_t(r00, r01, r02, r10, r11, r12, r20, r21, r22, px, py, pz)
             L, M, N = rot_t(r00, r01, r02, r10, r11, r12, r20, r21, r22, L, M, N)
         t = sphere_t(px - 0.0, py - 0.0, pz - zfront, L, M, N, c)
@@ -379,8 +385,7 @@ def stage2_block(m, buf, s, tab, rot, grot, clear, fres, n_mla, mu_in, g, kk, fl
         nN = lN if corner else nN
         if rot is not None:
             k = kk[j]
-            r00, r01, r02, r10, r11, r12, r20, r21, r22 = (rot[k, 0, 0], rot[k, 0, 1], rot[k, 0, 2], rot[k, 1, 0],
-                                                           rot[k, 1, 1], rot[k, 1, 2], rot[k, 2, 0], rot[k, 2, 1], rot[k, 2, 2])
+            r00, r01, r02, r10, r11, r12, r20, r21, r22 = rot_of(rot, k)
             hx, hy, hz = rot_n(r00, r01, r02, r10, r11, r12, r20, r21, r22, hx, hy, hz)
             nL, nM, nN = rot_n(r00, r01, r02, r10, r11, r12, r20, r21, r22, nL, nM, nN)
         x, y, z, L, M, N = hx + fx, hy + fy, hz, nL, nM, nN
@@ -394,8 +399,7 @@ def stage2_block(m, buf, s, tab, rot, grot, clear, fres, n_mla, mu_in, g, kk, fl
         px, py, pz = x - fx, y - fy, z
         if rot is not None:
             k = kk[j]
-            r00, r01, r02, r10, r11, r12, r20, r21, r22 = (rot[k, 0, 0], rot[k, 0, 1], rot[k, 0, 2], rot[k, 1, 0],
-                                                           rot[k, 1, 1], rot[k, 1, 2], rot[k, 2, 0], rot[k, 2, 1], rot[k, 2, 2])
+            r00, r01, r02, r10, r11, r12, r20, r21, r22 = rot_of(rot, k)
             px, py, pz = rot_t(r00, r01, r02, r10, r11, r12, r20, r21, r22, px, py, pz)
             L, M, N = rot_t(r00, r01, r02, r10, r11, r12, r20, r21, r22, L, M, N)
         t = sphere_t(px - vx, py - vy, pz - vz, L, M, N, c2)
@@ -415,8 +419,7 @@ def stage2_block(m, buf, s, tab, rot, grot, clear, fres, n_mla, mu_in, g, kk, fl
         nL, nM, nN, tr = refract(lL, lM, lN, c * (hx - vx), c * (hy - vy), c * (hz - vz) - 1.0, n_mla, fres, n_mla, 1.0)
         if rot is not None:
             k = kk[j]
-            r00, r01, r02, r10, r11, r12, r20, r21, r22 = (rot[k, 0, 0], rot[k, 0, 1], rot[k, 0, 2], rot[k, 1, 0],
-                                                           rot[k, 1, 1], rot[k, 1, 2], rot[k, 2, 0], rot[k, 2, 1], rot[k, 2, 2])
+            r00, r01, r02, r10, r11, r12, r20, r21, r22 = rot_of(rot, k)
             hx, hy, hz = rot_n(r00, r01, r02, r10, r11, r12, r20, r21, r22, hx, hy, hz)
             nL, nM, nN = rot_n(r00, r01, r02, r10, r11, r12, r20, r21, r22, nL, nM, nN)
         bx, by, bz, bL, bM, bN = buf[0, j], buf[1, j], buf[2, j], buf[3, j], buf[4, j], buf[5, j]
