@@ -53,10 +53,25 @@ def wait_for_records(out: Path, count: int, proc: subprocess.Popen, timeout_s: f
                          f"{proc.stderr.read().decode() if proc.poll() is not None else ''}")
 
 
+def _sigint_default() -> None:
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
 def scan_cli(*args: str) -> subprocess.Popen:
+    """`mlaqc scan` in a child that takes Ctrl-C as from a terminal (a runner that started the tests in
+    the background hands down SIGINT ignored, and Python then never raises KeyboardInterrupt)."""
     env = {**os.environ, "PYTHONPATH": str(REPO)}
     return subprocess.Popen([sys.executable, "-m", "mlaqc.cli", "scan", *args], cwd=REPO, env=env,
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, preexec_fn=_sigint_default)
+
+
+@pytest.fixture
+def python_sigint():
+    """Python's own Ctrl-C handler for the test, whatever SIGINT disposition the runner handed down
+    (`_thread.interrupt_main` does nothing while SIGINT is ignored)."""
+    before = signal.signal(signal.SIGINT, signal.default_int_handler)
+    yield
+    signal.signal(signal.SIGINT, before)
 
 
 # --------------------------------------------------------------------------------------------- plans
@@ -245,7 +260,7 @@ y_mm = 10.0
 
 
 @pytest.mark.timeout(60)
-def test_ctrl_c_mid_move_stops_the_stage_and_keeps_the_manifest(tmp_path, capsys):
+def test_ctrl_c_mid_move_stops_the_stage_and_keeps_the_manifest(tmp_path, capsys, python_sigint):
     plan = write_plan(tmp_path / "plan.toml", SLOW_PLAN)
     out = tmp_path / "scan"
     camera_url = "mock://?wafer=4x1&rpp=0.5&exposure_us=2000"
