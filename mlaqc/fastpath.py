@@ -293,6 +293,23 @@ def cell_f(x, y, ax0, ay0, invp, ncols, nrows):
     return row * ncols + col if on else -1.0
 
 
+@_jit
+def surface_hit(px, py, pz, L, M, N, ox, oy, oz, c, fx, fy, rot, k, ax0, ay0, invp, ncols, nrows):
+    """A ray given in lens k's frame (before its own rotation) meets the lens surface with vertex at
+    (ox, oy, oz) and curvature c: hit point and direction in the rotated lens frame, the distance t (NaN on
+    a miss), and the MLA cell the hit lies in (to flag hits that belong to a neighbour)."""
+    if rot is not None:
+        r00, r01, r02, r10, r11, r12, r20, r21, r22 = rot_of(rot, k)
+        px, py, pz = rot_t(r00, r01, r02, r10, r11, r12, r20, r21, r22, px, py, pz)
+        L, M, N = rot_t(r00, r01, r02, r10, r11, r12, r20, r21, r22, L, M, N)
+    t = sphere_t(px - ox, py - oy, pz - oz, L, M, N, c)
+    hx, hy, hz = px + t * L, py + t * M, pz + t * N
+    gx, gy = hx, hy
+    if rot is not None:
+        gx, gy, _ = rot_n(r00, r01, r02, r10, r11, r12, r20, r21, r22, hx, hy, hz)
+    return hx, hy, hz, L, M, N, t, cell_f(gx + fx, gy + fy, ax0, ay0, invp, ncols, nrows)
+
+
 @_jit_inline
 def gather(j, k, tab, g):
     """Copy lens k's parameters into column j of the scratch table."""
@@ -354,18 +371,9 @@ def stage2_block(m, buf, s, tab, rot, grot, clear, fres, n_mla, mu_in, g, kk, fl
     for j in range(m):
         fx, fy, c = g[G_FX, j], g[G_FY, j], g[G_C1, j]
         px, py, pz, L, M, N = buf[0, j] - fx, buf[1, j] - fy, buf[2, j], buf[3, j], buf[4, j], buf[5, j]
-        if rot is not None:
-            k = kk[j]
-            r00, r01, r02, r10, r11, r12, r20, r21, r22 = rot_of(rot, k)
-            px, py, pz = rot_t(r00, r01, r02, r10, r11, r12, r20, r21, r22, px, py, pz)
-            L, M, N = rot_t(r00, r01, r02, r10, r11, r12, r20, r21, r22, L, M, N)
-        t = sphere_t(px - 0.0, py - 0.0, pz - zfront, L, M, N, c)
-        hx, hy, hz = px + t * L, py + t * M, pz + t * N
+        hx, hy, hz, L, M, N, t, k2 = surface_hit(px, py, pz, L, M, N, 0.0, 0.0, zfront, c, fx, fy, rot, kk[j],
+                                                 ax0, ay0, invp, ncols, nrows)
         g[G_HX, j], g[G_HY, j], g[G_HZ, j], g[G_LL, j], g[G_LM, j], g[G_LN, j], g[G_T, j] = hx, hy, hz, L, M, N, t
-        gx, gy = hx, hy
-        if rot is not None:
-            gx, gy, _ = rot_n(r00, r01, r02, r10, r11, r12, r20, r21, r22, hx, hy, hz)
-        k2 = cell_f(gx + fx, gy + fy, ax0, ay0, invp, ncols, nrows)
         flag[j] = (buf[6, j] > 0.0) & (t == t) & (k2 >= 0.0) & (k2 != kk[j])
     retrace_neighbours(m, flag, kk, buf, g, tab, rot, s, False)
     # --- C: corner test, front refraction, back to the MLA frame ---
@@ -397,18 +405,9 @@ def stage2_block(m, buf, s, tab, rot, grot, clear, fres, n_mla, mu_in, g, kk, fl
         x, y, z, L, M, N = buf[0, j], buf[1, j], buf[2, j], buf[3, j], buf[4, j], buf[5, j]
         fx, fy, vx, vy, c2, vz = g[G_FX, j], g[G_FY, j], g[G_DX, j], g[G_DY, j], g[G_C2, j], g[G_ZR, j]
         px, py, pz = x - fx, y - fy, z
-        if rot is not None:
-            k = kk[j]
-            r00, r01, r02, r10, r11, r12, r20, r21, r22 = rot_of(rot, k)
-            px, py, pz = rot_t(r00, r01, r02, r10, r11, r12, r20, r21, r22, px, py, pz)
-            L, M, N = rot_t(r00, r01, r02, r10, r11, r12, r20, r21, r22, L, M, N)
-        t = sphere_t(px - vx, py - vy, pz - vz, L, M, N, c2)
-        hx, hy, hz = px + t * L, py + t * M, pz + t * N
+        hx, hy, hz, L, M, N, t, k2 = surface_hit(px, py, pz, L, M, N, vx, vy, vz, c2, fx, fy, rot, kk[j],
+                                                 ax0, ay0, invp, ncols, nrows)
         g[G_HX, j], g[G_HY, j], g[G_HZ, j], g[G_LL, j], g[G_LM, j], g[G_LN, j], g[G_T, j] = hx, hy, hz, L, M, N, t
-        gx, gy = hx, hy
-        if rot is not None:
-            gx, gy, _ = rot_n(r00, r01, r02, r10, r11, r12, r20, r21, r22, hx, hy, hz)
-        k2 = cell_f(gx + fx, gy + fy, ax0, ay0, invp, ncols, nrows)
         flag[j] = (buf[6, j] > 0.0) & (not corner_of[j]) & (t == t) & (k2 >= 0.0) & (k2 != kk[j])
     retrace_neighbours(m, flag, kk, buf, g, tab, rot, s, True)
     # --- D: rear refraction (corners go on straight), back to the camera frame, onto the sensor ---
