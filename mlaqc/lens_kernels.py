@@ -413,13 +413,5 @@ def _edge_rows(a, o, size, buf):
 
 @_jit
 def _edge_cols(a, o, size, buf):
-    """Running 1-D median (mode 'nearest') along the first and the last column."""
-    rows, cols = a.shape
-    half = size // 2
-    for j in (0, cols - 1):
-        for i in range(rows):
-            m = 0
-            for di in range(-half, half + 1):
-                _insert(buf, m, a[min(max(i + di, 0), rows - 1), j])
-                m += 1
-            o[i, j] = buf[m // 2]
+    """Running 1-D median (mode 'nearest') along the first and the last column: the rows' on the transpose."""
+    _edge_rows(a.T, o.T, size, buf)
