@@ -21,9 +21,17 @@ _jit = njit(cache=True, nogil=True, error_model="numpy")
 _jit_fast = njit(cache=True, nogil=True, error_model="numpy", fastmath={"reassoc", "contract"})
 
 # Column order of the (N, N_INDEX) array `lens_indexes` fills (the order of results.METRICS).
+# Rings of the residual profile: outer radii in units of half the window (a 21-px window: 6, 8, 9, 10, 11 and
+# 12 px; the window's corners beyond are the neighbours' and are left out). A radius or thickness error
+# defocuses the lens and moves light across the sub-image's rim; the rings just inside and outside it say
+# where and how much (mlaqc.identify's focus test).
+RING_EDGES = np.array([6.0, 8.0, 9.0, 10.0, 11.0, 12.0]) / 10.5
+N_RING = len(RING_EDGES)
 INDEX_NAMES = ("flux", "mean_gray", "uniformity", "entropy", "sharpness", "offset_x_px", "offset_y_px", "offset_um",
-               "size_px", "ellipticity", "blur", "asym_x", "asym_y", "psnr_db", "ssim", "ncc")
+               "size_px", "ellipticity", "blur", "asym_x", "asym_y", "psnr_db", "ssim", "ncc",
+               *(f"ring{k}" for k in range(N_RING)))
 N_INDEX = len(INDEX_NAMES)
+_RING0 = INDEX_NAMES.index("ring0")
 ENTROPY_BINS = 32
 
 
@@ -104,6 +112,8 @@ def lens_indexes(data, cx, cy, stack, size, c, os_, phases, pad, um_per_px, step
     tab = np.empty((4, npx), np.float32)
     counts = np.empty((4, ENTROPY_BINS + 1), np.int64)
     bins = np.empty(npx, np.int32)
+    ring = np.empty(N_RING + 1)  # the last one collects the corners, unused
+    edges2 = (RING_EDGES * (0.5 * h)) ** 2
     inv_half = 1.0 / (0.5 * h)
     rdisc2 = (0.35 * h) ** 2
     nan = np.nan
@@ -254,6 +264,19 @@ def lens_indexes(data, cx, cy, stack, size, c, os_, phases, pad, um_per_px, step
             bins[p] = bi if v[p] > 0 else ENTROPY_BINS
         for p in range(npx):
             counts[p & 3, bins[p]] += 1
+        # --- residual profile: light of the flux-scaled residual x - a R per ring around the lens centre
+        a_reg = sxr / max(srr, 1e-30)
+        ring[:] = 0.0
+        for i in range(h):
+            yy = i - qy
+            for j in range(w):
+                xx = j - qx
+                d2 = xx * xx + yy * yy
+                kk = 0
+                for e in range(N_RING):
+                    kk += 1 if d2 >= edges2[e] else 0
+                p = i * w + j
+                ring[kk] += x[p] - a_reg * tab[0, p] * v[p]
         o = out[k]
         if not (flux > 0) or nv < 0.5 * npx:
             for q in range(N_INDEX):
@@ -318,6 +341,9 @@ def lens_indexes(data, cx, cy, stack, size, c, os_, phases, pad, um_per_px, step
         o[13] = 10.0 * np.log10(peak * peak / max(mse, 0.0))
         o[14] = ((2 * mxs * mr + c1) * (2 * cov + c2)) / ((mxs * mxs + mr * mr + c1) * (vx + vr + c2))
         o[15] = cov / math.sqrt(vx * vr)
+        ref_light = a * srv if a * srv != 0 else nan
+        for q in range(N_RING):
+            o[_RING0 + q] = ring[q] / ref_light
 
 
 # Median-of-25 selection network (Paeth / Devillard opt_med25): after these 99 compare-exchanges wire 12

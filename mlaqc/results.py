@@ -25,6 +25,9 @@ METRICS: dict[str, tuple[str, str]] = {
     "psnr_db": ("dB", "PSNR against the reference sub-image"),
     "ssim": ("1", "structural similarity against the reference sub-image"),
     "ncc": ("1", "normalized cross-correlation with the reference sub-image"),
+    **{f"ring{k}": ("rel", f"residual light (sub-image minus flux-scaled reference) in ring {k} around the lens "
+                           f"centre{', ' + r if r else ''}, relative to the reference's light") for k, r in enumerate(
+        ("radius < 0.57 half-window", "0.57-0.76", "0.76-0.86", "0.86-0.95", "0.95-1.05", "1.05-1.14"))},
 }
 
 

@@ -20,14 +20,16 @@ import numpy as np
 from mlaqc.atomic import write_json_atomic
 from mlaqc.config import CameraConfig
 from mlaqc.errormap import ErrorMap
+from mlaqc.lens_kernels import N_RING
 from mlaqc.metrics import compute_metrics
 from mlaqc.reference import PACKAGE_DATA, ReferenceModel, build_reference, cache_dir
 from mlaqc.render import Renderer
 from mlaqc.scene import WhiteScene
 
 FEATURES = ("shift_par", "shift_perp", "asym_par", "asym_perp", "blur", "flux", "ssim", "sharpness")
+RINGS = tuple(f"ring{k}" for k in range(N_RING))  # the residual profile: same in every direction
 PATCH = 9
-TABLE_VERSION = 1
+TABLE_VERSION = 2
 
 
 @dataclass(frozen=True)
@@ -54,25 +56,30 @@ KIND_BY_NAME = {k.name: k for k in KINDS}
 
 @dataclass(frozen=True)
 class SignatureTable:
-    """features[kind] is (len(magnitudes), len(FEATURES)); phi0_deg[kind] is the direction of the shift
-    an error at direction 0 causes (so error direction = measured shift direction - phi0)."""
+    """features[kind] is (len(magnitudes), len(FEATURES)) and rings[kind] (len(magnitudes), len(RINGS));
+    phi0_deg[kind] is the direction of the shift an error at direction 0 causes (so error direction =
+    measured shift direction - phi0). `settings`: how the table was rendered (rays, seed), for the record."""
 
     magnitudes: dict[str, np.ndarray]
     features: dict[str, np.ndarray]
     phi0_deg: dict[str, float]
     key: str
+    rings: dict[str, np.ndarray]
+    settings: dict = dataclasses.field(default_factory=dict)
 
     def to_json_dict(self) -> dict:
         return {"format": "mlaqc-signatures", "version": TABLE_VERSION, "key": self.key, "features": list(FEATURES),
+                "rings": list(RINGS), "settings": self.settings,
                 "kinds": {k: {"magnitudes": self.magnitudes[k].tolist(), "features": self.features[k].tolist(),
-                              "phi0_deg": self.phi0_deg[k]} for k in self.magnitudes}}
+                              "rings": self.rings[k].tolist(), "phi0_deg": self.phi0_deg[k]} for k in self.magnitudes}}
 
     @classmethod
     def from_json_dict(cls, d: dict) -> SignatureTable:
         kinds = d["kinds"]
         return cls({k: np.asarray(v["magnitudes"], float) for k, v in kinds.items()},
                    {k: np.asarray(v["features"], float) for k, v in kinds.items()},
-                   {k: float(v["phi0_deg"]) for k, v in kinds.items()}, d["key"])
+                   {k: float(v["phi0_deg"]) for k, v in kinds.items()}, d["key"],
+                   {k: np.asarray(v["rings"], float) for k, v in kinds.items()}, dict(d.get("settings", {})))
 
 
 def signature_key(cfg: CameraConfig) -> str:
@@ -141,7 +148,7 @@ def build_signatures(cfg: CameraConfig, *, rays_per_pixel: float = 400.0, kinds=
         return compute_metrics(win, cx, cy, model, um_per_px_at_mla=um_px)
 
     base = metrics_for(ErrorMap.zeros(PATCH, PATCH))
-    mags, feats, phi0 = {}, {}, {}
+    mags, feats, phi0, rings = {}, {}, {}, {}
     total, done = sum(len(k.magnitudes) for k in kinds), 0
     for kind in kinds:
         mets = []
@@ -158,8 +165,10 @@ def build_signatures(cfg: CameraConfig, *, rays_per_pixel: float = 400.0, kinds=
         base_phi = lens_features(base, c, c, phi)
         mags[kind.name] = np.asarray(kind.magnitudes, float)
         feats[kind.name] = np.asarray([lens_features(m_, c, c, phi) - base_phi for m_ in mets])
+        rings[kind.name] = np.asarray([[m_[r][c, c] - base[r][c, c] for r in RINGS] for m_ in mets])
         phi0[kind.name] = phi
-    return SignatureTable(mags, feats, phi0, signature_key(cfg))
+    return SignatureTable(mags, feats, phi0, signature_key(cfg), rings,
+                          {"rays_per_pixel": rays_per_pixel, "seed": seed, "patch_lenses": PATCH})
 
 
 def signature_table(cfg: CameraConfig, *, build_if_missing: bool = True, progress=None) -> SignatureTable:

@@ -12,7 +12,7 @@ from scipy.ndimage import gaussian_filter
 
 from mlaqc.config import default_config
 from mlaqc.identify import _scipy_baseline, local_deviation, local_deviations
-from mlaqc.lens_kernels import INDEX_NAMES, MEDIAN25_PAIRS
+from mlaqc.lens_kernels import INDEX_NAMES, MEDIAN25_PAIRS, N_RING, RING_EDGES
 from mlaqc.metrics import compute_metrics, reference_images, reference_windows
 from mlaqc.reference import reference_model
 
@@ -109,6 +109,10 @@ def _numpy_metrics(img, cx, cy, model, um_per_px):
     with np.errstate(divide="ignore", invalid="ignore"):
         out["psnr_db"] = 10 * np.log10(peak * peak / mse)
         out["ncc"] = cov / np.sqrt(vx * vr)
+    ring = np.searchsorted((RING_EDGES * 0.5 * h) ** 2, xx * xx + yy * yy, side="right")  # N_RING: corners
+    with np.errstate(divide="ignore", invalid="ignore"):
+        for k in range(N_RING):
+            out[f"ring{k}"] = _sum(resid * (ring == k)) / (a * _sum(r))
     lost = ~(flux > 0) | (_sum(vf) < 0.5 * h * w)
     for v in out.values():
         v[lost] = np.nan
