@@ -663,7 +663,8 @@ class _DiscFit:
         """One Gauss-Newton step for every lens (or `lenses`), red-black: lenses of one lattice colour step
         together, then the other colour steps against their new positions (side neighbours, whose discs
         overlap, never step at the same time, so strongly overlapping pairs cannot run away)."""
-        idx = np.arange(self.n) if lenses is None else np.asarray(lenses)
+        # each lens once: `iterate` updates its lenses by fancy index, which must not repeat a lens
+        idx = np.arange(self.n) if lenses is None else np.unique(np.asarray(lenses))
         for colour in (0, 1):
             part = idx[self.colour[idx] == colour]
             if part.size:
@@ -702,7 +703,8 @@ class _DiscFit:
         # damp lenses that oscillate (the step reverses the last one); as kernels.apply_steps
         flip = np.einsum("li,li->l", step[:, 1:3], self.prev_step[idx, 1:3]) < 0
         step[flip, 1:] *= 0.5
-        # idx holds each lens once (one colour class): a per-lens update, not an accumulation of hits
+        # idx holds each lens once (`sweep` makes it unique, one colour class): a per-lens update, not an
+        # accumulation of hits
         self.amp[idx] += step[:, 0]
         self.cx[idx] += step[:, 1]
         self.cy[idx] += step[:, 2]
