@@ -5,7 +5,7 @@
                               [--threads N] [--no-truth]
 
 The frame is rendered once (about 20-35 s at 50 rays/pixel; --rotation-deg renders a rotated MLA) and
-kept in ~/.cache/mlaqc-bench, or read from --raw (any file mlaqc.rawio.load_raw reads). --vignetting F
+kept in ~/.cache/mlaqc-bench, or read from --raw (any file mlaqc.inspection.rawio.load_raw reads). --vignetting F
 multiplies the frame by 1 - F r^2 (r = distance from the centre / half the height; F = 0.3 leaves 40 %
 in the corners). Timings: wall clock and process CPU, best and median of --repeat runs after one
 warm-up; --steps adds the best wall time of each calibration step. Accuracy (rendered frames only): per-lens measured centres and grid
@@ -28,18 +28,18 @@ ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "tests"))
 
-import mlaqc.calibrate as calibration  # noqa: E402
-from mlaqc.calibrate import calibrate  # noqa: E402
-from mlaqc.config import default_config, load_config  # noqa: E402
-from mlaqc.rawio import load_raw, normalized, suppress_hot_pixels  # noqa: E402
-from mlaqc.subimages import divide  # noqa: E402
+import mlaqc.inspection.calibrate as calibration  # noqa: E402
+from mlaqc.inspection.calibrate import calibrate  # noqa: E402
+from mlaqc.inspection.rawio import load_raw, normalized, suppress_hot_pixels  # noqa: E402
+from mlaqc.inspection.subimages import divide  # noqa: E402
+from mlaqc.optics.config import default_config, load_config  # noqa: E402
 
 
 def mla_errors(rotation_deg: float):
     """The rendered MLA's global errors (None: a perfect MLA)."""
     if not rotation_deg:
         return None
-    from mlaqc.errormap import ErrorMap
+    from mlaqc.optics.errormap import ErrorMap
 
     cfg = default_config()
     return ErrorMap.zeros(cfg.mla.count_h, cfg.mla.count_w).with_globals(mla_rotation_deg=rotation_deg)
@@ -54,7 +54,7 @@ def rendered_frame(rpp: float, seed: int, noise: bool, rotation_deg: float = 0.0
     cache.mkdir(parents=True, exist_ok=True)
     path = cache / f"white-table1-{key}.npy"
     if not path.exists():
-        from mlaqc.simulate import simulate
+        from mlaqc.optics.simulate import simulate
 
         t = time.perf_counter()
         sim = simulate(cfg, None, mla_errors(rotation_deg), rays_per_pixel=rpp, seed=seed, noise=noise)

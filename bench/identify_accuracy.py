@@ -13,12 +13,12 @@ from collections import defaultdict
 
 import numpy as np
 
-from mlaqc.config import default_config
-from mlaqc.errormap import ErrorMap
-from mlaqc.inspect import inspect_image, prepare
-from mlaqc.rawio import RawFrame
-from mlaqc.sensor import white_level
-from mlaqc.simulate import simulate
+from mlaqc.inspection.pipeline import inspect_image, prepare
+from mlaqc.inspection.rawio import RawFrame
+from mlaqc.optics.config import default_config
+from mlaqc.optics.errormap import ErrorMap
+from mlaqc.optics.sensor import white_level
+from mlaqc.optics.simulate import simulate
 
 BANDS = {"pitch": (0.5, 1.0, 1.5, 2.0, 3.0), "decenter": (2.0, 3.5, 5.0, 7.0, 10.0),
          "radius": (-0.15, -0.1, -0.05, -0.03, 0.05, 0.1, 0.15)}

@@ -16,11 +16,11 @@ import tempfile
 import time
 from pathlib import Path
 
-from mlaqc.calibrate import calibrate
-from mlaqc.config import default_config
-from mlaqc.errormap import ErrorMap, random_defects
-from mlaqc.inspect import inspect_image, load_frame
-from mlaqc.simulate import simulate, write_simulation
+from mlaqc.inspection.calibrate import calibrate
+from mlaqc.inspection.pipeline import inspect_image, load_frame
+from mlaqc.optics.config import default_config
+from mlaqc.optics.errormap import ErrorMap, random_defects
+from mlaqc.optics.simulate import simulate, write_simulation
 
 BAR_SELF_S = 0.5  # issue #6, target 2: one frame including its calibration
 BAR_REUSED_S = 0.25  # issue #6, target 2: one frame, calibration reused from a white image

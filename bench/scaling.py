@@ -30,7 +30,7 @@ CACHE = Path(tempfile.gettempdir()) / "mlaqc_bench_scaling"
 
 def config(lenses: int):
     """The Table 1 camera with a lenses x lenses MLA on a sensor 20 px per lens wide (2048 for 102)."""
-    from mlaqc.config import default_config
+    from mlaqc.optics.config import default_config
 
     cfg = default_config()
     if lenses == cfg.mla.count_w:
@@ -48,9 +48,9 @@ def peak_mib() -> float:
 
 def case_rays(rays: int, lenses: int = 102) -> dict:
     """One white render of `rays` rays with 200 defective lenses (after a warm-up render)."""
-    from mlaqc.errormap import random_defects
-    from mlaqc.render import Renderer
-    from mlaqc.scene import WhiteScene
+    from mlaqc.optics.errormap import random_defects
+    from mlaqc.optics.render import Renderer
+    from mlaqc.optics.scene import WhiteScene
 
     cfg = config(lenses)
     r = Renderer(cfg, random_defects(lenses, lenses, 200, seed=3))
@@ -67,11 +67,11 @@ def frame_paths(lenses: int, count: int) -> list[Path]:
     """`count` raw frames of the camera with 40 seeded defects (one render, independent sensor noise)."""
     import numpy as np
 
-    from mlaqc.errormap import random_defects
-    from mlaqc.rawio import write_raw
-    from mlaqc.render import Renderer
-    from mlaqc.scene import WhiteScene
-    from mlaqc.sensor import expose, white_level
+    from mlaqc.inspection.rawio import write_raw
+    from mlaqc.optics.errormap import random_defects
+    from mlaqc.optics.render import Renderer
+    from mlaqc.optics.scene import WhiteScene
+    from mlaqc.optics.sensor import expose, white_level
 
     cfg = config(lenses)
     CACHE.mkdir(exist_ok=True)
@@ -96,8 +96,8 @@ def frame_paths(lenses: int, count: int) -> list[Path]:
 
 def case_prepare(lenses: int, frames: int) -> dict:
     """Render and cache the frames, the reference model and the signature table (not timed)."""
-    from mlaqc.reference import reference_model
-    from mlaqc.signatures import signature_table
+    from mlaqc.models.reference import reference_model
+    from mlaqc.models.signatures import signature_table
 
     cfg = config(lenses)
     frame_paths(lenses, frames)
@@ -107,8 +107,8 @@ def case_prepare(lenses: int, frames: int) -> dict:
 
 def case_calibrate(lenses: int) -> dict:
     """Calibrate the first frame (load excluded) and save its grid for the inspection cases."""
-    from mlaqc.calibrate import calibrate
-    from mlaqc.inspect import load_frame
+    from mlaqc.inspection.calibrate import calibrate
+    from mlaqc.inspection.pipeline import load_frame
 
     cfg = config(lenses)
     img = load_frame(frame_paths(lenses, 1)[0], cfg)
@@ -122,8 +122,8 @@ def case_calibrate(lenses: int) -> dict:
 
 def case_inspect(lenses: int, frames: int) -> dict:
     """Inspect `frames` frames (load + divide + indexes + identify) on the saved grid, after a warm-up."""
-    from mlaqc.calibrate import load_grid
-    from mlaqc.inspect import inspect_image, load_frame
+    from mlaqc.inspection.calibrate import load_grid
+    from mlaqc.inspection.pipeline import inspect_image, load_frame
 
     cfg = config(lenses)
     paths = frame_paths(lenses, frames)

@@ -9,8 +9,8 @@ from __future__ import annotations
 import sys
 import time
 
-from mlaqc.config import default_config
-from mlaqc.signatures import KINDS, PATCH, build_signatures, signature_table
+from mlaqc.models.signatures import KINDS, PATCH, build_signatures, signature_table
+from mlaqc.optics.config import default_config
 
 
 def main() -> int:

@@ -19,10 +19,10 @@ import subprocess
 import sys
 import time
 
-from mlaqc.config import CameraConfig, default_config
-from mlaqc.errormap import ErrorMap, random_defects
-from mlaqc.render import Renderer
-from mlaqc.scene import WhiteScene
+from mlaqc.optics.config import CameraConfig, default_config
+from mlaqc.optics.errormap import ErrorMap, random_defects
+from mlaqc.optics.render import Renderer
+from mlaqc.optics.scene import WhiteScene
 
 DEFECTS = dict(types=("pitch", "decenter", "radius", "thickness"))
 

@@ -20,12 +20,12 @@ import sys
 
 import numpy as np
 
-from mlaqc.config import default_config
-from mlaqc.errormap import ErrorMap
-from mlaqc.render import Renderer
-from mlaqc.scene import WhiteScene
-from mlaqc.sensor import expose
-from mlaqc.signatures import patch_config
+from mlaqc.models.signatures import patch_config
+from mlaqc.optics.config import default_config
+from mlaqc.optics.errormap import ErrorMap
+from mlaqc.optics.render import Renderer
+from mlaqc.optics.scene import WhiteScene
+from mlaqc.optics.sensor import expose
 
 C = 4  # centre lens of the 9 x 9 patch
 RADIUS = (-0.1, -0.05, -0.03, 0.03, 0.05, 0.08, 0.1, 0.12, 0.15)

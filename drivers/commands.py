@@ -50,7 +50,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     s.add_argument("--out", "-o", required=True, metavar="DIR", help="output folder (new or empty, or an earlier scan with --resume)")
     s.add_argument("--resume", action="store_true", help="continue the scan recorded in DIR/manifest.jsonl")
     s.add_argument("--inspect", action="store_true",
-                   help="inspect each frame as it is recorded (needs the inspection pipeline, mlaqc.inspect)")
+                   help="inspect each frame as it is recorded (needs the inspection pipeline, mlaqc.inspection.pipeline)")
     s.add_argument("--quiet", "-q", action="store_true", help="no progress bar or summary")
     s.set_defaults(func=run_scan_command)
 
@@ -102,7 +102,7 @@ def run_scan_command(args: argparse.Namespace) -> int:
     if args.inspect:
         inspect = default_inspect_hook()
         if inspect is None:
-            print("note: --inspect: the inspection pipeline (mlaqc.inspect.scan_frame_hook) is not available yet, "
+            print("note: --inspect: the inspection pipeline (mlaqc.inspection.pipeline.scan_frame_hook) is not available yet, "
                   "so frames are captured and recorded without inspection.", file=sys.stderr)
     bar = ProgressBar("scan", enabled=False if args.quiet else None)
 

@@ -61,7 +61,7 @@ Inspection: `inspect` is a callable ``(frame: ScanFrame) -> dict | None`` run fo
 after its position is recorded (a ScanFrame carries the raw and sidecar paths, the manifest record and
 the manifest header with the camera's settings and ground truth); a returned dict is written to
 ``<raw name>.inspect.json``. An exception in it is logged as an ``inspect_failed`` event and the scan goes
-on (the frame is already safe). `default_inspect_hook()` finds ``mlaqc.inspect.scan_frame_hook`` once the
+on (the frame is already safe). `default_inspect_hook()` finds ``mlaqc.inspection.pipeline.scan_frame_hook`` once the
 inspection pipeline provides it, else returns None (``mlaqc scan --inspect`` then says so and scans).
 """
 
@@ -964,11 +964,11 @@ def run_scan(camera: Camera | str, stage: Any, plan: ScanPlan | str | os.PathLik
 
 
 def default_inspect_hook() -> InspectHook | None:
-    """`mlaqc.inspect.scan_frame_hook` once the inspection pipeline provides it; None until then."""
+    """`mlaqc.inspection.pipeline.scan_frame_hook` once the inspection pipeline provides it; None until then."""
     try:
-        module = importlib.import_module("mlaqc.inspect")
+        module = importlib.import_module("mlaqc.inspection.pipeline")
     except ModuleNotFoundError as exc:
-        if exc.name in ("mlaqc.inspect", "mlaqc"):
+        if exc.name in ("mlaqc.inspection.pipeline", "mlaqc"):
             return None
         raise
     hook = getattr(module, "scan_frame_hook", None)

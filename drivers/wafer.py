@@ -23,9 +23,9 @@ from typing import Any
 
 import numpy as np
 
-from mlaqc.config import CameraConfig
-from mlaqc.errormap import ERROR_TYPES, ErrorMap, random_defects
 from mlaqc.errors import InputError
+from mlaqc.optics.config import CameraConfig
+from mlaqc.optics.errormap import ERROR_TYPES, ErrorMap, random_defects
 
 TRUTH_FORMAT = "mlaqc-mock-wafer"
 MAX_ARRAYS = 10_000

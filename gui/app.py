@@ -353,7 +353,7 @@ class MainWindow(QMainWindow):
             return self.cfg_explicit
         if self.camera_cfg is not None:
             return self.camera_cfg
-        from mlaqc.config import default_config
+        from mlaqc.optics.config import default_config
 
         return default_config()
 
@@ -539,7 +539,7 @@ class MainWindow(QMainWindow):
         self.inspection_panel.white.setText(self.white or "none (the image calibrates itself)")
 
     def load_config(self, path: str) -> bool:
-        from mlaqc.config import load_config
+        from mlaqc.optics.config import load_config
 
         try:
             self.cfg_explicit = load_config(path)

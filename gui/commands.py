@@ -31,7 +31,7 @@ def run(args: argparse.Namespace) -> int:
     from mlaqc.errors import InputError
 
     if args.config:
-        from mlaqc.config import load_config
+        from mlaqc.optics.config import load_config
 
         load_config(args.config)  # a bad config ends here in one sentence (exit 2), before any window opens
     try:

@@ -31,9 +31,9 @@ def main(argv: list[str] | None = None) -> int:
     args = p.parse_args(argv)
     os.environ.setdefault("QT_QPA_PLATFORM", "offscreen")
 
-    from mlaqc.config import load_config
-    from mlaqc.errormap import DefectSpec, random_defects
-    from mlaqc.simulate import simulate, write_simulation
+    from mlaqc.optics.config import load_config
+    from mlaqc.optics.errormap import DefectSpec, random_defects
+    from mlaqc.optics.simulate import simulate, write_simulation
 
     work = Path(args.work or tempfile.mkdtemp(prefix="mlaqc-shot-"))
     work.mkdir(parents=True, exist_ok=True)

@@ -20,7 +20,7 @@ from PySide6.QtWidgets import (QCheckBox, QGraphicsRectItem, QHBoxLayout, QHeade
                                QPushButton, QSizePolicy, QTableWidget, QTableWidgetItem, QVBoxLayout, QWidget)
 
 from mlaqc.report import ERROR_COLOURS, VERDICT_COLOURS, error_colour
-from mlaqc.results import METRICS
+from mlaqc.inspection.results import METRICS
 
 pg.setConfigOptions(imageAxisOrder="row-major", antialias=True)
 

@@ -181,7 +181,7 @@ class CameraWorker(QObject):
         cfg = getattr(self.camera, "cfg", None)
         if cfg is None and isinstance(settings.get("config"), dict):
             try:
-                from mlaqc.config import config_from_dict
+                from mlaqc.optics.config import config_from_dict
 
                 cfg = config_from_dict(_lists(settings["config"]), f"camera {self.url}")
             except InputError:
@@ -513,7 +513,7 @@ class Cancelled(Exception):
 class InspectionRequest:
     """What to inspect: a raw file or an in-memory frame (`Grab`-like), optionally a white file."""
 
-    cfg: Any  # mlaqc.config.CameraConfig
+    cfg: Any  # mlaqc.optics.config.CameraConfig
     raw: str | None = None
     frame: Any = None  # drivers.camera.Frame
     white: str | None = None
@@ -538,7 +538,7 @@ class Ring:
 class InspectionView:
     """An inspection result plus everything the GUI needs to draw it without computing."""
 
-    result: Any  # mlaqc.results.InspectionResult
+    result: Any  # mlaqc.inspection.results.InspectionResult
     cfg: Any
     source: str
     levels: tuple[float, float]
@@ -578,8 +578,8 @@ class InspectionView:
 def frame_to_image(frame: Any) -> np.ndarray:
     """A camera Frame as the prepared float32 image the inspection takes (exposure checked)."""
     from drivers.capture import Grab
-    from mlaqc.inspect import prepare
-    from mlaqc.rawio import RawFrame, check_exposure
+    from mlaqc.inspection.pipeline import prepare
+    from mlaqc.inspection.rawio import RawFrame, check_exposure
 
     g = Grab(frame.data, (frame,), "")
     bits = max(8, int(frame.bits))
@@ -593,7 +593,7 @@ def build_view(result: Any, cfg: Any, source: str, elapsed_s: float) -> Inspecti
     """Precompute the display data of an inspection (runs in the worker)."""
     from scipy.spatial import cKDTree
 
-    from mlaqc.results import METRICS
+    from mlaqc.inspection.results import METRICS
 
     g = result.grid
     mx, my = np.asarray(g.measured_x_px, float), np.asarray(g.measured_y_px, float)
@@ -660,7 +660,7 @@ class InspectionWorker(QObject):
     def preview(self, job: int, path: str) -> None:
         """Load a raw file for display only (its counts, as stored)."""
         try:
-            from mlaqc.rawio import load_raw
+            from mlaqc.inspection.rawio import load_raw
 
             frame = load_raw(path)
         except Exception as exc:  # noqa: BLE001
@@ -679,8 +679,8 @@ class InspectionWorker(QObject):
             self.progress.emit(job, pct, text)
 
         try:
-            from mlaqc.calibrate import calibrate
-            from mlaqc.inspect import inspect_image, load_frame
+            from mlaqc.inspection.calibrate import calibrate
+            from mlaqc.inspection.pipeline import inspect_image, load_frame
 
             cfg = req.cfg
             stage(5, "loading the image")
@@ -911,7 +911,7 @@ class ScanWorker(QObject):
             cfg = req.cfg
 
             def inspect_hook(frame: Any) -> dict:
-                from mlaqc.inspect import inspect_image, load_frame
+                from mlaqc.inspection.pipeline import inspect_image, load_frame
 
                 result = inspect_image(load_frame(frame.path, cfg), cfg, source=str(frame.path))
                 out = sum(1 for d in result.defects if not d.within_tolerance)

@@ -23,11 +23,11 @@ import numpy as np
 import pytest
 from scipy import ndimage
 
-from mlaqc.config import config_to_toml, load_config
-from mlaqc.errormap import ErrorMap
-from mlaqc.raytrace import MainLens, MicrolensArray, Rays, direction_vector
-from mlaqc.simulate import simulate
-from mlaqc.scene import WhiteScene
+from mlaqc.optics.config import config_to_toml, load_config
+from mlaqc.optics.errormap import ErrorMap
+from mlaqc.optics.raytrace import MainLens, MicrolensArray, Rays, direction_vector
+from mlaqc.optics.simulate import simulate
+from mlaqc.optics.scene import WhiteScene
 
 FIXTURES = Path(__file__).resolve().parent.parent / "fixtures"
 SMALL = load_config(FIXTURES / "small_camera.toml")
@@ -43,8 +43,8 @@ class White:
 
 
 def normalize(raw: np.ndarray, cfg) -> np.ndarray:
-    """(raw - black) / (white - black) as mlaqc.rawio.normalized does for a mono frame."""
-    from mlaqc.sensor import white_level
+    """(raw - black) / (white - black) as mlaqc.inspection.rawio.normalized does for a mono frame."""
+    from mlaqc.optics.sensor import white_level
 
     black = cfg.sensor.black_level_dn
     return ((raw.astype(np.float32) - black) / np.float32(white_level(cfg.sensor) - black)).astype(np.float32)

@@ -15,12 +15,12 @@ import numpy as np
 import pytest
 
 from calib_images import SMALL, layout_centres, normalize, render_cache, synthetic_white, true_centres  # noqa: F401
-from mlaqc.calibrate import Grid, calibrate, load_grid
+from mlaqc.inspection.calibrate import Grid, calibrate, load_grid
 from mlaqc.cli import main
-from mlaqc.errormap import ErrorMap
+from mlaqc.optics.errormap import ErrorMap
 from mlaqc.errors import InputError
-from mlaqc.rawio import write_raw
-from mlaqc.sensor import expose, white_level
+from mlaqc.inspection.rawio import write_raw
+from mlaqc.optics.sensor import expose, white_level
 
 PITCH = SMALL.layout.subimage_pitch_px
 SHAPE = (SMALL.mla.count_h, SMALL.mla.count_w)
@@ -88,7 +88,7 @@ def test_perfect_white_centres_match_the_ray_traced_truth(perfect, truth):
 @pytest.mark.skipif(not os.environ.get("MLAQC_SLOW_TESTS"), reason="renders the full camera (~30 s); set MLAQC_SLOW_TESTS=1")
 def test_full_camera_at_the_default_ray_budget(render_cache):
     """The Table 1 camera at 50 rays/pixel, noise on (bench/calibrate.py prints the same figures)."""
-    from mlaqc.config import default_config
+    from mlaqc.optics.config import default_config
 
     cfg = default_config()
     g = calibrate(render_cache.white(cfg, rpp=RPP, seed=1).image, expected_pitch_px=cfg.layout.subimage_pitch_px,
@@ -261,8 +261,8 @@ def _reference_normals(img, k, cx, cy, amp, radius, edge, sx, sy, half_band, wei
 @pytest.mark.parametrize("weighted", [False, True])
 def test_disc_kernel_matches_a_numpy_reference(weighted):
     """The fused kernel (float32 profiles, neighbours' discs cut 10 edge widths out) against plain NumPy."""
-    from mlaqc import calibrate_kernels as kernels
-    from mlaqc.calibrate import _lattice_neighbours
+    from mlaqc.inspection import calibrate_kernels as kernels
+    from mlaqc.inspection.calibrate import _lattice_neighbours
 
     img, tx, ty = synthetic_white(shape=(110, 130), rows=5, cols=6, noise=0.05, seed=7)
     rng = np.random.default_rng(1)
@@ -294,8 +294,7 @@ def test_disc_kernel_matches_a_numpy_reference(weighted):
 
 def test_second_ring_of_neighbours_changes_nothing_where_discs_do_not_reach(monkeypatch):
     """Large discs bring the second ring of lattice neighbours in; where it is out of reach, the fit is the same."""
-    import mlaqc.calibrate as calibration
-
+    import mlaqc.inspection.calibrate as calibration
     img, tx, ty = synthetic_white(noise=0.05, seed=5)
     first = calibrate(img, expected_shape=tx.shape)
     table = calibration._lattice_neighbours
@@ -414,7 +413,7 @@ def test_bad_arguments(white):
 
 @pytest.fixture
 def small_config(tmp_path):
-    from mlaqc.config import config_to_toml
+    from mlaqc.optics.config import config_to_toml
 
     path = tmp_path / "small.toml"
     path.write_text(config_to_toml(SMALL))

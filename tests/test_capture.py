@@ -13,7 +13,7 @@ from drivers.camera import open_camera
 from drivers.capture import (SIDECAR_SUFFIX, capture, grab, load_sidecar, save_frame, sidecar_path, verify_frame)
 from mlaqc.cli import main
 from mlaqc.errors import InputError
-from mlaqc.rawio import load_raw
+from mlaqc.inspection.rawio import load_raw
 
 pytestmark = pytest.mark.timeout(60)
 

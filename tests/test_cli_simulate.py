@@ -10,7 +10,7 @@ import pytest
 import rawpy
 
 from mlaqc.cli import main
-from mlaqc.rawio import load_raw
+from mlaqc.inspection.rawio import load_raw
 
 FIXTURES = Path(__file__).resolve().parent.parent / "fixtures"
 SMALL = str(FIXTURES / "small_camera.toml")

@@ -5,8 +5,8 @@ from pathlib import Path
 
 import pytest
 
-from mlaqc.config import config_from_dict, config_to_toml, default_config, load_config
 from mlaqc.errors import InputError
+from mlaqc.optics.config import config_from_dict, config_to_toml, default_config, load_config
 
 FIXTURES = Path(__file__).resolve().parent.parent / "fixtures"
 

@@ -5,8 +5,8 @@ import json
 import numpy as np
 import pytest
 
-from mlaqc.errormap import ErrorMap, error_map_from_dict, load_error_map, random_defects
 from mlaqc.errors import InputError
+from mlaqc.optics.errormap import ErrorMap, error_map_from_dict, load_error_map, random_defects
 
 
 def test_json_round_trip_keeps_every_field(tmp_path):

@@ -6,16 +6,16 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from mlaqc.config import default_config, load_config
-from mlaqc.errormap import ErrorMap
-from mlaqc.identify import FOCUS_KINDS, fit_all, focus_score, ring_noise
-from mlaqc.inspect import _models, inspect_image, prepare
-from mlaqc.rawio import RawFrame
-from mlaqc.render import Renderer
-from mlaqc.results import LensMetrics
-from mlaqc.scene import WhiteScene
-from mlaqc.sensor import expose, white_level
-from mlaqc.signatures import FEATURES, RINGS
+from mlaqc.inspection.identify import FOCUS_KINDS, fit_all, focus_score, ring_noise
+from mlaqc.inspection.pipeline import _models, inspect_image, prepare
+from mlaqc.inspection.rawio import RawFrame
+from mlaqc.inspection.results import LensMetrics
+from mlaqc.models.signatures import FEATURES, RINGS
+from mlaqc.optics.config import default_config, load_config
+from mlaqc.optics.errormap import ErrorMap
+from mlaqc.optics.render import Renderer
+from mlaqc.optics.scene import WhiteScene
+from mlaqc.optics.sensor import expose, white_level
 
 SMALL = load_config(Path(__file__).resolve().parent.parent / "fixtures" / "small_camera.toml")
 

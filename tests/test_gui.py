@@ -71,9 +71,9 @@ class GapMeter:
 @pytest.fixture(scope="module")
 def seeded_raw(tmp_path_factory):
     """A small-camera white image with three seeded defective lenses (TIFF + ground-truth record)."""
-    from mlaqc.config import load_config
-    from mlaqc.errormap import ErrorMap
-    from mlaqc.simulate import simulate, write_simulation
+    from mlaqc.optics.config import load_config
+    from mlaqc.optics.errormap import ErrorMap
+    from mlaqc.optics.simulate import simulate, write_simulation
 
     cfg = load_config(SMALL)
     em = ErrorMap.zeros(24, 24)

@@ -7,16 +7,16 @@ import numpy as np
 import pytest
 
 from mlaqc.cli import main
-from mlaqc.config import load_config
-from mlaqc.errormap import ErrorMap
-from mlaqc.inspect import inspect_image, prepare
-from mlaqc.metrics import compute_metrics, reference_windows
-from mlaqc.rawio import RawFrame
-from mlaqc.reference import reference_model
-from mlaqc.render import Renderer
-from mlaqc.scene import WhiteScene
-from mlaqc.sensor import expose, white_level
-from mlaqc.signatures import nominal_windows, um_per_px_at_mla
+from mlaqc.inspection.metrics import compute_metrics, reference_windows
+from mlaqc.inspection.pipeline import inspect_image, prepare
+from mlaqc.inspection.rawio import RawFrame
+from mlaqc.models.reference import reference_model
+from mlaqc.models.signatures import nominal_windows, um_per_px_at_mla
+from mlaqc.optics.config import load_config
+from mlaqc.optics.errormap import ErrorMap
+from mlaqc.optics.render import Renderer
+from mlaqc.optics.scene import WhiteScene
+from mlaqc.optics.sensor import expose, white_level
 
 FIXTURES = Path(__file__).resolve().parent.parent / "fixtures"
 SMALL = load_config(FIXTURES / "small_camera.toml")
@@ -134,7 +134,7 @@ def test_a_perfect_array_passes_with_no_flags():
 
 
 def test_cut_windows_gather_the_right_lens():
-    from mlaqc.subimages import cut_windows
+    from mlaqc.inspection.subimages import cut_windows
     img = np.zeros((60, 80), np.float32)
     img[30, 50] = 7.0
     win, valid, ox, oy = cut_windows(img, np.array([[50.2, 10.0]]), np.array([[29.6, 10.0]]), 9, 9)
@@ -215,7 +215,7 @@ def test_inspect_with_a_separate_white_image(raw_files, tmp_path):
 
 def test_signature_table_is_rendered_from_the_tracer():
     """A pitch error's signature: the shift grows with the error and points along +x for direction 0."""
-    from mlaqc.signatures import FEATURES, KINDS, build_signatures
+    from mlaqc.models.signatures import FEATURES, KINDS, build_signatures
     table = build_signatures(SMALL, rays_per_pixel=30, kinds=(KINDS[0],))
     shift = table.features["pitch"][:, FEATURES.index("shift_par")]
     assert np.all(np.diff(shift) > 0)

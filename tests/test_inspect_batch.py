@@ -8,11 +8,11 @@ import numpy as np
 import pytest
 
 from mlaqc.cli import main
-from mlaqc.config import load_config
-from mlaqc.errormap import ErrorMap
-from mlaqc.render import Renderer
-from mlaqc.scene import WhiteScene
-from mlaqc.sensor import expose
+from mlaqc.optics.config import load_config
+from mlaqc.optics.errormap import ErrorMap
+from mlaqc.optics.render import Renderer
+from mlaqc.optics.scene import WhiteScene
+from mlaqc.optics.sensor import expose
 
 FIXTURES = Path(__file__).resolve().parent.parent / "fixtures"
 SMALL_TOML = str(FIXTURES / "small_camera.toml")

@@ -10,11 +10,11 @@ import numpy as np
 import pytest
 from scipy.ndimage import gaussian_filter
 
-from mlaqc.config import default_config
-from mlaqc.identify import _scipy_baseline, local_deviation, local_deviations
-from mlaqc.lens_kernels import INDEX_NAMES, MEDIAN25_PAIRS, N_RING, RING_EDGES
-from mlaqc.metrics import compute_metrics, reference_images, reference_windows
-from mlaqc.reference import reference_model
+from mlaqc.inspection.identify import _scipy_baseline, local_deviation, local_deviations
+from mlaqc.inspection.metrics import compute_metrics, reference_images, reference_windows
+from mlaqc.inspection.metrics_kernels import INDEX_NAMES, MEDIAN25_PAIRS, N_RING, RING_EDGES
+from mlaqc.models.reference import reference_model
+from mlaqc.optics.config import default_config
 
 ENTROPY_BINS = 32
 
@@ -219,8 +219,8 @@ def test_local_deviations_fill_nan_with_the_median():
 def test_phase_table_gather_equals_the_clipped_template_gather(model):
     """The contiguous phase-table copy and its element-wise fallback (windows far off the template) give
     exactly the clipped gather of `reference_windows`, for every phase and shifts up to +-40 px."""
-    from mlaqc.lens_kernels import _gather_tables
-    from mlaqc.metrics import _PHASE_PAD, _phase_tables, _template_stack
+    from mlaqc.inspection.metrics import _PHASE_PAD, _phase_tables, _template_stack
+    from mlaqc.inspection.metrics_kernels import _gather_tables
 
     stack, size, c = _template_stack(model)
     phases = _phase_tables(model)

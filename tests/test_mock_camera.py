@@ -12,9 +12,9 @@ from drivers.camera import camera_from_url, open_camera
 from drivers.camera.mock import MockCamera, parse_faults, publish_stage, unpublish_stage
 from drivers.stage import open_stage
 from drivers.wafer import Wafer, array_seed, default_pitch_mm
-from mlaqc.config import load_config
-from mlaqc.errormap import random_defects
 from mlaqc.errors import DeviceError, InputError
+from mlaqc.optics.config import load_config
+from mlaqc.optics.errormap import random_defects
 
 pytestmark = pytest.mark.timeout(60)
 

@@ -5,15 +5,23 @@ import math
 import numpy as np
 import pytest
 
-from mlaqc.config import default_config, load_config
-from mlaqc.errormap import ErrorMap
-from mlaqc.raytrace import Camera, MainLens, MicrolensArray, Rays, fresnel_transmittance, intersect_sphere, refract
+from mlaqc.optics.config import default_config, load_config
+from mlaqc.optics.errormap import ErrorMap
+from mlaqc.optics.raytrace import (
+    Camera,
+    MainLens,
+    MicrolensArray,
+    Rays,
+    fresnel_transmittance,
+    intersect_sphere,
+    refract,
+)
 
 N_MAIN, N_MLA = 1.5168, 1.56
 
 
 def lensmaker(r1, r2, t, n):
-    """Thick-lens EFL and rear principal-plane depth, written out here independently of mlaqc.paraxial."""
+    """Thick-lens EFL and rear principal-plane depth, written out here independently of mlaqc.optics.paraxial."""
     phi = (n - 1) * (1 / r1 - 1 / r2 + (n - 1) * t / (n * r1 * r2))
     f = 1 / phi
     return f, f * (n - 1) * t / (n * r1)

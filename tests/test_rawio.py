@@ -1,4 +1,4 @@
-"""Tests for mlaqc.rawio: bit-exact round trips, every bad input as InputError, exposure and hot-pixel checks."""
+"""Tests for mlaqc.inspection.rawio: bit-exact round trips, every bad input as InputError, exposure and hot-pixel checks."""
 
 from __future__ import annotations
 
@@ -12,7 +12,7 @@ import rawpy
 import tifffile
 
 from mlaqc.errors import InputError
-from mlaqc.rawio import (
+from mlaqc.inspection.rawio import (
     CFA_PATTERNS,
     RawFrame,
     check_exposure,
@@ -570,7 +570,7 @@ def test_hot_pixels_match_the_filter_formulation(cfa: str | None, kind: str) -> 
 def test_exposure_statistics_from_the_histogram_match_numpy() -> None:
     """check_exposure reads its order statistics from the histogram of integer counts: the same values as
     np.percentile / np.median on the black-subtracted sample."""
-    from mlaqc.rawio import _integer_sample_stats
+    from mlaqc.inspection.rawio import _integer_sample_stats
 
     rng = np.random.default_rng(40)
     for trial in range(60):

@@ -12,10 +12,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from mlaqc.config import default_config, load_config
-from mlaqc.errormap import ErrorMap
-from mlaqc.render import Renderer
-from mlaqc.scene import PointScene, TextureScene, WhiteScene
+from mlaqc.optics.config import default_config, load_config
+from mlaqc.optics.errormap import ErrorMap
+from mlaqc.optics.render import Renderer
+from mlaqc.optics.scene import PointScene, TextureScene, WhiteScene
 
 FIXTURES = Path(__file__).resolve().parent.parent / "fixtures"
 SMALL = load_config(FIXTURES / "small_camera.toml")

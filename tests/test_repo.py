@@ -24,3 +24,25 @@ def test_core_never_imports_qt_or_hardware_and_drivers_never_import_gui():
     for path in (ROOT / "drivers").rglob("*.py"):
         bad += [f"{path}: {m.group(0).strip()}" for m in gui_pattern.finditer(path.read_text())]
     assert not bad, bad
+
+
+def test_core_packages_import_only_downwards():
+    """optics sits below models and inspection, report below commands; the two cross-links are the
+    documented ones (docs/architecture.md): simulate writes through rawio, signatures measure with metrics."""
+    allowed = {
+        "optics": {"optics", "inspection.rawio"},
+        "models": {"optics", "models", "inspection.metrics", "inspection.metrics_kernels", "inspection.subimages"},
+        "inspection": {"optics", "models", "inspection"},
+        "report": {"inspection", "report"},
+    }
+    pattern = re.compile(r"^\s*(?:from|import)\s+mlaqc\.(\w+)(?:\.(\w+))?", re.M)
+    bad = []
+    for package, ok in allowed.items():
+        for path in (ROOT / "mlaqc" / package).glob("*.py"):
+            for m in pattern.finditer(path.read_text()):
+                target, sub = m.group(1), m.group(2)
+                if target in ("errors", "atomic", "progress", "lazy"):
+                    continue
+                if target not in ok and f"{target}.{sub}" not in ok:
+                    bad.append(f"{path.relative_to(ROOT)}: mlaqc.{target}.{sub}")
+    assert not bad, bad

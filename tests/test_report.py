@@ -17,10 +17,15 @@ import cv2
 import numpy as np
 import pytest
 
-from mlaqc import __version__, report
+from mlaqc import __version__
 from mlaqc.errors import InputError
-from mlaqc.report import ERROR_COLOURS, REPORT_FILES, load_report, write_report
-from mlaqc.results import METRICS, Defect, InspectionResult, LensMetrics
+from mlaqc.inspection.results import METRICS, Defect, InspectionResult, LensMetrics
+from mlaqc.report import ERROR_COLOURS, REPORT_FILES
+from mlaqc.report import html as report_html
+from mlaqc.report import load_report
+from mlaqc.report import maps as report_maps
+from mlaqc.report import write as report_write
+from mlaqc.report import write_report
 
 ROWS, COLS, PITCH = 12, 15, 20
 HOSTILE = "/data/<script>x</script>.dng"
@@ -214,7 +219,7 @@ def test_defect_map_rings_have_the_type_colour(written):
     result, _, paths = written
     rgb = _read_png(paths["defect_map"])
     assert rgb.shape == (*result.image.shape, 3)
-    assert report.legend_corner(result) == "tr"
+    assert report_maps.legend_corner(result) == "tr"
     r = round(0.5 * PITCH)
     counts = []
     for d in result.defects:
@@ -344,7 +349,7 @@ def test_pass_without_defects_per_lens_reference_and_pitch_px_grid(tmp_path):
 
 
 def test_gallery_is_capped(tmp_path, monkeypatch):
-    monkeypatch.setattr(report, "GALLERY_MAX", 5)
+    monkeypatch.setattr(report_html, "GALLERY_MAX", 5)
     defects = [Defect(m, n, "pitch", 1.0 + m, "µm", 0.0, float(m + n), True, {})
                for m in range(1, 4) for n in range(1, 5)]
     text = write_report(make_result(defects=defects), tmp_path / "r")["html"].read_text(encoding="utf-8")
@@ -376,7 +381,7 @@ def test_encoder_failure_half_way_leaves_old_files_and_no_partial_ones(tmp_path,
     out = tmp_path / "r"
     write_report(result, out)
     before = _snapshot(out)
-    real, calls = report._encode_png, []
+    real, calls = report_maps._encode_png, []
 
     def flaky(img, **kw):
         calls.append(img.shape)
@@ -384,7 +389,8 @@ def test_encoder_failure_half_way_leaves_old_files_and_no_partial_ones(tmp_path,
             raise RuntimeError("encoder exploded")
         return real(img, **kw)
 
-    monkeypatch.setattr(report, "_encode_png", flaky)
+    monkeypatch.setattr(report_write, "_encode_png", flaky)
+    monkeypatch.setattr(report_html, "_encode_png", flaky)
     changed = make_result(source="/data/other.dng")  # full map, then lens sub-images: call 3 is in the gallery
     with pytest.raises(RuntimeError, match="exploded"):
         write_report(changed, out)
@@ -400,7 +406,7 @@ def test_disk_full_while_writing_leaves_old_files_and_no_temp_files(tmp_path, mo
     out = tmp_path / "r"
     write_report(result, out)
     before = _snapshot(out)
-    real, calls = report._write_bytes, []
+    real, calls = report_write._write_bytes, []
 
     def full_disk(path, data):
         calls.append(path)
@@ -409,7 +415,7 @@ def test_disk_full_while_writing_leaves_old_files_and_no_temp_files(tmp_path, mo
             raise OSError(28, "No space left on device")
         real(path, data)
 
-    monkeypatch.setattr(report, "_write_bytes", full_disk)
+    monkeypatch.setattr(report_write, "_write_bytes", full_disk)
     with pytest.raises(InputError, match="No space left on device"):
         write_report(make_result(source="/data/other.dng"), out)
     assert _snapshot(out) == before  # no half-written file, no temp file, nothing replaced

@@ -409,7 +409,7 @@ def test_inspect_hook_extension_point(tmp_path, capsys):
     assert main(["scan", "--camera", cam, "--stage", "mock://", "--plan", str(plan), "--out", str(tmp_path / "a"),
                  "--inspect", "-q"]) == 0
     err = capsys.readouterr().err
-    if default_inspect_hook() is None:  # until mlaqc.inspect provides scan_frame_hook
+    if default_inspect_hook() is None:  # until mlaqc.inspection.pipeline provides scan_frame_hook
         assert "--inspect: the inspection pipeline" in err and "not available" in err
     calls = []
 

@@ -5,8 +5,8 @@ import dataclasses
 import numpy as np
 import pytest
 
-from mlaqc.config import Sensor
-from mlaqc.sensor import cfa_site_colours, expose, white_level
+from mlaqc.optics.config import Sensor
+from mlaqc.optics.sensor import cfa_site_colours, expose, white_level
 
 
 def test_noise_free_exposure_is_the_photon_transfer_line():

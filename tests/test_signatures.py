@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from mlaqc.signatures import FEATURES, lens_features
+from mlaqc.models.signatures import FEATURES, lens_features
 
 
 def metrics_with(dx: float, dy: float, ax: float, ay: float) -> dict[str, np.ndarray]:

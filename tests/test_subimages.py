@@ -6,9 +6,9 @@ import numpy as np
 import pytest
 
 from calib_images import synthetic_white
-from mlaqc.calibrate import calibrate
+from mlaqc.inspection.calibrate import calibrate
 from mlaqc.errors import InputError
-from mlaqc.subimages import SubImages, default_size, divide
+from mlaqc.inspection.subimages import SubImages, default_size, divide
 
 ROWS, COLS = 18, 19
 
@@ -124,7 +124,7 @@ def test_subimages_is_frozen(frame):
 
 def test_cut_windows_match_the_fancy_index_gather():
     """The compiled cut == one NumPy fancy-index gather, NaN and valid=False outside the frame."""
-    from mlaqc.subimages import cut_windows
+    from mlaqc.inspection.subimages import cut_windows
 
     rng = np.random.default_rng(4)
     img = rng.normal(size=(57, 64))

@@ -29,7 +29,7 @@ URL (every parameter optional)::
 
 Frames: each capture takes the stage position, finds the wafer array nearest to it, renders (or takes
 from the cache) the expected photons with the tracer, the array's ErrorMap given
-``mla_shift = centre - position``, scales by exposure, and reads it out with `mlaqc.sensor.expose`
+``mla_shift = centre - position``, scales by exposure, and reads it out with `mlaqc.optics.sensor.expose`
 seeded per frame, so repeated frames differ by fresh shot and read noise. Pixel format ``Y16`` (or the
 16-bit Bayer format of a CFA config) with the config's bit depth. Sequence numbers count frames since
 the camera was made (dropped frames leave gaps); `device_timestamp_s` is time.monotonic() when the
@@ -67,9 +67,9 @@ from drivers.camera.base import DEFAULT_TIMEOUT_S, Camera, Frame, check_timeout_
 from drivers.camera.formats import lookup_format
 from drivers.url import DeviceURL, parse_device_url
 from drivers.wafer import Wafer, WaferArray
-from mlaqc.config import CameraConfig, config_from_dict, default_config, load_config
 from mlaqc.errors import DeviceError, InputError
-from mlaqc.sensor import expose, white_level
+from mlaqc.optics.config import CameraConfig, config_from_dict, default_config, load_config
+from mlaqc.optics.sensor import expose, white_level
 
 log = logging.getLogger(__name__)
 
@@ -476,8 +476,8 @@ class MockCamera(Camera):
             self._cache.move_to_end(key)
             self.stats["cache_hits"] += 1
             return cached, True, 0.0, key
-        from mlaqc.render import Renderer
-        from mlaqc.scene import WhiteScene
+        from mlaqc.optics.render import Renderer
+        from mlaqc.optics.scene import WhiteScene
 
         start = time.perf_counter()
         errors = array.errors.with_globals(mla_shift_x_um=qx, mla_shift_y_um=qy)

@@ -6,10 +6,10 @@ import argparse
 import time
 from pathlib import Path
 
-from mlaqc.calibrate import calibrate
-from mlaqc.config import load_config
 from mlaqc.errors import InputError
-from mlaqc.rawio import check_exposure, load_raw, normalized, suppress_hot_pixels
+from mlaqc.inspection.calibrate import calibrate
+from mlaqc.inspection.rawio import check_exposure, load_raw, normalized, suppress_hot_pixels
+from mlaqc.optics.config import load_config
 
 
 def register(sub: argparse._SubParsersAction) -> None:

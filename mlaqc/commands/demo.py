@@ -8,8 +8,8 @@ import sys
 
 import numpy as np
 
-from mlaqc.config import load_config
-from mlaqc.errormap import DefectSpec, random_defects
+from mlaqc.optics.config import load_config
+from mlaqc.optics.errormap import DefectSpec, random_defects
 from mlaqc.errors import InputError
 from mlaqc.progress import ProgressBar
 
@@ -32,10 +32,10 @@ def register(sub: argparse._SubParsersAction) -> None:
 def run(args: argparse.Namespace) -> int:
     """Render, inspect, report, compare; 0 when the chain ran (whatever the verdict)."""
     from mlaqc.commands.inspect import check_out_dir, summary
-    from mlaqc.inspect import inspect_file
+    from mlaqc.inspection.pipeline import inspect_file
     from mlaqc.report import write_report
-    from mlaqc.render import Renderer
-    from mlaqc.simulate import simulate, write_simulation
+    from mlaqc.optics.render import Renderer
+    from mlaqc.optics.simulate import simulate, write_simulation
 
     out = check_out_dir(args.out)
     cfg = load_config(args.config)

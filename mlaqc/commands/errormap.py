@@ -5,9 +5,9 @@ from __future__ import annotations
 import argparse
 import sys
 
-from mlaqc.config import load_config
-from mlaqc.errormap import ERROR_TYPES, load_error_map, random_defects
 from mlaqc.errors import InputError
+from mlaqc.optics.config import load_config
+from mlaqc.optics.errormap import ERROR_TYPES, load_error_map, random_defects
 
 
 def register(sub: argparse._SubParsersAction) -> None:

@@ -16,8 +16,8 @@ import time
 from pathlib import Path
 
 from mlaqc.atomic import write_bytes_atomic
-from mlaqc.config import CameraConfig, load_config
 from mlaqc.errors import InputError
+from mlaqc.optics.config import CameraConfig, load_config
 
 BATCH_COLUMNS = ("raw", "verdict", "flagged", "out_of_tolerance", "missing", "seconds", "report", "error")
 
@@ -68,8 +68,8 @@ def summary(result) -> str:
 
 def shared_grid(args: argparse.Namespace, cfg: CameraConfig):
     """The calibration every raw reuses: loaded from --grid, fitted on --white, or None (self-calibrate)."""
-    from mlaqc.calibrate import calibrate, load_grid
-    from mlaqc.inspect import load_frame
+    from mlaqc.inspection.calibrate import calibrate, load_grid
+    from mlaqc.inspection.pipeline import load_frame
 
     if args.grid:
         grid = load_grid(args.grid)
@@ -100,7 +100,7 @@ def report_folders(out: Path, raws: list[str]) -> list[Path]:
 
 def inspect_one(raw: str, cfg: CameraConfig, grid, folder: Path) -> dict:
     """Load, inspect and report one raw; a row of batch.csv (InputError propagates)."""
-    from mlaqc.inspect import inspect_image, load_frame
+    from mlaqc.inspection.pipeline import inspect_image, load_frame
     from mlaqc.report import write_report
 
     t0 = time.perf_counter()

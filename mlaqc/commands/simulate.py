@@ -6,12 +6,12 @@ import argparse
 import math
 import sys
 
-from mlaqc.config import load_config
-from mlaqc.errormap import ERROR_TYPES, ErrorMap, load_error_map, random_defects
 from mlaqc.errors import InputError
+from mlaqc.optics.config import load_config
+from mlaqc.optics.errormap import ERROR_TYPES, ErrorMap, load_error_map, random_defects
+from mlaqc.optics.scene import PointScene, Scene, TextureScene, WhiteScene
+from mlaqc.optics.simulate import RAW_SUFFIXES, check_output, simulate, write_simulation
 from mlaqc.progress import ProgressBar
-from mlaqc.scene import PointScene, Scene, TextureScene, WhiteScene
-from mlaqc.simulate import RAW_SUFFIXES, check_output, simulate, write_simulation
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -91,7 +91,7 @@ def run(args: argparse.Namespace) -> int:
         raise InputError("--threads must be between 1 and 256")
     scene = build_scene(args)
     errors = build_errors(args, cfg.mla.count_h, cfg.mla.count_w)
-    from mlaqc.render import Renderer
+    from mlaqc.optics.render import Renderer
 
     renderer = Renderer(cfg, errors, engine=args.engine)
     bar = ProgressBar("rendering", enabled=False if args.quiet else None)

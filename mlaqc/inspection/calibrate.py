@@ -10,7 +10,7 @@ Pipeline (DESIGN.md §6), vectorized over all lenses at once (no per-lens Python
 2. Every sub-image is measured by a joint least-squares fit of the frame by a sum of discs, one per lens:
    lens k adds (a_k + slope . (x - c_k)) * e((R_k - |x - c_k|) / s) to the model, e a logistic edge.
    Gauss-Newton on (a_k, c_k, R_k) of all lenses at once: one compiled pass per lens
-   (mlaqc.calibrate_kernels) builds its normal equations straight from the frame, evaluating its own
+   (mlaqc.inspection.calibrate_kernels) builds its normal equations straight from the frame, evaluating its own
    disc and its lattice neighbours' where they reach its pixels (no frame-sized model, no scatter),
    blocks of lenses on a thread pool.
    Why not a thresholded centre of gravity: in the f-number-matched camera the sub-images touch and even
@@ -58,9 +58,9 @@ import numpy as np
 import scipy.fft
 from scipy import ndimage
 
-from mlaqc import calibrate_kernels as kernels
 from mlaqc.atomic import write_json_atomic
 from mlaqc.errors import InputError
+from mlaqc.inspection import calibrate_kernels as kernels
 
 FORMAT = "mlaqc-grid"
 VERSION = 1
@@ -547,7 +547,7 @@ class _DiscFit:
     Each lens is fitted on the pixels of an annulus about its current rim (the plateau inside carries no
     position information). The model on those pixels is the lens' own disc plus the discs of its lattice
     neighbours that reach them, evaluated afresh from the current parameters in one compiled pass per
-    lens (mlaqc.calibrate_kernels), so overlapping neighbours are accounted for without a frame-sized
+    lens (mlaqc.inspection.calibrate_kernels), so overlapping neighbours are accounted for without a frame-sized
     model. Blocks of lenses run on a thread pool (the kernel releases the GIL).
     """
 

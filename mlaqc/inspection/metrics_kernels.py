@@ -24,7 +24,7 @@ _jit_fast = njit(cache=True, nogil=True, error_model="numpy", fastmath={"reassoc
 # Rings of the residual profile: outer radii in units of half the window (a 21-px window: 6, 8, 9, 10, 11 and
 # 12 px; the window's corners beyond are the neighbours' and are left out). A radius or thickness error
 # defocuses the lens and moves light across the sub-image's rim; the rings just inside and outside it say
-# where and how much (mlaqc.identify's focus test).
+# where and how much (mlaqc.inspection.identify's focus test).
 RING_EDGES = np.array([6.0, 8.0, 9.0, 10.0, 11.0, 12.0]) / 10.5
 N_RING = len(RING_EDGES)
 INDEX_NAMES = ("flux", "mean_gray", "uniformity", "entropy", "sharpness", "offset_x_px", "offset_y_px", "offset_um",

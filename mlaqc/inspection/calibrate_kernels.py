@@ -1,4 +1,4 @@
-"""Compiled kernels of the calibration's joint disc fit (mlaqc.calibrate._DiscFit).
+"""Compiled kernels of the calibration's joint disc fit (mlaqc.inspection.calibrate._DiscFit).
 
 One fused pass per lens builds its Gauss-Newton normal equations straight from the frame: for each pixel
 of the lens' rim annulus it evaluates the lens' own logistic-edged disc and those of its lattice
@@ -308,7 +308,7 @@ def row_dots(a, m):
 
 @njit(cache=True, nogil=True, error_model="numpy")
 def grid_normal_equations(u, v, x, y, hom, k, cx, cy, scale, n_par):
-    """Gauss-Newton normal equations of the global grid model (mlaqc.calibrate._model_xy: projective map
+    """Gauss-Newton normal equations of the global grid model (mlaqc.inspection.calibrate._model_xy: projective map
     hom of the lattice (u, v), then the radial term k about (cx, cy) / scale) against centres (x, y).
     Parameters: hom[0, :], hom[1, :], hom[2, :2], k (the first n_par of them). Returns J^T J (9, 9),
     J^T r (9,) and r^T r, in one pass (no Jacobian array)."""

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from mlaqc.config import Sensor
+from mlaqc.optics.config import Sensor
 
 _CFA_INDEX = {"R": 0, "G": 1, "B": 2}
 

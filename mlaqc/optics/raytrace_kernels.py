@@ -1,6 +1,6 @@
 """Compiled fast path: the whole chain (sampling -> main lens -> MLA -> sensor pixel -> per-pixel sums) in Numba.
 
-It follows `mlaqc.raytrace` and `mlaqc.scene` operation for operation and consumes the same uniform draws,
+It follows `mlaqc.optics.raytrace` and `mlaqc.optics.scene` operation for operation and consumes the same uniform draws,
 so tests compare the two ray by ray (same pixels; weights to rounding, FMA contraction being on here).
 Rays go in blocks of BLOCK through a sequence of short loops (a pass per surface or step), each
 branch-free over the block so that LLVM vectorizes it (4 doubles per AVX2 instruction) and independent
@@ -17,9 +17,9 @@ import math
 
 import numpy as np
 
-from mlaqc.unitcircle import GAMMA, HALF_PI, MIX1, MIX2, TO_UNIT
-from mlaqc.unitcircle import poly_cos as _poly_cos
-from mlaqc.unitcircle import poly_sin as _poly_sin
+from mlaqc.optics.unitcircle import GAMMA, HALF_PI, MIX1, MIX2, TO_UNIT
+from mlaqc.optics.unitcircle import poly_cos as _poly_cos
+from mlaqc.optics.unitcircle import poly_sin as _poly_sin
 
 try:
     from numba import njit

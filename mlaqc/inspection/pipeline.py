@@ -9,16 +9,16 @@ from pathlib import Path
 
 import numpy as np
 
-from mlaqc.calibrate import Grid, calibrate
-from mlaqc.config import CameraConfig
 from mlaqc.errors import InputError
-from mlaqc.identify import identify
-from mlaqc.metrics import compute_metrics, reference_images
-from mlaqc.rawio import RawFrame, check_exposure, load_raw, normalized, suppress_hot_pixels
-from mlaqc.reference import ReferenceModel, config_key, reference_model
-from mlaqc.results import InspectionResult
-from mlaqc.signatures import SignatureTable, signature_key, signature_table, um_per_px_at_mla
-from mlaqc.subimages import divide
+from mlaqc.inspection.calibrate import Grid, calibrate
+from mlaqc.inspection.identify import identify
+from mlaqc.inspection.metrics import compute_metrics, reference_images
+from mlaqc.inspection.rawio import RawFrame, check_exposure, load_raw, normalized, suppress_hot_pixels
+from mlaqc.inspection.results import InspectionResult
+from mlaqc.inspection.subimages import divide
+from mlaqc.models.reference import ReferenceModel, config_key, reference_model
+from mlaqc.models.signatures import SignatureTable, signature_key, signature_table, um_per_px_at_mla
+from mlaqc.optics.config import CameraConfig
 
 
 def prepare(frame: RawFrame) -> np.ndarray:
@@ -130,7 +130,7 @@ def scan_frame_hook(frame) -> dict:
     `frame` is a drivers.scan.ScanFrame (duck-typed here: the core never imports drivers). The camera
     config comes from the manifest header when the camera reports one (the mock does), else the default.
     Returns a summary the scan writes beside the raw as `<raw>.inspect.json`."""
-    from mlaqc.config import config_from_dict, default_config
+    from mlaqc.optics.config import config_from_dict, default_config
 
     cfg_dict = (frame.header.get("camera_settings") or {}).get("config")
     cfg = config_from_dict(cfg_dict, source="scan manifest") if cfg_dict else default_config()

@@ -12,8 +12,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from mlaqc.config import CameraConfig
-from mlaqc.errormap import ErrorMap
+from mlaqc.optics.config import CameraConfig
+from mlaqc.optics.errormap import ErrorMap
 
 
 @dataclass

@@ -18,13 +18,13 @@ from pathlib import Path
 import numpy as np
 
 from mlaqc.atomic import write_bytes_atomic
-from mlaqc.config import CameraConfig
-from mlaqc.errormap import ErrorMap
-from mlaqc.render import Renderer
-from mlaqc.scene import WhiteScene
+from mlaqc.optics.config import CameraConfig
+from mlaqc.optics.errormap import ErrorMap
+from mlaqc.optics.render import Renderer
+from mlaqc.optics.scene import WhiteScene
 
 OVERSAMPLE = 8
-PACKAGE_DATA = Path(__file__).resolve().parent / "data"
+PACKAGE_DATA = Path(__file__).resolve().parents[1] / "data"
 FORMAT_VERSION = 1
 
 

@@ -1,6 +1,6 @@
 """Monte-Carlo rendering of raw images: batched, threaded, seeded, memory-bounded.
 
-Plane scenes are sampled from the image side (see `mlaqc.scene`); the MLA area is cut into tiles, one
+Plane scenes are sampled from the image side (see `mlaqc.optics.scene`); the MLA area is cut into tiles, one
 batch of rays per tile (stratified sampling: each batch lands on a compact patch of the sensor, so it is
 summed per pixel over that patch only: `np.bincount` in the NumPy engine, the same sums in ray order in
 compiled code in the Numba engine). Batches run on a thread pool (NumPy and the compiled kernel release
@@ -21,13 +21,13 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from mlaqc import fastpath
-from mlaqc.config import CameraConfig
-from mlaqc.errormap import ErrorMap
+from mlaqc.optics import raytrace_kernels
+from mlaqc.optics.config import CameraConfig
+from mlaqc.optics.errormap import ErrorMap
 from mlaqc.errors import InputError
-from mlaqc.raytrace import Camera, Rays
-from mlaqc.unitcircle import counter_uniforms
-from mlaqc.scene import (ImageRegion, PointScene, Scene, SourceRegion, TextureScene, WhiteScene, sample_image_side,
+from mlaqc.optics.raytrace import Camera, Rays
+from mlaqc.optics.unitcircle import counter_uniforms
+from mlaqc.optics.scene import (ImageRegion, PointScene, Scene, SourceRegion, TextureScene, WhiteScene, sample_image_side,
                          sample_plane, sample_points, texture_weight)
 
 Progress = Callable[[int, int], None]
@@ -161,8 +161,8 @@ class Renderer:
             raise ValueError(f"sampling must be 'image' or 'object', got {sampling!r}")
         engine = engine or cfg.trace.engine
         if engine == "auto":
-            engine = "numba" if fastpath.AVAILABLE else "numpy"
-        if engine == "numba" and not fastpath.AVAILABLE:
+            engine = "numba" if raytrace_kernels.AVAILABLE else "numpy"
+        if engine == "numba" and not raytrace_kernels.AVAILABLE:
             raise InputError("the numba engine was asked for but numba is not installed")
         self.engine = engine
         self.cfg = cfg
@@ -173,7 +173,7 @@ class Renderer:
         mag = self.region.magnification
         hx, hy = _mla_half_extent(self.camera)
         self.texture_half_mm = (hx / mag, hy / mag)  # a texture spans the object-side conjugate of the MLA
-        self.fast = (fastpath.FastCamera(self.camera, self.image_region, self.region, self.texture_half_mm)
+        self.fast = (raytrace_kernels.FastCamera(self.camera, self.image_region, self.region, self.texture_half_mm)
                      if engine == "numba" else None)
 
     def render(self, scene: Scene, *, rays: int | None = None, rays_per_pixel: float | None = None,
@@ -249,8 +249,8 @@ class Renderer:
         return self.camera.pixel_index(r)
 
     def _fast_mode(self, point) -> int:
-        return (fastpath.POINT if point is not None else
-                fastpath.IMAGE_SIDE if self.sampling == "image" else fastpath.OBJECT_SIDE)
+        return (raytrace_kernels.POINT if point is not None else
+                raytrace_kernels.IMAGE_SIDE if self.sampling == "image" else raytrace_kernels.OBJECT_SIDE)
 
     def _weigh_by_main_lens(self, scene: Scene, r: Rays) -> None:
         """Trace image-side rays back through the main lens: vignetting, Fresnel, and the object radiance."""

@@ -743,7 +743,7 @@ def suppress_hot_pixels(
     """Replace isolated hot (and dead) pixels by their 3x3 same-channel median; return (cleaned, mask).
 
     Works per CFA site plane (or on the whole mono frame), one compiled pass per plane
-    (mlaqc.raw_kernels). A pixel is an outlier when it stands above the brightest (or below the darkest)
+    (mlaqc.inspection.rawio_kernels). A pixel is an outlier when it stands above the brightest (or below the darkest)
     of its 8 same-channel neighbours by more than `nsigma` * max(plane noise, local structure). Plane
     noise is the robust sigma (1.4826 * MAD) of the residual against the ring mean on a 1-in-9 sample, at
     least 1 count for integer data. Local structure is the rms residual of the 8 neighbours about their
@@ -758,7 +758,7 @@ def suppress_hot_pixels(
         raise InputError(f"suppress_hot_pixels needs a 2-D image, not shape {img.shape}.")
     if cfa is not None and cfa not in CFA_PATTERNS:
         raise InputError(f"suppress_hot_pixels: cfa={cfa!r} must be None or one of {', '.join(CFA_PATTERNS)}.")
-    from mlaqc.raw_kernels import hot_pixel_rows  # lazily: capture and I/O alone need no Numba import
+    from mlaqc.inspection.rawio_kernels import hot_pixel_rows  # lazily: capture and I/O alone need no Numba import
 
     x = np.ascontiguousarray(img, dtype=np.float32)  # float32 halves the memory traffic (no copy if already)
     mask = np.zeros(img.shape, dtype=bool)
@@ -805,7 +805,7 @@ def _median(a: np.ndarray) -> np.floating:
 def _plane_noise(x: np.ndarray, r0: int, c0: int, step: int, ph: int, pw: int, integer: bool) -> float:
     """Robust sigma of one plane's residual against its 8-neighbour ring mean (var = sigma^2 (1 + 1/8)),
     from a 1-in-9 sample; floored at 1 count (integer data) or 1e-6 of the plane's range."""
-    from mlaqc.raw_kernels import ring_residual_sample
+    from mlaqc.inspection.rawio_kernels import ring_residual_sample
 
     sample = np.empty(((ph + 2) // 3, (pw + 2) // 3), dtype=np.float32)
     lo, hi = ring_residual_sample(x, r0, c0, step, sample)

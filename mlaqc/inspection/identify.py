@@ -30,10 +30,10 @@ from itertools import pairwise
 import numpy as np
 from scipy.ndimage import maximum_filter, median_filter
 
-from mlaqc.config import QC
-from mlaqc.lens_kernels import median_baselines
-from mlaqc.results import Defect, LensMetrics
-from mlaqc.signatures import FEATURES, KIND_BY_NAME, RINGS, SignatureTable, lens_features
+from mlaqc.inspection.metrics_kernels import median_baselines
+from mlaqc.inspection.results import Defect, LensMetrics
+from mlaqc.models.signatures import FEATURES, KIND_BY_NAME, RINGS, SignatureTable, lens_features
+from mlaqc.optics.config import QC
 
 # Features whose change is tested for detection, and on which side (+1 up, -1 down, 0 both).
 DETECT = {"offset": 0, "asym": 0, "blur": +1, "flux": 0, "ssim": -1, "sharpness": 0}

@@ -16,9 +16,9 @@ from itertools import pairwise
 
 import numpy as np
 
-from mlaqc.calibrate import Grid
 from mlaqc.errors import InputError
-from mlaqc.lens_kernels import cut_windows_kernel
+from mlaqc.inspection.calibrate import Grid
+from mlaqc.inspection.metrics_kernels import cut_windows_kernel
 
 
 @dataclass(frozen=True, eq=False)

@@ -9,13 +9,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from mlaqc import fastpath
-from mlaqc.config import load_config
-from mlaqc.errormap import ErrorMap
-from mlaqc.render import Renderer, _bin_patch
-from mlaqc.scene import WhiteScene
+from mlaqc.optics import raytrace_kernels
+from mlaqc.optics.config import load_config
+from mlaqc.optics.errormap import ErrorMap
+from mlaqc.optics.render import Renderer, _bin_patch
+from mlaqc.optics.scene import WhiteScene
 
-pytestmark = pytest.mark.skipif(not fastpath.AVAILABLE, reason="numba is not installed")
+pytestmark = pytest.mark.skipif(not raytrace_kernels.AVAILABLE, reason="numba is not installed")
 
 SMALL = load_config(Path(__file__).resolve().parent.parent / "fixtures" / "small_camera.toml")
 
@@ -57,13 +57,13 @@ def test_engines_render_the_same_image():
 
 def test_hits_come_in_ray_order_with_their_bounding_box():
     r = Renderer(SMALL, _harsh_errors(), engine="numba")
-    rows, cols, w, box = r.fast.trace_hits(fastpath.IMAGE_SIDE, 11, 30_000, tile=(-0.4, 0.1, 0.2, 0.5))
-    idx, w2 = r.fast.trace(fastpath.IMAGE_SIDE, 11, 30_000, tile=(-0.4, 0.1, 0.2, 0.5))
+    rows, cols, w, box = r.fast.trace_hits(raytrace_kernels.IMAGE_SIDE, 11, 30_000, tile=(-0.4, 0.1, 0.2, 0.5))
+    idx, w2 = r.fast.trace(raytrace_kernels.IMAGE_SIDE, 11, 30_000, tile=(-0.4, 0.1, 0.2, 0.5))
     assert len(w) > 20_000 and np.all(w > 0)
     assert list(box) == [rows.min(), rows.max(), cols.min(), cols.max()]
     assert np.array_equal(idx, rows.astype(np.int64) * SMALL.sensor.width_px + cols) and np.array_equal(w, w2)
     # counter-based draws: a batch's first rays do not depend on how many rays follow them
-    idx_short, _ = r.fast.trace(fastpath.IMAGE_SIDE, 11, 1000, tile=(-0.4, 0.1, 0.2, 0.5))
+    idx_short, _ = r.fast.trace(raytrace_kernels.IMAGE_SIDE, 11, 1000, tile=(-0.4, 0.1, 0.2, 0.5))
     assert np.array_equal(idx_short, idx[:len(idx_short)])
 
 
@@ -73,8 +73,8 @@ def test_compiled_binning_equals_bincount_bit_for_bit():
     cols = rng.integers(7, 30, 50_000).astype(np.int32)
     w = rng.random(50_000)
     box = np.array([rows.min(), rows.max(), cols.min(), cols.max()], np.int64)
-    patch = fastpath.bin_hits(rows, cols, w, len(w), box)
+    patch = raytrace_kernels.bin_hits(rows, cols, w, len(w), box)
     r0, c0, ref, n = _bin_patch(rows.astype(np.int64) * 496 + cols, w, 496)
     assert (r0, c0, n) == (box[0], box[2], len(w))
     assert np.array_equal(patch, ref)
-    assert fastpath.bin_hits(rows, cols, w, 0, box).shape == (0, 0)
+    assert raytrace_kernels.bin_hits(rows, cols, w, 0, box).shape == (0, 0)

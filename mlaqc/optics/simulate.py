@@ -17,13 +17,13 @@ import numpy as np
 
 from mlaqc import __version__
 from mlaqc.atomic import atomic_path
-from mlaqc.config import CameraConfig
-from mlaqc.errormap import ErrorMap
 from mlaqc.errors import InputError
-from mlaqc.rawio import write_raw
-from mlaqc.render import Progress, Renderer, RenderResult
-from mlaqc.scene import PointScene, Scene, TextureScene, WhiteScene
-from mlaqc.sensor import expose, white_level
+from mlaqc.inspection.rawio import write_raw
+from mlaqc.optics.config import CameraConfig
+from mlaqc.optics.errormap import ErrorMap
+from mlaqc.optics.render import Progress, Renderer, RenderResult
+from mlaqc.optics.scene import PointScene, Scene, TextureScene, WhiteScene
+from mlaqc.optics.sensor import expose, white_level
 
 RAW_SUFFIXES = (".tif", ".tiff", ".dng", ".npy", ".png")
 SIDECAR_FORMAT = "mlaqc-simulation"

@@ -18,13 +18,13 @@ from dataclasses import dataclass
 import numpy as np
 
 from mlaqc.atomic import write_json_atomic
-from mlaqc.config import CameraConfig
-from mlaqc.errormap import ErrorMap
-from mlaqc.lens_kernels import N_RING
-from mlaqc.metrics import compute_metrics
-from mlaqc.reference import PACKAGE_DATA, ReferenceModel, build_reference, cache_dir
-from mlaqc.render import Renderer
-from mlaqc.scene import WhiteScene
+from mlaqc.inspection.metrics import compute_metrics
+from mlaqc.inspection.metrics_kernels import N_RING
+from mlaqc.models.reference import PACKAGE_DATA, ReferenceModel, build_reference, cache_dir
+from mlaqc.optics.config import CameraConfig
+from mlaqc.optics.errormap import ErrorMap
+from mlaqc.optics.render import Renderer
+from mlaqc.optics.scene import WhiteScene
 
 FEATURES = ("shift_par", "shift_perp", "asym_par", "asym_perp", "blur", "flux", "ssim", "sharpness")
 RINGS = tuple(f"ring{k}" for k in range(N_RING))  # the residual profile: same in every direction
@@ -102,7 +102,7 @@ def patch_config(cfg: CameraConfig, lenses: int = PATCH) -> CameraConfig:
 def nominal_windows(img: np.ndarray, cfg: CameraConfig, half: int = 10):
     """(rows, cols, h, w) windows around each lens' nominal sub-image centre, and that centre in window
     coordinates: for simulated images whose grid is known exactly (signatures, tests)."""
-    from mlaqc.subimages import cut_windows
+    from mlaqc.inspection.subimages import cut_windows
 
     rows, cols = cfg.mla.count_h, cfg.mla.count_w
     pitch = cfg.layout.subimage_pitch_px

@@ -1,5 +1,5 @@
 """Per-lens sub-image indexes for all lenses at once: one compiled pass per lens over its window
-(mlaqc.lens_kernels.lens_indexes), lenses split over a thread pool; no per-lens Python.
+(mlaqc.inspection.metrics_kernels.lens_indexes), lenses split over a thread pool; no per-lens Python.
 
 The reference sub-image of each lens is gathered from the oversampled reference template at that lens'
 sub-pixel phase (quantized to 1/8 px and compensated exactly). Against it each sub-image is registered
@@ -18,9 +18,9 @@ from itertools import pairwise
 
 import numpy as np
 
-from mlaqc.lens_kernels import INDEX_NAMES, N_INDEX, gather_reference, lens_indexes
-from mlaqc.reference import ReferenceModel
-from mlaqc.results import LensMetrics
+from mlaqc.inspection.metrics_kernels import INDEX_NAMES, N_INDEX, gather_reference, lens_indexes
+from mlaqc.inspection.results import LensMetrics
+from mlaqc.models.reference import ReferenceModel
 
 
 def reference_windows(model: ReferenceModel, cx: np.ndarray, cy: np.ndarray, h: int, w: int):
@@ -92,7 +92,7 @@ def compute_metrics(img: np.ndarray, cx: np.ndarray, cy: np.ndarray, model: Refe
     """All indexes for sub-images `img` (rows, cols, h, w; NaN outside the frame) whose grid-predicted
     centres are (cx, cy) in window pixel coordinates; `steps` Gauss-Newton registration steps.
 
-    One compiled pass per lens (mlaqc.lens_kernels.lens_indexes); chunks of lenses run on a thread pool
+    One compiled pass per lens (mlaqc.inspection.metrics_kernels.lens_indexes); chunks of lenses run on a thread pool
     (the kernel releases the GIL). Only the flux normalization needs all lenses and is done after."""
     stack, size, c = _template_stack(model)
     phases = _phase_tables(model)

@@ -18,8 +18,8 @@ from pathlib import Path
 import numpy as np
 
 from mlaqc.errors import InputError
-from mlaqc.raytrace import Rays
-from mlaqc.unitcircle import cos_sin_2pi
+from mlaqc.optics.raytrace import Rays
+from mlaqc.optics.unitcircle import cos_sin_2pi
 
 
 @dataclass(frozen=True)

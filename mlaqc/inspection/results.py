@@ -86,7 +86,7 @@ class InspectionResult:
     """Everything `mlaqc inspect` reports; written out by mlaqc.report."""
 
     verdict: str  # 'PASS' or 'FAIL'
-    grid: Any  # mlaqc.calibrate.Grid
+    grid: Any  # mlaqc.inspection.calibrate.Grid
     metrics: LensMetrics
     defects: tuple[Defect, ...]
     flagged: np.ndarray  # (rows, cols) bool

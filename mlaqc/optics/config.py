@@ -15,7 +15,7 @@ from pathlib import Path
 from typing import Any
 
 from mlaqc.errors import InputError
-from mlaqc.paraxial import ThickLens, image_distance, thick_lens
+from mlaqc.optics.paraxial import ThickLens, image_distance, thick_lens
 
 CFA_CHOICES = ("none", "RGGB", "BGGR", "GRBG", "GBRG")
 CORNER_CHOICES = ("opaque", "clear")

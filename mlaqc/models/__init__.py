@@ -1,0 +1,11 @@
+"""Rendered knowledge that inspection compares against: the reference sub-images of a healthy lens and
+the signature table of each error type, both built by the tracer and cached by a content key."""
+
+from mlaqc.lazy import lazy_exports
+
+_EXPORTS = {
+    "ReferenceModel": "reference", "reference_model": "reference", "build_reference": "reference",
+    "SignatureTable": "signatures", "signature_table": "signatures", "build_signatures": "signatures",
+}
+__all__ = sorted(_EXPORTS)
+__getattr__, __dir__ = lazy_exports(__name__, _EXPORTS)

@@ -1,0 +1,273 @@
+"""report.json and lenses.csv: building them from an InspectionResult, and reading a report.json back.
+
+Conventions shared by every file (DESIGN.md §2):
+- lens U(m,n) is row m (1 = top), column n (1 = left); array element [m-1, n-1];
+- pixel coordinates: (0, 0) is the centre of the top-left pixel, x to the right, y down;
+- directions are degrees counterclockwise from the image's +x axis towards its top;
+- JSON has no NaN (null instead); the CSV writes NaN as an empty field.
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import json
+import math
+import os
+from collections import Counter
+from datetime import datetime, timezone
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from mlaqc import __version__
+from mlaqc.errors import InputError
+from mlaqc.inspection.results import METRICS, InspectionResult
+from mlaqc.report.maps import _type_order
+from mlaqc.report.view import View
+
+REPORT_FORMAT = "mlaqc-report"
+REPORT_FORMAT_VERSION = 1
+
+
+#: Key -> file name of every file `write_report` writes.
+REPORT_FILES: dict[str, str] = {
+    "json": "report.json",
+    "csv": "lenses.csv",
+    "defect_map": "defect_map.png",
+    "defect_map_small": "defect_map_small.png",
+    "html": "report.html",
+}
+
+GALLERY_MAX = 200
+CSV_COLUMNS: tuple[str, ...] = (
+    "row", "col", "x_px", "y_px", "grid_x_px", "grid_y_px", "flagged", "error_type", *METRICS)
+
+
+def build_report_dict(result: InspectionResult, *, config_dict: dict | None = None,
+                      _view: View | None = None) -> dict[str, Any]:
+    """The content of report.json (plain JSON types, no NaN)."""
+    v = _view or View(result)
+    grid = result.grid
+    found = ~v.missing
+    res = v.residual[found & np.isfinite(v.residual)]
+    by_type = Counter(d.error_type for d in result.defects)
+    summary = {
+        "rows": v.rows, "cols": v.cols, "lens_count": v.rows * v.cols,
+        "found": int(found.sum()), "missing": int(v.missing.sum()),
+        "flagged": len(result.defects),
+        "out_of_tolerance": sum(not d.within_tolerance for d in result.defects),
+        "by_error_type": {t: by_type[t] for t in _type_order(by_type)},
+    }
+    origin = getattr(grid, "origin_px", None)
+    if origin is None or np.size(origin) != 2:
+        origin = (v.gx[0, 0], v.gy[0, 0])
+    grid_summary = {
+        "rows": v.rows, "cols": v.cols,
+        "pitch_px": v.pitch, "pitch_x_px": v.pitch_x, "pitch_y_px": v.pitch_y,
+        "rotation_deg": float(getattr(grid, "rotation_deg", math.nan)),
+        # origin: the grid's predicted centre of U(1,1)
+        "origin_x_px": float(origin[0]), "origin_y_px": float(origin[1]),
+        # the grid's own figure (over the lenses used in its fit) if it has one, else over all found lenses
+        "rms_residual_px": _float_attr(grid, "rms_residual_px",
+                                       float(np.sqrt(np.mean(res ** 2))) if res.size else None),
+        "max_residual_px": float(res.max()) if res.size else None,
+    }
+    grid_json = grid.to_json_dict() if hasattr(grid, "to_json_dict") else None
+    report = {
+        "format": REPORT_FORMAT,
+        "format_version": REPORT_FORMAT_VERSION,
+        "mlaqc_version": __version__,
+        "created_utc": datetime.now(timezone.utc).isoformat(timespec="seconds"),
+        "source": str(result.source),
+        "verdict": result.verdict,
+        "conventions": {
+            "lens": "U(m,n): row m from 1 at the top, column n from 1 at the left",
+            "pixel": "(0, 0) is the centre of the top-left pixel; x right, y down",
+            "direction_deg": "counterclockwise from the image's +x axis towards its top",
+        },
+        "image_size_px": {"width": int(v.image.shape[1]), "height": int(v.image.shape[0])},
+        "summary": summary,
+        "grid_summary": grid_summary,
+        "grid": grid_json,
+        "tolerances": dict(result.tolerances),
+        "timings_s": dict(result.timings_s),
+        "notes": list(result.notes),
+        "metrics": {k: {"unit": u, "meaning": m} for k, (u, m) in METRICS.items()},
+        "files": dict(REPORT_FILES),
+        "config": config_dict,
+        "defects": [d.to_json_dict() for d in result.defects],
+    }
+    return _jsonable(report)
+
+
+def _float_attr(obj: Any, name: str, default: float | None) -> float | None:
+    val = getattr(obj, name, None)
+    try:
+        return float(val) if val is not None else default
+    except (TypeError, ValueError):
+        return default
+
+
+_PLAIN = frozenset({str, int, bool, type(None)})
+
+
+def _jsonable(obj: Any) -> Any:
+    """Plain JSON types: numpy scalars and arrays converted, NaN/inf -> None, paths -> str."""
+    t = type(obj)  # exact-type fast paths first: a grid brings ~10^5 values
+    if t in _PLAIN:
+        return obj
+    if t is float:
+        return obj if math.isfinite(obj) else None
+    if t is dict:
+        return {k if type(k) is str else str(k): v if type(v) in _PLAIN else _jsonable(v) for k, v in obj.items()}
+    if t is list:
+        return [v if type(v) in _PLAIN else _jsonable(v) for v in obj]
+    if isinstance(obj, dict):
+        return {str(k): _jsonable(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [_jsonable(v) for v in obj]
+    if isinstance(obj, np.ndarray):
+        if obj.dtype.kind == "f":  # fast path for the grid's (rows, cols) arrays
+            out = obj.astype(object)
+            out[~np.isfinite(obj)] = None
+            return out.tolist()
+        if obj.dtype.kind in "biu":
+            return obj.tolist()
+        return _jsonable(obj.tolist())
+    if isinstance(obj, (bool, np.bool_)):
+        return bool(obj)
+    if isinstance(obj, (int, np.integer)):
+        return int(obj)
+    if isinstance(obj, (float, np.floating)):
+        return float(obj) if math.isfinite(obj) else None
+    if obj is None or isinstance(obj, str):
+        return obj
+    if isinstance(obj, os.PathLike):
+        return os.fspath(obj)
+    if hasattr(obj, "to_json_dict"):
+        return _jsonable(obj.to_json_dict())
+    return str(obj)
+
+
+_ENCODER = json.JSONEncoder(allow_nan=False, ensure_ascii=False)
+
+
+def _dumps(obj: Any, level: int = 0) -> str:
+    """Indented JSON, but a list of scalars on one line and a list of flat records one record per line."""
+    if isinstance(obj, dict):
+        if not obj:
+            return "{}"
+        pad = "  " * (level + 1)
+        items = ",\n".join(f"{pad}{json.dumps(k, ensure_ascii=False)}: {_dumps(v, level + 1)}"
+                           for k, v in obj.items())
+        return "{\n" + items + "\n" + "  " * level + "}" + ("\n" if level == 0 else "")
+    if isinstance(obj, list):
+        if all(not isinstance(x, (dict, list)) for x in obj):
+            return _ENCODER.encode(obj)
+        if all(isinstance(x, dict) and all(not isinstance(y, (dict, list)) for y in x.values()) for x in obj):
+            one_line = [_ENCODER.encode(x) for x in obj]  # e.g. the grid's lenses
+            if max(map(len, one_line)) <= 400:
+                pad = "  " * (level + 1)
+                return "[\n" + ",\n".join(pad + x for x in one_line) + "\n" + "  " * level + "]"
+        pad = "  " * (level + 1)
+        return "[\n" + ",\n".join(pad + _dumps(x, level + 1) for x in obj) + "\n" + "  " * level + "]"
+    return _ENCODER.encode(obj)
+
+
+
+
+def lenses_csv(view: View | InspectionResult) -> str:
+    """lenses.csv: one row per lens, U(1,1), U(1,2), ... U(rows,cols); NaN written as empty."""
+    v = view if isinstance(view, View) else View(view)
+    m, n = np.meshgrid(np.arange(1, v.rows + 1), np.arange(1, v.cols + 1), indexing="ij")
+    columns: list[list[str]] = [
+        [str(i) for i in m.ravel().tolist()],
+        [str(i) for i in n.ravel().tolist()],
+        *(_fmt_column(a, "{:.3f}") for a in (v.mx, v.my, v.gx, v.gy)),
+        ["1" if f else "0" for f in v.flagged.ravel().tolist()],
+        [t if f else "" for t, f in zip(v.error_type.ravel().tolist(), v.flagged.ravel().tolist())],
+        *(_fmt_column(np.asarray(v.result.metrics[k], dtype=float), "{:.6g}") for k in METRICS),
+    ]
+    buf = io.StringIO()
+    writer = csv.writer(buf, lineterminator="\n")
+    writer.writerow(CSV_COLUMNS)
+    writer.writerows(zip(*columns))
+    return buf.getvalue()
+
+
+def _fmt_column(arr: np.ndarray, fmt: str) -> list[str]:
+    f = fmt.format
+    return [f(x) if math.isfinite(x) else "" for x in np.asarray(arr, dtype=float).ravel().tolist()]
+
+
+def load_report(path: str | os.PathLike[str]) -> dict[str, Any]:
+    """Read and check a report.json (or the folder holding one); InputError in one sentence otherwise."""
+    p = Path(path)
+    if p.is_dir():
+        p = p / REPORT_FILES["json"]
+    try:
+        text = p.read_text(encoding="utf-8")
+    except FileNotFoundError:
+        raise InputError(f"report {p} does not exist.") from None
+    except (OSError, UnicodeDecodeError) as exc:
+        raise InputError(f"cannot read report {p}: {getattr(exc, 'strerror', None) or exc}.") from exc
+
+    def _no_nan(const: str) -> Any:
+        raise ValueError(f"{const} is not valid JSON")
+
+    try:
+        data = json.loads(text, parse_constant=_no_nan)
+    except ValueError as exc:
+        raise InputError(f"report {p} is not valid JSON ({exc}).") from exc
+
+    def bad(what: str) -> InputError:
+        return InputError(f"report {p} is not an mlaqc report: {what}.")
+
+    if not isinstance(data, dict):
+        raise bad("it is not a JSON object")
+    if data.get("format") != REPORT_FORMAT:
+        raise bad(f"its format is {data.get('format')!r}, not {REPORT_FORMAT!r}")
+    ver = data.get("format_version")
+    if not isinstance(ver, int) or isinstance(ver, bool) or not 1 <= ver <= REPORT_FORMAT_VERSION:
+        raise bad(f"format_version {ver!r} is not one this mlaqc ({__version__}) reads")
+    if data.get("verdict") not in ("PASS", "FAIL"):
+        raise bad(f"verdict {data.get('verdict')!r} is not PASS or FAIL")
+    if not isinstance(data.get("source"), str):
+        raise bad("'source' is missing")
+    summary = data.get("summary")
+    if not isinstance(summary, dict):
+        raise bad("'summary' is missing")
+    rows, cols = summary.get("rows"), summary.get("cols")
+    if not (_is_int(rows) and _is_int(cols) and rows > 0 and cols > 0):
+        raise bad("summary rows/cols are not positive integers")
+    for key in ("grid_summary", "tolerances", "timings_s"):
+        if not isinstance(data.get(key), dict):
+            raise bad(f"'{key}' is missing")
+    defects = data.get("defects")
+    if not isinstance(defects, list):
+        raise bad("'defects' is not a list")
+    for i, d in enumerate(defects):
+        if not isinstance(d, dict):
+            raise bad(f"defect {i} is not an object")
+        m, n = d.get("row"), d.get("col")
+        if not (_is_int(m) and _is_int(n) and 1 <= m <= rows and 1 <= n <= cols):
+            raise bad(f"defect {i} has lens ({m!r}, {n!r}) outside the {rows} x {cols} grid")
+        if not isinstance(d.get("error_type"), str) or not isinstance(d.get("unit"), str):
+            raise bad(f"defect U({m},{n}) has no error_type or unit")
+        for key in ("magnitude", "score", "direction_deg"):
+            val = d.get(key)
+            if val is not None and not (isinstance(val, (int, float)) and not isinstance(val, bool)):
+                raise bad(f"defect U({m},{n}) has a non-numeric {key}")
+        if not isinstance(d.get("within_tolerance"), bool):
+            raise bad(f"defect U({m},{n}) has no within_tolerance flag")
+        if not isinstance(d.get("indexes", {}), dict):
+            raise bad(f"defect U({m},{n}) has indexes that are not an object")
+    if summary.get("flagged", len(defects)) != len(defects):
+        raise bad(f"its summary counts {summary.get('flagged')} flagged lenses but lists {len(defects)}")
+    return data
+
+
+def _is_int(x: Any) -> bool:
+    return isinstance(x, int) and not isinstance(x, bool)

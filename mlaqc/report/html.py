@@ -1,0 +1,276 @@
+"""report.html: one self-contained page (verdict, summary, defect map, sortable defect table, gallery)."""
+
+from __future__ import annotations
+
+import base64
+import html
+import json
+import math
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from mlaqc import __version__
+from mlaqc.inspection.results import METRICS, Defect
+from mlaqc.report.document import REPORT_FILES
+from mlaqc.report.maps import _encode_png, error_colour
+from mlaqc.report.view import View
+
+GALLERY_MAX = 200
+
+_CSS = """
+body{font:14px/1.4 system-ui,-apple-system,"Segoe UI",Roboto,sans-serif;margin:0;color:#1f2328;background:#f6f8fa}
+main{max-width:1200px;margin:0 auto;padding:0 16px 32px}
+.banner{color:#fff;padding:14px 20px;font-size:22px;font-weight:600}
+.banner.PASS{background:#1a7f37}.banner.FAIL{background:#cf222e}
+.banner small{font-weight:400;font-size:14px;opacity:.9;display:block;word-break:break-all}
+h2{margin:24px 0 8px;font-size:18px}
+.cards{display:flex;flex-wrap:wrap;gap:8px}
+.card{background:#fff;border:1px solid #d0d7de;border-radius:6px;padding:8px 12px;min-width:90px}
+.card b{display:block;font-size:20px}
+.sw{display:inline-block;width:12px;height:12px;border-radius:2px;margin-right:4px;vertical-align:-1px;
+border:1px solid #0003}
+table{border-collapse:collapse;background:#fff}
+th,td{border:1px solid #d0d7de;padding:3px 8px;text-align:left}
+td.num{text-align:right;font-variant-numeric:tabular-nums}
+table.sortable th{cursor:pointer;user-select:none;background:#eaeef2;position:sticky;top:0}
+table.sortable th::after{content:" \\2195";color:#8c959f}
+table.sortable th[aria-sort=ascending]::after{content:" \\25B2";color:#1f2328}
+table.sortable th[aria-sort=descending]::after{content:" \\25BC";color:#1f2328}
+tr.out td:last-child{color:#cf222e;font-weight:600}
+.map img{max-width:100%;height:auto;border:1px solid #d0d7de}
+.gallery{display:flex;flex-wrap:wrap;gap:12px}
+.lens{background:#fff;border:1px solid #d0d7de;border-radius:6px;padding:8px;width:300px}
+.lens h3{margin:0 0 6px;font-size:15px}
+.pair{display:flex;gap:8px}
+.pair figure{margin:0;text-align:center;font-size:12px;color:#57606a}
+.pair img{image-rendering:pixelated;display:block;border:1px solid #d0d7de}
+.lens table{font-size:12px;margin-top:6px;width:100%}
+.lens td{padding:1px 4px}
+.lens th{font-weight:600;background:#eaeef2;padding:1px 4px}
+.note{color:#57606a}
+pre{background:#fff;border:1px solid #d0d7de;padding:8px;overflow:auto;max-height:400px}
+"""
+
+_JS = """
+(function () {
+  function key(row, i) {
+    var c = row.cells[i];
+    return c.hasAttribute('data-sort') ? c.getAttribute('data-sort') : c.textContent.trim();
+  }
+  function sortBy(table, th, i) {
+    var asc = th.getAttribute('aria-sort') !== 'ascending';
+    var num = th.getAttribute('data-type') === 'num';
+    var heads = table.tHead.rows[0].cells;
+    for (var h = 0; h < heads.length; h++) heads[h].removeAttribute('aria-sort');
+    th.setAttribute('aria-sort', asc ? 'ascending' : 'descending');
+    var body = table.tBodies[0];
+    var rows = Array.prototype.slice.call(body.rows);
+    rows.sort(function (a, b) {
+      var x = key(a, i), y = key(b, i), r;
+      if (num) {
+        x = x === '' ? NaN : parseFloat(x); y = y === '' ? NaN : parseFloat(y);
+        if (isNaN(x) || isNaN(y)) return isNaN(x) - isNaN(y);  /* blanks last either way */
+        r = x - y;
+      } else {
+        r = x.localeCompare(y);
+      }
+      return asc ? r : -r;
+    });
+    for (var k = 0; k < rows.length; k++) body.appendChild(rows[k]);
+  }
+  var tables = document.querySelectorAll('table.sortable');
+  for (var t = 0; t < tables.length; t++) {
+    (function (table) {
+      var heads = table.tHead.rows[0].cells;
+      for (var i = 0; i < heads.length; i++) {
+        (function (th, i) {
+          th.addEventListener('click', function () { sortBy(table, th, i); });
+          th.addEventListener('keydown', function (e) {
+            if (e.key === 'Enter' || e.key === ' ') { e.preventDefault(); sortBy(table, th, i); }
+          });
+        })(heads[i], i);
+      }
+    })(tables[t]);
+  }
+})();
+"""
+
+_E = html.escape
+
+
+def _num(x: float | None, digits: int = 4) -> str:
+    """A number for people: `digits` significant digits, '∞' for infinity, '' for None/NaN."""
+    if x is None or math.isnan(x):
+        return ""
+    if math.isinf(x):
+        return "∞" if x > 0 else "-∞"
+    return f"{x:.{digits}g}"
+
+
+def _sort_key(x: float | None) -> str:
+    """A number for the table's data-sort (JavaScript parseFloat); '' sorts last."""
+    if x is None or math.isnan(x):
+        return ""
+    if math.isinf(x):
+        return "Infinity" if x > 0 else "-Infinity"
+    return repr(float(x))
+
+
+def _data_uri(png: bytes) -> str:
+    return "data:image/png;base64," + base64.b64encode(png).decode("ascii")
+
+
+def _severity(d: Defect) -> tuple:
+    score = d.score if math.isfinite(d.score) else -math.inf
+    return (d.within_tolerance, -score, d.m, d.n)
+
+
+def _html(v: View, report: dict[str, Any], small_png: bytes) -> str:
+    r = v.result
+    s, g = report["summary"], report["grid_summary"]
+    defects = sorted(r.defects, key=_severity)
+    out: list[str] = []
+    w = out.append
+    w("<!DOCTYPE html>\n<html lang=\"en\">\n<head>\n<meta charset=\"utf-8\">\n")
+    w("<meta name=\"viewport\" content=\"width=device-width, initial-scale=1\">\n")
+    w(f"<title>{_E(r.verdict)} — MLA inspection of {_E(Path(str(r.source)).name)}</title>\n")
+    w(f"<style>{_CSS}</style>\n</head>\n<body>\n")
+    w(f"<div class=\"banner {_E(r.verdict)}\" id=\"verdict\">{_E(r.verdict)}"
+      f"<small>source: {_E(str(r.source))} · {_E(report['created_utc'])} · mlaqc {_E(__version__)}</small></div>\n")
+    w("<main>\n<h2>Summary</h2>\n<div class=\"cards\">\n")
+    cards = [("lenses", f"{s['lens_count']}", f"{s['rows']} × {s['cols']}"), ("found", f"{s['found']}", ""),
+             ("missing", f"{s['missing']}", ""), ("flagged", f"{s['flagged']}", ""),
+             ("out of tolerance", f"{s['out_of_tolerance']}", ""),
+             ("pitch", f"{_num(g['pitch_px'], 5)} px", ""), ("rotation", f"{_num(g['rotation_deg'], 3)}°", ""),
+             ("RMS residual", f"{_num(g['rms_residual_px'], 3)} px", "")]
+    for label, value, extra in cards:
+        w(f"<div class=\"card\"><b>{_E(value)}</b>{_E(label)}"
+          + (f" <span class=\"note\">{_E(extra)}</span>" if extra else "") + "</div>\n")
+    w("</div>\n")
+    if s["by_error_type"]:
+        w("<p>")
+        w(" &nbsp; ".join(f"{_swatch(t)}{_E(t)}: {n}" for t, n in s["by_error_type"].items()))
+        w("</p>\n")
+    for note in r.notes:
+        w(f"<p class=\"note\">{_E(str(note))}</p>\n")
+
+    w("<h2>Defect map</h2>\n<div class=\"map\">")
+    w(f"<a href=\"{_E(REPORT_FILES['defect_map'])}\"><img id=\"defect-map\" alt=\"defect map\" "
+      f"src=\"{_data_uri(small_png)}\"></a></div>\n")
+    w(f"<p class=\"note\">Ring colour = error type, thick ring = out of tolerance, cross = missing lens, "
+      f"tick = direction. Full resolution: <a href=\"{_E(REPORT_FILES['defect_map'])}\">"
+      f"{_E(REPORT_FILES['defect_map'])}</a>; every lens: <a href=\"{_E(REPORT_FILES['csv'])}\">"
+      f"{_E(REPORT_FILES['csv'])}</a>.</p>\n")
+
+    w(f"<h2>Flagged lenses ({len(defects)})</h2>\n")
+    if defects:
+        w("<p class=\"note\">Click a column heading to sort. U(m,n): row m from the top, column n from the "
+          "left. Direction: degrees counterclockwise from the image's +x axis.</p>\n")
+        w("<table class=\"sortable\" id=\"defects\">\n<thead><tr>")
+        for name, kind in (("U(m,n)", "num"), ("type", "str"), ("magnitude", "num"), ("direction °", "num"),
+                           ("score", "num"), ("tolerance", "str")):
+            w(f"<th tabindex=\"0\" data-type=\"{kind}\" scope=\"col\">{_E(name)}</th>")
+        w("</tr></thead>\n<tbody>\n")
+        for d in defects:
+            row_cls = ' class="out"' if not d.within_tolerance else ""
+            w(f"<tr{row_cls}>"
+              f"<td data-sort=\"{d.m * 100000 + d.n}\"><a href=\"#U{d.m}-{d.n}\">U({d.m},{d.n})</a></td>"
+              f"<td>{_swatch(d.error_type)}{_E(d.error_type)}</td>"
+              f"<td class=\"num\" data-sort=\"{_sort_key(d.magnitude)}\">{_E(_num(d.magnitude))} {_E(d.unit)}</td>"
+              f"<td class=\"num\" data-sort=\"{_sort_key(d.direction_deg)}\">{_E(_num(d.direction_deg, 3))}</td>"
+              f"<td class=\"num\" data-sort=\"{_sort_key(d.score)}\">{_E(_num(d.score, 3))}</td>"
+              f"<td>{'within' if d.within_tolerance else 'OUT'}</td></tr>\n")
+        w("</tbody>\n</table>\n")
+    else:
+        w("<p>No lens was flagged.</p>\n")
+
+    if defects:
+        shown = defects[:GALLERY_MAX]
+        w("<h2>Sub-images of flagged lenses</h2>\n")
+        if len(defects) > len(shown):
+            w(f"<p class=\"note\" id=\"gallery-cap\">Showing the {len(shown)} most severe of {len(defects)} "
+              f"flagged lenses; every lens is in {_E(REPORT_FILES['csv'])}.</p>\n")
+        w("<p class=\"note\">Each lens' sub-image beside its reference, enlarged without smoothing, both on "
+          "the same grey scale; its indexes beside the median over all lenses.</p>\n<div class=\"gallery\">\n")
+        medians = _metric_medians(v)
+        for d in shown:
+            w(_lens_card(v, d, medians))
+        w("</div>\n")
+
+    w("<h2>Grid, tolerances, timings</h2>\n<table>\n")
+    rows = [(f"grid {k}", _num(val, 6) if isinstance(val, float) else str(val)) for k, val in g.items()]
+    rows += [(f"tolerance {k}", _num(val, 6) if isinstance(val, float) else str(val))
+             for k, val in report["tolerances"].items()]
+    rows += [(f"time {k}", f"{_num(val, 3)} s" if isinstance(val, (int, float)) else str(val))
+             for k, val in report["timings_s"].items()]
+    for k, val in rows:
+        w(f"<tr><td>{_E(k)}</td><td class=\"num\">{_E(val)}</td></tr>\n")
+    w("</table>\n")
+    if report.get("config") is not None:
+        w("<details><summary>Configuration</summary><pre>")
+        w(_E(json.dumps(report["config"], indent=2, ensure_ascii=False)))
+        w("</pre></details>\n")
+    w(f"</main>\n<script>{_JS}</script>\n</body>\n</html>\n")
+    return "".join(out)
+
+
+def _swatch(error_type: str) -> str:
+    r, g, b = error_colour(error_type)
+    return f"<span class=\"sw\" style=\"background:#{r:02x}{g:02x}{b:02x}\"></span>"
+
+
+def _metric_medians(v: View) -> dict[str, float]:
+    """Median of every index over the lenses where it is defined (NaN if nowhere)."""
+    out = {}
+    for name in METRICS:
+        a = np.asarray(v.result.metrics[name], dtype=float)
+        a = a[np.isfinite(a)]
+        out[name] = float(np.median(a)) if a.size else math.nan
+    return out
+
+
+def _lens_card(v: View, d: Defect, medians: dict[str, float]) -> str:
+    sub = np.asarray(v.subimages[d.m - 1, d.n - 1], dtype=np.float32)
+    ref = np.asarray(v.reference_of(d.m, d.n), dtype=np.float32)
+    both = np.concatenate([sub[np.isfinite(sub)], ref[np.isfinite(ref)]])
+    lo, hi = (float(both.min()), float(both.max())) if both.size else (0.0, 1.0)
+    if not hi > lo:
+        hi = lo + 1.0
+    side = max(sub.shape + ref.shape)
+    k = max(1, min(12, math.ceil(128 / max(1, side))))
+    imgs = [_data_uri(_encode_png(_grey_tile(a, lo, hi, k))) for a in (sub, ref)]
+    values = v.result.metrics.at(d.m, d.n)
+    parts = [f"<div class=\"lens\" id=\"U{d.m}-{d.n}\"><h3>{_swatch(d.error_type)}U({d.m},{d.n}) · "
+             f"{_E(d.error_type)} · {_E(_num(d.magnitude))} {_E(d.unit)}"
+             + (f" @ {_E(_num(d.direction_deg, 3))}°" if d.direction_deg is not None else "")
+             + f" · {'within tolerance' if d.within_tolerance else 'OUT of tolerance'}</h3>\n<div class=\"pair\">"]
+    for label, uri, a in (("lens", imgs[0], sub), ("reference", imgs[1], ref)):
+        parts.append(f"<figure><img alt=\"{label} U({d.m},{d.n})\" width=\"{a.shape[1] * k}\" "
+                     f"height=\"{a.shape[0] * k}\" src=\"{uri}\"><figcaption>{label}</figcaption></figure>")
+    parts.append(f"</div><div class=\"note\">grey scale {_E(_num(lo, 3))} … {_E(_num(hi, 3))} · "
+                 f"score {_E(_num(d.score, 3))}</div>\n")
+    alts = [a for a in getattr(d, "alternatives", ()) or () if len(a) == 4]
+    if alts:
+        readings = "; ".join(f"{t} {_num(mag)} {u}" + (f" @ {_num(a, 3)}°" if a is not None else "")
+                             for t, mag, u, a in alts)
+        parts.append(f"<div class=\"note\">also fits: {_E(readings)}</div>\n")
+    parts.append("<table><tr><th>index</th><th>lens</th><th>median</th><th>unit</th></tr>")
+    for name, (unit, meaning) in METRICS.items():
+        val = d.indexes.get(name, values.get(name, math.nan))
+        parts.append(f"<tr title=\"{_E(meaning)}\"><td>{_E(name)}</td><td class=\"num\">{_E(_num(val))}</td>"
+                     f"<td class=\"num\">{_E(_num(medians[name]))}</td><td>{_E(unit)}</td></tr>")
+    for name in (k for k in d.indexes if k not in METRICS):
+        parts.append(f"<tr><td>{_E(str(name))}</td><td class=\"num\">{_E(_num(d.indexes[name]))}</td>"
+                     "<td></td><td></td></tr>")
+    parts.append("</table></div>\n")
+    return "".join(parts)
+
+
+def _grey_tile(a: np.ndarray, lo: float, hi: float, k: int) -> np.ndarray:
+    """uint8 tile of `a` on the scale lo..hi, enlarged k times by pixel repetition (NaN black)."""
+    t = np.nan_to_num((a - lo) * (255.0 / (hi - lo)), nan=0.0, posinf=255.0, neginf=0.0)
+    t = np.clip(t + 0.5, 0, 255).astype(np.uint8)
+    return np.repeat(np.repeat(t, k, axis=0), k, axis=1)
+

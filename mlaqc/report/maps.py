@@ -1,0 +1,170 @@
+"""The defect map: the tone-mapped frame with a ring per flagged lens, coloured by error type, and a legend.
+
+`ERROR_COLOURS` is the palette (RGB, the Okabe–Ito colour-blind-safe set); the GUI reuses it so that a
+colour means the same error type everywhere.
+"""
+
+from __future__ import annotations
+
+import math
+from collections import Counter
+from typing import Any
+
+import cv2
+import numpy as np
+
+from mlaqc.inspection.results import InspectionResult
+from mlaqc.report.view import View
+
+#: Defect-map colour per error type, RGB. The seven Okabe & Ito "Color Universal Design" colours
+#: (distinguishable with the common colour-vision deficiencies) plus magenta for the ambiguous
+#: 'position' (pitch or decenter). None is grey, so every ring stands out on the grey image.
+ERROR_COLOURS: dict[str, tuple[int, int, int]] = {
+    "pitch": (230, 159, 0),  # orange
+    "decenter": (86, 180, 233),  # sky blue
+    "position": (255, 0, 255),  # magenta: pitch or decenter, the sub-image alone cannot tell
+    "radius": (0, 158, 115),  # bluish green
+    "tilt": (240, 228, 66),  # yellow
+    "thickness": (204, 121, 167),  # reddish purple
+    "missing": (213, 94, 0),  # vermillion, drawn as a ring with a cross
+    "unknown": (0, 114, 178),  # blue
+}
+#: Verdict colours, RGB (banner of the HTML report and the map's corner label).
+VERDICT_COLOURS: dict[str, tuple[int, int, int]] = {"PASS": (26, 127, 55), "FAIL": (207, 34, 46)}
+
+_OUTLINE = (0, 0, 0)  # dark halo under every ring so that it reads on bright and dark sub-images
+_PNG_LEVEL = 1  # zlib level of the full map: level 3 is ~15 % smaller but 1.5x slower on a 2048² frame
+
+
+def error_colour(error_type: str) -> tuple[int, int, int]:
+    """The palette colour of an error type; unknown names get the 'unknown' colour."""
+    return ERROR_COLOURS.get(error_type, ERROR_COLOURS["unknown"])
+
+
+
+def _type_order(types: Any) -> list[str]:
+    """Error types in palette order, any others after them alphabetically."""
+    known = [t for t in ERROR_COLOURS if t in types]
+    return known + sorted(t for t in types if t not in ERROR_COLOURS)
+
+
+def render_defect_map(result: InspectionResult | View, *, base: np.ndarray | None = None,
+                      max_side: int | None = None) -> np.ndarray:
+    """The defect map as an RGB uint8 array: the tone-mapped image, a ring per flagged lens, a legend.
+
+    Full image size, or scaled down so that its longer side is at most `max_side`. Rings are centred on
+    the measured centre (grid centre if the lens was not found), diameter about one pitch, coloured by
+    ERROR_COLOURS over a dark halo; out-of-tolerance rings are thicker; a directional defect gets a
+    tick from the centre towards its direction; missing lenses get a cross as well.
+    """
+    v = result if isinstance(result, View) else View(result)
+    grey = v.tone_mapped() if base is None else base
+    h, w = grey.shape
+    scale = 1.0
+    if max_side is not None and max(h, w) > max_side:
+        scale = max_side / max(h, w)
+        size = (max(1, round(w * scale)), max(1, round(h * scale)))
+        grey = cv2.resize(grey, size, interpolation=cv2.INTER_AREA)
+    bgr = cv2.cvtColor(grey, cv2.COLOR_GRAY2BGR)
+    pitch = v.pitch * scale if math.isfinite(v.pitch) and v.pitch > 0 else 20.0 * scale
+    radius = max(3, round(0.5 * pitch))
+    thin = max(2, round(0.08 * pitch))  # under 2 px the dark halo swamps the colour
+    thick = max(thin + 1, round(0.2 * pitch))
+
+    marks = [(d, d.error_type) for d in v.result.defects]
+    flagged_pos = {(d.m, d.n) for d in v.result.defects}
+    marks += [(None, (m + 1, n + 1)) for m, n in zip(*np.nonzero(v.missing)) if (m + 1, n + 1) not in flagged_pos]
+    # in-tolerance first so that out-of-tolerance rings end up on top
+    marks.sort(key=lambda t: (t[0] is not None and not t[0].within_tolerance))
+    for d, info in marks:
+        if d is None:  # missing but not flagged (e.g. excluded by the identification)
+            mm, nn = info
+            etype, t, direction = "missing", thin, None
+        else:
+            mm, nn, etype = d.m, d.n, d.error_type
+            t = thin if d.within_tolerance else thick
+            direction = d.direction_deg
+        x, y = v.centre(mm, nn)
+        if not (math.isfinite(x) and math.isfinite(y)):
+            continue
+        c = (round(x * scale), round(y * scale))
+        colour = _bgr(error_colour(etype))
+        is_missing = etype == "missing" or bool(v.missing[mm - 1, nn - 1])
+        arm = max(2, round(0.35 * radius))
+        tick = None
+        if direction is not None and math.isfinite(direction) and not is_missing:
+            a = math.radians(direction)
+            tick = (round(c[0] + 0.8 * radius * math.cos(a)), round(c[1] - 0.8 * radius * math.sin(a)))
+        for col, extra in ((_OUTLINE, 2), (colour, 0)):  # halo, then colour
+            cv2.circle(bgr, c, radius, col, t + extra, cv2.LINE_8)
+            if is_missing:
+                cv2.line(bgr, (c[0] - arm, c[1] - arm), (c[0] + arm, c[1] + arm), col, thin + extra, cv2.LINE_8)
+                cv2.line(bgr, (c[0] - arm, c[1] + arm), (c[0] + arm, c[1] - arm), col, thin + extra, cv2.LINE_8)
+            if tick is not None:
+                cv2.line(bgr, c, tick, col, thin + extra, cv2.LINE_8)
+    _draw_legend(bgr, v, thin, thick)
+    return cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)
+
+
+def _bgr(rgb: tuple[int, int, int]) -> tuple[int, int, int]:
+    return (rgb[2], rgb[1], rgb[0])
+
+
+def legend_corner(result: InspectionResult | View) -> str:
+    """The image corner ('tl', 'tr', 'bl', 'br') where the legend goes: the one with fewest defects."""
+    v = result if isinstance(result, View) else View(result)
+    h, w = v.image.shape
+    counts = dict.fromkeys(("tl", "tr", "bl", "br"), 0)
+    for d in v.result.defects:
+        x, y = v.centre(d.m, d.n)
+        if math.isfinite(x) and math.isfinite(y):
+            counts[("t" if y < h / 2 else "b") + ("l" if x < w / 2 else "r")] += 1
+    return min(counts, key=lambda k: counts[k])  # ties: top-left first
+
+
+def _draw_legend(bgr: np.ndarray, v: View, thin: int, thick: int) -> None:
+    """Verdict, defect counts per type (colour swatch) and the ring key, in a dark box in a corner."""
+    h, w = bgr.shape[:2]
+    font = cv2.FONT_HERSHEY_SIMPLEX
+    fs = max(0.35, min(h, w) / 2000)
+    lw = max(1, round(fs * 1.6))
+    line_h = round(30 * fs) + 4
+    pad = round(10 * fs) + 2
+    sw = round(18 * fs) + 2  # swatch size
+    by_type = Counter(d.error_type for d in v.result.defects)
+    n_out = sum(not d.within_tolerance for d in v.result.defects)
+    verdict = v.result.verdict
+    lines: list[tuple[str, tuple[int, int, int] | None]] = [(f"{len(v.result.defects)} flagged", None)]
+    if by_type:
+        lines.append((f"{n_out} out of tol.", None))
+    lines += [(f"{t}: {by_type[t]}", error_colour(t)) for t in _type_order(by_type)]
+    if by_type:
+        lines.append(("thick = out of tol.", None))
+    big = fs * 1.6
+    (vw, vh), _ = cv2.getTextSize(verdict, font, big, lw + 1)
+    text_w = max([vw] + [cv2.getTextSize(s, font, fs, lw)[0][0] + (sw + pad if c else 0) for s, c in lines])
+    box_w = min(w, text_w + 2 * pad)
+    box_h = min(h, vh + pad * 2 + line_h * len(lines) + pad // 2)
+    corner = legend_corner(v)
+    x0 = 0 if corner[1] == "l" else w - box_w
+    y0 = 0 if corner[0] == "t" else h - box_h
+    bgr[y0:y0 + box_h, x0:x0 + box_w] = (bgr[y0:y0 + box_h, x0:x0 + box_w] // 8 + 16)  # dark, still grey
+    cv2.putText(bgr, verdict, (x0 + pad, y0 + pad + vh), font, big, _bgr(VERDICT_COLOURS[verdict]), lw + 1,
+                cv2.LINE_AA)
+    y = y0 + pad + vh + pad // 2
+    for text, colour in lines:
+        y += line_h
+        x = x0 + pad
+        if colour is not None:
+            cv2.rectangle(bgr, (x, y - sw), (x + sw, y), _bgr(colour), -1)
+            x += sw + pad
+        cv2.putText(bgr, text, (x, y), font, fs, (235, 235, 235), lw, cv2.LINE_AA)
+
+
+def _encode_png(rgb: np.ndarray, level: int = _PNG_LEVEL) -> bytes:
+    """PNG bytes of an RGB (H, W, 3) or grey (H, W) uint8 image; `level` is zlib's 0-9."""
+    img = cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR) if rgb.ndim == 3 else rgb
+    ok, buf = cv2.imencode(".png", img, [cv2.IMWRITE_PNG_COMPRESSION, level])
+    if not ok:
+        raise RuntimeError("OpenCV could not encode a PNG image")
+    return buf.tobytes()

@@ -1,0 +1,106 @@
+"""Checked, convenient access to an InspectionResult and its grid, shared by every report file."""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import numpy as np
+
+from mlaqc.errors import InputError
+from mlaqc.inspection.results import METRICS, InspectionResult
+
+
+class View:
+    """Checked, convenient access to an InspectionResult and its grid."""
+
+    def __init__(self, result: InspectionResult) -> None:
+        self.result = result
+        grid = result.grid
+        try:
+            self.rows, self.cols = int(grid.rows), int(grid.cols)
+        except (AttributeError, TypeError, ValueError) as exc:
+            raise InputError("cannot write the report: the inspection result has no usable lens grid.") from exc
+        shape = (self.rows, self.cols)
+        self.mx = self._grid_array("measured_x_px")
+        self.my = self._grid_array("measured_y_px")
+        self.gx = self._grid_array("grid_x_px")
+        self.gy = self._grid_array("grid_y_px")
+        self.residual = self._grid_array("residual_px")
+        self.missing = self._grid_array("missing").astype(bool)
+        self.flagged = np.asarray(result.flagged).astype(bool)
+        self.error_type = np.asarray(result.error_type).astype(str)
+        for name, arr in (("flagged", self.flagged), ("error_type", self.error_type)):
+            _check(arr.shape == shape, f"its {name} array is {arr.shape}, the grid {shape}")
+        for name in METRICS:
+            _check(name in result.metrics.values, f"metric '{name}' is missing")
+            _check(np.shape(result.metrics[name]) == shape,
+                   f"metric '{name}' is {np.shape(result.metrics[name])}, the grid {shape}")
+        self.image = np.asarray(result.image)
+        _check(self.image.ndim == 2 and self.image.size > 0, f"its image is {self.image.shape}, not (H, W)")
+        self.subimages = np.asarray(result.subimages)
+        _check(self.subimages.ndim == 4 and self.subimages.shape[:2] == shape,
+               f"its sub-images are {self.subimages.shape}, not {shape} + (h, w)")
+        self.reference = np.asarray(result.reference)
+        _check(self.reference.ndim == 2 or (self.reference.ndim == 4 and self.reference.shape[:2] == shape),
+               f"its reference is {self.reference.shape}, not (h, w) or {shape} + (h, w)")
+        _check(result.verdict in ("PASS", "FAIL"), f"its verdict is {result.verdict!r}")
+        seen = set()
+        for d in result.defects:
+            _check(1 <= d.m <= self.rows and 1 <= d.n <= self.cols,
+                   f"defect U({d.m},{d.n}) is outside the {self.rows} x {self.cols} grid")
+            _check((d.m, d.n) not in seen, f"lens U({d.m},{d.n}) has two defects")
+            _check(bool(self.flagged[d.m - 1, d.n - 1]), f"defect U({d.m},{d.n}) is not flagged")
+            seen.add((d.m, d.n))
+        _check(len(seen) == int(self.flagged.sum()),
+               f"{int(self.flagged.sum())} lenses are flagged but {len(seen)} defects listed")
+        self.pitch_x, self.pitch_y = _grid_pitch(grid)
+
+    def _grid_array(self, name: str) -> np.ndarray:
+        arr = np.asarray(getattr(self.result.grid, name, None))
+        _check(arr.shape == (self.rows, self.cols), f"grid.{name} is {arr.shape}, not {(self.rows, self.cols)}")
+        return arr if arr.dtype == bool else arr.astype(float)
+
+    @property
+    def pitch(self) -> float:
+        return 0.5 * (self.pitch_x + self.pitch_y)
+
+    def centre(self, m: int, n: int) -> tuple[float, float]:
+        """Measured centre of U(m,n), or the grid's prediction where it was not found."""
+        x, y = self.mx[m - 1, n - 1], self.my[m - 1, n - 1]
+        if not (np.isfinite(x) and np.isfinite(y)):
+            x, y = self.gx[m - 1, n - 1], self.gy[m - 1, n - 1]
+        return float(x), float(y)
+
+    def reference_of(self, m: int, n: int) -> np.ndarray:
+        return self.reference if self.reference.ndim == 2 else self.reference[m - 1, n - 1]
+
+    def tone_mapped(self) -> np.ndarray:
+        """The image as uint8 grey, 0.5 and 99.5 percentiles stretched to 0 and 255; NaN black."""
+        img = self.image.astype(np.float32, copy=False)
+        step = max(1, int(math.sqrt(img.size / 250_000)))  # percentiles from a ~250k-pixel sample
+        sample = img[::step, ::step]
+        sample = sample[np.isfinite(sample)]
+        lo, hi = (np.percentile(sample, [0.5, 99.5]) if sample.size else (0.0, 1.0))
+        if not hi > lo:
+            hi = lo + 1.0
+        out = (img - np.float32(lo)) * np.float32(255.0 / (hi - lo))
+        out = np.nan_to_num(out, nan=0.0, posinf=255.0, neginf=0.0)
+        return np.clip(out + 0.5, 0, 255).astype(np.uint8)
+
+
+def _check(ok: bool, what: str) -> None:
+    if not ok:
+        raise InputError(f"cannot write the report: the inspection result is inconsistent ({what}).")
+
+
+def _grid_pitch(grid: Any) -> tuple[float, float]:
+    """(pitch_x_px, pitch_y_px) from a Grid that has either both or one `pitch_px`."""
+    px, py = getattr(grid, "pitch_x_px", None), getattr(grid, "pitch_y_px", None)
+    if px is None or py is None:
+        p = getattr(grid, "pitch_px", None)
+        if p is None:
+            raise InputError("cannot write the report: the inspection result's grid has no pitch.")
+        p_arr = np.ravel(np.asarray(p, dtype=float))
+        px, py = (p_arr[0], p_arr[-1]) if p_arr.size else (math.nan, math.nan)
+    return float(px), float(py)

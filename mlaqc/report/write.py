@@ -1,0 +1,87 @@
+"""Write the inspection report set: report.json, lenses.csv, defect_map(.png, _small.png), report.html.
+
+`write_report(result, out_dir)` renders every file in memory first and only then writes them, each
+through a temporary file renamed over the final name (mlaqc.atomic). If anything fails — a bad result,
+an encoder error, a full disk — every temporary file is removed and files from an earlier report are
+left as they were. report.json is renamed last, so a reader that finds a new report.json finds the
+new set beside it.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
+
+from mlaqc.atomic import atomic_path
+from mlaqc.errors import InputError
+from mlaqc.inspection.results import InspectionResult
+from mlaqc.report.document import REPORT_FILES, _dumps, build_report_dict, lenses_csv
+from mlaqc.report.html import _html
+from mlaqc.report.maps import _encode_png, render_defect_map
+from mlaqc.report.view import View
+
+SMALL_MAP_MAX_PX = 1024
+
+def write_report(result: InspectionResult, out_dir: str | os.PathLike[str], *,
+                 config_dict: dict | None = None) -> dict[str, Path]:
+    """Write the report set for `result` into `out_dir` (created if its parent exists).
+
+    Returns {key: path} for the keys of REPORT_FILES. Raises InputError (one sentence) if the result
+    is inconsistent or the folder cannot be written; no partial file is ever left behind.
+    """
+    out = Path(out_dir)
+    if out.exists() and not out.is_dir():
+        raise InputError(f"cannot write the report: {out} exists and is not a folder.")
+    if not out.parent.is_dir():
+        raise InputError(f"cannot write the report: folder {out.parent} does not exist.")
+    view = View(result)
+    contents = _render_all(view, config_dict)  # everything in memory before the first byte is written
+
+    created = False
+    try:
+        try:
+            out.mkdir()
+            created = True
+        except FileExistsError:
+            pass
+        with contextlib.ExitStack() as stack:
+            # Entered first = renamed last: report.json marks the set as complete.
+            for key in ("json", "html", "csv", "defect_map_small", "defect_map"):
+                tmp = stack.enter_context(atomic_path(out / REPORT_FILES[key]))
+                _write_bytes(tmp, contents[key])
+    except BaseException as exc:
+        if created:
+            with contextlib.suppress(OSError):
+                out.rmdir()  # only if still empty
+        if isinstance(exc, OSError):
+            reason = (exc.strerror or str(exc)).rstrip(".")
+            raise InputError(f"cannot write the report to {out}: {reason}.") from exc
+        raise
+    return {key: out / name for key, name in REPORT_FILES.items()}
+
+
+def _write_bytes(path: Path, data: bytes) -> None:
+    """Write one temporary file (a seam for tests that simulate a full disk)."""
+    path.write_bytes(data)
+
+
+def _render_all(view: View, config_dict: dict | None) -> dict[str, bytes]:
+    """Every file's bytes, keyed like REPORT_FILES."""
+    base = view.tone_mapped()
+    full = render_defect_map(view, base=base)
+    small = render_defect_map(view, base=base, max_side=SMALL_MAP_MAX_PX)
+    # OpenCV releases the GIL: encode the big map while the text files are built.
+    with ThreadPoolExecutor(max_workers=1) as pool:
+        full_job = pool.submit(_encode_png, full)
+        try:
+            small_png = _encode_png(small, level=3) if small.shape != full.shape else None
+            report = build_report_dict(view.result, config_dict=config_dict, _view=view)
+            text = {"json": _dumps(report), "csv": lenses_csv(view)}
+        finally:
+            full_png = full_job.result()  # waits; re-raises an encoder error
+        small_png = full_png if small_png is None else small_png
+        text["html"] = _html(view, report, small_png)
+    return {**{k: t.encode("utf-8") for k, t in text.items()},
+            "defect_map": full_png, "defect_map_small": small_png}
