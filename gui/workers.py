@@ -593,7 +593,7 @@ def build_view(result: Any, cfg: Any, source: str, elapsed_s: float) -> Inspecti
     """Precompute the display data of an inspection (runs in the worker)."""
     from scipy.spatial import cKDTree
 
-    from mlaqc.inspection.results import METRICS
+    from mlaqc.inspection.results import METRICS, detection_limit_text
 
     g = result.grid
     mx, my = np.asarray(g.measured_x_px, float), np.asarray(g.measured_y_px, float)
@@ -639,7 +639,7 @@ def build_view(result: Any, cfg: Any, source: str, elapsed_s: float) -> Inspecti
     headline = (f"{len(result.defects)} flagged of {g.rows}×{g.cols} lenses · {out_tol} out of tolerance · "
                 f"{g.lenses_missing} missing")
     detail = (f"{kinds}; grid pitch {g.pitch_px[0]:.3f} × {g.pitch_px[1]:.3f} px, rotation {g.rotation_deg:+.3f}°, "
-              f"RMS residual {g.rms_residual_px:.3f} px")
+              f"RMS residual {g.rms_residual_px:.3f} px; {detection_limit_text(result.detection_limit)}")
     summary = f"{headline} ({detail})"
     ok_grid = np.isfinite(gx) & np.isfinite(gy)
     return InspectionView(result, cfg, source, (float(lo), float(hi)), cx, cy, gx[ok_grid], gy[ok_grid], pitch, rings,

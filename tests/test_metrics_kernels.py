@@ -109,10 +109,13 @@ def _numpy_metrics(img, cx, cy, model, um_per_px):
     with np.errstate(divide="ignore", invalid="ignore"):
         out["psnr_db"] = 10 * np.log10(peak * peak / mse)
         out["ncc"] = cov / np.sqrt(vx * vr)
-    ring = np.searchsorted((RING_EDGES * 0.5 * h) ** 2, xx * xx + yy * yy, side="right")  # N_RING: corners
+    # soft rings: a pixel at distance d counts in ring k by the overlap of [d - 1/2, d + 1/2] with the ring
+    d = np.hypot(xx, yy)
+    edges = np.concatenate([[-np.inf], RING_EDGES * 0.5 * h, [np.inf]])
     with np.errstate(divide="ignore", invalid="ignore"):
         for k in range(N_RING):
-            out[f"ring{k}"] = _sum(resid * (ring == k)) / (a * _sum(r))
+            weight = np.clip(np.minimum(d + 0.5, edges[k + 1]) - np.maximum(d - 0.5, edges[k]), 0.0, 1.0)
+            out[f"ring{k}"] = _sum(resid * weight) / (a * _sum(r))
     lost = ~(flux > 0) | (_sum(vf) < 0.5 * h * w)
     for v in out.values():
         v[lost] = np.nan

@@ -6,9 +6,10 @@ import argparse
 import time
 from pathlib import Path
 
+from mlaqc.commands.levels import add_level_options, stated_levels
 from mlaqc.errors import InputError
 from mlaqc.inspection.calibrate import calibrate
-from mlaqc.inspection.rawio import check_exposure, load_raw, normalized, suppress_hot_pixels
+from mlaqc.inspection.rawio import Levels, check_exposure, load_raw, normalized, resolve_levels, suppress_hot_pixels
 from mlaqc.optics.config import load_config
 
 
@@ -22,6 +23,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--out", "-o", required=True, help="output grid file (.json)")
     p.add_argument("--config", "-c", help="camera config TOML (default: the paper's Table 1 camera)")
     p.add_argument("--quiet", "-q", action="store_true", help="no summary")
+    add_level_options(p)
     p.set_defaults(func=run)
 
 
@@ -34,7 +36,8 @@ def run(args: argparse.Namespace) -> int:
         raise InputError(f"output folder {str(out.parent)!r} does not exist")
     cfg = load_config(args.config)
     start = time.perf_counter()
-    frame = load_raw(args.white)
+    s = cfg.sensor
+    frame = resolve_levels(load_raw(args.white), stated_levels(args), Levels(s.bit_depth, s.black_level_dn))
     check_exposure(frame)
     img, _ = suppress_hot_pixels(normalized(frame), frame.cfa)
     grid = calibrate(img, expected_pitch_px=cfg.layout.subimage_pitch_px,

@@ -16,7 +16,10 @@ import time
 from pathlib import Path
 
 from mlaqc.atomic import write_bytes_atomic
+from mlaqc.commands.levels import add_level_options, stated_levels
 from mlaqc.errors import InputError
+from mlaqc.inspection.rawio import Levels
+from mlaqc.inspection.results import detection_limit_text
 from mlaqc.optics.config import CameraConfig, load_config
 
 BATCH_COLUMNS = ("raw", "verdict", "flagged", "out_of_tolerance", "missing", "seconds", "report", "error")
@@ -38,6 +41,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--config", "-c", help="camera config TOML (default: the paper's Table 1 camera)")
     p.add_argument("--out", "-o", required=True, help="output folder for the report set(s)")
     p.add_argument("--quiet", "-q", action="store_true", help="no summary on stderr")
+    add_level_options(p)
     p.set_defaults(func=run)
 
 
@@ -62,6 +66,7 @@ def summary(result) -> str:
              f"  grid: pitch {g.pitch_px[0]:.3f} x {g.pitch_px[1]:.3f} px, rotation {g.rotation_deg:+.3f} deg, "
              f"RMS residual {g.rms_residual_px:.3f} px",
              "  by type: " + (", ".join(f"{k} {v}" for k, v in sorted(kinds.items())) or "none"),
+             f"  this frame {detection_limit_text(result.detection_limit)}",
              "  time: " + ", ".join(f"{k} {v:.2f} s" for k, v in result.timings_s.items())]
     return "\n".join(lines)
 
@@ -80,7 +85,7 @@ def shared_grid(args: argparse.Namespace, cfg: CameraConfig):
                              f"{cfg.mla.count_w}x{cfg.mla.count_h} lenses on {want[1]}x{want[0]} px")
         return grid
     if args.white:
-        return calibrate(load_frame(args.white, cfg), expected_pitch_px=cfg.layout.subimage_pitch_px,
+        return calibrate(load_frame(args.white, cfg, stated_levels(args)), expected_pitch_px=cfg.layout.subimage_pitch_px,
                          expected_shape=(cfg.mla.count_h, cfg.mla.count_w))
     return None
 
@@ -98,15 +103,16 @@ def report_folders(out: Path, raws: list[str]) -> list[Path]:
     return folders
 
 
-def inspect_one(raw: str, cfg: CameraConfig, grid, folder: Path) -> dict:
+def inspect_one(raw: str, cfg: CameraConfig, grid, folder: Path, levels: Levels | None = None) -> dict:
     """Load, inspect and report one raw; a row of batch.csv (InputError propagates)."""
     from mlaqc.inspection.pipeline import inspect_image, load_frame
     from mlaqc.report import write_report
 
     t0 = time.perf_counter()
-    img = load_frame(raw, cfg)
+    notes: list[str] = []
+    img = load_frame(raw, cfg, levels, notes)
     load_s = time.perf_counter() - t0
-    result = inspect_image(img, cfg, grid=grid, source=str(raw))
+    result = inspect_image(img, cfg, grid=grid, source=str(raw), notes=tuple(notes))
     result.timings_s["load"] = round(load_s, 4)  # the dict is mutable; the result is frozen
     write_report(result, folder, config_dict=cfg.to_dict())
     return {"result": result, "verdict": result.verdict, "flagged": len(result.defects),
@@ -130,7 +136,7 @@ def run(args: argparse.Namespace) -> int:
     cfg = load_config(args.config)
     grid = shared_grid(args, cfg)
     if len(args.raw) == 1:
-        row = inspect_one(args.raw[0], cfg, grid, out)
+        row = inspect_one(args.raw[0], cfg, grid, out, stated_levels(args))
         if not args.quiet:
             print(summary(row["result"]), file=sys.stderr)
             print(f"  report: {out / 'report.html'}", file=sys.stderr)
@@ -139,7 +145,7 @@ def run(args: argparse.Namespace) -> int:
     rows, t0 = [], time.perf_counter()
     for i, (raw, folder) in enumerate(zip(args.raw, report_folders(out, args.raw)), 1):
         try:
-            row = inspect_one(raw, cfg, grid, folder)
+            row = inspect_one(raw, cfg, grid, folder, stated_levels(args))
             line = f"{row['verdict']}, {row['flagged']} flagged ({row['seconds']:.2f} s)"
         except InputError as exc:
             row = {"raw": raw, "verdict": "ERROR", "error": str(exc), "report": ""}

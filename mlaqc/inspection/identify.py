@@ -94,12 +94,140 @@ def robust_sigma(dev: np.ndarray) -> float:
     return max(1.4826 * float(np.median(np.abs(d - np.median(d)))), 1e-9)
 
 
-def deviations(metrics: LensMetrics) -> tuple[dict[str, np.ndarray], dict[str, float]]:
-    """Local deviations of the classification features and their robust spreads."""
-    names = ("offset_x_px", "offset_y_px", "asym_x", "asym_y", "blur", "flux", "ssim", "sharpness")
-    axes = [k.split("_")[1][0] if k in ("offset_x_px", "offset_y_px", "asym_x", "asym_y") else "" for k in names]
-    dev = dict(zip(names, local_deviations([metrics[k] for k in names], axes)))
-    sig = {k: robust_sigma(v) for k, v in dev.items()}
+def edge_classes(shape: tuple[int, int]) -> np.ndarray:
+    """Per lens its distance to the array's edge in lenses, clipped at 2 (0 = outer row/column, 1 = the
+    next, 2 = inner): edge lenses miss neighbours, so their indexes have their own bias and spread."""
+    rows, cols = shape
+    m, n = np.ogrid[:rows, :cols]
+    return np.minimum(np.minimum(m, n), np.minimum(rows - 1 - m, cols - 1 - n)).clip(max=2)
+
+
+def noise_classes(shape: tuple[int, int]) -> np.ndarray:
+    """`edge_classes`, with the 4 x 4 lenses at each corner a class of their own (3): their
+    neighbourhoods reach past the array on two sides, and their deviations are wider still."""
+    rows, cols = shape
+    m, n = np.ogrid[:rows, :cols]
+    zone = (np.minimum(m, rows - 1 - m) <= 3) & (np.minimum(n, cols - 1 - n) <= 3)
+    cls = edge_classes(shape)
+    return np.where(zone & (rows > 12) & (cols > 12), 3, cls)
+
+
+def _groups(shape: tuple[int, int]) -> list[np.ndarray]:
+    """Lens groups that share a systematic pattern: the inner lenses, and each edge class per side."""
+    rows, cols = shape
+    cls = edge_classes(shape)
+    m, n = np.ogrid[:rows, :cols]
+    side = np.argmin(np.stack(np.broadcast_arrays(m, rows - 1 - m, n, cols - 1 - n)), axis=0)
+    return [cls == 2] + [(cls == c) & (side == s) for c in (0, 1) for s in range(4)]
+
+
+def phase_basis(phase_x: np.ndarray, phase_y: np.ndarray, harmonics: int = 2) -> np.ndarray:
+    """Fourier basis (…, terms) of a lens' sub-pixel phase (fractional part of its grid centre, x and y):
+    how a sub-image samples the pixel grid, the source of index patterns that beat with the pitch."""
+    terms = [np.ones_like(phase_x)]
+    for k in range(1, harmonics + 1):
+        for a in (phase_x, phase_y):
+            terms += [np.cos(2 * np.pi * k * a), np.sin(2 * np.pi * k * a)]
+    if harmonics > 1:
+        for a in (phase_x + phase_y, phase_x - phase_y):
+            terms += [np.cos(2 * np.pi * a), np.sin(2 * np.pi * a)]
+    return np.stack(terms, axis=-1)
+
+
+@dataclass(frozen=True)
+class PhaseModel:
+    """The sub-pixel phase basis of every lens group (`_groups`), built once per frame and shared by all
+    the index maps it is fitted to: per group its mask, basis (n, P) and the basis' outer products."""
+
+    groups: tuple[tuple[np.ndarray, np.ndarray, np.ndarray], ...]
+
+
+def phase_model(phase: tuple[np.ndarray, np.ndarray]) -> PhaseModel:
+    """`PhaseModel` of lenses whose grid centres have sub-pixel phases `phase` (x, y); a group gets two
+    harmonics from 80 lenses on, one from 40, none below (too few lenses to fit it)."""
+    groups = []
+    for sel in _groups(phase[0].shape):
+        count = int(sel.sum())
+        harmonics = 2 if count >= 80 else 1 if count >= 40 else 0
+        if harmonics:
+            basis = phase_basis(phase[0][sel], phase[1][sel], harmonics)
+            n, p = basis.shape
+            groups.append((sel, basis, (basis[:, :, None] * basis[:, None, :]).reshape(n, p * p)))
+    return PhaseModel(tuple(groups))
+
+
+def remove_phase_pattern(planes: list[np.ndarray], model: PhaseModel) -> list[np.ndarray]:
+    """Deviation maps minus their fitted dependence on sub-pixel phase, per lens group.
+
+    A sub-image that differs from the reference in profile (another rim blur, diffraction, pixel MTF)
+    is registered and indexed with a small error that depends on where it falls on the pixel grid; over
+    a rotated or non-integer-pitch grid that error draws a pattern across the array which the local
+    median cannot remove. It is a property of the frame, not of a lens: it is fitted (Fourier terms of
+    the phase, robustly: outliers beyond 4 sigma left out, so a defect does not bend the fit) and removed."""
+    stack = np.stack(planes, axis=-1).astype(np.float64)  # (rows, cols, J)
+    for sel, basis, outer in model.groups:
+        stack[sel] = _phase_fit(stack[sel], basis, outer)
+    return [stack[..., j] for j in range(len(planes))]
+
+
+def _phase_fit(y: np.ndarray, basis: np.ndarray, outer: np.ndarray) -> np.ndarray:
+    """Columns of y (n, J) minus their robust least-squares fit on `basis` (n, P), all columns at once:
+    a fit on the finite values, then a refit without those beyond 4 robust sigma of the first."""
+    p = basis.shape[1]
+    keep = np.isfinite(y)
+    y0 = np.where(keep, y, 0.0)
+    resid = y
+    for step in range(2):
+        gram = (keep.T.astype(np.float64) @ outer).reshape(-1, p, p) + 1e-9 * np.eye(p)
+        coef = np.linalg.solve(gram, (np.where(keep, y0, 0.0).T @ basis)[..., None])[..., 0]
+        coef[keep.sum(axis=0) < 2 * p] = 0.0
+        resid = y - basis @ coef.T
+        if step == 0:
+            for j in range(y.shape[1]):
+                r = resid[:, j]
+                keep[:, j] = np.isfinite(r) & (np.abs(r) <= 4 * robust_sigma(r))
+    return resid
+
+
+def class_sigmas(dev: np.ndarray, floor: float = 0.0) -> np.ndarray:
+    """Per lens the spread (`tail_sigma`) of its noise class (`noise_classes`), never below the inner
+    lenses' nor `floor`: edge lenses are noisier than inner ones, and one spread for all would flag them."""
+    cls = noise_classes(dev.shape)
+    inner = tail_sigma(dev[cls == 2]) if np.isfinite(dev[cls == 2]).sum() > 8 else tail_sigma(dev)
+    inner = max(inner, floor) if np.isfinite(inner) else floor
+    out = np.full(dev.shape, inner)
+    for c in (0, 1, 3):
+        sel = cls == c
+        if np.isfinite(dev[sel]).sum() > 8:
+            out[sel] = max(inner, tail_sigma(dev[sel]))
+    return out
+
+
+_NAMES = ("offset_x_px", "offset_y_px", "asym_x", "asym_y", "blur", "flux", "ssim", "sharpness")
+
+
+def tail_sigma(dev: np.ndarray) -> float:
+    """A spread that also answers to heavy tails: the larger of 1.4826 MAD and the 99th percentile of
+    |dev - median| over its Gaussian value (2.576 sigma). For Gaussian noise both agree; where
+    systematic errors (a profile the reference does not share, an edge) leave more lenses far out than
+    noise would, the spread follows them, so that they do not cross the threshold. A defect rate under
+    1 % of a class does not move it."""
+    d = dev[np.isfinite(dev)]
+    if d.size < 20:
+        return robust_sigma(dev)
+    return max(robust_sigma(d), float(np.percentile(np.abs(d - np.median(d)), 99.0)) / 2.576)
+
+
+def deviations(metrics: LensMetrics, phase: PhaseModel | None = None) -> tuple[dict[str, np.ndarray], dict[str, float]]:
+    """Local deviations of the classification features (their sub-pixel phase pattern removed when the
+    lenses' `phase` is given) and their robust spreads over the inner lenses."""
+    axes = [k.split("_")[1][0] if k in ("offset_x_px", "offset_y_px", "asym_x", "asym_y") else "" for k in _NAMES]
+    planes = local_deviations([metrics[k] for k in _NAMES], axes)
+    if phase is not None:
+        planes = remove_phase_pattern(planes, phase)
+    dev = dict(zip(_NAMES, planes))
+    inner = edge_classes(metrics.shape) == 2
+    sig = {k: robust_sigma(v[inner]) if np.isfinite(v[inner]).sum() > 8 else robust_sigma(v) for k, v in dev.items()}
     return dev, sig
 
 
@@ -112,18 +240,21 @@ class RingNoise:
     whiten: np.ndarray
 
 
-def ring_noise(metrics: LensMetrics) -> RingNoise:
+def ring_noise(metrics: LensMetrics, phase: PhaseModel | None = None, floor: np.ndarray | None = None) -> RingNoise:
     """Local deviations of the ring profile, whitened by their covariance over the array's inner lenses
     (those within 4 robust sigma on every ring: a defect must not widen the noise it is judged against).
 
     The outer two rows and columns are their own classes: their 5 x 5 neighbourhood reaches past the
     array, and their profile deviations come out biased and wider (measured at 50 rays/pixel: median
     matched-filter z 1.7 against 1.2 inside). Each class' median is taken off and its deviations are
-    scaled down to the inner lenses' noise where wider, so that one threshold holds everywhere."""
-    dev = np.stack(local_deviations([metrics[r] for r in RINGS], [""] * len(RINGS)), axis=-1)
-    rows, cols = dev.shape[:2]
-    m, n = np.ogrid[:rows, :cols]
-    cls = np.minimum(np.minimum(m, n), np.minimum(rows - 1 - m, cols - 1 - n)).clip(max=2)
+    scaled down to the inner lenses' noise where wider, so that one threshold holds everywhere.
+    `phase`: remove the sub-pixel phase pattern (`remove_phase_pattern`); `floor` (per ring): the
+    smallest noise the covariance may claim, so a noise-free frame cannot make the whitening explode."""
+    planes = local_deviations([metrics[r] for r in RINGS], [""] * len(RINGS))
+    if phase is not None:
+        planes = remove_phase_pattern(planes, phase)
+    dev = np.stack(planes, axis=-1)
+    cls = edge_classes(dev.shape[:2])
     finite = np.isfinite(dev).all(axis=-1)
     for c in range(3):
         sel = (cls == c) & finite
@@ -133,19 +264,28 @@ def ring_noise(metrics: LensMetrics) -> RingNoise:
     sig = np.array([robust_sigma(flat[:, k]) for k in range(flat.shape[1])]) if len(flat) else np.ones(len(RINGS))
     core = (np.abs(flat) < 4 * sig).all(axis=1)
     cov = np.cov(flat[core].T) if core.sum() > 4 * len(RINGS) else np.diag(sig ** 2)
-    cov += np.eye(len(sig)) * 1e-12 * np.trace(cov)  # never singular
+    if floor is not None:
+        cov += np.diag(np.asarray(floor, float) ** 2)
+    cov += np.eye(len(sig)) * 1e-12 * max(np.trace(cov), 1e-30)  # never singular
     whiten = np.linalg.cholesky(np.linalg.inv(cov))
-    spread = {c: robust_sigma((dev[(cls == c) & finite] @ whiten).ravel()) for c in range(3)}
-    for c in (0, 1):  # (never sharpened: fewer lenses, a less sure spread)
+    cls = noise_classes(dev.shape[:2])
+    spread = {c: tail_sigma((dev[(cls == c) & finite] @ whiten).ravel()) for c in range(4)}
+    for c in (0, 1, 3):  # (never sharpened: fewer lenses, a less sure spread)
         if np.isfinite(spread[c]) and np.isfinite(spread[2]) and spread[c] > spread[2]:
             dev[cls == c] *= spread[2] / spread[c]
     return RingNoise(dev, whiten)
 
 
+def _focus_templates(table: SignatureTable) -> np.ndarray:
+    """Every defocus signature's ring profile (radius and thickness, both signs), one per row."""
+    rows = [table.rings[k] for k in FOCUS_KINDS if k in table.rings]
+    return np.concatenate(rows) if rows else np.zeros((0, len(RINGS)))
+
+
 def focus_score(rings: RingNoise, table: SignatureTable) -> np.ndarray:
     """Per lens, the best matched-filter z of its ring-profile change against every defocus signature in
     the table (radius and thickness, both signs): the optimal test for a known profile in Gaussian noise."""
-    templates = np.concatenate([table.rings[k] for k in FOCUS_KINDS if k in table.rings])
+    templates = _focus_templates(table)
     if templates.size == 0:
         return np.zeros(rings.dev.shape[:2])
     tw = templates @ rings.whiten  # (M, R) in unit-noise coordinates
@@ -154,23 +294,86 @@ def focus_score(rings: RingNoise, table: SignatureTable) -> np.ndarray:
     return z.max(axis=-1)
 
 
-def detection_score(dev: dict[str, np.ndarray], sig: dict[str, float], position=None, focus=None) -> np.ndarray:
-    """Largest robust z over the detection features, per lens. `position` (dx, dy): a lower-noise
-    position signal to detect shifts with (the calibration's per-lens residual on the same frame);
-    `focus`: the ring-profile matched filter (`focus_score`)."""
-    if position is not None:
-        px, py = local_deviations([position[0], position[1]], ["x", "y"])
-        dev = dict(dev, offset_x_px=px, offset_y_px=py)
-        sig = dict(sig, offset_x_px=robust_sigma(dev["offset_x_px"]), offset_y_px=robust_sigma(dev["offset_y_px"]))
-    s_off = 0.5 * (sig["offset_x_px"] + sig["offset_y_px"])
-    s_asym = 0.5 * (sig["asym_x"] + sig["asym_y"])
-    zs = [np.hypot(dev["offset_x_px"], dev["offset_y_px"]) / s_off,
-          np.hypot(dev["asym_x"], dev["asym_y"]) / s_asym,
-          dev["blur"] / sig["blur"], np.abs(dev["flux"]) / sig["flux"],
-          -dev["ssim"] / sig["ssim"], np.abs(dev["sharpness"]) / sig["sharpness"]]
+# Detection quantities read from the feature deviations (FEATURES order). SSIM is measured and used to
+# classify, but does not detect: it answers to every change at once, and at the array's edges its tails
+# are heavy (measured: z 10-11 on healthy second-row lenses of a 400 rays/pixel tracer frame).
+DETECTORS = ("offset", "asym", "blur", "flux", "ssim", "sharpness")
+_DETECTING = [k for k, name in enumerate(DETECTORS) if name != "ssim"]
+
+
+def _detector_values(f: np.ndarray) -> np.ndarray:
+    """The DETECTORS' sizes (…, 6) of feature changes f (…, FEATURES…): offset and asymmetry as lengths."""
+    return np.stack([np.hypot(f[..., 0], f[..., 1]), np.hypot(f[..., 2], f[..., 3]), f[..., 4], np.abs(f[..., 5]),
+                     -f[..., 6], np.abs(f[..., 7])], axis=-1)
+
+
+def min_reportable(qc: QC) -> dict[str, float]:
+    """The smallest error worth reporting per kind (its unit): `report_fraction` of its tolerance. A
+    deviation smaller than what such an error causes is not flagged however significant it is."""
+    f = qc.report_fraction
+    return {"pitch": f * qc.pitch_um, "position": f * qc.pitch_um, "decenter": f * qc.decenter_um,
+            "radius": f * qc.radius_rel, "tilt": f * qc.tilt_deg, "thickness": f * qc.thickness_um}
+
+
+def response(table: SignatureTable, kind: str, magnitude: float) -> np.ndarray:
+    """The table's FEATURES + RINGS change for `kind` at `magnitude` (linear between rendered magnitudes,
+    through zero); zeros outside the rendered range on that side."""
+    grid_m, grid_f = _kind_curve(table, kind, 0)
+    if not grid_m[0] <= magnitude <= grid_m[-1]:
+        return np.zeros(grid_f.shape[1])
+    return np.array([np.interp(magnitude, grid_m, grid_f[:, j]) for j in range(grid_f.shape[1])])
+
+
+def noise_floors(table: SignatureTable, qc: QC) -> tuple[np.ndarray, np.ndarray]:
+    """Floors of the DETECTORS' and the rings' noise: a quarter of the largest change any error at its
+    minimum reportable size makes, over the detection threshold. The spread a frame measures is used
+    above it; below it (a nearly noise-free frame) the floor keeps every z finite and bounded."""
+    mins = min_reportable(qc)
+    det, ring = np.zeros(len(DETECTORS)), np.zeros(len(RINGS))
+    for kind in ("pitch", "decenter", "radius", "thickness"):
+        if kind not in table.magnitudes:
+            continue
+        for sign in (-1, 1):
+            r = response(table, kind, sign * mins[kind])
+            det = np.maximum(det, np.abs(_detector_values(r[:len(FEATURES)])))
+            ring = np.maximum(ring, np.abs(r[len(FEATURES):]))
+    return det / (4 * qc.detect_sigma), ring / (4 * qc.detect_sigma)
+
+
+@dataclass(frozen=True)
+class Noise:
+    """What one frame's detection works against: per lens the spread of each DETECTOR (rows, cols, 6),
+    floored (`noise_floors`) and per edge class; and the ring profile's whitening."""
+
+    sigma: np.ndarray
+    rings: RingNoise
+
+
+def detection_noise(dev: dict[str, np.ndarray], rings: RingNoise, det_floor: np.ndarray) -> Noise:
+    """The per-lens spreads of the DETECTORS from the frame's own deviations (`class_sigmas`)."""
+    pairs = [("offset_x_px", "offset_y_px"), ("asym_x", "asym_y")]
+    sig = [0.5 * (class_sigmas(dev[a], det_floor[k]) + class_sigmas(dev[b], det_floor[k])) for k, (a, b) in enumerate(pairs)]
+    sig += [class_sigmas(dev[name], det_floor[k]) for k, name in enumerate(("blur", "flux", "ssim", "sharpness"), start=2)]
+    sig = np.stack(sig, axis=-1)
+    return Noise(sig, rings)
+
+
+def with_position(dev: dict[str, np.ndarray], position, phase: PhaseModel | None = None) -> dict[str, np.ndarray]:
+    """`dev` with its offsets replaced by the local deviations of a lower-noise position signal (dx, dy)
+    (the calibration's per-lens residual averaged with the registration on the same frame)."""
+    px, py = local_deviations([position[0], position[1]], ["x", "y"])
+    if phase is not None:
+        px, py = remove_phase_pattern([px, py], phase)
+    return dict(dev, offset_x_px=px, offset_y_px=py)
+
+
+def detection_score(dev: dict[str, np.ndarray], noise: Noise, focus=None) -> np.ndarray:
+    """Largest z over the detection features, per lens; `focus`: the ring-profile matched filter."""
+    f = np.stack([dev[k] for k in _NAMES], axis=-1)  # (rows, cols, 8) in FEATURES' layout
+    z = (_detector_values(f) / noise.sigma)[..., _DETECTING]
     if focus is not None:
-        zs.append(focus)
-    return np.nanmax(np.stack([np.where(np.isfinite(z), z, 0.0) for z in zs]), axis=0)
+        z = np.concatenate([z, focus[..., None]], axis=-1)
+    return np.nanmax(np.where(np.isfinite(z), z, 0.0), axis=-1)
 
 
 def spill(score: np.ndarray, flagged: np.ndarray, ratio: float = 0.5) -> np.ndarray:
@@ -284,17 +487,76 @@ def tolerance_for(error_type: str, qc: QC) -> float:
             "tilt": qc.tilt_deg, "thickness": qc.thickness_um}.get(error_type, 0.0)
 
 
-def identify(metrics: LensMetrics, missing: np.ndarray, qc: QC, table: SignatureTable, position=None):
-    """Flag, classify and size the defective lenses; returns (defects, flagged mask, type per lens, score).
+@dataclass(frozen=True)
+class Identification:
+    """What `identify` found on one frame: the flagged lenses and what this frame could have found."""
 
-    `position`: optional (dx, dy) per-lens position residuals measured on this frame (see
-    `detection_score`); classification always uses the registration features the table was built with."""
-    dev, sig = deviations(metrics)
-    rings = ring_noise(metrics)
-    score = detection_score(dev, sig, position, focus_score(rings, table))
+    defects: tuple[Defect, ...]
+    flagged: np.ndarray  # (rows, cols) bool
+    error_type: np.ndarray  # (rows, cols) object: the flagged lens' type, '' elsewhere
+    score: np.ndarray  # (rows, cols) detection z
+    detection_limit: dict  # per error type the smallest magnitude this frame detects (see `detection_limits`)
+    below_reportable: int  # significant deviations smaller than the minimum reportable error (not flagged)
+    not_inspected: int  # lenses whose sub-image leaves the sensor
+
+
+def detection_limits(table: SignatureTable, qc: QC, noise: Noise) -> dict:
+    """Per error type, the smallest magnitude an inner lens of this frame would be flagged at: the
+    table's response must exceed the detection threshold against this frame's noise (the DETECTORS'
+    spreads and the ring matched filter), and the minimum reportable size. Radius and thickness per
+    sign; None where no magnitude the table renders is detectable."""
+    cls = edge_classes(noise.sigma.shape[:2])
+    inner = cls == 2 if (cls == 2).any() else np.ones(cls.shape, bool)
+    sigma = np.nanmedian(noise.sigma[inner], axis=0)
+    templates = _focus_templates(table)
+    mins = min_reportable(qc)
+    limits: dict = {}
+    for kind, unit in (("pitch", "µm"), ("decenter", "µm"), ("radius", "rel"), ("thickness", "µm")):
+        if kind not in table.magnitudes:
+            continue
+        grid_m, grid_f = _kind_curve(table, kind, 0)
+        z = (_detector_values(grid_f[:, :len(FEATURES)]) / sigma)[:, _DETECTING].max(axis=1)
+        if kind in FOCUS_KINDS and templates.size:
+            tw = templates @ noise.rings.whiten
+            tw /= np.linalg.norm(tw, axis=1, keepdims=True)
+            z = np.maximum(z, ((grid_f[:, len(FEATURES):] @ noise.rings.whiten) @ tw.T).max(axis=1))
+        ok = (z > qc.detect_sigma) & (np.abs(grid_m) >= mins[kind] - 1e-12)
+        signs = ((+1, "+"), (-1, "-")) if np.any(grid_m < 0) else ((+1, ""),)
+        for sign, tag in signs:
+            side = ok & (np.sign(grid_m) == sign)
+            name = f"{kind}_{'um' if unit == 'µm' else 'rel'}" + ({"+": "_pos", "-": "_neg"}.get(tag, ""))
+            limits[name] = float(f"{np.abs(grid_m[side]).min():.4g}") if side.any() else None
+    limits["detect_sigma"] = qc.detect_sigma
+    limits["min_reportable"] = {k: v for k, v in min_reportable(qc).items() if k != "position"}
+    return limits
+
+
+def identify(metrics: LensMetrics, missing: np.ndarray, qc: QC, table: SignatureTable, position=None,
+             phase=None, outside: np.ndarray | None = None) -> Identification:
+    """Flag, classify and size the defective lenses of one frame, and say what it could detect.
+
+    `position`: optional (dx, dy) per-lens position residuals measured on this frame (see `with_position`);
+    `phase`: the lenses' sub-pixel phases (x, y), whose index pattern is removed (`remove_phase_pattern`).
+    `outside`: lenses whose sub-image is not wholly on the sensor; they are not inspected (never
+    flagged, never missing) and left out of every statistic.
+    A lens is flagged when its deviation is significant (z above `qc.detect_sigma`, against the frame's
+    own noise, floored) and its best reading is at least the minimum reportable error of its kind;
+    classification always uses the registration features the table was built with."""
+    det_floor, ring_floor = noise_floors(table, qc)
+    phase = phase_model(phase) if phase is not None else None
+    outside = np.zeros(missing.shape, bool) if outside is None else outside
+    if outside.any():
+        metrics = LensMetrics({k: np.where(outside, np.nan, v) for k, v in metrics.values.items()})
+        position = None if position is None else tuple(np.where(outside, np.nan, p) for p in position)
+        missing = missing & ~outside
+    dev, sig = deviations(metrics, phase)
+    rings = ring_noise(metrics, phase, ring_floor)
+    detect_dev = with_position(dev, position, phase) if position is not None else dev
+    noise = detection_noise(detect_dev, rings, det_floor)
+    score = detection_score(detect_dev, noise, focus_score(rings, table))
     threshold = np.full(score.shape, qc.detect_sigma)
     threshold[[0, 0, -1, -1], [0, -1, 0, -1]] *= 1.5  # corner windows hold dark margin on two sides: noisier
-    flagged = (score > threshold) | missing
+    flagged = ((score > threshold) & ~outside) | missing
     flagged &= ~spill(score, flagged) | missing
     sigmas = _feature_sigmas(sig)
     error_type = np.full(flagged.shape, "", dtype=object)
@@ -304,6 +566,8 @@ def identify(metrics: LensMetrics, missing: np.ndarray, qc: QC, table: Signature
     vecs = np.array([f[0] for f in features]) if features else np.zeros((0, len(sigmas) + len(RINGS)))
     fits = dict(zip(lenses, fit_all(table, vecs, sigmas, rings.whiten)))
     shifts = dict(zip(lenses, features))
+    mins = min_reportable(qc)
+    below = 0
     for m, n in zip(*np.nonzero(flagged)):
         indexes = metrics.at(m + 1, n + 1)
         if missing[m, n]:
@@ -312,11 +576,16 @@ def identify(metrics: LensMetrics, missing: np.ndarray, qc: QC, table: Signature
             continue
         vec, shift_dir = shifts[(m, n)]
         kind, mag, unit, direction, alts = classify(table, vec, shift_dir, sigmas, fits[(m, n)], rings.whiten)
+        if abs(mag) < mins.get(kind, 0.0) - 1e-12:
+            flagged[m, n] = False  # significant, but smaller than any error worth reporting
+            below += 1
+            continue
         limit = tolerance_for(kind, qc)
         defects.append(Defect(int(m) + 1, int(n) + 1, kind, mag, unit, direction, float(score[m, n]),
                               abs(mag) <= limit, indexes, alternatives=alts))
         error_type[m, n] = kind
-    return tuple(defects), flagged, error_type, score
+    return Identification(tuple(defects), flagged, error_type, score, detection_limits(table, qc, noise), below,
+                          int(outside.sum()))
 
 
-__all__ = ["identify", "classify", "deviations", "detection_score", "FEATURES"]
+__all__ = ["identify", "Identification", "classify", "deviations", "detection_score", "detection_limits", "FEATURES"]

@@ -113,7 +113,7 @@ def lens_indexes(data, cx, cy, stack, size, c, os_, phases, pad, um_per_px, step
     counts = np.empty((4, ENTROPY_BINS + 1), np.int64)
     bins = np.empty(npx, np.int32)
     ring = np.empty(N_RING + 1)  # the last one collects the corners, unused
-    edges2 = (RING_EDGES * (0.5 * h)) ** 2
+    edges = RING_EDGES * (0.5 * h)
     inv_half = 1.0 / (0.5 * h)
     rdisc2 = (0.35 * h) ** 2
     nan = np.nan
@@ -271,12 +271,23 @@ def lens_indexes(data, cx, cy, stack, size, c, os_, phases, pad, um_per_px, step
             yy = i - qy
             for j in range(w):
                 xx = j - qx
-                d2 = xx * xx + yy * yy
+                d = math.sqrt(xx * xx + yy * yy)
                 kk = 0
                 for e in range(N_RING):
-                    kk += 1 if d2 >= edges2[e] else 0
+                    kk += 1 if d >= edges[e] else 0
                 p = i * w + j
-                ring[kk] += x[p] - a_reg * tab[0, p] * v[p]
+                res = x[p] - a_reg * tab[0, p] * v[p]
+                # soft membership: within half a pixel of an edge a pixel is shared linearly between the two
+                # rings, so a ring's light is continuous in the lens' sub-pixel position
+                lo = 0.5 - (d - edges[kk - 1]) if kk > 0 else 0.0
+                hi = 0.5 - (edges[kk] - d) if kk < N_RING else 0.0
+                lo = min(max(lo, 0.0), 1.0)
+                hi = min(max(hi, 0.0), 1.0)
+                ring[kk] += res * (1.0 - lo - hi)
+                if kk > 0:
+                    ring[kk - 1] += res * lo
+                if kk < N_RING:
+                    ring[kk + 1] += res * hi
         o = out[k]
         if not (flux > 0) or nv < 0.5 * npx:
             for q in range(N_INDEX):

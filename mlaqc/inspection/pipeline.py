@@ -13,7 +13,8 @@ from mlaqc.errors import InputError
 from mlaqc.inspection.calibrate import Grid, calibrate
 from mlaqc.inspection.identify import identify
 from mlaqc.inspection.metrics import compute_metrics, reference_images
-from mlaqc.inspection.rawio import RawFrame, check_exposure, load_raw, normalized, suppress_hot_pixels
+from mlaqc.inspection.rawio import (Levels, RawFrame, check_exposure, levels_note, load_raw, normalized,
+                                    resolve_levels, suppress_hot_pixels)
 from mlaqc.inspection.results import InspectionResult
 from mlaqc.inspection.subimages import divide
 from mlaqc.models.reference import ReferenceModel, config_key, reference_model
@@ -28,16 +29,23 @@ def prepare(frame: RawFrame) -> np.ndarray:
     return cleaned.astype(np.float32, copy=False)
 
 
-def load_frame(path: str | Path, cfg: CameraConfig) -> np.ndarray:
-    """Load a raw file of the config's sensor size, check its exposure, and prepare it."""
+def load_frame(path: str | Path, cfg: CameraConfig, levels: Levels | None = None,
+               notes: list[str] | None = None) -> np.ndarray:
+    """Load a raw file of the config's sensor size, settle its levels (`resolve_levels`: `levels` stated
+    by the user, else the file's, else the config's sensor or the data), check its exposure, and prepare
+    it. `notes` gets a sentence when the levels did not come from the file itself."""
     s = cfg.sensor
-    frame = load_raw(path, expected_shape=(s.height_px, s.width_px))
+    frame = resolve_levels(load_raw(path, expected_shape=(s.height_px, s.width_px)), levels,
+                           Levels(s.bit_depth, s.black_level_dn))
+    if notes is not None and frame.levels_from != "file":
+        notes.append(levels_note(frame))
     check_exposure(frame)
     return prepare(frame)
 
 
 def inspect_image(img: np.ndarray, cfg: CameraConfig, *, grid: Grid | None = None, source: str = "",
-                  model: ReferenceModel | None = None, table: SignatureTable | None = None) -> InspectionResult:
+                  model: ReferenceModel | None = None, table: SignatureTable | None = None,
+                  notes: tuple[str, ...] = ()) -> InspectionResult:
     """Inspect one prepared frame; `grid` from a white image (else the frame calibrates itself)."""
     t: dict[str, float] = {}
     clock = time.perf_counter()
@@ -72,8 +80,10 @@ def inspect_image(img: np.ndarray, cfg: CameraConfig, *, grid: Grid | None = Non
     position = None
     if own_grid:
         position = (0.5 * (grid.residual_x_px + metrics["offset_x_px"]), 0.5 * (grid.residual_y_px + metrics["offset_y_px"]))
-    defects, flagged, error_type, _score = identify(metrics, grid.missing | ~np.isfinite(metrics["flux"]), cfg.qc,
-                                                    table, position)
+    phase = (np.mod(grid.grid_x_px, 1.0), np.mod(grid.grid_y_px, 1.0))
+    found = identify(metrics, grid.missing | ~np.isfinite(metrics["flux"]), cfg.qc, table, position, phase,
+                     outside=grid.clipped)
+    defects, flagged, error_type = found.defects, found.flagged, found.error_type
     lap("identify")
     qc = cfg.qc
     out_of_tol = sum(1 for d in defects if d.error_type != "missing" and not d.within_tolerance)
@@ -82,7 +92,9 @@ def inspect_image(img: np.ndarray, cfg: CameraConfig, *, grid: Grid | None = Non
     ref = reference_images(model, cx, cy, 2 * half + 1, 2 * half + 1)
     # the frame is kept as given when already float32 (no 16 MB copy): callers hand over a prepared frame
     return InspectionResult(verdict, grid, metrics, defects, flagged, error_type, np.asarray(img, dtype=np.float32),
-                            sub, ref, source, _tolerance_dict(cfg), t)
+                            sub, ref, source, _tolerance_dict(cfg), t,
+                            notes=tuple(notes), detection_limit=found.detection_limit,
+                            below_reportable=found.below_reportable, not_inspected=found.not_inspected)
 
 
 _MODELS: dict[tuple[str, str], tuple[ReferenceModel, SignatureTable]] = {}
@@ -105,21 +117,23 @@ def _models(cfg: CameraConfig) -> tuple[ReferenceModel, SignatureTable]:
 def _tolerance_dict(cfg: CameraConfig) -> dict[str, float]:
     q = cfg.qc
     return {"pitch_um": q.pitch_um, "decenter_um": q.decenter_um, "radius_rel": q.radius_rel, "tilt_deg": q.tilt_deg,
-            "thickness_um": q.thickness_um, "detect_sigma": q.detect_sigma,
+            "thickness_um": q.thickness_um, "detect_sigma": q.detect_sigma, "report_fraction": q.report_fraction,
             "max_out_of_tolerance": q.max_out_of_tolerance, "max_missing": q.max_missing}
 
 
-def inspect_file(raw: str | Path, cfg: CameraConfig, *, white: str | Path | None = None) -> InspectionResult:
-    """Load, calibrate (on `white` if given) and inspect a raw file."""
+def inspect_file(raw: str | Path, cfg: CameraConfig, *, white: str | Path | None = None,
+                 levels: Levels | None = None) -> InspectionResult:
+    """Load, calibrate (on `white` if given) and inspect a raw file; `levels` as in `load_frame`."""
     t0 = time.perf_counter()
-    img = load_frame(raw, cfg)
+    notes: list[str] = []
+    img = load_frame(raw, cfg, levels, notes)
     grid = None
     if white is not None:
-        wimg = load_frame(white, cfg)
+        wimg = load_frame(white, cfg, levels)
         grid = calibrate(wimg, expected_pitch_px=cfg.layout.subimage_pitch_px,
                          expected_shape=(cfg.mla.count_h, cfg.mla.count_w))
     load_s = time.perf_counter() - t0
-    result = inspect_image(img, cfg, grid=grid, source=str(raw))
+    result = inspect_image(img, cfg, grid=grid, source=str(raw), notes=tuple(notes))
     result.timings_s["load"] = round(load_s, 4)
     return result
 
@@ -135,7 +149,7 @@ def scan_frame_hook(frame) -> dict:
     cfg_dict = (frame.header.get("camera_settings") or {}).get("config")
     cfg = config_from_dict(cfg_dict, source="scan manifest") if cfg_dict else default_config()
     result = inspect_file(frame.path, cfg)
-    return {"verdict": result.verdict, "flagged": len(result.defects),
+    return {"verdict": result.verdict, "flagged": len(result.defects), "detection_limit": result.detection_limit,
             "defects": [d.to_json_dict() | {"indexes": None} for d in result.defects],
             "grid": {"pitch_px": list(result.grid.pitch_px), "rotation_deg": result.grid.rotation_deg,
                      "rms_residual_px": result.grid.rms_residual_px},

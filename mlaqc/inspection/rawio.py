@@ -69,6 +69,9 @@ class RawFrame:
     white_level: int  # saturation value in counts
     metadata: dict = field(default_factory=dict)
     source: str = ""
+    # where bits, black and white level came from: 'file' (tags, record, sidecar), 'container' (only the
+    # container's dtype: `resolve_levels` refines them), or what resolved them ('option', 'config', 'data')
+    levels_from: str = "file"
 
     def __post_init__(self) -> None:
         """Reject frames no later stage could interpret."""
@@ -535,7 +538,9 @@ def _load_tiff(path: Path, sidecar: dict | None) -> RawFrame:
         return _frame_from_record(data.astype(np.uint16), bits, record or side_record, metadata, path)
     black = _int_tag(tags, "BlackLevel", 0, np.mean)
     white = max(_int_tag(tags, "WhiteLevel", (1 << bits) - 1, np.max), black + 1)
-    return RawFrame(data.astype(np.uint16), bits, _tiff_cfa(tags), black, white, metadata, str(path))
+    tagged = "BlackLevel" in tags or "WhiteLevel" in tags
+    return RawFrame(data.astype(np.uint16), bits, _tiff_cfa(tags), black, white, metadata, str(path),
+                    "file" if tagged else "container")
 
 
 def _int_tag(tags: dict, name: str, default: int, reduce: Any) -> int:
@@ -634,9 +639,78 @@ def _load_npy(path: Path, sidecar: dict | None) -> RawFrame:
 def _frame_from_record(data: np.ndarray, bits: int, record: dict | None, metadata: dict, path: Path) -> RawFrame:
     """Frame whose acquisition facts come from the sidecar record, or from the dtype when there is none."""
     if record is None:
-        return RawFrame(data, bits, None, 0, (1 << bits) - 1, metadata, str(path))
+        return RawFrame(data, bits, None, 0, (1 << bits) - 1, metadata, str(path), "container")
     r = record
     return RawFrame(data, r["bits"], r["cfa"], r["black_level"], r["white_level"], metadata, str(path))
+
+
+# --------------------------------------------------------------------------------------------- levels
+
+STANDARD_BITS = (8, 10, 12, 14, 16)
+
+
+@dataclass(frozen=True)
+class Levels:
+    """Bit depth and black level a user states for a frame (`--bit-depth`, `--black-level`); None: unknown."""
+
+    bits: int | None = None
+    black: int | None = None
+
+    def __post_init__(self) -> None:
+        if self.bits is not None and not 8 <= self.bits <= 16:
+            raise InputError(f"The bit depth {self.bits} is outside 8..16.")
+        if self.black is not None and not 0 <= self.black < (1 << (self.bits or 16)) - 1:
+            raise InputError(f"The black level {self.black} does not fit {self.bits or 16}-bit counts.")
+
+
+def resolve_levels(frame: RawFrame, stated: Levels | None = None, sensor: Levels | None = None) -> RawFrame:
+    """The frame with its significant bits, black and white level settled, for any container.
+
+    Order: what the user `stated` (always wins); then the file's own tags, record or sidecar; for a
+    container without them (a 16-bit TIFF, PNG or NPY of 12-bit data), the camera config's `sensor` when
+    the data agree with it (no count above its white level, its dark pixels not below its black level),
+    else the data: the smallest standard depth that holds the brightest count, and the black level from
+    the darkest pixels (the 0.1th percentile; the gaps between sub-images see no light). The white level
+    is then the top of that depth, so the black and saturation checks are relative to the real scale."""
+    stated = stated or Levels()
+    if frame.data.dtype.kind == "f" or (frame.levels_from != "container" and stated == Levels()):
+        return frame
+    sample = frame.data[::3, ::3] if min(frame.shape) >= 300 else frame.data
+    top = int(sample.max()) if frame.data is sample else int(frame.data.max())
+    dark, bright = (float(v) for v in np.percentile(sample, [0.1, 99.0]))
+    dark = dark if dark <= 0.1 * bright else 0.0  # no unlit pixels in the frame: nothing to read black from
+    container_bits = frame.bits
+    bits, black, source = frame.bits, frame.black_level, frame.levels_from
+    if frame.levels_from == "container":
+        sensor_ok = (sensor is not None and sensor.bits is not None and sensor.bits <= container_bits
+                     and top <= (1 << sensor.bits) - 1 and (sensor.black or 0) <= dark + 2)
+        if sensor_ok:
+            bits, black, source = sensor.bits, sensor.black or 0, "config"
+        else:
+            bits = next(b for b in STANDARD_BITS if top <= (1 << b) - 1 and b <= max(container_bits, 8)) \
+                if top <= (1 << container_bits) - 1 else container_bits
+            black, source = int(round(min(dark, ((1 << bits) - 1) / 8))), "data"
+    if stated.bits is not None:
+        bits, source = stated.bits, "option"
+        if top > (1 << bits) - 1:
+            raise InputError(f"Frame {frame.source or '(in memory)'} has counts up to {top}, more than "
+                             f"{bits} bits hold; check --bit-depth.")
+    if stated.black is not None:
+        black, source = stated.black, "option"
+    white = (1 << bits) - 1 if (frame.levels_from == "container" or stated.bits is not None) else frame.white_level
+    if not black < white:
+        raise InputError(f"Frame {frame.source or '(in memory)'}: black level {black} is not below the white "
+                         f"level {white}.")
+    return RawFrame(frame.data, bits, frame.cfa, int(black), int(white), frame.metadata, frame.source, source)
+
+
+def levels_note(frame: RawFrame) -> str:
+    """One sentence saying which levels a frame was read with and where they came from."""
+    origin = {"option": "as stated on the command line", "config": "from the camera config's [sensor]",
+              "data": "estimated from the data (no level tags in the file)",
+              "container": "from the container alone", "file": "from the file"}.get(frame.levels_from, "")
+    return (f"Read as {frame.bits}-bit counts, black level {frame.black_level}, white level {frame.white_level}, "
+            f"{origin}.")
 
 
 # --------------------------------------------------------------------------------------------- checks

@@ -98,7 +98,26 @@ class InspectionResult:
     tolerances: dict[str, float]
     timings_s: dict[str, float]
     notes: tuple[str, ...] = ()
+    # what this frame could detect (identify.detection_limits): per error type the smallest magnitude
+    # flagged at the configured threshold, None where no rendered magnitude is detectable
+    detection_limit: dict[str, Any] = field(default_factory=dict)
+    below_reportable: int = 0  # significant deviations smaller than the minimum reportable error
+    not_inspected: int = 0  # lenses whose sub-image leaves the sensor
 
     @property
     def failed(self) -> bool:
         return self.verdict == "FAIL"
+
+
+def detection_limit_text(limit: dict[str, Any]) -> str:
+    """One line for people: the smallest pitch, decenter and radius errors this frame detects."""
+    if not limit:
+        return "detection limit: not measured"
+
+    def fmt(key: str, scale: float, unit: str) -> str:
+        v = limit.get(key)
+        return "not detectable" if v is None else f"{v * scale:.3g} {unit}"
+
+    parts = [f"pitch {fmt('pitch_um', 1, 'µm')}", f"decenter {fmt('decenter_um', 1, 'µm')}",
+             f"radius −{fmt('radius_rel_neg', 100, '%')} / +{fmt('radius_rel_pos', 100, '%')}"]
+    return "detects at least: " + ", ".join(parts).replace("−not", "not").replace("+not", "not")

@@ -29,7 +29,7 @@ from mlaqc.optics.scene import WhiteScene
 FEATURES = ("shift_par", "shift_perp", "asym_par", "asym_perp", "blur", "flux", "ssim", "sharpness")
 RINGS = tuple(f"ring{k}" for k in range(N_RING))  # the residual profile: same in every direction
 PATCH = 9
-TABLE_VERSION = 2
+TABLE_VERSION = 3
 
 
 @dataclass(frozen=True)

@@ -107,6 +107,7 @@ class QC:
     detect_sigma: float = 6.0  # robust z-score above which a lens is flagged (noise peaks near 4.7 over 10,404 lenses)
     max_out_of_tolerance: int = 0  # more than this many out-of-tolerance lenses fails the array
     max_missing: int = 0  # more than this many missing lenses fails the array
+    report_fraction: float = 0.4  # the smallest error reported, as a fraction of its tolerance (physical floor)
 
 
 @dataclass(frozen=True)
@@ -308,7 +309,7 @@ def validate(cfg: CameraConfig, source: str = "config") -> None:
     _require(s.read_noise_e >= 0, source, "sensor.read_noise_e", "must not be negative", s.read_noise_e)
     _require(0 <= s.black_level_dn < 2 ** s.bit_depth, source, "sensor.black_level_dn", f"must be in [0, {2 ** s.bit_depth})", s.black_level_dn)
     _require(s.cfa in CFA_CHOICES, source, "sensor.cfa", f"must be one of {CFA_CHOICES}", s.cfa)
-    for key in ("pitch_um", "decenter_um", "radius_rel", "tilt_deg", "thickness_um", "detect_sigma"):
+    for key in ("pitch_um", "decenter_um", "radius_rel", "tilt_deg", "thickness_um", "detect_sigma", "report_fraction"):
         _require(getattr(cfg.qc, key) > 0, source, f"qc.{key}", "must be positive", getattr(cfg.qc, key))
     for key in ("max_out_of_tolerance", "max_missing"):
         _require(getattr(cfg.qc, key) >= 0, source, f"qc.{key}", "must not be negative", getattr(cfg.qc, key))

@@ -59,6 +59,8 @@ def build_report_dict(result: InspectionResult, *, config_dict: dict | None = No
         "flagged": len(result.defects),
         "out_of_tolerance": sum(not d.within_tolerance for d in result.defects),
         "by_error_type": {t: by_type[t] for t in _type_order(by_type)},
+        "not_inspected": int(getattr(result, "not_inspected", 0)),
+        "below_reportable": int(getattr(result, "below_reportable", 0)),
     }
     origin = getattr(grid, "origin_px", None)
     if origin is None or np.size(origin) != 2:
@@ -92,6 +94,9 @@ def build_report_dict(result: InspectionResult, *, config_dict: dict | None = No
         "grid_summary": grid_summary,
         "grid": grid_json,
         "tolerances": dict(result.tolerances),
+        # what a PASS means: per error type the smallest magnitude this frame flags (inner lenses, at the
+        # configured detect_sigma and minimum reportable size); null where nothing rendered is detectable
+        "detection_limit": dict(getattr(result, "detection_limit", {}) or {}),
         "timings_s": dict(result.timings_s),
         "notes": list(result.notes),
         "metrics": {k: {"unit": u, "meaning": m} for k, (u, m) in METRICS.items()},

@@ -12,7 +12,7 @@ from typing import Any
 import numpy as np
 
 from mlaqc import __version__
-from mlaqc.inspection.results import METRICS, Defect
+from mlaqc.inspection.results import METRICS, Defect, detection_limit_text
 from mlaqc.report.document import REPORT_FILES
 from mlaqc.report.maps import _encode_png, error_colour
 from mlaqc.report.view import View
@@ -153,6 +153,10 @@ def _html(v: View, report: dict[str, Any], small_png: bytes) -> str:
         w("<p>")
         w(" &nbsp; ".join(f"{_swatch(t)}{_E(t)}: {n}" for t, n in s["by_error_type"].items()))
         w("</p>\n")
+    w(f"<p id=\"detection-limit\"><b>This frame {_E(detection_limit_text(report.get('detection_limit') or {}))}"
+      f"</b> <span class=\"note\">(at {_E(_num(r.tolerances.get('detect_sigma'), 3))} σ; a PASS says nothing about "
+      f"smaller errors. {s.get('not_inspected', 0)} lenses off the sensor not inspected, {s.get('below_reportable', 0)} "
+      f"significant deviations below the minimum reportable size.)</span></p>\n")
     for note in r.notes:
         w(f"<p class=\"note\">{_E(str(note))}</p>\n")
 
