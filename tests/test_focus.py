@@ -27,7 +27,7 @@ def _correlated_rings(shape, cov, seed):
 
 @pytest.fixture(scope="module")
 def table():
-    return _models(default_config())[1]
+    return _models(default_config())[1].matched(float("nan"))  # the camera's own blur (formation)
 
 
 def test_focus_score_reaches_the_analytic_matched_filter_snr(table):
@@ -74,6 +74,6 @@ def test_a_plus_15_percent_radius_lens_is_found_and_sized():
     assert [(d.m, d.n) for d in result.defects] == [(12, 9)]
     d = result.defects[0]
     assert d.error_type == "radius" and d.magnitude == pytest.approx(0.15, rel=0.25)
-    z = focus_score(ring_noise(result.metrics), _models(SMALL)[1])
+    z = focus_score(ring_noise(result.metrics), _models(SMALL)[1].matched(result.grid.edge_width_px))
     assert z[11, 8] > SMALL.qc.detect_sigma
     assert np.delete(z.ravel(), 11 * 24 + 8).max() < SMALL.qc.detect_sigma

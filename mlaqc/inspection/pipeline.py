@@ -18,7 +18,7 @@ from mlaqc.inspection.rawio import (Levels, RawFrame, check_exposure, levels_not
 from mlaqc.inspection.results import InspectionResult
 from mlaqc.inspection.subimages import divide
 from mlaqc.models.reference import ReferenceModel, config_key, reference_model
-from mlaqc.models.signatures import SignatureTable, signature_key, signature_table, um_per_px_at_mla
+from mlaqc.models.signatures import SignatureSet, SignatureTable, signature_key, signature_table, um_per_px_at_mla
 from mlaqc.optics.config import CameraConfig
 
 
@@ -44,9 +44,10 @@ def load_frame(path: str | Path, cfg: CameraConfig, levels: Levels | None = None
 
 
 def inspect_image(img: np.ndarray, cfg: CameraConfig, *, grid: Grid | None = None, source: str = "",
-                  model: ReferenceModel | None = None, table: SignatureTable | None = None,
+                  model: ReferenceModel | None = None, table: SignatureTable | SignatureSet | None = None,
                   notes: tuple[str, ...] = ()) -> InspectionResult:
-    """Inspect one prepared frame; `grid` from a white image (else the frame calibrates itself)."""
+    """Inspect one prepared frame; `grid` from a white image (else the frame calibrates itself); a
+    SignatureSet is matched to the rim width the grid measured."""
     t: dict[str, float] = {}
     clock = time.perf_counter()
 
@@ -80,6 +81,8 @@ def inspect_image(img: np.ndarray, cfg: CameraConfig, *, grid: Grid | None = Non
     position = None
     if own_grid:
         position = (0.5 * (grid.residual_x_px + metrics["offset_x_px"]), 0.5 * (grid.residual_y_px + metrics["offset_y_px"]))
+    if isinstance(table, SignatureSet):
+        table = table.matched(float(getattr(grid, "edge_width_px", np.nan)))
     phase = (np.mod(grid.grid_x_px, 1.0), np.mod(grid.grid_y_px, 1.0))
     found = identify(metrics, grid.missing | ~np.isfinite(metrics["flux"]), cfg.qc, table, position, phase,
                      outside=grid.clipped)
@@ -97,10 +100,10 @@ def inspect_image(img: np.ndarray, cfg: CameraConfig, *, grid: Grid | None = Non
                             below_reportable=found.below_reportable, not_inspected=found.not_inspected)
 
 
-_MODELS: dict[tuple[str, str], tuple[ReferenceModel, SignatureTable]] = {}
+_MODELS: dict[tuple[str, str], tuple[ReferenceModel, SignatureSet]] = {}
 
 
-def _models(cfg: CameraConfig) -> tuple[ReferenceModel, SignatureTable]:
+def _models(cfg: CameraConfig) -> tuple[ReferenceModel, SignatureSet]:
     """Reference model and signature table of `cfg`'s optics, kept in memory by their content keys: a
     scan or a batch inspects many frames, and reloading them (plus rebuilding the model's derived
     tables) cost 5 ms a frame."""

@@ -5,7 +5,8 @@ from mlaqc.lazy import lazy_exports
 
 _EXPORTS = {
     "ReferenceModel": "reference", "reference_model": "reference", "build_reference": "reference",
-    "SignatureTable": "signatures", "signature_table": "signatures", "build_signatures": "signatures",
+    "SignatureTable": "signatures", "SignatureSet": "signatures", "signature_table": "signatures",
+    "build_signatures": "signatures", "build_signature_set": "signatures",
 }
 __all__ = sorted(_EXPORTS)
 __getattr__, __dir__ = lazy_exports(__name__, _EXPORTS)

@@ -16,6 +16,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.ndimage import gaussian_filter
 
 from mlaqc.atomic import write_json_atomic
 from mlaqc.inspection.metrics import compute_metrics
@@ -23,13 +24,19 @@ from mlaqc.inspection.metrics_kernels import N_RING
 from mlaqc.models.reference import PACKAGE_DATA, ReferenceModel, build_reference, cache_dir
 from mlaqc.optics.config import CameraConfig
 from mlaqc.optics.errormap import ErrorMap
+from mlaqc.optics.formation import apply_formation, blur_key, formation_kernels
 from mlaqc.optics.render import Renderer
 from mlaqc.optics.scene import WhiteScene
 
 FEATURES = ("shift_par", "shift_perp", "asym_par", "asym_perp", "blur", "flux", "ssim", "sharpness")
 RINGS = tuple(f"ring{k}" for k in range(N_RING))  # the residual profile: same in every direction
 PATCH = 9
-TABLE_VERSION = 3
+TABLE_VERSION = 4
+# The blurs the tables are rendered at: None = the tracer's geometric image alone; a number = the sensor
+# formation (diffraction, crosstalk: mlaqc.optics.formation) plus a Gaussian of that sigma in px (a
+# defocused main lens, a wider pixel response, another wavelength). A frame is classified with the tables
+# interpolated to its own measured rim width.
+BLUR_VARIANTS: tuple[float | None, ...] = (None, 0.0, 0.4, 0.7, 1.0)
 
 
 @dataclass(frozen=True)
@@ -82,12 +89,63 @@ class SignatureTable:
                    {k: np.asarray(v["rings"], float) for k, v in kinds.items()}, dict(d.get("settings", {})))
 
 
+@dataclass(frozen=True)
+class SignatureSet:
+    """The signature tables of one optics at several sub-image blurs, sharpest first; each table's
+    `settings["edge_width_px"]` is the rim width the calibration measures on its healthy lenses."""
+
+    tables: tuple[SignatureTable, ...]
+    key: str
+
+    def edge_widths(self) -> np.ndarray:
+        return np.array([t.settings.get("edge_width_px", np.nan) for t in self.tables], float)
+
+    def matched(self, edge_width_px: float) -> SignatureTable:
+        """The table for a frame whose rim width is `edge_width_px`: linear between the two variants that
+        bracket it, the nearest end outside them (and the formation's variant if it is unknown)."""
+        widths = self.edge_widths()
+        ok = np.isfinite(widths)
+        if not ok.any() or len(self.tables) == 1:
+            return self.tables[0]
+        if not np.isfinite(edge_width_px):
+            default = [k for k, t in enumerate(self.tables) if t.settings.get("extra_blur_px") == 0.0]
+            return self.tables[default[0] if default else 0]
+        order = np.argsort(np.where(ok, widths, np.inf))[: int(ok.sum())]
+        w = np.clip(edge_width_px, widths[order[0]], widths[order[-1]])
+        cache = self.__dict__.setdefault("_matched", {})
+        key = round(float(w), 3)
+        if key not in cache:
+            j = int(np.clip(np.searchsorted(widths[order], w), 1, len(order) - 1))
+            lo, hi = self.tables[order[j - 1]], self.tables[order[j]]
+            frac = float((w - widths[order[j - 1]]) / max(widths[order[j]] - widths[order[j - 1]], 1e-12))
+            cache[key] = _blend(lo, hi, frac, key)
+        return cache[key]
+
+    def to_json_dict(self) -> dict:
+        return {"format": "mlaqc-signatures", "version": TABLE_VERSION, "key": self.key,
+                "variants": [t.to_json_dict() for t in self.tables]}
+
+    @classmethod
+    def from_json_dict(cls, d: dict) -> SignatureSet:
+        return cls(tuple(SignatureTable.from_json_dict(v) for v in d["variants"]), d["key"])
+
+
+def _blend(lo: SignatureTable, hi: SignatureTable, frac: float, edge_width_px: float) -> SignatureTable:
+    """lo and hi (same kinds and magnitudes) mixed linearly: (1 - frac) lo + frac hi."""
+    mix = {name: {k: (1 - frac) * getattr(lo, name)[k] + frac * getattr(hi, name)[k] for k in lo.magnitudes}
+           for name in ("features", "rings")}
+    phi0 = {k: lo.phi0_deg[k] if frac < 0.5 else hi.phi0_deg[k] for k in lo.magnitudes}
+    return SignatureTable(dict(lo.magnitudes), mix["features"], phi0, lo.key, mix["rings"],
+                          {**lo.settings, "edge_width_px": edge_width_px, "blended": [lo.settings.get("extra_blur_px"),
+                                                                                       hi.settings.get("extra_blur_px"), frac]})
+
+
 def signature_key(cfg: CameraConfig) -> str:
     """Hash of what shapes a single lens' sub-image: optics, geometry, pixel size, Fresnel."""
     d = cfg.to_dict()
     mla = {k: v for k, v in d["mla"].items() if k not in ("count_w", "count_h")}
     keep = {"main_lens": d["main_lens"], "mla": mla, "geometry": d["geometry"], "pixel_um": d["sensor"]["pixel_um"],
-            "fresnel": d["trace"]["fresnel"], "version": TABLE_VERSION}
+            "fresnel": d["trace"]["fresnel"], "version": TABLE_VERSION, **blur_key(cfg)}
     return hashlib.sha256(json.dumps(keep, sort_keys=True).encode()).hexdigest()[:16]
 
 
@@ -135,19 +193,25 @@ def lens_features(metrics, m: int, n: int, direction_deg: float | None = None) -
 
 
 def build_signatures(cfg: CameraConfig, *, rays_per_pixel: float = 400.0, kinds=KINDS, seed: int = 99,
-                     model: ReferenceModel | None = None, progress=None) -> SignatureTable:
-    """Render every kind at every magnitude on the patch and tabulate the feature changes."""
+                     model: ReferenceModel | None = None, progress=None,
+                     extra_blur_px: float | None = None) -> SignatureTable:
+    """Render every kind at every magnitude on the patch and tabulate the feature changes; the images
+    blurred as `BLUR_VARIANTS` says for `extra_blur_px` (None: the geometric image alone)."""
     patch = patch_config(cfg)
     model = model or build_reference(patch, rays_per_lens=2_000_000)
     c = PATCH // 2
     um_px = um_per_px_at_mla(patch)
+    images = []
 
     def metrics_for(errors: ErrorMap):
         img = Renderer(patch, errors).render(WhiteScene(), rays_per_pixel=rays_per_pixel, seed=seed).photons
+        img = _blurred(img, patch, extra_blur_px)
+        images.append(img)
         win, cx, cy = nominal_windows(img / img.max(), patch)
         return compute_metrics(win, cx, cy, model, um_per_px_at_mla=um_px)
 
     base = metrics_for(ErrorMap.zeros(PATCH, PATCH))
+    edge_width = _edge_width(images[0], patch)
     mags, feats, phi0, rings = {}, {}, {}, {}
     total, done = sum(len(k.magnitudes) for k in kinds), 0
     for kind in kinds:
@@ -168,22 +232,52 @@ def build_signatures(cfg: CameraConfig, *, rays_per_pixel: float = 400.0, kinds=
         rings[kind.name] = np.asarray([[m_[r][c, c] - base[r][c, c] for r in RINGS] for m_ in mets])
         phi0[kind.name] = phi
     return SignatureTable(mags, feats, phi0, signature_key(cfg), rings,
-                          {"rays_per_pixel": rays_per_pixel, "seed": seed, "patch_lenses": PATCH})
+                          {"rays_per_pixel": rays_per_pixel, "seed": seed, "patch_lenses": PATCH,
+                           "extra_blur_px": extra_blur_px, "edge_width_px": edge_width})
 
 
-def signature_table(cfg: CameraConfig, *, build_if_missing: bool = True, progress=None) -> SignatureTable:
-    """The table for `cfg`'s optics: from the package, else the disk cache, else rendered and cached."""
+def build_signature_set(cfg: CameraConfig, *, rays_per_pixel: float = 400.0, progress=None) -> SignatureSet:
+    """`build_signatures` at every blur of BLUR_VARIANTS, one patch reference for all."""
+    model = build_reference(patch_config(cfg), rays_per_lens=2_000_000)
+    per = sum(len(k.magnitudes) for k in KINDS)
+    tables = []
+    for i, blur in enumerate(BLUR_VARIANTS):
+        step = (lambda done, _total, i=i: progress(i * per + done, len(BLUR_VARIANTS) * per)) if progress else None
+        tables.append(build_signatures(cfg, rays_per_pixel=rays_per_pixel, model=model, progress=step,
+                                       extra_blur_px=blur))
+    return SignatureSet(tuple(tables), signature_key(cfg))
+
+
+def _blurred(img: np.ndarray, cfg: CameraConfig, extra_blur_px: float | None) -> np.ndarray:
+    """The patch render as a sensor of this blur would see it (no PRNU: a fixed pattern is not blur)."""
+    if extra_blur_px is None:
+        return img
+    out = apply_formation(img, cfg, formation_kernels(cfg, img.shape, with_prnu=False))
+    return gaussian_filter(out, extra_blur_px, mode="constant") if extra_blur_px > 0 else out
+
+
+def _edge_width(img: np.ndarray, cfg: CameraConfig) -> float:
+    """The rim width the calibration measures on a healthy patch render (what a frame's grid reports)."""
+    from mlaqc.inspection.calibrate import calibrate
+
+    grid = calibrate((img / img.max()).astype(np.float32), expected_pitch_px=cfg.layout.subimage_pitch_px,
+                     expected_shape=(cfg.mla.count_h, cfg.mla.count_w))
+    return float(grid.edge_width_px)
+
+
+def signature_table(cfg: CameraConfig, *, build_if_missing: bool = True, progress=None) -> SignatureSet:
+    """The tables for `cfg`'s optics: from the package, else the disk cache, else rendered and cached."""
     key = signature_key(cfg)
     for folder in (PACKAGE_DATA, cache_dir()):
         path = folder / f"signatures_{key}.json"
         if path.is_file():
-            return SignatureTable.from_json_dict(json.loads(path.read_text()))
+            return SignatureSet.from_json_dict(json.loads(path.read_text()))
     if not build_if_missing:
         raise FileNotFoundError(f"no signature table for optics {key}")
-    table = build_signatures(cfg, progress=progress)
+    tables = build_signature_set(cfg, progress=progress)
     try:
         cache_dir().mkdir(parents=True, exist_ok=True)
-        write_json_atomic(cache_dir() / f"signatures_{key}.json", table.to_json_dict())
+        write_json_atomic(cache_dir() / f"signatures_{key}.json", tables.to_json_dict())
     except OSError:
         pass
-    return table
+    return tables

@@ -96,6 +96,17 @@ class Trace:
 
 
 @dataclass(frozen=True)
+class Formation:
+    """Sensor-side image formation the geometric tracer leaves out (mlaqc.optics.formation): applied by
+    `simulate` before read-out; each can be switched off so that geometry can be tested alone."""
+
+    diffraction: bool = True  # convolve with the microlens aperture's Fraunhofer PSF at geometry.wavelength_nm
+    crosstalk: float = 0.02  # fraction of a pixel's charge that reaches each of its 4 neighbours
+    prnu_rms: float = 0.005  # pixel response non-uniformity, relative rms (a fixed pattern of the sensor)
+    prnu_seed: int = 7  # the sensor's PRNU pattern
+
+
+@dataclass(frozen=True)
 class QC:
     """QC spec: per-type limits a flagged lens must stay within, and what fails the array."""
 
@@ -120,6 +131,7 @@ class CameraConfig:
     geometry: Geometry = field(default_factory=Geometry)
     trace: Trace = field(default_factory=Trace)
     qc: QC = field(default_factory=QC)
+    formation: Formation = field(default_factory=Formation)
 
     def to_dict(self) -> dict[str, Any]:
         """Plain dict (TOML/JSON-able) of the config as given, geometry holes left as None."""
@@ -311,6 +323,9 @@ def validate(cfg: CameraConfig, source: str = "config") -> None:
     _require(s.cfa in CFA_CHOICES, source, "sensor.cfa", f"must be one of {CFA_CHOICES}", s.cfa)
     for key in ("pitch_um", "decenter_um", "radius_rel", "tilt_deg", "thickness_um", "detect_sigma", "report_fraction"):
         _require(getattr(cfg.qc, key) > 0, source, f"qc.{key}", "must be positive", getattr(cfg.qc, key))
+    fm = cfg.formation
+    _require(math.isfinite(fm.crosstalk) and 0 <= fm.crosstalk < 0.2, source, "formation.crosstalk", "must be in [0, 0.2)", fm.crosstalk)
+    _require(math.isfinite(fm.prnu_rms) and 0 <= fm.prnu_rms < 0.2, source, "formation.prnu_rms", "must be in [0, 0.2)", fm.prnu_rms)
     for key in ("max_out_of_tolerance", "max_missing"):
         _require(getattr(cfg.qc, key) >= 0, source, f"qc.{key}", "must not be negative", getattr(cfg.qc, key))
     _require(t.rays_per_pixel > 0, source, "trace.rays_per_pixel", "must be positive", t.rays_per_pixel)

@@ -21,6 +21,7 @@ from mlaqc.errors import InputError
 from mlaqc.inspection.rawio import write_raw
 from mlaqc.optics.config import CameraConfig
 from mlaqc.optics.errormap import ErrorMap
+from mlaqc.optics.formation import apply_formation
 from mlaqc.optics.render import Progress, Renderer, RenderResult
 from mlaqc.optics.scene import PointScene, Scene, TextureScene, WhiteScene
 from mlaqc.optics.sensor import expose, white_level
@@ -49,7 +50,7 @@ def simulate(cfg: CameraConfig, scene: Scene | None = None, errors: ErrorMap | N
     errors = errors if errors is not None else ErrorMap.zeros(cfg.mla.count_h, cfg.mla.count_w)
     renderer = renderer or Renderer(cfg, errors)
     result = renderer.render(scene, rays=rays, rays_per_pixel=rays_per_pixel, seed=seed, threads=threads, progress=progress)
-    raw = expose(result.photons, cfg.sensor, seed=seed + 1, noise=noise)
+    raw = expose(apply_formation(result.photons, cfg), cfg.sensor, seed=seed + 1, noise=noise)
     return SimulatedRaw(raw, result, errors, scene, noise, renderer.engine)
 
 
