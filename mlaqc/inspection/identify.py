@@ -270,7 +270,9 @@ def ring_noise(metrics: LensMetrics, phase: PhaseModel | None = None, floor: np.
     cov += np.eye(len(sig)) * 1e-12 * max(np.trace(cov), 1e-30)  # never singular
     whiten = np.linalg.cholesky(np.linalg.inv(cov))
     cls = noise_classes(dev.shape[:2])
-    spread = {c: tail_sigma((dev[(cls == c) & finite] @ whiten).ravel()) for c in range(4)}
+    # edge classes by their tail-aware spread, against the inner lenses' plain robust one (which a few
+    # defects among the inner lenses do not inflate, while their tails would in a small array)
+    spread = {c: (robust_sigma if c == 2 else tail_sigma)((dev[(cls == c) & finite] @ whiten).ravel()) for c in range(4)}
     for c in (0, 1, 3):  # (never sharpened: fewer lenses, a less sure spread)
         if np.isfinite(spread[c]) and np.isfinite(spread[2]) and spread[c] > spread[2]:
             dev[cls == c] *= spread[2] / spread[c]
@@ -377,13 +379,31 @@ def detection_score(dev: dict[str, np.ndarray], noise: Noise, focus=None) -> np.
     return np.nanmax(np.where(np.isfinite(z), z, 0.0), axis=-1)
 
 
-def spill(score: np.ndarray, flagged: np.ndarray, ratio: float = 0.5) -> np.ndarray:
-    """Flagged lenses next to a flagged neighbour more than 1/ratio times as abnormal: a strong defect
-    disturbs its neighbours' windows (its light spills over), so they are taken as its echo."""
+def spill(score: np.ndarray, flagged: np.ndarray, ratio: float = 0.5, asym: tuple | None = None,
+          facing_ratio: float = 0.95) -> np.ndarray:
+    """Flagged lenses that are the echo of a stronger flagged neighbour: a defect disturbs its neighbours'
+    windows (its light spills over). An echo scores under `ratio` times the neighbour; or, when the
+    lenses' intensity tilts `asym` (x, y) are given, under `facing_ratio` times it with its tilt facing
+    that neighbour (the light that crossed into its window), as where sub-images touch."""
     ring = np.ones((3, 3), bool)
     ring[1, 1] = False
     strongest = maximum_filter(np.where(flagged, score, 0.0), footprint=ring, mode="constant")
-    return flagged & (score < ratio * strongest)
+    echo = flagged & (score < ratio * strongest)
+    if asym is None:
+        return echo
+    ax, ay = (np.nan_to_num(a) for a in asym)
+    norm = np.maximum(np.hypot(ax, ay), 1e-12)
+    rows, cols = score.shape
+    padded = np.pad(np.where(flagged, score, 0.0), 1)
+    for dm in (-1, 0, 1):
+        for dn in (-1, 0, 1):
+            if dm == 0 and dn == 0:
+                continue
+            other = padded[1 + dm:1 + dm + rows, 1 + dn:1 + dn + cols]
+            # image convention: +x right, +y down; the neighbour at (dm, dn) lies along (dn, dm)
+            facing = (ax * dn + ay * dm) / (norm * np.hypot(dm, dn)) > 0.7
+            echo |= flagged & facing & (score < facing_ratio * other)
+    return echo
 
 
 def _feature_vector(dev: dict[str, np.ndarray], rings: RingNoise, m: int, n: int) -> tuple[np.ndarray, float]:
@@ -571,7 +591,7 @@ def identify(metrics: LensMetrics, missing: np.ndarray, qc: QC, table: Signature
     threshold = np.full(score.shape, qc.detect_sigma)
     threshold[[0, 0, -1, -1], [0, -1, 0, -1]] *= 1.5  # corner windows hold dark margin on two sides: noisier
     flagged = ((score > threshold) & ~outside) | missing
-    flagged &= ~spill(score, flagged) | missing
+    flagged &= ~spill(score, flagged, asym=(dev["asym_x"], dev["asym_y"])) | missing
     sigmas = _feature_sigmas(sig)
     error_type = np.full(flagged.shape, "", dtype=object)
     defects = []

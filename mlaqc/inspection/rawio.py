@@ -678,7 +678,11 @@ def resolve_levels(frame: RawFrame, stated: Levels | None = None, sensor: Levels
     sample = frame.data[::3, ::3] if min(frame.shape) >= 300 else frame.data
     top = int(sample.max()) if frame.data is sample else int(frame.data.max())
     dark, bright = (float(v) for v in np.percentile(sample, [0.1, 99.0]))
-    dark = dark if dark <= 0.1 * bright else 0.0  # no unlit pixels in the frame: nothing to read black from
+    if dark <= 0.1 * bright:  # the unlit pixels (gaps between sub-images): black is their median
+        unlit = sample[sample <= dark + 0.02 * (bright - dark)]
+        dark = float(np.median(unlit))
+    else:
+        dark = 0.0  # no unlit pixels in the frame: nothing to read black from
     container_bits = frame.bits
     bits, black, source = frame.bits, frame.black_level, frame.levels_from
     if frame.levels_from == "container":
