@@ -537,3 +537,19 @@ def test_table_sort_script_sorts_every_column(written):
     blank = [u(d) for d in ds if math.isnan(d.magnitude)]
     assert out["mag_asc"] == [u(d) for d in sorted(mag, key=lambda d: d.magnitude)] + blank  # blanks last
     assert out["mag_desc"] == [u(d) for d in sorted(mag, key=lambda d: -d.magnitude)] + blank  # either way
+
+
+def test_the_detection_limit_is_reported_in_json_and_html(tmp_path):
+    from dataclasses import replace
+
+    limit = {"pitch_um": 0.55, "decenter_um": 2.0, "radius_rel_pos": 0.112, "radius_rel_neg": None,
+             "detect_sigma": 6.0}
+    result = replace(make_result(), detection_limit=limit, below_reportable=3, not_inspected=7)
+    write_report(result, tmp_path / "r")
+    data = load_report(tmp_path / "r")
+    assert data["detection_limit"] == limit
+    assert data["summary"]["not_inspected"] == 7 and data["summary"]["below_reportable"] == 3
+    page = (tmp_path / "r" / "report.html").read_text()
+    para = page[page.index('id="detection-limit"'):].split("</p>")[0]
+    assert "pitch 0.55 µm" in para and "decenter 2 µm" in para and "+11.2 %" in para
+    assert "not detectable" in para  # the radius' negative side has no limit in this frame

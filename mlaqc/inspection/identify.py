@@ -22,6 +22,8 @@ thickness error whose opposite sign fits about as well carries the other reading
 
 from __future__ import annotations
 
+import functools
+import hashlib
 import os
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
@@ -37,6 +39,7 @@ from mlaqc.optics.config import QC
 
 # Features whose change is tested for detection, and on which side (+1 up, -1 down, 0 both).
 DETECT = {"offset": 0, "asym": 0, "blur": +1, "flux": 0, "ssim": -1, "sharpness": 0}
+UNEXPLAINED = 0.75  # a best fit leaving more than this share of the deviation's chi-square: type 'unknown' (measured: tracer defects leave 0.1-0.7, foreign anomalies 0.8-0.95)
 LIMIT_MARGIN = 2.0  # a lens at the detection limit scores detect_sigma + 2 on average: found 97.7 % of the time
 _CHI2_AMBIGUOUS = 9.0  # an opposite-sign reading closer than this (3 sigma) is listed as an alternative
 FOCUS_KINDS = ("radius", "thickness")  # errors that defocus the lens: what the focus test looks for
@@ -95,14 +98,16 @@ def robust_sigma(dev: np.ndarray) -> float:
     return max(1.4826 * float(np.median(np.abs(d - np.median(d)))), 1e-9)
 
 
+@functools.lru_cache(maxsize=8)
 def edge_classes(shape: tuple[int, int]) -> np.ndarray:
     """Per lens its distance to the array's edge in lenses, clipped at 2 (0 = outer row/column, 1 = the
     next, 2 = inner): edge lenses miss neighbours, so their indexes have their own bias and spread."""
     rows, cols = shape
     m, n = np.ogrid[:rows, :cols]
-    return np.minimum(np.minimum(m, n), np.minimum(rows - 1 - m, cols - 1 - n)).clip(max=2)
+    return _frozen(np.minimum(np.minimum(m, n), np.minimum(rows - 1 - m, cols - 1 - n)).clip(max=2))
 
 
+@functools.lru_cache(maxsize=8)
 def noise_classes(shape: tuple[int, int]) -> np.ndarray:
     """`edge_classes`, with the 4 x 4 lenses at each corner a class of their own (3): their
     neighbourhoods reach past the array on two sides, and their deviations are wider still."""
@@ -110,16 +115,23 @@ def noise_classes(shape: tuple[int, int]) -> np.ndarray:
     m, n = np.ogrid[:rows, :cols]
     zone = (np.minimum(m, rows - 1 - m) <= 3) & (np.minimum(n, cols - 1 - n) <= 3)
     cls = edge_classes(shape)
-    return np.where(zone & (rows > 12) & (cols > 12), 3, cls)
+    return _frozen(np.where(zone & (rows > 12) & (cols > 12), 3, cls))
 
 
-def _groups(shape: tuple[int, int]) -> list[np.ndarray]:
+@functools.lru_cache(maxsize=8)
+def _groups(shape: tuple[int, int]) -> tuple[np.ndarray, ...]:
     """Lens groups that share a systematic pattern: the inner lenses, and each edge class per side."""
     rows, cols = shape
     cls = edge_classes(shape)
     m, n = np.ogrid[:rows, :cols]
     side = np.argmin(np.stack(np.broadcast_arrays(m, rows - 1 - m, n, cols - 1 - n)), axis=0)
-    return [cls == 2] + [(cls == c) & (side == s) for c in (0, 1) for s in range(4)]
+    return tuple(_frozen(g) for g in [cls == 2] + [(cls == c) & (side == s) for c in (0, 1) for s in range(4)])
+
+
+def _frozen(a: np.ndarray) -> np.ndarray:
+    """`a`, read-only: the class maps are cached per array shape and shared by every frame."""
+    a.flags.writeable = False
+    return a
 
 
 def phase_basis(phase_x: np.ndarray, phase_y: np.ndarray, harmonics: int = 2) -> np.ndarray:
@@ -138,14 +150,23 @@ def phase_basis(phase_x: np.ndarray, phase_y: np.ndarray, harmonics: int = 2) ->
 @dataclass(frozen=True)
 class PhaseModel:
     """The sub-pixel phase basis of every lens group (`_groups`), built once per frame and shared by all
-    the index maps it is fitted to: per group its mask, basis (n, P) and the basis' outer products."""
+    the index maps it is fitted to: per group its mask, basis (n, P), the basis' outer products (n, P²)
+    and their sum (the Gram matrix when no lens is left out)."""
 
-    groups: tuple[tuple[np.ndarray, np.ndarray, np.ndarray], ...]
+    groups: tuple[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray], ...]
+
+
+_PHASE_MODELS: dict[bytes, PhaseModel] = {}
 
 
 def phase_model(phase: tuple[np.ndarray, np.ndarray]) -> PhaseModel:
     """`PhaseModel` of lenses whose grid centres have sub-pixel phases `phase` (x, y); a group gets two
-    harmonics from 80 lenses on, one from 40, none below (too few lenses to fit it)."""
+    harmonics from 80 lenses on, one from 40, none below (too few lenses to fit it). Kept for the last
+    few grids: a batch on one saved grid builds it once."""
+    key = hashlib.sha1(np.ascontiguousarray(phase[0]).tobytes() + np.ascontiguousarray(phase[1]).tobytes()).digest()
+    hit = _PHASE_MODELS.get(key)
+    if hit is not None:
+        return hit
     groups = []
     for sel in _groups(phase[0].shape):
         count = int(sel.sum())
@@ -153,8 +174,12 @@ def phase_model(phase: tuple[np.ndarray, np.ndarray]) -> PhaseModel:
         if harmonics:
             basis = phase_basis(phase[0][sel], phase[1][sel], harmonics)
             n, p = basis.shape
-            groups.append((sel, basis, (basis[:, :, None] * basis[:, None, :]).reshape(n, p * p)))
-    return PhaseModel(tuple(groups))
+            outer = (basis[:, :, None] * basis[:, None, :]).reshape(n, p * p)
+            groups.append((sel, basis, outer, outer.sum(axis=0)))
+    if len(_PHASE_MODELS) >= 4:
+        _PHASE_MODELS.pop(next(iter(_PHASE_MODELS)))
+    model = _PHASE_MODELS[key] = PhaseModel(tuple(groups))
+    return model
 
 
 def remove_phase_pattern(planes: list[np.ndarray], model: PhaseModel) -> list[np.ndarray]:
@@ -166,42 +191,89 @@ def remove_phase_pattern(planes: list[np.ndarray], model: PhaseModel) -> list[np
     median cannot remove. It is a property of the frame, not of a lens: it is fitted (Fourier terms of
     the phase, robustly: outliers beyond 4 sigma left out, so a defect does not bend the fit) and removed."""
     stack = np.stack(planes, axis=-1).astype(np.float64)  # (rows, cols, J)
-    for sel, basis, outer in model.groups:
-        stack[sel] = _phase_fit(stack[sel], basis, outer)
+    for sel, basis, outer, full in model.groups:
+        stack[sel] = _phase_fit(stack[sel], basis, outer, full)
     return [stack[..., j] for j in range(len(planes))]
 
 
-def _phase_fit(y: np.ndarray, basis: np.ndarray, outer: np.ndarray) -> np.ndarray:
+def _phase_fit(y: np.ndarray, basis: np.ndarray, outer: np.ndarray, full: np.ndarray) -> np.ndarray:
     """Columns of y (n, J) minus their robust least-squares fit on `basis` (n, P), all columns at once:
-    a fit on the finite values, then a refit without those beyond 4 robust sigma of the first."""
+    a fit on the finite values, then a refit without those beyond 4 robust sigma of the first. Each
+    column's Gram matrix is the full one (`full`, summed `outer`) less the few lenses it leaves out."""
     p = basis.shape[1]
     keep = np.isfinite(y)
     y0 = np.where(keep, y, 0.0)
     resid = y
     for step in range(2):
-        gram = (keep.T.astype(np.float64) @ outer).reshape(-1, p, p) + 1e-9 * np.eye(p)
+        left_out = ~keep
+        rows = np.flatnonzero(left_out.any(axis=1))
+        gram = np.broadcast_to(full, (y.shape[1], p * p)) - left_out[rows].T.astype(np.float64) @ outer[rows]
+        gram = gram.reshape(-1, p, p) + 1e-9 * np.eye(p)
         coef = np.linalg.solve(gram, (np.where(keep, y0, 0.0).T @ basis)[..., None])[..., 0]
         coef[keep.sum(axis=0) < 2 * p] = 0.0
         resid = y - basis @ coef.T
-        if step == 0:
-            for j in range(y.shape[1]):
-                r = resid[:, j]
-                keep[:, j] = np.isfinite(r) & (np.abs(r) <= 4 * robust_sigma(r))
+        if step == 0:  # every column's robust sigma at once
+            mad = _column_medians(np.abs(resid - _column_medians(resid)))
+            with np.errstate(invalid="ignore"):
+                keep = np.isfinite(resid) & (np.abs(resid) <= 4 * np.maximum(1.4826 * mad, 1e-9))
     return resid
 
 
-def class_sigmas(dev: np.ndarray, floor: float = 0.0) -> np.ndarray:
+def _column_medians(a: np.ndarray) -> np.ndarray:
+    """Median of each column of a (n, J) over its finite values (NaN for a column with none): one sort,
+    where np.nanmedian along an axis goes through masked arrays and costs ten times more."""
+    k = np.isfinite(a).sum(axis=0)
+    lo, hi = np.maximum((k - 1) // 2, 0), np.maximum(k // 2, 0)
+    filled = np.ascontiguousarray(np.where(np.isfinite(a), a, np.inf).T)  # each column contiguous
+    if (k == k[0]).all() and k[0] > 0:  # the usual case: two order statistics, not a sort
+        s = np.partition(filled, np.unique([lo[0], hi[0]]), axis=1).T
+    else:
+        s = np.sort(filled, axis=1).T
+    cols = np.arange(a.shape[1])
+    with np.errstate(invalid="ignore"):
+        return np.where(k > 0, 0.5 * (s[lo, cols] + s[np.minimum(hi, len(s) - 1), cols]), np.nan)
+
+
+def class_sigmas(dev: np.ndarray, floor: float | np.ndarray = 0.0) -> np.ndarray:
     """Per lens the spread (`tail_sigma`) of its noise class (`noise_classes`), never below the inner
-    lenses' nor `floor`: edge lenses are noisier than inner ones, and one spread for all would flag them."""
-    cls = noise_classes(dev.shape)
-    inner = tail_sigma(dev[cls == 2]) if np.isfinite(dev[cls == 2]).sum() > 8 else tail_sigma(dev)
-    inner = max(inner, floor) if np.isfinite(inner) else floor
-    out = np.full(dev.shape, inner)
+    lenses' nor `floor`: edge lenses are noisier than inner ones, and one spread for all would flag them.
+    `dev` (rows, cols) or a stack (rows, cols, J) of maps, each with its own floor."""
+    stack = dev[..., None] if dev.ndim == 2 else dev
+    floor = np.broadcast_to(np.asarray(floor, float), stack.shape[-1:])
+    cls = noise_classes(stack.shape[:2])
+    flat = stack.reshape(-1, stack.shape[-1])
+    inner_rows = flat[(cls == 2).ravel()]
+    inner = _column_tail_sigmas(inner_rows if (np.isfinite(inner_rows).sum(axis=0) > 8).all() else flat)
+    inner = np.where(np.isfinite(inner), np.maximum(inner, floor), floor)
+    out = np.broadcast_to(inner, stack.shape).copy()
     for c in (0, 1, 3):
         sel = cls == c
-        if np.isfinite(dev[sel]).sum() > 8:
-            out[sel] = max(inner, tail_sigma(dev[sel]))
-    return out
+        rows = stack[sel]
+        if rows.size:
+            spread = _column_tail_sigmas(rows)
+            ok = np.isfinite(rows).sum(axis=0) > 8
+            out[sel] = np.where(ok, np.maximum(inner, np.nan_to_num(spread, nan=0.0)), inner)
+    return out[..., 0] if dev.ndim == 2 else out
+
+
+def _column_tail_sigmas(a: np.ndarray) -> np.ndarray:
+    """`tail_sigma` of every column of a (n, J) at once (one sort)."""
+    k = np.isfinite(a).sum(axis=0)
+    dev = np.abs(a - _column_medians(a))
+    s = np.sort(np.ascontiguousarray(np.where(np.isfinite(dev), dev, np.inf).T), axis=1).T
+    cols = np.arange(a.shape[1])
+
+    def quantile(q: float) -> np.ndarray:  # numpy's 'linear' quantile of each column's finite values
+        pos = q * np.maximum(k - 1, 0)
+        lo = np.floor(pos).astype(int)
+        hi = np.minimum(lo + 1, np.maximum(k - 1, 0))
+        frac = pos - lo
+        return s[lo, cols] * (1 - frac) + s[hi, cols] * frac
+
+    with np.errstate(invalid="ignore"):
+        mad, p99 = quantile(0.5), quantile(0.99)
+        out = np.maximum(np.maximum(1.4826 * mad, 1e-9), np.where(k >= 20, p99 / 2.576, 0.0))
+    return np.where(k > 0, out, np.inf)
 
 
 _NAMES = ("offset_x_px", "offset_y_px", "asym_x", "asym_y", "blur", "flux", "ssim", "sharpness")
@@ -216,16 +288,22 @@ def tail_sigma(dev: np.ndarray) -> float:
     d = dev[np.isfinite(dev)]
     if d.size < 20:
         return robust_sigma(dev)
-    return max(robust_sigma(d), float(np.percentile(np.abs(d - np.median(d)), 99.0)) / 2.576)
+    mad, p99 = np.percentile(np.abs(d - np.median(d)), [50.0, 99.0])
+    return max(1.4826 * float(mad), 1e-9, float(p99) / 2.576)
 
 
-def deviations(metrics: LensMetrics, phase: PhaseModel | None = None) -> tuple[dict[str, np.ndarray], dict[str, float]]:
+_AXES = [k.split("_")[1][0] if k in ("offset_x_px", "offset_y_px", "asym_x", "asym_y") else "" for k in _NAMES]
+
+
+def deviations(metrics: LensMetrics, phase: PhaseModel | None = None,
+               planes: list[np.ndarray] | None = None) -> tuple[dict[str, np.ndarray], dict[str, float]]:
     """Local deviations of the classification features (their sub-pixel phase pattern removed when the
-    lenses' `phase` is given) and their robust spreads over the inner lenses."""
-    axes = [k.split("_")[1][0] if k in ("offset_x_px", "offset_y_px", "asym_x", "asym_y") else "" for k in _NAMES]
-    planes = local_deviations([metrics[k] for k in _NAMES], axes)
-    if phase is not None:
-        planes = remove_phase_pattern(planes, phase)
+    lenses' `phase` is given; or `planes`, already computed in _NAMES order) and their robust spreads
+    over the inner lenses."""
+    if planes is None:
+        planes = local_deviations([metrics[k] for k in _NAMES], _AXES)
+        if phase is not None:
+            planes = remove_phase_pattern(planes, phase)
     dev = dict(zip(_NAMES, planes))
     inner = edge_classes(metrics.shape) == 2
     sig = {k: robust_sigma(v[inner]) if np.isfinite(v[inner]).sum() > 8 else robust_sigma(v) for k, v in dev.items()}
@@ -241,7 +319,8 @@ class RingNoise:
     whiten: np.ndarray
 
 
-def ring_noise(metrics: LensMetrics, phase: PhaseModel | None = None, floor: np.ndarray | None = None) -> RingNoise:
+def ring_noise(metrics: LensMetrics, phase: PhaseModel | None = None, floor: np.ndarray | None = None,
+               planes: list[np.ndarray] | None = None) -> RingNoise:
     """Local deviations of the ring profile, whitened by their covariance over the array's inner lenses
     (those within 4 robust sigma on every ring: a defect must not widen the noise it is judged against).
 
@@ -250,10 +329,12 @@ def ring_noise(metrics: LensMetrics, phase: PhaseModel | None = None, floor: np.
     matched-filter z 1.7 against 1.2 inside). Each class' median is taken off and its deviations are
     scaled down to the inner lenses' noise where wider, so that one threshold holds everywhere.
     `phase`: remove the sub-pixel phase pattern (`remove_phase_pattern`); `floor` (per ring): the
-    smallest noise the covariance may claim, so a noise-free frame cannot make the whitening explode."""
-    planes = local_deviations([metrics[r] for r in RINGS], [""] * len(RINGS))
-    if phase is not None:
-        planes = remove_phase_pattern(planes, phase)
+    smallest noise the covariance may claim, so a noise-free frame cannot make the whitening explode;
+    `planes`: the rings' deviations, already computed."""
+    if planes is None:
+        planes = local_deviations([metrics[r] for r in RINGS], [""] * len(RINGS))
+        if phase is not None:
+            planes = remove_phase_pattern(planes, phase)
     dev = np.stack(planes, axis=-1)
     cls = edge_classes(dev.shape[:2])
     finite = np.isfinite(dev).all(axis=-1)
@@ -354,10 +435,10 @@ class Noise:
 
 def detection_noise(dev: dict[str, np.ndarray], rings: RingNoise, det_floor: np.ndarray) -> Noise:
     """The per-lens spreads of the DETECTORS from the frame's own deviations (`class_sigmas`)."""
-    pairs = [("offset_x_px", "offset_y_px"), ("asym_x", "asym_y")]
-    sig = [0.5 * (class_sigmas(dev[a], det_floor[k]) + class_sigmas(dev[b], det_floor[k])) for k, (a, b) in enumerate(pairs)]
-    sig += [class_sigmas(dev[name], det_floor[k]) for k, name in enumerate(("blur", "flux", "ssim", "sharpness"), start=2)]
-    sig = np.stack(sig, axis=-1)
+    floors = np.repeat(det_floor, [2, 2, 1, 1, 1, 1])  # the DETECTORS over the _NAMES' 8 maps
+    each = class_sigmas(np.stack([dev[k] for k in _NAMES], axis=-1), floors)
+    sig = np.concatenate([0.5 * (each[..., 0:1] + each[..., 1:2]), 0.5 * (each[..., 2:3] + each[..., 3:4]),
+                          each[..., 4:]], axis=-1)
     return Noise(sig, rings)
 
 
@@ -379,12 +460,12 @@ def detection_score(dev: dict[str, np.ndarray], noise: Noise, focus=None) -> np.
     return np.nanmax(np.where(np.isfinite(z), z, 0.0), axis=-1)
 
 
-def spill(score: np.ndarray, flagged: np.ndarray, ratio: float = 0.5, asym: tuple | None = None,
+def spill(score: np.ndarray, flagged: np.ndarray, ratio: float = 0.65, asym: tuple | None = None,
           facing_ratio: float = 0.95) -> np.ndarray:
     """Flagged lenses that are the echo of a stronger flagged neighbour: a defect disturbs its neighbours'
     windows (its light spills over). An echo scores under `ratio` times the neighbour; or, when the
-    lenses' intensity tilts `asym` (x, y) are given, under `facing_ratio` times it with its tilt facing
-    that neighbour (the light that crossed into its window), as where sub-images touch."""
+    lenses' intensity tilts `asym` (x, y) are given, under `facing_ratio` times it with its tilt along
+    the line to that neighbour (light that crossed into or out of its window), as where sub-images touch."""
     ring = np.ones((3, 3), bool)
     ring[1, 1] = False
     strongest = maximum_filter(np.where(flagged, score, 0.0), footprint=ring, mode="constant")
@@ -400,8 +481,9 @@ def spill(score: np.ndarray, flagged: np.ndarray, ratio: float = 0.5, asym: tupl
             if dm == 0 and dn == 0:
                 continue
             other = padded[1 + dm:1 + dm + rows, 1 + dn:1 + dn + cols]
-            # image convention: +x right, +y down; the neighbour at (dm, dn) lies along (dn, dm)
-            facing = (ax * dn + ay * dm) / (norm * np.hypot(dm, dn)) > 0.7
+            # image convention: +x right, +y down; the neighbour at (dm, dn) lies along (dn, dm). Light
+            # that crossed in tilts the window towards it, light that left tilts it away: either way along
+            facing = np.abs(ax * dn + ay * dm) / (norm * np.hypot(dm, dn)) > 0.7
             echo |= flagged & facing & (score < facing_ratio * other)
     return echo
 
@@ -434,9 +516,14 @@ def fit_kind(table: SignatureTable, kind: str, vec: np.ndarray, sigmas: np.ndarr
     linearly in the table, through zero); `sign` restricts a signed kind to one side; `whiten`: the
     ring noise (`RingNoise.whiten`) to fit the ring profile too."""
     grid_m, grid_f = _kind_curve(table, kind, sign)
-    chi2 = ((_unit_noise(vec, sigmas, whiten)[None, :] - _unit_noise(grid_f, sigmas, whiten)) ** 2).sum(axis=1)
+    chi2 = _chi2(_unit_noise(vec, sigmas, whiten)[None, :], _unit_noise(grid_f, sigmas, whiten))
     i = int(np.argmin(chi2))
     return float(grid_m[i]), float(chi2[i])
+
+
+def _chi2(observed: np.ndarray, predicted: np.ndarray) -> np.ndarray:
+    """Misfit of observed feature changes to predicted ones, both in unit-noise coordinates (last axis)."""
+    return ((observed - predicted) ** 2).sum(axis=-1)
 
 
 def _kind_curve(table: SignatureTable, kind: str, sign: int) -> tuple[np.ndarray, np.ndarray]:
@@ -474,7 +561,7 @@ def fit_all(table: SignatureTable, vecs: np.ndarray, sigmas: np.ndarray,
     uv = _unit_noise(vecs, sigmas, whiten)
     for kind in table.magnitudes:
         grid_m, grid_f = _kind_curve(table, kind, 0)
-        chi2 = ((uv[:, None, :] - _unit_noise(grid_f, sigmas, whiten)[None]) ** 2).sum(axis=2)
+        chi2 = _chi2(uv[:, None, :], _unit_noise(grid_f, sigmas, whiten)[None])
         best = np.argmin(chi2, axis=1)
         for q, i in enumerate(best):
             out[q][kind] = (float(grid_m[i]), float(chi2[q, i]))
@@ -583,9 +670,17 @@ def identify(metrics: LensMetrics, missing: np.ndarray, qc: QC, table: Signature
         metrics = LensMetrics({k: np.where(outside, np.nan, v) for k, v in metrics.values.items()})
         position = None if position is None else tuple(np.where(outside, np.nan, p) for p in position)
         missing = missing & ~outside
-    dev, sig = deviations(metrics, phase)
-    rings = ring_noise(metrics, phase, ring_floor)
-    detect_dev = with_position(dev, position, phase) if position is not None else dev
+    # every index map's local deviation and phase pattern in one pass (the planes share the work)
+    values = [metrics[k] for k in _NAMES] + [metrics[r] for r in RINGS] + list(position or ())
+    planes = local_deviations(values, _AXES + [""] * len(RINGS) + (["x", "y"] if position is not None else []))
+    if phase is not None:
+        planes = remove_phase_pattern(planes, phase)
+    n_dev, n_ring = len(_NAMES), len(RINGS)
+    dev, sig = deviations(metrics, planes=planes[:n_dev])
+    rings = ring_noise(metrics, floor=ring_floor, planes=planes[n_dev:n_dev + n_ring])
+    detect_dev = dev
+    if position is not None:  # offsets from the lower-noise position signal (see `with_position`)
+        detect_dev = dict(dev, offset_x_px=planes[-2], offset_y_px=planes[-1])
     noise = detection_noise(detect_dev, rings, det_floor)
     score = detection_score(detect_dev, noise, focus_score(rings, table))
     threshold = np.full(score.shape, qc.detect_sigma)
@@ -610,7 +705,11 @@ def identify(metrics: LensMetrics, missing: np.ndarray, qc: QC, table: Signature
             continue
         vec, shift_dir = shifts[(m, n)]
         kind, mag, unit, direction, alts = classify(table, vec, shift_dir, sigmas, fits[(m, n)], rings.whiten)
-        if abs(mag) < mins.get(kind, 0.0) - 1e-12:
+        uv = _unit_noise(vec, sigmas, rings.whiten)
+        if min(c for _, c in fits[(m, n)].values()) > UNEXPLAINED * float(uv @ uv):
+            # significant, but no error kind of the table explains it: say so rather than force a reading
+            kind, mag, unit, direction, alts = "unknown", float("nan"), "", None, ()
+        elif abs(mag) < mins.get(kind, 0.0) - 1e-12:
             flagged[m, n] = False  # significant, but smaller than any error worth reporting
             below += 1
             continue
