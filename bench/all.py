@@ -14,7 +14,7 @@ from pathlib import Path
 
 HERE = Path(__file__).resolve().parent
 SCRIPTS = (("trace.py", True), ("inspection.py", False), ("calibrate.py", False), ("scaling.py", False),
-           ("signatures.py", False))
+           ("signatures.py", False), ("robustness.py", True))
 
 
 def main() -> int:

@@ -8,6 +8,7 @@ Prints detection rate, false flags, type accuracy and magnitude error per type a
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import sys
 from collections import defaultdict
 
@@ -15,7 +16,7 @@ import numpy as np
 
 from mlaqc.inspection.pipeline import inspect_image, prepare
 from mlaqc.inspection.rawio import RawFrame
-from mlaqc.optics.config import default_config
+from mlaqc.optics.config import Formation, default_config
 from mlaqc.optics.errormap import ErrorMap
 from mlaqc.optics.sensor import white_level
 from mlaqc.optics.simulate import simulate
@@ -52,8 +53,12 @@ def main() -> int:
     ap = argparse.ArgumentParser()
     ap.add_argument("--seeds", type=int, default=2)
     ap.add_argument("--rpp", type=float, default=50.0)
+    ap.add_argument("--no-formation", action="store_true",
+                    help="the tracer's geometric image alone (no diffraction, crosstalk, PRNU), as before issue #11")
     args = ap.parse_args()
     cfg = default_config()
+    if args.no_formation:
+        cfg = dataclasses.replace(cfg, formation=Formation(diffraction=False, crosstalk=0.0, prnu_rms=0.0))
     s = cfg.sensor
     stats = defaultdict(lambda: [0, 0, 0, [], 0])  # found, total, type ok, magnitude errors, sign ambiguous
     false_flags = []
@@ -85,7 +90,9 @@ def main() -> int:
                 est = d.alternatives[0][1]  # the sign was ambiguous and the other reading is listed
                 st[4] += 1
             st[3].append(abs(est - mag) / abs(mag))
-    print(f"Table 1 camera, {args.rpp:g} rays/pixel, noise on, {args.seeds} frames; 'position' = pitch or decenter")
+    print(f"Table 1 camera, {args.rpp:g} rays/pixel, noise on, {args.seeds} frames, "
+          f"{'geometric image' if args.no_formation else 'with diffraction, crosstalk, PRNU'}; "
+          f"'position' = pitch or decenter")
     print(f"{'type':9s} {'magnitude':>9s} {'found':>7s} {'type ok':>8s} {'mag err (median)':>17s} {'sign from alternative':>22s}")
     for (kind, mag), (f, t, ok, errs, amb) in sorted(stats.items()):
         e = np.nanmedian(errs) if errs else np.nan

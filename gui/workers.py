@@ -638,8 +638,8 @@ def build_view(result: Any, cfg: Any, source: str, elapsed_s: float) -> Inspecti
     kinds = ", ".join(f"{k} {v}" for k, v in sorted(by_type.items())) or "none"
     headline = (f"{len(result.defects)} flagged of {g.rows}×{g.cols} lenses · {out_tol} out of tolerance · "
                 f"{g.lenses_missing} missing")
-    detail = (f"{kinds}; grid pitch {g.pitch_px[0]:.3f} × {g.pitch_px[1]:.3f} px, rotation {g.rotation_deg:+.3f}°, "
-              f"RMS residual {g.rms_residual_px:.3f} px; {detection_limit_text(result.detection_limit)}")
+    detail = (f"{kinds}; {detection_limit_text(result.detection_limit)}; grid pitch {g.pitch_px[0]:.3f} × "
+              f"{g.pitch_px[1]:.3f} px, rotation {g.rotation_deg:+.3f}°, RMS residual {g.rms_residual_px:.3f} px")
     summary = f"{headline} ({detail})"
     ok_grid = np.isfinite(gx) & np.isfinite(gy)
     return InspectionView(result, cfg, source, (float(lo), float(hi)), cx, cy, gx[ok_grid], gy[ok_grid], pitch, rings,

@@ -1,14 +1,20 @@
 """Identification: flag lenses whose indexes leave the normal population, then say what is wrong.
 
 Detection compares every lens with its own neighbourhood (5 x 5 local median, which cancels vignetting,
-exposure and slow field variation) in units of the array's robust spread (1.4826 MAD): a real capture
-differs from the model in exposure and illumination, and inspection must still work. Defocus (radius,
-thickness) is tested on the residual's ring profile with a matched filter against the table's defocus
-signatures, whitened by the rings' covariance over the array.
+exposure and slow field variation). What a frame does the same way everywhere is modelled and removed,
+not flagged: the pattern the sub-pixel phase of the lens centres draws in every index (`PhaseModel`),
+and the bias and spread of the edge classes. Each index is judged against the frame's own noise,
+measured per lens class with a tail-aware spread and never below a floor set by the smallest reportable
+error, so a noise-free frame is the easy case. Defocus (radius, thickness) is tested on the residual's
+ring profile with a matched filter against the table's defocus signatures, whitened by the rings'
+covariance over the array. A neighbour of a strong defect whose deviation is that defect's light in its
+window is its echo (`spill`). Each frame also reports its detection limit (`detection_limits`).
 
-Classification inverts the signature table: the flagged lens' feature changes, taken along and across
-its own shift, and its ring profile are fitted by every error kind over its magnitude (noise-weighted
-least squares); the best kind gives type, magnitude and direction.
+Classification inverts the signature table (matched to the frame's rim width by the caller): the
+flagged lens' feature changes, taken along and across its own shift, and its ring profile are fitted by
+every error kind over its magnitude (noise-weighted least squares); the best kind gives type, magnitude
+and direction; a deviation no kind explains is 'unknown', and a reading below the minimum reportable
+size is counted, not flagged.
 
 Two limits are physical, not the method's (bench/type_separation.py: the best possible matched filter
 against a frame's noise). In a white image a pitch error and a surface decenter below about 10 µm change
@@ -37,8 +43,6 @@ from mlaqc.inspection.results import Defect, LensMetrics
 from mlaqc.models.signatures import FEATURES, KIND_BY_NAME, RINGS, SignatureTable, lens_features
 from mlaqc.optics.config import QC
 
-# Features whose change is tested for detection, and on which side (+1 up, -1 down, 0 both).
-DETECT = {"offset": 0, "asym": 0, "blur": +1, "flux": 0, "ssim": -1, "sharpness": 0}
 UNEXPLAINED = 0.75  # a best fit leaving more than this share of the deviation's chi-square: type 'unknown' (measured: tracer defects leave 0.1-0.7, foreign anomalies 0.8-0.95)
 LIMIT_MARGIN = 2.0  # a lens at the detection limit scores detect_sigma + 2 on average: found 97.7 % of the time
 _CHI2_AMBIGUOUS = 9.0  # an opposite-sign reading closer than this (3 sigma) is listed as an alternative
@@ -442,15 +446,6 @@ def detection_noise(dev: dict[str, np.ndarray], rings: RingNoise, det_floor: np.
     return Noise(sig, rings)
 
 
-def with_position(dev: dict[str, np.ndarray], position, phase: PhaseModel | None = None) -> dict[str, np.ndarray]:
-    """`dev` with its offsets replaced by the local deviations of a lower-noise position signal (dx, dy)
-    (the calibration's per-lens residual averaged with the registration on the same frame)."""
-    px, py = local_deviations([position[0], position[1]], ["x", "y"])
-    if phase is not None:
-        px, py = remove_phase_pattern([px, py], phase)
-    return dict(dev, offset_x_px=px, offset_y_px=py)
-
-
 def detection_score(dev: dict[str, np.ndarray], noise: Noise, focus=None) -> np.ndarray:
     """Largest z over the detection features, per lens; `focus`: the ring-profile matched filter."""
     f = np.stack([dev[k] for k in _NAMES], axis=-1)  # (rows, cols, 8) in FEATURES' layout
@@ -652,11 +647,27 @@ def _lowest_from_which_all(mags: np.ndarray, ok: np.ndarray) -> float | None:
     return float(f"{mags[first]:.4g}")
 
 
+def _all_deviations(metrics: LensMetrics, position, phase: PhaseModel | None, ring_floor: np.ndarray):
+    """Every index map's local deviation, phase pattern removed, in one pass (the maps share the work):
+    (classification deviations, their spreads, ring noise, detection deviations — the classification
+    ones with the offsets from the lower-noise `position` signal where it is given)."""
+    values = [metrics[k] for k in _NAMES] + [metrics[r] for r in RINGS] + list(position or ())
+    planes = local_deviations(values, _AXES + [""] * len(RINGS) + (["x", "y"] if position is not None else []))
+    if phase is not None:
+        planes = remove_phase_pattern(planes, phase)
+    n_dev, n_ring = len(_NAMES), len(RINGS)
+    dev, sig = deviations(metrics, planes=planes[:n_dev])
+    rings = ring_noise(metrics, floor=ring_floor, planes=planes[n_dev:n_dev + n_ring])
+    detect_dev = dev if position is None else dict(dev, offset_x_px=planes[-2], offset_y_px=planes[-1])
+    return dev, sig, rings, detect_dev
+
+
 def identify(metrics: LensMetrics, missing: np.ndarray, qc: QC, table: SignatureTable, position=None,
              phase=None, outside: np.ndarray | None = None) -> Identification:
     """Flag, classify and size the defective lenses of one frame, and say what it could detect.
 
-    `position`: optional (dx, dy) per-lens position residuals measured on this frame (see `with_position`);
+    `position`: optional (dx, dy) per-lens position residuals measured on this frame (the calibration's
+    residual averaged with the registration: a lower-noise shift signal that replaces the offsets in detection);
     `phase`: the lenses' sub-pixel phases (x, y), whose index pattern is removed (`remove_phase_pattern`).
     `outside`: lenses whose sub-image is not wholly on the sensor; they are not inspected (never
     flagged, never missing) and left out of every statistic.
@@ -670,17 +681,7 @@ def identify(metrics: LensMetrics, missing: np.ndarray, qc: QC, table: Signature
         metrics = LensMetrics({k: np.where(outside, np.nan, v) for k, v in metrics.values.items()})
         position = None if position is None else tuple(np.where(outside, np.nan, p) for p in position)
         missing = missing & ~outside
-    # every index map's local deviation and phase pattern in one pass (the planes share the work)
-    values = [metrics[k] for k in _NAMES] + [metrics[r] for r in RINGS] + list(position or ())
-    planes = local_deviations(values, _AXES + [""] * len(RINGS) + (["x", "y"] if position is not None else []))
-    if phase is not None:
-        planes = remove_phase_pattern(planes, phase)
-    n_dev, n_ring = len(_NAMES), len(RINGS)
-    dev, sig = deviations(metrics, planes=planes[:n_dev])
-    rings = ring_noise(metrics, floor=ring_floor, planes=planes[n_dev:n_dev + n_ring])
-    detect_dev = dev
-    if position is not None:  # offsets from the lower-noise position signal (see `with_position`)
-        detect_dev = dict(dev, offset_x_px=planes[-2], offset_y_px=planes[-1])
+    dev, sig, rings, detect_dev = _all_deviations(metrics, position, phase, ring_floor)
     noise = detection_noise(detect_dev, rings, det_floor)
     score = detection_score(detect_dev, noise, focus_score(rings, table))
     threshold = np.full(score.shape, qc.detect_sigma)
