@@ -28,3 +28,25 @@ def test_a_lens_without_any_shift_has_zero_projections():
     """A lens equal to its neighbourhood median has exactly zero shift; no direction, no crash."""
     v = lens_features(metrics_with(0.0, 0.0, 0.05, 0.0), 1, 1)
     assert np.all(np.isfinite(v)) and v[0] == v[1] == v[2] == v[3] == 0.0
+
+
+def test_signature_set_is_matched_to_the_frame_rim_width():
+    """At a variant's own rim width its table comes back unchanged; between two, the features are their
+    linear mix; outside the rendered widths, the nearest end; an unknown width, the modelled camera's."""
+    import math
+
+    from mlaqc.models.signatures import SignatureSet
+    from mlaqc.optics.config import default_config
+    from mlaqc.inspection.pipeline import _models
+
+    tables = _models(default_config())[1]
+    assert isinstance(tables, SignatureSet)
+    widths = tables.edge_widths()
+    assert np.all(np.diff(widths) > 0)  # sharpest first, each blur wider
+    a, b = tables.tables[1], tables.tables[2]
+    assert np.allclose(tables.matched(widths[1]).features["pitch"], a.features["pitch"])
+    mid = tables.matched(0.25 * widths[1] + 0.75 * widths[2])
+    assert np.allclose(mid.features["radius"], 0.25 * a.features["radius"] + 0.75 * b.features["radius"])
+    assert np.allclose(mid.rings["radius"], 0.25 * a.rings["radius"] + 0.75 * b.rings["radius"])
+    assert np.allclose(tables.matched(widths[-1] * 3).features["decenter"], tables.tables[-1].features["decenter"])
+    assert tables.matched(math.nan).settings["extra_blur_px"] == 0.0

@@ -4,7 +4,10 @@ Rendered by the tracer on a 9 x 9-lens patch of the camera (same optics, geometr
 on the centre lens and the same random draws with and without it, so the differences are nearly free of
 Monte-Carlo noise. Directional errors are rendered at direction 0; their features are taken along and
 across the shift they cause, so a measured lens is compared after rotating into its own shift direction.
-Cached on disk keyed by the optics; the default camera's table ships in the package.
+Rendered at several sub-image blurs (`BLUR_VARIANTS`: the geometric image, the modelled diffraction and
+crosstalk, and wider), each with the rim width the calibration measures on it, so that a frame is
+classified with the tables interpolated to its own rim width (`SignatureSet.matched`). Cached on disk
+keyed by the optics; the default camera's tables ship in the package.
 """
 
 from __future__ import annotations
