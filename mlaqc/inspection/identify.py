@@ -379,6 +379,14 @@ def focus_score(rings: RingNoise, table: SignatureTable) -> np.ndarray:
     tw = templates @ rings.whiten  # (M, R) in unit-noise coordinates
     tw /= np.linalg.norm(tw, axis=1, keepdims=True)
     z = np.nan_to_num(rings.dev @ rings.whiten) @ tw.T
+    # each edge class' filter outputs scaled to the inner lenses' spread where wider (as the rings are):
+    # what matters is the spread along each signature, which the rings' own scaling does not bound
+    cls = noise_classes(z.shape[:2])
+    inner = np.maximum(_column_medians(np.abs(z[cls == 2])) * 1.4826, 1e-9) if (cls == 2).sum() > 20 else None
+    for c in (0, 1, 3):
+        sel = cls == c
+        if inner is not None and sel.sum() > 20:
+            z[sel] /= np.maximum(_column_tail_sigmas(z[sel]) / inner, 1.0)
     return z.max(axis=-1)
 
 
@@ -456,21 +464,22 @@ def detection_score(dev: dict[str, np.ndarray], noise: Noise, focus=None) -> np.
 
 
 def spill(score: np.ndarray, flagged: np.ndarray, ratio: float = 0.65, asym: tuple | None = None,
-          facing_ratio: float = 0.95) -> np.ndarray:
+          facing_ratio: float = 0.95, offset: tuple | None = None) -> np.ndarray:
     """Flagged lenses that are the echo of a stronger flagged neighbour: a defect disturbs its neighbours'
     windows (its light spills over). An echo scores under `ratio` times the neighbour; or, when the
     lenses' intensity tilts `asym` (x, y) are given, under `facing_ratio` times it with its tilt along
-    the line to that neighbour (light that crossed into or out of its window), as where sub-images touch."""
+    the line to that neighbour (light that crossed into or out of its window), as where sub-images touch;
+    or, with the lenses' `offset` (x, y), under `facing_ratio` times a neighbour that moved along that line."""
     ring = np.ones((3, 3), bool)
     ring[1, 1] = False
     strongest = maximum_filter(np.where(flagged, score, 0.0), footprint=ring, mode="constant")
     echo = flagged & (score < ratio * strongest)
-    if asym is None:
+    if asym is None and offset is None:
         return echo
-    ax, ay = (np.nan_to_num(a) for a in asym)
-    norm = np.maximum(np.hypot(ax, ay), 1e-12)
     rows, cols = score.shape
     padded = np.pad(np.where(flagged, score, 0.0), 1)
+    if offset is not None:
+        moved = [np.pad(np.nan_to_num(o), 1) for o in offset]
     for dm in (-1, 0, 1):
         for dn in (-1, 0, 1):
             if dm == 0 and dn == 0:
@@ -478,9 +487,20 @@ def spill(score: np.ndarray, flagged: np.ndarray, ratio: float = 0.65, asym: tup
             other = padded[1 + dm:1 + dm + rows, 1 + dn:1 + dn + cols]
             # image convention: +x right, +y down; the neighbour at (dm, dn) lies along (dn, dm). Light
             # that crossed in tilts the window towards it, light that left tilts it away: either way along
-            facing = np.abs(ax * dn + ay * dm) / (norm * np.hypot(dm, dn)) > 0.7
-            echo |= flagged & facing & (score < facing_ratio * other)
+            along = np.zeros(score.shape, bool)
+            if asym is not None:
+                along |= _aligned(asym[0], asym[1], dn, dm)
+            if offset is not None:
+                along |= _aligned(moved[0][1 + dm:1 + dm + rows, 1 + dn:1 + dn + cols],
+                                  moved[1][1 + dm:1 + dm + rows, 1 + dn:1 + dn + cols], dn, dm)
+            echo |= flagged & along & (score < facing_ratio * other)
     return echo
+
+
+def _aligned(vx: np.ndarray, vy: np.ndarray, dx: int, dy: int) -> np.ndarray:
+    """Where the vectors (vx, vy) lie within 45° of the line along (dx, dy), either way."""
+    vx, vy = np.nan_to_num(vx), np.nan_to_num(vy)
+    return np.abs(vx * dx + vy * dy) > 0.7 * np.maximum(np.hypot(vx, vy), 1e-12) * np.hypot(dx, dy)
 
 
 def _feature_vector(dev: dict[str, np.ndarray], rings: RingNoise, m: int, n: int) -> tuple[np.ndarray, float]:
@@ -687,7 +707,8 @@ def identify(metrics: LensMetrics, missing: np.ndarray, qc: QC, table: Signature
     threshold = np.full(score.shape, qc.detect_sigma)
     threshold[[0, 0, -1, -1], [0, -1, 0, -1]] *= 1.5  # corner windows hold dark margin on two sides: noisier
     flagged = ((score > threshold) & ~outside) | missing
-    flagged &= ~spill(score, flagged, asym=(dev["asym_x"], dev["asym_y"])) | missing
+    flagged &= ~spill(score, flagged, asym=(dev["asym_x"], dev["asym_y"]),
+                      offset=(detect_dev["offset_x_px"], detect_dev["offset_y_px"])) | missing
     sigmas = _feature_sigmas(sig)
     error_type = np.full(flagged.shape, "", dtype=object)
     defects = []

@@ -694,7 +694,7 @@ def resolve_levels(frame: RawFrame, stated: Levels | None = None, sensor: Levels
     sample = frame.data[::3, ::3] if min(frame.shape) >= 300 else frame.data
     top = int(sample.max()) if frame.data is sample else int(frame.data.max())
     dark, bright = (float(v) for v in np.percentile(sample, [0.1, 99.0]))
-    if dark <= 0.1 * bright:  # the unlit pixels (gaps between sub-images): black is their median
+    if dark <= 0.5 * bright:  # unlit pixels (the gaps between sub-images): black is their median
         unlit = sample[sample <= dark + 0.02 * (bright - dark)]
         dark = float(np.median(unlit))
     else:
