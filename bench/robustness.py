@@ -3,7 +3,7 @@ test matrix of issue #11. Prints, per cell: false flags, recall of seeded anomal
 centre RMS (analytic frames: measured and grid-predicted centres against the true ones) and the frame's
 reported detection limits; then the bars.
 
-    python bench/robustness.py              # analytic cells + tracer at 50 and 400 rays/pixel (~6 min)
+    python bench/robustness.py              # analytic cells + tracer at 50 and 400 rays/pixel (~8 min)
     python bench/robustness.py --full       # + the tracer at 2,000 rays/pixel (renders ~3 min once, cached)
     python bench/robustness.py --quick      # a few analytic cells only
 

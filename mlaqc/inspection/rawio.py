@@ -685,20 +685,14 @@ def resolve_levels(frame: RawFrame, stated: Levels | None = None, sensor: Levels
     Order: what the user `stated` (always wins); then the file's own tags, record or sidecar; for a
     container without them (a 16-bit TIFF, PNG or NPY of 12-bit data), the camera config's `sensor` when
     the data agree with it (no count above its white level, its dark pixels not below its black level),
-    else the data: the smallest standard depth that holds the brightest count, and the black level from
-    the darkest pixels (the 0.1th percentile; the gaps between sub-images see no light). The white level
-    is then the top of that depth, so the black and saturation checks are relative to the real scale."""
+    else the data: the smallest standard depth that holds the brightest count, and the black level of
+    the unlit pixels (`unlit_level`). The white level is then the top of that depth, so the black and
+    saturation checks are relative to the real scale."""
     stated = stated or Levels()
     if frame.data.dtype.kind == "f" or (frame.levels_from != "container" and stated == Levels()):
         return frame
-    sample = frame.data[::3, ::3] if min(frame.shape) >= 300 else frame.data
-    top = int(sample.max()) if frame.data is sample else int(frame.data.max())
-    dark, bright = (float(v) for v in np.percentile(sample, [0.1, 99.0]))
-    if dark <= 0.5 * bright:  # unlit pixels (the gaps between sub-images): black is their median
-        unlit = sample[sample <= dark + 0.02 * (bright - dark)]
-        dark = float(np.median(unlit))
-    else:
-        dark = 0.0  # no unlit pixels in the frame: nothing to read black from
+    top = int(frame.data.max())
+    dark = unlit_level(frame.data)
     container_bits = frame.bits
     bits, black, source = frame.bits, frame.black_level, frame.levels_from
     if frame.levels_from == "container":
@@ -722,6 +716,17 @@ def resolve_levels(frame: RawFrame, stated: Levels | None = None, sensor: Levels
         raise InputError(f"Frame {frame.source or '(in memory)'}: black level {black} is not below the white "
                          f"level {white}.")
     return RawFrame(frame.data, bits, frame.cfa, int(black), int(white), frame.metadata, frame.source, source)
+
+
+def unlit_level(data: np.ndarray) -> float:
+    """The counts of the pixels that see no light — in a white plenoptic frame, the gaps between the
+    sub-images: the median of those within 2 % of the range above the 0.1th percentile, when that
+    percentile is under half the 99th (else the frame has no unlit pixels and 0 is returned)."""
+    sample = data[::3, ::3] if min(data.shape) >= 300 else data
+    dark, bright = (float(v) for v in np.percentile(sample, [0.1, 99.0]))
+    if dark > 0.5 * bright:
+        return 0.0
+    return float(np.median(sample[sample <= dark + 0.02 * (bright - dark)]))
 
 
 def levels_note(frame: RawFrame) -> str:
