@@ -20,6 +20,7 @@ from mlaqc.optics.paraxial import ThickLens, image_distance, thick_lens
 CFA_CHOICES = ("none", "RGGB", "BGGR", "GRBG", "GBRG")
 CORNER_CHOICES = ("opaque", "clear")
 ENGINE_CHOICES = ("auto", "numba", "numpy")
+SAMPLER_CHOICES = ("sobol", "random")
 
 
 @dataclass(frozen=True)
@@ -93,6 +94,7 @@ class Trace:
     batch_rays: int = 1 << 18
     threads: int = 0  # 0 = one per CPU core
     engine: str = "auto"  # 'numba' (compiled fast path), 'numpy' (reference), 'auto' = numba if installed
+    sampler: str = "sobol"  # 'sobol' (low-discrepancy, stratified per microlens), 'random' (plain Monte-Carlo)
 
 
 @dataclass(frozen=True)
@@ -331,6 +333,7 @@ def validate(cfg: CameraConfig, source: str = "config") -> None:
     _require(t.rays_per_pixel > 0, source, "trace.rays_per_pixel", "must be positive", t.rays_per_pixel)
     _require(1024 <= t.batch_rays <= 1 << 24, source, "trace.batch_rays", "must be between 1024 and 16777216", t.batch_rays)
     _require(t.engine in ENGINE_CHOICES, source, "trace.engine", f"must be one of {ENGINE_CHOICES}", t.engine)
+    _require(t.sampler in SAMPLER_CHOICES, source, "trace.sampler", f"must be one of {SAMPLER_CHOICES}", t.sampler)
     _require(0 <= t.threads <= 256, source, "trace.threads", "must be between 0 and 256", t.threads)
     for key in ("object_distance_mm", "mla_distance_mm", "sensor_gap_um"):
         v = getattr(g, key)

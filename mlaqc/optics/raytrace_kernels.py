@@ -17,6 +17,8 @@ import math
 
 import numpy as np
 
+from mlaqc.optics import lowdisc
+from mlaqc.optics.scene import FOUR_OVER_PI
 from mlaqc.optics.unitcircle import GAMMA, HALF_PI, MIX1, MIX2, TO_UNIT
 from mlaqc.optics.unitcircle import poly_cos as _poly_cos
 from mlaqc.optics.unitcircle import poly_sin as _poly_sin
@@ -41,6 +43,11 @@ _jit = njit(**_FLAGS) if AVAILABLE else _identity
 _jit_inline = njit(inline="always", **_FLAGS) if AVAILABLE else _identity
 poly_sin = _jit_inline(_poly_sin)
 poly_cos = _jit_inline(_poly_cos)
+sobol32 = _jit_inline(lowdisc.sobol32)
+reverse32 = _jit_inline(lowdisc.reverse32)
+lk_hash = _jit_inline(lowdisc.lk_hash)
+hash32 = _jit_inline(lowdisc.hash32)
+SOBOL_DIRECTIONS = lowdisc.DIRECTIONS
 
 # Modes of the kernel.
 IMAGE_SIDE, POINT, OBJECT_SIDE = 0, 1, 2
@@ -48,7 +55,11 @@ IMAGE_SIDE, POINT, OBJECT_SIDE = 0, 1, 2
 (S_MODE, S_X0, S_X1, S_Y0, S_Y1, S_ZSTART, S_ZEXIT, S_RPUPIL, S_PX, S_PY,
  S_C1, S_C2, S_T, S_N, S_RIM2, S_FRES, S_ZOBJ, S_TEXHX, S_TEXHY,
  S_P, S_AX0, S_AY0, S_ROWS, S_COLS, S_ZFRONT, S_NMLA, S_CLEAR, S_SHIFTX,
- S_ZMLA, S_SHIFTY, S_ZSENS, S_PIX, S_SX0, S_SY0, S_W, S_H, S_INVP, S_INVPIX, S_COUNT) = range(39)
+ S_ZMLA, S_SHIFTY, S_ZSENS, S_PIX, S_SX0, S_SY0, S_W, S_H, S_INVP, S_INVPIX,
+ # the low-discrepancy sampler: on/off, the job's block of cells (first row and column, width, cells) and
+ # first point index, padded cells per row, and the MLA frame's 2 x 2 map to the start plane
+ S_SOBOL, S_CR0, S_CC0, S_CBW, S_CB, S_J0, S_PCOLS, S_R00, S_R01, S_R10, S_R11,
+ S_INVKR2, S_SQUARE, S_SQW, S_COUNT) = range(53)
 # Rows of the per-block scratch table `g`: the gathered parameters of each ray's lens (tab rows 0..6), its
 # current hit and direction in the lens frame, the distance t to it (NaN on a miss), and its pixel.
 G_FX, G_FY, G_DX, G_DY, G_C1, G_C2, G_ZR, G_HX, G_HY, G_HZ, G_LL, G_LM, G_LN, G_T, G_ROW, G_COL, G_COUNT = range(17)
@@ -161,6 +172,72 @@ def draw(key, i, d):
 
 
 @_jit_inline
+def owen32(x, seed):
+    """Compiled twin of lowdisc.owen32."""
+    return reverse32(lk_hash(reverse32(x), seed))
+
+
+@_jit_inline
+def sobol_draws(start, m, s, seeds, shifts, jtab, g, ia, icf):
+    """Draws of rays start..start+m-1 into g rows G_HX..G_LL (dims 0-3) and their cell into G_ROW, G_COL.
+
+    Ray i of the job is point j0 + i // cb of cell i % cb of the job's block (point scenes: cb = 1, one
+    shift). The block's few distinct points are scrambled once into `jtab`; each ray then only XORs its
+    cell's shift (as lowdisc.cell_uniforms)."""
+    cb, cbw, j0 = np.int64(s[S_CB]), np.int64(s[S_CBW]), np.int64(s[S_J0])
+    q0 = start // cb
+    nq = (start + m - 1) // cb - q0 + 1
+    for a in range(nq):
+        j = np.uint64(j0 + q0 + a)
+        for d in range(4):
+            jtab[a, d] = owen32(sobol32(j, d, SOBOL_DIRECTIONS), seeds[d])
+    r0, c0 = s[S_CR0], s[S_CC0]
+    # point, cell and the cell's row and column counted up ray by ray (integer division per ray is slow)
+    a = np.int64(0)
+    cf = start - q0 * cb
+    rr = cf // cbw
+    cc = cf - rr * cbw
+    for j in range(m):
+        ia[j], icf[j] = a, cf
+        g[G_ROW, j] = r0 + rr
+        g[G_COL, j] = c0 + cc
+        cf += 1
+        cc += 1
+        if cc == cbw:
+            cc = 0
+            rr += 1
+        if cf == cb:
+            cf, rr, cc = 0, 0, 0
+            a += 1
+    for j in range(m):  # 32-bit values: converted through int64, one instruction (uint64 takes several)
+        a, cf = ia[j], icf[j]
+        g[G_HX, j] = (np.float64(np.int64(jtab[a, 0] ^ shifts[cf, 0])) + 0.5) * lowdisc.TO_UNIT32
+        g[G_HY, j] = (np.float64(np.int64(jtab[a, 1] ^ shifts[cf, 1])) + 0.5) * lowdisc.TO_UNIT32
+        g[G_HZ, j] = (np.float64(np.int64(jtab[a, 2] ^ shifts[cf, 2])) + 0.5) * lowdisc.TO_UNIT32
+        g[G_LL, j] = (np.float64(np.int64(jtab[a, 3] ^ shifts[cf, 3])) + 0.5) * lowdisc.TO_UNIT32
+
+
+@_jit
+def sobol_tables(s, key):
+    """Scramble seeds, one digital shift per cell of the job's block (by its padded-grid id), and room
+    for a block's scrambled points (see lowdisc)."""
+    k = np.uint64(key)
+    ks = k ^ lowdisc.OWEN_SALT
+    seeds = np.empty(4, np.uint64)
+    for d in range(4):
+        seeds[d] = hash32(ks, np.uint64(0), d)
+    cb, cbw = np.int64(s[S_CB]), np.int64(s[S_CBW])
+    r0, c0, pcols = np.int64(s[S_CR0]), np.int64(s[S_CC0]), np.int64(s[S_PCOLS])
+    shifts = np.empty((cb, 4), np.uint64)
+    for cf in range(cb):
+        rr = cf // cbw
+        cid = np.uint64((r0 + rr + 1) * pcols + (c0 + cf - rr * cbw + 1)) if pcols > 0 else np.uint64(0)
+        for d in range(4):
+            shifts[cf, d] = hash32(k, cid, d)
+    return seeds, shifts, np.empty((BLOCK + 2, 4), np.uint64)
+
+
+@_jit_inline
 def cos_sin_2pi(u):
     """Scalar twin of unitcircle.cos_sin_2pi (same operations, so both engines draw the same angles)."""
     v = 4.0 * u
@@ -178,18 +255,74 @@ def cos_sin_2pi(u):
 
 
 @_jit_inline
-def stage1_image_side(start, m, s, key, buf, fres, texture, g):
+def stage1_image_side(start, m, s, key, buf, fres, texture, g, sobol, kappa):
     """Rays from the rear aperture to the MLA, traced back through the main lens for their weight.
 
-    Three branch-free loops (sampling, rear surface, front surface) that vectorize; split because one loop
-    holding the whole chain of square roots and divisions was bound by its latency. `g` is scratch."""
+    Branch-free loops (sampling, rear surface, front surface) that vectorize; split because one loop
+    holding the whole chain of square roots and divisions was bound by its latency. `g` is scratch and,
+    for the low-discrepancy sampler, holds the draws and cells already (sobol_draws)."""
+    if sobol and s[S_PCOLS] > 0.0:  # a block of cells
+        cell_starts(m, s, buf, g, kappa)
+        m = compact(m, buf)
+    else:  # a tile of the MLA's bounding box
+        if not sobol:
+            for j in range(m):
+                i = start + j
+                g[G_HX, j], g[G_HY, j], g[G_HZ, j], g[G_LL, j] = draw(key, i, 0), draw(key, i, 1), draw(key, i, 2), draw(key, i, 3)
+        polar_starts(m, s, buf, g)
+    image_side_surfaces(m, s, buf, fres, texture, g)
+    return m
+
+
+@_jit_inline
+def compact(m, buf):
+    """Move the rays of weight > 0 to the front of the block, in order; how many there are. The
+    stratified sampler's points off the aperture disc (about a quarter) are so never traced."""
+    k = 0
+    for j in range(m):
+        if buf[6, j] > 0.0:
+            if k != j:
+                for r in range(7):
+                    buf[r, k] = buf[r, j]
+            k += 1
+    return k
+
+
+@_jit_inline
+def cell_starts(m, s, buf, g, kappa):
+    """Rays of the stratified sampler: start in their MLA cell, aperture point on the square moved by
+    kappa(|h|) h, kappa a cubic in |h|^2 (as scene.sample_image_cells)."""
+    p, ax0, ay0 = s[S_P], s[S_AX0], s[S_AY0]
+    r00, r01, r10, r11, shx, shy = s[S_R00], s[S_R01], s[S_R10], s[S_R11], s[S_SHIFTX], s[S_SHIFTY]
+    rp, zs, dz = s[S_RPUPIL], s[S_ZSTART], s[S_ZSTART] - s[S_ZEXIT]
+    inv_r2, sq, sqw = s[S_INVKR2], s[S_SQUARE], s[S_SQW]
+    k0, k1, k2, k3 = kappa[0], kappa[1], kappa[2], kappa[3]
+    rp2 = rp * rp
+    for j in range(m):
+        u2, u3 = g[G_HZ, j], g[G_LL, j]
+        mx = ax0 + (g[G_COL, j] + u2) * p
+        my = ay0 + (g[G_ROW, j] + u3) * p
+        x = r00 * mx + r01 * my + shx
+        y = r10 * mx + r11 * my + shy
+        hx, hy = (u2 - 0.5) * p, (u3 - 0.5) * p
+        rho2 = (hx * hx + hy * hy) * inv_r2
+        k = k0 + rho2 * (k1 + rho2 * (k2 + rho2 * k3))
+        ax = sq * (2.0 * g[G_HX, j] - 1.0) + k * (r00 * hx + r01 * hy)
+        ay = sq * (2.0 * g[G_HY, j] - 1.0) + k * (r10 * hx + r11 * hy)
+        dx = x - ax
+        dy = y - ay
+        inv = 1.0 / math.sqrt(dx * dx + dy * dy + dz * dz)
+        L, M, N = dx * inv, dy * inv, dz * inv
+        w = (N * N) * (N * N) * sqw
+        buf[0, j], buf[1, j], buf[2, j], buf[3, j], buf[4, j], buf[5, j] = x, y, zs, L, M, N
+        buf[6, j] = w if ax * ax + ay * ay <= rp2 else 0.0
+
+
+@_jit_inline
+def polar_starts(m, s, buf, g):
+    """Rays of the plain Monte-Carlo sampler: uniform in the tile, uniform on the aperture disc."""
     x0, dx_span, y0, dy_span = s[S_X0], s[S_X1] - s[S_X0], s[S_Y0], s[S_Y1] - s[S_Y0]
     rp, zs, dz = s[S_RPUPIL], s[S_ZSTART], s[S_ZSTART] - s[S_ZEXIT]
-    t_main, c1, c2, n, rim2, zobj = s[S_T], s[S_C1], s[S_C2], s[S_N], s[S_RIM2], s[S_ZOBJ]
-    mu_in, mu_out = 1.0 / n, n
-    for j in range(m):
-        i = start + j
-        g[G_HX, j], g[G_HY, j], g[G_HZ, j], g[G_LL, j] = draw(key, i, 0), draw(key, i, 1), draw(key, i, 2), draw(key, i, 3)
     for j in range(m):
         x = x0 + dx_span * g[G_HX, j]
         y = y0 + dy_span * g[G_HY, j]
@@ -200,6 +333,14 @@ def stage1_image_side(start, m, s, key, buf, fres, texture, g):
         inv = 1.0 / math.sqrt(dx * dx + dy * dy + dz * dz)
         L, M, N = dx * inv, dy * inv, dz * inv
         buf[0, j], buf[1, j], buf[2, j], buf[3, j], buf[4, j], buf[5, j], buf[6, j] = x, y, zs, L, M, N, (N * N) * (N * N)
+
+
+@_jit_inline
+def image_side_surfaces(m, s, buf, fres, texture, g):
+    """Back through the main lens' rear and front surfaces: vignetting, Fresnel, the object point."""
+    zs = s[S_ZSTART]
+    t_main, c1, c2, n, rim2, zobj = s[S_T], s[S_C1], s[S_C2], s[S_N], s[S_RIM2], s[S_ZOBJ]
+    mu_in, mu_out = 1.0 / n, n
     # rear surface (the ray travels -z): hit, then refraction, in two loops
     for j in range(m):
         x, y, L, M, N = buf[0, j], buf[1, j], -buf[3, j], -buf[4, j], -buf[5, j]
@@ -225,33 +366,44 @@ def stage1_image_side(start, m, s, key, buf, fres, texture, g):
 
 
 @_jit_inline
-def stage1_forward(start, m, mode, s, key, buf, fres, texture):
+def stage1_forward(start, m, mode, s, key, buf, fres, texture, g, sobol):
     """Rays from object points (a point source, or points of the object plane) through the main lens.
 
-    A sampling loop, then one loop per surface (see stage1_image_side)."""
+    A sampling loop, then one loop per surface (see stage1_image_side). With the low-discrepancy sampler
+    the draws are in g already (sobol_draws): dims 0, 1 a point on the square around the pupil (weight 0
+    off the disc, 4/pi on it), dims 2, 3 the object point in the tile."""
     x0, dx_span, y0, dy_span = s[S_X0], s[S_X1] - s[S_X0], s[S_Y0], s[S_Y1] - s[S_Y0]
     rp, zs = s[S_RPUPIL], s[S_ZSTART]
     t_main, c1, c2, n, rim2 = s[S_T], s[S_C1], s[S_C2], s[S_N], s[S_RIM2]
     mu_in, mu_out = 1.0 / n, n
     point = mode == POINT
+    rp2 = rp * rp
     for j in range(m):
         i = start + j
-        if point:
-            ox, oy, ur, up = s[S_PX], s[S_PY], draw(key, i, 0), draw(key, i, 1)
+        if sobol:
+            ox = s[S_PX] if point else x0 + dx_span * g[G_HZ, j]
+            oy = s[S_PY] if point else y0 + dy_span * g[G_LL, j]
+            ax = rp * (2.0 * g[G_HX, j] - 1.0)
+            ay = rp * (2.0 * g[G_HY, j] - 1.0)
+            keep = FOUR_OVER_PI if ax * ax + ay * ay <= rp2 else 0.0
         else:
-            ox, oy = x0 + dx_span * draw(key, i, 0), y0 + dy_span * draw(key, i, 1)
-            ur, up = draw(key, i, 2), draw(key, i, 3)
-        rad = rp * math.sqrt(ur)
-        cph, sph = cos_sin_2pi(up)
-        dx = rad * cph - ox
-        dy = rad * sph - oy
+            if point:
+                ox, oy, ur, up = s[S_PX], s[S_PY], draw(key, i, 0), draw(key, i, 1)
+            else:
+                ox, oy = x0 + dx_span * draw(key, i, 0), y0 + dy_span * draw(key, i, 1)
+                ur, up = draw(key, i, 2), draw(key, i, 3)
+            rad = rp * math.sqrt(ur)
+            cph, sph = cos_sin_2pi(up)
+            ax, ay, keep = rad * cph, rad * sph, 1.0
+        dx = ax - ox
+        dy = ay - oy
         dz = -zs
         inv = 1.0 / math.sqrt(dx * dx + dy * dy + dz * dz)
         L, M, N = dx * inv, dy * inv, dz * inv
         w = N * N * N
         if not point:
             w *= N
-        buf[0, j], buf[1, j], buf[2, j], buf[3, j], buf[4, j], buf[5, j], buf[6, j] = ox, oy, zs, L, M, N, w
+        buf[0, j], buf[1, j], buf[2, j], buf[3, j], buf[4, j], buf[5, j], buf[6, j] = ox, oy, zs, L, M, N, w * keep
         buf[7, j], buf[8, j] = ox, oy
     for j in range(m):
         x, y, z, L, M, N, tr = main_surface(buf[0, j], buf[1, j], buf[2, j], buf[3, j], buf[4, j], buf[5, j], 0.0, c1,
@@ -469,7 +621,7 @@ BLOCK = 256  # rays per block: every pass works on a block held in L1
 
 
 @_jit
-def kernel(s, key, count, tab, rot, grot, texture, rows, cols, wts, box):
+def kernel(s, key, count, tab, rot, grot, texture, kappa, rows, cols, wts, box):
     """Trace `count` rays drawn with `key`; appends the (row, col, weight) of those that landed, in ray
     order, grows box = [row min, row max, col min, col max] and returns how many landed."""
     mode = int(s[S_MODE])
@@ -483,13 +635,22 @@ def kernel(s, key, count, tab, rot, grot, texture, rows, cols, wts, box):
     kk = np.empty(BLOCK, np.int32)
     flag = np.empty(BLOCK, np.bool_)
     corner_of = np.empty(BLOCK, np.bool_)
+    ia = np.empty(BLOCK, np.int64)
+    icf = np.empty(BLOCK, np.int64)
+    sobol = s[S_SOBOL] != 0.0
+    if sobol:
+        seeds, shifts, jtab = sobol_tables(s, key)
+    else:
+        seeds, shifts, jtab = np.zeros(4, np.uint64), np.zeros((1, 4), np.uint64), np.zeros((1, 4), np.uint64)
     nout = 0
     for start in range(0, count, BLOCK):
         m = min(BLOCK, count - start)
+        if sobol:
+            sobol_draws(start, m, s, seeds, shifts, jtab, g, ia, icf)
         if mode == IMAGE_SIDE:
-            stage1_image_side(start, m, s, key, buf, fres, texture, g)
+            m = stage1_image_side(start, m, s, key, buf, fres, texture, g, sobol, kappa)
         else:
-            stage1_forward(start, m, mode, s, key, buf, fres, texture)
+            stage1_forward(start, m, mode, s, key, buf, fres, texture, g, sobol)
         if texture is not None:
             for j in range(m):
                 buf[6, j] *= texel(texture, buf[7, j], buf[8, j], tex_hx, tex_hy)
@@ -513,7 +674,8 @@ def bin_hits(rows, cols, wts, n, box):
 class FastCamera:
     """Packs a `raytrace.Camera` into the flat tables the kernel reads; one per Renderer."""
 
-    def __init__(self, camera, image_region, source_region, texture_half_mm) -> None:
+    def __init__(self, camera, image_region, source_region, texture_half_mm, cells=None) -> None:
+        """`cells` (a scene.CellGrid) switches on the low-discrepancy sampler."""
         mla, main, cfg = camera.mla, camera.main, camera.cfg
         self.tab = np.ascontiguousarray(np.stack([mla.fx, mla.fy, mla.dx, mla.dy, mla.c1, mla.c2, mla.z_rear]))
         # None (not an identity) where unused: Numba then compiles a kernel without those branches.
@@ -530,14 +692,26 @@ class FastCamera:
         s[S_SHIFTX], s[S_SHIFTY] = camera.shift_x, camera.shift_y
         s[S_PIX], s[S_SX0], s[S_SY0], s[S_W], s[S_H] = camera.pixel, camera.sx0, camera.sy0, camera.width, camera.height
         s[S_INVP], s[S_INVPIX] = 1.0 / mla.p, 1.0 / camera.pixel
+        if cells is not None:
+            s[S_SOBOL], s[S_CB], s[S_CBW] = 1.0, 1.0, 1.0  # point and object-side batches: one "cell"
+            s[S_R00], s[S_R01], s[S_R10], s[S_R11] = cells.r00, cells.r01, cells.r10, cells.r11
+            self.padded_cols = cells.padded_cols
+            rp = image_region.exit_radius_mm
+            sq = cells.square_half_mm or rp
+            s[S_INVKR2], s[S_SQUARE], s[S_SQW] = 1.0 / (cells.kappa_r_mm * cells.kappa_r_mm), sq, FOUR_OVER_PI * (sq / rp) ** 2
+        self.kappa = np.asarray(cells.kappa if cells is not None else (1.0, 0.0, 0.0, 0.0), dtype=np.float64)
         self.base = s
         self.image_region = image_region
         self.source_region = source_region
 
-    def trace_hits(self, mode: int, key: int, n: int, tile=None, point=None, texture=None):
-        """Trace one batch; (row, col, weight) of the rays that reached the sensor and their bounding box."""
+    def trace_hits(self, mode: int, key: int, n: int, tile=None, point=None, texture=None, cells=None):
+        """Trace one batch; (row, col, weight) of the rays that reached the sensor and their bounding box.
+        `cells` = (row0, col0, rows, cols, first point) of a stratified image-side job."""
         s = self.base.copy()
         s[S_MODE] = mode
+        if cells is not None:
+            s[S_CR0], s[S_CC0], bh, s[S_CBW], s[S_J0] = cells
+            s[S_CB], s[S_PCOLS] = bh * cells[3], self.padded_cols
         if mode == IMAGE_SIDE:
             s[S_ZSTART], s[S_ZEXIT], s[S_RPUPIL] = self.image_region.z_mla_mm, self.image_region.z_exit_mm, self.image_region.exit_radius_mm
         else:
@@ -553,16 +727,16 @@ class FastCamera:
         cols = np.empty(n, np.int32)
         w = np.empty(n)
         box = np.array([2 ** 31, -1, 2 ** 31, -1], np.int64)
-        k = kernel(s, np.uint64(key), n, self.tab, self.rot, self.grot, tex, rows, cols, w, box)
+        k = kernel(s, np.uint64(key), n, self.tab, self.rot, self.grot, tex, self.kappa, rows, cols, w, box)
         return rows[:k], cols[:k], w[:k], box
 
-    def trace(self, mode: int, key: int, n: int, tile=None, point=None, texture=None):
+    def trace(self, mode: int, key: int, n: int, tile=None, point=None, texture=None, cells=None):
         """Trace one batch; returns (flat pixel index, weight) of the rays that reached the sensor, in ray order."""
-        rows, cols, w, _ = self.trace_hits(mode, key, n, tile, point, texture)
+        rows, cols, w, _ = self.trace_hits(mode, key, n, tile, point, texture, cells)
         return rows.astype(np.int64) * int(self.base[S_W]) + cols, w
 
-    def trace_binned(self, mode: int, key: int, n: int, tile=None, point=None, texture=None):
+    def trace_binned(self, mode: int, key: int, n: int, tile=None, point=None, texture=None, cells=None):
         """Trace one batch and sum it per pixel: (row0, col0, patch, hits) over the hits' bounding box."""
-        rows, cols, w, box = self.trace_hits(mode, key, n, tile, point, texture)
+        rows, cols, w, box = self.trace_hits(mode, key, n, tile, point, texture, cells)
         patch = bin_hits(rows, cols, w, len(w), box)
         return (int(box[0]), int(box[2]), patch, len(w)) if len(w) else (0, 0, patch, 0)

@@ -1,4 +1,11 @@
-"""Monte-Carlo rendering of raw images: batched, threaded, seeded, memory-bounded.
+"""Monte-Carlo and quasi-Monte-Carlo rendering of raw images: batched, threaded, seeded, memory-bounded.
+
+Two samplers (config `trace.sampler`). 'sobol' (default) stratifies plane scenes per microlens: every
+cell of the MLA (one ring of padding cells included) gets the same number of rays, whose start in the cell
+and point on the rear aperture are a scrambled Sobol sequence shifted per cell (`mlaqc.optics.lowdisc`);
+a job is a block of cells and a range of point indices, so a cell's points are the same whatever the
+batching. 'random' is plain Monte-Carlo (the test oracle): tiles of the MLA's bounding box with uniform
+draws per batch.
 
 Plane scenes are sampled from the image side (see `mlaqc.optics.scene`); the MLA area is cut into tiles, one
 batch of rays per tile (stratified sampling: each batch lands on a compact patch of the sensor, so it is
@@ -25,10 +32,11 @@ from mlaqc.optics import raytrace_kernels
 from mlaqc.optics.config import CameraConfig
 from mlaqc.optics.errormap import ErrorMap
 from mlaqc.errors import InputError
+from mlaqc.optics import lowdisc
 from mlaqc.optics.raytrace import Camera, Rays
 from mlaqc.optics.unitcircle import counter_uniforms
-from mlaqc.optics.scene import (ImageRegion, PointScene, Scene, SourceRegion, TextureScene, WhiteScene, sample_image_side,
-                         sample_plane, sample_points, texture_weight)
+from mlaqc.optics.scene import (CellGrid, ImageRegion, PointScene, Scene, SourceRegion, TextureScene, WhiteScene,
+                                sample_image_cells, sample_image_side, sample_plane, sample_points, texture_weight)
 
 Progress = Callable[[int, int], None]
 MAX_RAYS = 10 ** 11
@@ -49,8 +57,9 @@ class RenderResult:
 class _Job:
     index: int
     n: int
-    tile: tuple[float, float, float, float] | None  # plane scenes
+    tile: tuple[float, float, float, float] | None  # plane scenes, random sampler
     point: tuple[float, float] | None  # point scenes
+    cells: tuple[int, int, int, int, int] | None = None  # plane scenes, sobol: row0, col0, rows, cols, first point
 
 
 def _mla_half_extent(camera: Camera) -> tuple[float, float]:
@@ -60,6 +69,50 @@ def _mla_half_extent(camera: Camera) -> tuple[float, float]:
     hy = 0.5 * cfg.mla.count_h * cfg.mla.pitch_um * 1e-3
     angle = math.radians(abs(camera.errors.globals["mla_rotation_deg"]))
     return hx * math.cos(angle) + hy * math.sin(angle), hy * math.cos(angle) + hx * math.sin(angle)
+
+
+def cell_grid(camera: Camera, region: ImageRegion) -> CellGrid:
+    """The MLA's cells in its own frame, the map of that frame onto the start plane, and the aperture
+    shift that keeps a pixel's preimage a box (see CellGrid)."""
+    mla, rot = camera.mla, camera.rot
+    kappa, r_max, reach = aperture_shift(camera.cfg, region)
+    return CellGrid(mla.x0, mla.y0, mla.p, mla.rows, mla.cols, float(rot[0, 0]), float(rot[0, 1]),
+                    float(rot[1, 0]), float(rot[1, 1]), camera.shift_x, camera.shift_y,
+                    kappa, r_max, region.exit_radius_mm + 1.001 * reach)
+
+
+def aperture_shift(cfg: CameraConfig, region: ImageRegion, n: int = 33) -> tuple[tuple[float, ...], float, float]:
+    """kappa(r) for the design lens nearest the axis: a ray that starts r (mm) from its cell centre and
+    leaves the aperture kappa(r) r further over lands where the ray through the centre does (paraxially
+    kappa is 1; the microlens' spherical aberration makes it fall to about -15 at the corner for Table 1).
+    Measured by tracing the design camera (no errors) along the cell's diagonal, fitted by a cubic in
+    (r / r_max)^2 (within 0.005; any kappa keeps the estimate unbiased, a close one keeps it smooth).
+    Returns the coefficients, r_max (the cell's corner) and the largest shift |kappa(r) r| (mm)."""
+    cam = Camera(cfg)
+    mla = cam.mla
+    cx = mla.x0 + (mla.cols // 2 + 0.5) * mla.p
+    cy = mla.y0 + (mla.rows // 2 + 0.5) * mla.p
+    r_max = 0.5 * math.sqrt(2.0) * mla.p
+    radii = np.linspace(1e-3, 1.0, n) * r_max
+    step = 1e-3 * region.exit_radius_mm
+    d = radii / math.sqrt(2.0)  # along the diagonal, so that every radius up to the corner is in the cell
+    mx = np.concatenate([cx + d, [cx, cx, cx]])
+    my = np.concatenate([cy + d, [cy, cy, cy]])
+    ax = np.concatenate([np.zeros(n), [0.0, step, -step]])
+    dz = region.z_mla_mm - region.z_exit_mm
+    dx, dy = mx - ax, my
+    inv = 1.0 / np.sqrt(dx * dx + dy * dy + dz * dz)
+    r = Rays(mx, my, np.full(len(mx), region.z_mla_mm), dx * inv, dy * inv, dz * inv, np.ones(len(mx)))
+    cam.trace_behind_main(r)
+    x0, gain = r.x[n], (r.x[n + 2] - r.x[n + 1]) / (2.0 * step)  # landing moves gain per mm of aperture
+    with np.errstate(invalid="ignore", divide="ignore"):
+        kappa = (r.x[:n] - x0) / (d * gain)
+    ok = (r.w[:n] > 0) & np.isfinite(kappa)
+    if ok.sum() < 8 or not (np.isfinite(gain) and gain != 0.0):
+        return (1.0, 0.0, 0.0, 0.0), r_max, r_max
+    coef = np.polynomial.polynomial.polyfit((radii[ok] / r_max) ** 2, kappa[ok], 3)
+    fit = np.polynomial.polynomial.polyval((radii / r_max) ** 2, coef)
+    return tuple(float(c) for c in coef), r_max, float(np.max(np.abs(fit * radii)))
 
 
 def image_region(camera: Camera) -> ImageRegion:
@@ -114,6 +167,7 @@ def ray_count(cfg: CameraConfig, rays: int | None, rays_per_pixel: float | None)
     return rays
 
 
+MIN_JOB_CELLS = 64
 PATCH_PIXELS = 1 << 22  # at most about this many sensor pixels per tile (a 32 MiB patch in flight)
 
 
@@ -139,6 +193,25 @@ def _plane_jobs(region: SourceRegion | ImageRegion, total: int, batch: int, sens
     return jobs
 
 
+def _cell_jobs(cells: CellGrid, total: int, batch: int, pixels_per_cell: float) -> tuple[list[_Job], int]:
+    """Blocks of padded cells with a range of point indices each, about `batch` rays a job; every cell gets
+    the same k = round(total / cells) rays. Returns the jobs and k."""
+    n_cells = cells.padded_rows * cells.padded_cols
+    k = max(1, round(total / n_cells))
+    # at least MIN_JOB_CELLS cells a job, so that a point's scramble is shared by that many rays
+    per_job = max(MIN_JOB_CELLS, min(batch // k, int(PATCH_PIXELS / pixels_per_cell)))
+    bw = max(1, min(cells.padded_cols, round(math.sqrt(per_job))))
+    bh = max(1, min(cells.padded_rows, per_job // bw))
+    span = max(1, min(k, batch // (bw * bh)))
+    jobs = []
+    for r0 in range(-1, cells.rows + 1, bh):
+        for c0 in range(-1, cells.cols + 1, bw):
+            h, w = min(bh, cells.rows + 1 - r0), min(bw, cells.cols + 1 - c0)
+            for j0 in range(0, k, span):
+                jobs.append(_Job(len(jobs), h * w * min(span, k - j0), None, None, (r0, c0, h, w, j0)))
+    return jobs, k
+
+
 def _point_jobs(scene: PointScene, total: int, batch: int) -> list[_Job]:
     """Batches of rays per point source, rays shared equally among points."""
     per_point = max(1, total // len(scene.points_mm))
@@ -156,9 +229,12 @@ class Renderer:
     """Renders one camera (config + error map) for any scene; reusable across frames."""
 
     def __init__(self, cfg: CameraConfig, errors: ErrorMap | None = None, sampling: str = "image",
-                 engine: str | None = None) -> None:
+                 engine: str | None = None, sampler: str | None = None) -> None:
         if sampling not in ("image", "object"):
             raise ValueError(f"sampling must be 'image' or 'object', got {sampling!r}")
+        self.sampler = sampler or cfg.trace.sampler
+        if self.sampler not in ("sobol", "random"):
+            raise ValueError(f"sampler must be 'sobol' or 'random', got {self.sampler!r}")
         engine = engine or cfg.trace.engine
         if engine == "auto":
             engine = "numba" if raytrace_kernels.AVAILABLE else "numpy"
@@ -170,10 +246,12 @@ class Renderer:
         self.sampling = sampling
         self.region = source_region(self.camera)
         self.image_region = image_region(self.camera)
+        self.cells = cell_grid(self.camera, self.image_region)
         mag = self.region.magnification
         hx, hy = _mla_half_extent(self.camera)
         self.texture_half_mm = (hx / mag, hy / mag)  # a texture spans the object-side conjugate of the MLA
-        self.fast = (raytrace_kernels.FastCamera(self.camera, self.image_region, self.region, self.texture_half_mm)
+        self.fast = (raytrace_kernels.FastCamera(self.camera, self.image_region, self.region, self.texture_half_mm,
+                                                 self.cells if self.sampler == "sobol" else None)
                      if engine == "numba" else None)
 
     def render(self, scene: Scene, *, rays: int | None = None, rays_per_pixel: float | None = None,
@@ -182,15 +260,11 @@ class Renderer:
         start = time.perf_counter()
         total = ray_count(self.cfg, rays, rays_per_pixel)
         batch = self.cfg.trace.batch_rays
-        if isinstance(scene, PointScene):
-            if not scene.points_mm:
-                raise InputError("a point scene needs at least one point")
-            jobs = _point_jobs(scene, total, batch)
-        else:
-            jobs = _plane_jobs(self.image_region if self.sampling == "image" else self.region, total, batch,
-                               self.cfg.sensor.width_px * self.cfg.sensor.height_px)
+        jobs = self.jobs(scene, total)
         total = sum(j.n for j in jobs)
         keys = np.random.SeedSequence(seed).generate_state(len(jobs), np.uint64)
+        if jobs and jobs[0].cells is not None:  # one key: a cell's shift must not depend on how it was batched
+            keys[:] = keys[0]
         h, w = self.cfg.sensor.height_px, self.cfg.sensor.width_px
         image = np.zeros((h, w))
         landed = done = 0
@@ -220,33 +294,63 @@ class Renderer:
         image *= self._photons_per_weight(scene, total)
         return RenderResult(image, total, landed, time.perf_counter() - start, seed)
 
+    def jobs(self, scene: Scene, total: int) -> list[_Job]:
+        """The batches `total` rays of `scene` are traced in (their order fixes the sum's order)."""
+        batch = self.cfg.trace.batch_rays
+        if isinstance(scene, PointScene):
+            if not scene.points_mm:
+                raise InputError("a point scene needs at least one point")
+            return _point_jobs(scene, total, batch)
+        if self.sampler == "sobol" and self.sampling == "image":
+            return _cell_jobs(self.cells, total, batch, self.cfg.layout.subimage_pitch_px ** 2)[0]
+        return _plane_jobs(self.image_region if self.sampling == "image" else self.region, total, batch,
+                           self.cfg.sensor.width_px * self.cfg.sensor.height_px)
+
     def _trace_job(self, scene: Scene, job: _Job, key: int):
         """Sample, trace and bin one batch; returns the patch of the sensor it touched."""
         if self.fast is not None:  # traced and binned in compiled code, no (index, weight) arrays in Python
             texture = scene.radiance if isinstance(scene, TextureScene) else None
-            return self.fast.trace_binned(self._fast_mode(job.point), key, job.n, job.tile, job.point, texture)
-        idx, wts = self.trace_batch(scene, key, job.n, job.tile, job.point)
+            return self.fast.trace_binned(self._fast_mode(job.point), key, job.n, job.tile, job.point, texture,
+                                          job.cells)
+        idx, wts = self.trace_batch(scene, key, job.n, job.tile, job.point, job.cells)
         return _bin_patch(idx, wts, self.cfg.sensor.width_px)
 
-    def trace_batch(self, scene: Scene, key: int, n: int, tile=None, point=None):
-        """Trace n rays drawn with `key`; (flat pixel index, weight) of those that reached the sensor."""
+    def trace_batch(self, scene: Scene, key: int, n: int, tile=None, point=None, cells=None):
+        """Trace n rays drawn with `key`; (flat pixel index, weight) of those that reached the sensor.
+        `cells` (sobol, image side): the job's block of cells and first point, instead of a tile."""
         texture = scene.radiance if isinstance(scene, TextureScene) else None
         if self.fast is not None:
-            return self.fast.trace(self._fast_mode(point), key, n, tile, point, texture)
-        u = counter_uniforms(key, n, 2 if point is not None else 4)
+            return self.fast.trace(self._fast_mode(point), key, n, tile, point, texture, cells)
+        sobol = self.sampler == "sobol"
+        if cells is not None:
+            r = self._sample_cells(key, n, cells)
+        elif sobol:
+            u = lowdisc.batch_uniforms(key, n, 2 if point is not None else 4)
+        else:
+            u = counter_uniforms(key, n, 2 if point is not None else 4)
         if point is not None:
-            r = sample_points(self.region, u, *point)
+            r = sample_points(self.region, u, *point, square=sobol)
             self.camera.trace(r)
         elif self.sampling == "image":
-            r = sample_image_side(self.image_region, u, tile)
+            if cells is None:
+                r = sample_image_side(self.image_region, u, tile)
             self._weigh_by_main_lens(scene, r)
             self.camera.trace_behind_main(r)
         else:
-            r = sample_plane(self.region, u, tile)
+            r = sample_plane(self.region, u, tile, square=sobol)
             if texture is not None:
                 r.w *= texture_weight(scene, *self.texture_half_mm, r.x, r.y)
             self.camera.trace(r)
         return self.camera.pixel_index(r)
+
+    def _sample_cells(self, key: int, n: int, cells: tuple[int, int, int, int, int]) -> Rays:
+        """Rays i < n of a cell job: point j0 + i // (rows*cols) of cell i % (rows*cols) of the block."""
+        r0, c0, bh, bw, j0 = cells
+        i = np.arange(n)
+        q, cf = np.divmod(i, bh * bw)
+        row, col = r0 + cf // bw, c0 + cf % bw
+        u = lowdisc.cell_uniforms(key, j0 + q, self.cells.cell_id(row, col))
+        return sample_image_cells(self.image_region, self.cells, u, row.astype(np.float64), col.astype(np.float64))
 
     def _fast_mode(self, point) -> int:
         return (raytrace_kernels.POINT if point is not None else
@@ -265,7 +369,9 @@ class Renderer:
         """Photons one unit of ray weight stands for, so that pixels read physical photon counts."""
         if isinstance(scene, PointScene):
             return scene.photons * len(scene.points_mm) / total
-        if self.sampling == "image":
+        if self.sampling == "image" and self.sampler == "sobol":
+            image_area = self.cells.area_mm2
+        elif self.sampling == "image":
             image_area = 4 * self.image_region.half_x_mm * self.image_region.half_y_mm
         else:  # same radiometric unit: object area seen through the front disc instead of the MLA through the rear
             reg, lay = self.region, self.camera.layout

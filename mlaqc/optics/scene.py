@@ -102,6 +102,58 @@ class ImageRegion:
     center_y_mm: float = 0.0
 
 
+@dataclass(frozen=True)
+class CellGrid:
+    """The MLA's cells, one ring of padding cells included, as the stratified image-side sampler draws them.
+
+    Cell (row, col), -1 <= row <= rows and -1 <= col <= cols, is the square [x0 + col*p, x0 + (col+1)*p) x
+    [y0 + row*p, ...) of the MLA frame; (x, y) of the MLA frame map to the start plane (camera frame, z of
+    the MLA) by the MLA's rotation and shift, projected along the axis (area scale |det| of that 2 x 2 map).
+
+    The aperture point is drawn as a' on a square of half-side `square_half_mm` and moved by kappa(|h|) h,
+    h the start's offset from its cell centre: a ray then lands where the ray from a' through the cell
+    centre would, up to the microlens' aberration left over by the design lens' kappa (see
+    render.aperture_shift). A pixel's preimage is so nearly a box in a' alone, which the Sobol
+    points fill evenly, instead of a region whose edges move with the start point. For each start the
+    shift is a translation (uniform density), so the estimate stays unbiased whatever kappa is.
+    """
+
+    x0_mm: float
+    y0_mm: float
+    pitch_mm: float
+    rows: int
+    cols: int
+    r00: float = 1.0
+    r01: float = 0.0
+    r10: float = 0.0
+    r11: float = 1.0
+    shift_x_mm: float = 0.0
+    shift_y_mm: float = 0.0
+    kappa: tuple[float, float, float, float] = (1.0, 0.0, 0.0, 0.0)  # polynomial in (r / kappa_r_mm)^2
+    kappa_r_mm: float = 1.0
+    square_half_mm: float = 0.0  # 0: the rear aperture's radius
+
+    @property
+    def padded_cols(self) -> int:
+        return self.cols + 2
+
+    @property
+    def padded_rows(self) -> int:
+        return self.rows + 2
+
+    @property
+    def area_mm2(self) -> float:
+        """Start-plane area of all padded cells."""
+        det = abs(self.r00 * self.r11 - self.r01 * self.r10)
+        return self.padded_cols * self.padded_rows * self.pitch_mm ** 2 * det
+
+    def cell_id(self, row, col):
+        """Flat index of padded cell (row, col) (row, col from -1)."""
+        return (row + 1) * self.padded_cols + (col + 1)
+
+
+FOUR_OVER_PI = 4.0 / np.pi  # square around a disc over the disc: the weight of a ray drawn on the square
+
 # Samplers take their uniform draws `u` (shape (4, n) or (2, n), values in [0, 1)) from the caller, so the
 # NumPy reference path and the compiled fast path trace exactly the same rays.
 
@@ -123,32 +175,72 @@ def sample_image_side(region: ImageRegion, u: np.ndarray, tile: tuple[float, flo
     return Rays(px, py, np.full(len(px), region.z_mla_mm), dx * inv, dy * inv, cos_t, (cos_t * cos_t) * (cos_t * cos_t))
 
 
-def sample_plane(region: SourceRegion, u: np.ndarray, tile: tuple[float, float, float, float]) -> Rays:
-    """Rays from points uniform in `tile` (x0, x1, y0, y1 in mm) on the object plane towards the pupil, weight cos^4."""
+def sample_image_cells(region: ImageRegion, cells: CellGrid, u: np.ndarray, row: np.ndarray, col: np.ndarray) -> Rays:
+    """As `sample_image_side`, for the stratified sampler: u[2], u[3] place the ray's start in its MLA cell
+    (row, col), u[0], u[1] a point a' uniform on a square around the rear aperture disc, moved as CellGrid
+    says; points outside the disc get weight 0, those inside the square's area over the disc's, so that
+    the mean over the square is the mean over the disc."""
+    p = cells.pitch_mm
+    mx = cells.x0_mm + (col + u[2]) * p
+    my = cells.y0_mm + (row + u[3]) * p
+    px = cells.r00 * mx + cells.r01 * my + cells.shift_x_mm
+    py = cells.r10 * mx + cells.r11 * my + cells.shift_y_mm
+    hx, hy = (u[2] - 0.5) * p, (u[3] - 0.5) * p
+    k0, k1, k2, k3 = cells.kappa
+    rho2 = (hx * hx + hy * hy) * (1.0 / (cells.kappa_r_mm * cells.kappa_r_mm))
+    k = k0 + rho2 * (k1 + rho2 * (k2 + rho2 * k3))
+    rp = region.exit_radius_mm
+    sq = cells.square_half_mm or rp
+    ax = sq * (2.0 * u[0] - 1.0) + k * (cells.r00 * hx + cells.r01 * hy)
+    ay = sq * (2.0 * u[1] - 1.0) + k * (cells.r10 * hx + cells.r11 * hy)
+    dx = px - ax
+    dy = py - ay
+    dz = region.z_mla_mm - region.z_exit_mm
+    inv = 1.0 / np.sqrt(dx * dx + dy * dy + dz * dz)
+    cos_t = dz * inv
+    inside = ax * ax + ay * ay <= rp * rp
+    w = np.where(inside, (cos_t * cos_t) * (cos_t * cos_t) * (FOUR_OVER_PI * (sq / rp) ** 2), 0.0)
+    return Rays(px, py, np.full(len(px), region.z_mla_mm), dx * inv, dy * inv, cos_t, w)
+
+
+def sample_plane(region: SourceRegion, u: np.ndarray, tile: tuple[float, float, float, float],
+                 square: bool = False) -> Rays:
+    """Rays from points uniform in `tile` (x0, x1, y0, y1 in mm) on the object plane towards the pupil, weight
+    cos^4. `square`: the stratified sampler's layout (u[0], u[1] on the pupil's square, u[2], u[3] the point)."""
     x0, x1, y0, y1 = tile
+    if square:
+        return _towards_pupil(region, u[:2], x0 + (x1 - x0) * u[2], y0 + (y1 - y0) * u[3], power=4, square=True)
     return _towards_pupil(region, u[2:], x0 + (x1 - x0) * u[0], y0 + (y1 - y0) * u[1], power=4)
 
 
-def sample_points(region: SourceRegion, u: np.ndarray, x_mm: float, y_mm: float) -> Rays:
+def sample_points(region: SourceRegion, u: np.ndarray, x_mm: float, y_mm: float, square: bool = False) -> Rays:
     """Rays from one isotropic point towards the pupil, weight cos^3."""
     n = u.shape[1]
-    return _towards_pupil(region, u, np.full(n, x_mm), np.full(n, y_mm), power=3)
+    return _towards_pupil(region, u, np.full(n, x_mm), np.full(n, y_mm), power=3, square=square)
 
 
-def _towards_pupil(region: SourceRegion, u: np.ndarray, ox: np.ndarray, oy: np.ndarray, power: int) -> Rays:
-    """Rays from (ox, oy, z_object) to points uniform on the pupil disc at z = 0 (u: two rows of draws)."""
+def _towards_pupil(region: SourceRegion, u: np.ndarray, ox: np.ndarray, oy: np.ndarray, power: int,
+                   square: bool = False) -> Rays:
+    """Rays from (ox, oy, z_object) to points uniform on the pupil disc at z = 0 (u: two rows of draws);
+    `square`: points uniform on the square around the disc, weight 4/pi on the disc and 0 off it."""
     n = len(ox)
-    rad = region.pupil_radius_mm * np.sqrt(u[0])
-    cph, sph = cos_sin_2pi(u[1])
-    dx = rad * cph - ox
-    dy = rad * sph - oy
+    rp = region.pupil_radius_mm
+    if square:
+        ax, ay = rp * (2.0 * u[0] - 1.0), rp * (2.0 * u[1] - 1.0)
+        keep = np.where(ax * ax + ay * ay <= rp * rp, FOUR_OVER_PI, 0.0)
+    else:
+        rad = rp * np.sqrt(u[0])
+        cph, sph = cos_sin_2pi(u[1])
+        ax, ay, keep = rad * cph, rad * sph, 1.0
+    dx = ax - ox
+    dy = ay - oy
     dz = -region.z_object_mm
     inv = 1.0 / np.sqrt(dx * dx + dy * dy + dz * dz)
     cos_t = dz * inv
     w = cos_t * cos_t * cos_t
     if power == 4:
         w = w * cos_t
-    return Rays(ox, oy, np.full(n, region.z_object_mm), dx * inv, dy * inv, cos_t, w)
+    return Rays(ox, oy, np.full(n, region.z_object_mm), dx * inv, dy * inv, cos_t, w * keep)
 
 
 def texture_weight(scene: TextureScene, half_x_mm: float, half_y_mm: float, ox: np.ndarray, oy: np.ndarray) -> np.ndarray:
