@@ -21,6 +21,7 @@ COMMAND_MODULES = (
     "mlaqc.commands.errormap",
     "mlaqc.commands.calibrate",
     "mlaqc.commands.inspect",
+    "mlaqc.commands.models",
     "mlaqc.commands.demo",
     "drivers.commands",
     "gui.commands",

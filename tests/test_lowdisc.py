@@ -132,7 +132,7 @@ def test_point_source_agrees_with_monte_carlo():
 
 def test_stratified_sampler_lowers_pixel_noise_at_equal_rays():
     """Pixel noise over the lit pixels from two seeds: at 100 rays per pixel the Sobol sampler is
-    measured at about 2.5x below plain Monte-Carlo (bench/sampling.py prints the curve)."""
+    measured at 3.5x below plain Monte-Carlo (bench/sampling.py prints the curve)."""
     noise = {}
     for sampler in ("random", "sobol"):
         r = Renderer(SMALL, sampler=sampler)
@@ -140,15 +140,16 @@ def test_stratified_sampler_lowers_pixel_noise_at_equal_rays():
         m = 0.5 * (a + b)
         lit = m > 0.5 * np.percentile(m, 99)
         noise[sampler] = np.std((a - b)[lit]) / np.sqrt(2) / m[lit].mean()
-    assert noise["random"] > 2.0 * noise["sobol"], noise
+    assert noise["random"] > 3.0 * noise["sobol"], noise
 
 
-def test_aperture_shift_is_paraxially_one():
+def test_aperture_shift_is_paraxially_the_start_offset():
     """Near a cell's centre a ray started h off and aimed h further over on the aperture lands where the
-    central ray does: kappa(0) = 1; the microlens' spherical aberration pulls it down at larger radii."""
+    central ray does (Phi = h: c0 = 1); the microlens' spherical aberration pulls the shift back towards the
+    cell's rim (c1 < 0) and its coma makes it depend on where on the aperture the ray leaves (c4 != 0)."""
     r = Renderer(SMALL, engine="numpy")
     coef, r_max, reach = aperture_shift(SMALL, r.image_region)
-    assert coef[0] == pytest.approx(1.0, abs=0.01)
-    kappa_edge = np.polynomial.polynomial.polyval(0.5, coef)
-    assert kappa_edge < 0.5 and r_max == pytest.approx(0.05 * np.sqrt(2))
-    assert r.cells.square_half_mm > r.image_region.exit_radius_mm
+    assert coef[0] == pytest.approx(1.0, abs=0.02)
+    assert coef[1] < -5 and abs(coef[4]) > 1
+    assert r_max == pytest.approx(0.05 * np.sqrt(2))
+    assert r.cells.square_half_mm > r.image_region.exit_radius_mm + reach

@@ -206,8 +206,8 @@ def test_radius_error_defocuses_the_subimage_about_the_aberrated_best_focus():
 
 def test_global_sensor_distance_error_changes_every_subimage_alike():
     em = ErrorMap.zeros(24, 24).with_globals(mla_sensor_distance_um=30.0)
-    base = Renderer(SMALL).render(WhiteScene(), rays_per_pixel=10, seed=3).photons
-    img = Renderer(SMALL, em).render(WhiteScene(), rays_per_pixel=10, seed=3).photons
+    base = Renderer(SMALL).render(WhiteScene(), rays_per_pixel=60, seed=3).photons
+    img = Renderer(SMALL, em).render(WhiteScene(), rays_per_pixel=60, seed=3).photons
     _, cy = centroids(base, SMALL)
     _, cy2 = centroids(img, SMALL)
     # a farther sensor spreads the sub-image grid: pitch grows by (b + f + dz) / (b + f)
@@ -216,7 +216,9 @@ def test_global_sensor_distance_error_changes_every_subimage_alike():
     ratio = (lay.pupil_to_mla_mm + f + 0.030) / (lay.pupil_to_mla_mm + f)
     p0 = np.polyfit(np.arange(24), cy.mean(axis=1), 1)[0]
     p1 = np.polyfit(np.arange(24), cy2.mean(axis=1), 1)[0]
-    assert p1 / p0 == pytest.approx(ratio, abs=5e-5)
+    # paraxial ratio 1.000170; converged renders give 1.000132 (the defocused sub-image's centroid is not
+    # quite its chief ray), and 60 rays per pixel add about 1e-5 of noise
+    assert p1 / p0 == pytest.approx(ratio, abs=7e-5)
 
 
 # --- engines, estimators, energy ---------------------------------------------------------------

@@ -6,6 +6,7 @@ import argparse
 import math
 import sys
 
+from mlaqc.cluster import add_scheduler_option, check_address, connect, scheduler_address
 from mlaqc.errors import InputError
 from mlaqc.optics.config import load_config
 from mlaqc.optics.errormap import ERROR_TYPES, ErrorMap, load_error_map, random_defects
@@ -38,6 +39,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--no-noise", action="store_true", help="write the expected signal without shot/read noise")
     p.add_argument("--threads", type=int, help="worker threads (default: one per core)")
     p.add_argument("--engine", choices=("auto", "numba", "numpy"), help="tracer engine (default: the config's)")
+    p.add_argument("--sampler", choices=("sobol", "random"),
+                   help="sobol: low-discrepancy, stratified per microlens; random: plain Monte-Carlo (default: the config's)")
+    add_scheduler_option(p)
     p.add_argument("--quiet", "-q", action="store_true", help="no progress bar or summary")
     p.set_defaults(func=run)
 
@@ -93,11 +97,17 @@ def run(args: argparse.Namespace) -> int:
     errors = build_errors(args, cfg.mla.count_h, cfg.mla.count_w)
     from mlaqc.optics.render import Renderer
 
-    renderer = Renderer(cfg, errors, engine=args.engine)
+    renderer = Renderer(cfg, errors, engine=args.engine, sampler=args.sampler)
+    address = scheduler_address(args.scheduler)
     bar = ProgressBar("rendering", enabled=False if args.quiet else None)
+    kw = dict(rays=args.rays, rays_per_pixel=args.rays_per_pixel, seed=args.seed, noise=not args.no_noise,
+              threads=args.threads, progress=bar, renderer=renderer)
     try:
-        sim = simulate(cfg, scene, errors, rays=args.rays, rays_per_pixel=args.rays_per_pixel, seed=args.seed,
-                       noise=not args.no_noise, threads=args.threads, progress=bar, renderer=renderer)
+        if address is None:
+            sim = simulate(cfg, scene, errors, **kw)
+        else:
+            with connect(check_address(address), quiet=args.quiet) as client:
+                sim = simulate(cfg, scene, errors, client=client, **kw)
     finally:
         bar.close()
     sidecar = write_simulation(args.out, sim, cfg)

@@ -61,16 +61,18 @@ def cache_dir() -> Path:
     return Path(os.environ.get("MLAQC_CACHE", Path.home() / ".cache" / "mlaqc"))
 
 
-def reference_model(cfg: CameraConfig, *, build_if_missing: bool = True, rays_per_lens: int = 4_000_000) -> ReferenceModel:
-    """The reference for `cfg`: from the package, else the disk cache, else rendered now and cached."""
+def reference_model(cfg: CameraConfig, *, build_if_missing: bool = True, rays_per_lens: int = 4_000_000,
+                    client=None, rebuild: bool = False) -> ReferenceModel:
+    """The reference for `cfg`: from the package, else the disk cache, else rendered now (its full-frame
+    flux render on a Dask `client` if given) and cached; `rebuild` renders it again whatever is stored."""
     key = config_key(cfg)
-    for folder in (PACKAGE_DATA, cache_dir()):
+    for folder in (() if rebuild else (PACKAGE_DATA, cache_dir())):
         path = folder / f"reference_{key}.npz"
         if path.is_file():
             return _load(path, key)
     if not build_if_missing:
         raise FileNotFoundError(f"no reference model for config {key}")
-    model = build_reference(cfg, rays_per_lens=rays_per_lens)
+    model = build_reference(cfg, rays_per_lens=rays_per_lens, client=client)
     try:
         cache_dir().mkdir(parents=True, exist_ok=True)
         save_reference(model, cache_dir() / f"reference_{key}.npz")
@@ -93,7 +95,8 @@ def _load(path: Path, key: str) -> ReferenceModel:
                               z["flux"].astype(np.float64), key)
 
 
-def build_reference(cfg: CameraConfig, *, rays_per_lens: int = 4_000_000, seed: int = 20180501) -> ReferenceModel:
+def build_reference(cfg: CameraConfig, *, rays_per_lens: int = 4_000_000, seed: int = 20180501,
+                    client=None) -> ReferenceModel:
     """Render the reference: the sub-image of the lens nearest the axis on a sensor with pixels 8x finer
     (rays through that lens and its eight neighbours, so the window holds what a real one holds), then
     the flux of every ideal lens from a full-frame render, smoothed by a low-order fit."""
@@ -121,7 +124,7 @@ def build_reference(cfg: CameraConfig, *, rays_per_lens: int = 4_000_000, seed: 
     half = int(np.ceil(0.75 * lay.subimage_pitch_px)) * os_ + os_
     template = _box_filter(_cut(fine_img, cx, cy, half), os_)
     template /= template.max()
-    flux = _flux_map(cfg)
+    flux = _flux_map(cfg, client=client)
     return ReferenceModel(template, float(half), os_, flux, config_key(cfg))
 
 
@@ -160,9 +163,14 @@ def _box_filter(img: np.ndarray, size: int) -> np.ndarray:
     return uniform_filter(img, size, mode="constant")
 
 
-def _flux_map(cfg: CameraConfig, rays_per_pixel: float = 4.0) -> np.ndarray:
+def _flux_map(cfg: CameraConfig, rays_per_pixel: float = 4.0, client=None) -> np.ndarray:
     """Relative flux of every ideal lens: per-cell sums of a white render, fitted by an even quartic."""
-    res = Renderer(cfg).render(WhiteScene(), rays_per_pixel=rays_per_pixel, seed=7)
+    if client is None:
+        res = Renderer(cfg).render(WhiteScene(), rays_per_pixel=rays_per_pixel, seed=7)
+    else:
+        from mlaqc.optics.distributed import render_on_cluster
+
+        res = render_on_cluster(client, Renderer(cfg), WhiteScene(), rays_per_pixel=rays_per_pixel, seed=7)
     rows, cols = cfg.mla.count_h, cfg.mla.count_w
     pitch = cfg.layout.subimage_pitch_px
     h, w = res.photons.shape

@@ -195,35 +195,70 @@ def lens_features(metrics, m: int, n: int, direction_deg: float | None = None) -
                      metrics["blur"][m, n], metrics["flux"][m, n], metrics["ssim"][m, n], metrics["sharpness"][m, n]])
 
 
+def patch_errors(kinds=KINDS) -> list[ErrorMap]:
+    """The patch's error maps in table order: the perfect patch, then each kind at each magnitude on the
+    centre lens."""
+    c = PATCH // 2
+    maps = [ErrorMap.zeros(PATCH, PATCH)]
+    for kind in kinds:
+        maps += [ErrorMap.zeros(PATCH, PATCH).with_lens(c + 1, c + 1, **kind.fields(v)) for v in kind.magnitudes]
+    return maps
+
+
+def _render_patch(patch: CameraConfig, errors: ErrorMap, rays_per_pixel: float, seed: int) -> np.ndarray:
+    return Renderer(patch, errors).render(WhiteScene(), rays_per_pixel=rays_per_pixel, seed=seed).photons
+
+
+def render_patches(cfg: CameraConfig, *, rays_per_pixel: float = 400.0, kinds=KINDS, seed: int = 99, progress=None,
+                   client=None) -> list[np.ndarray]:
+    """The geometric renders of `patch_errors(kinds)`, one after the other on this machine's cores, or
+    one task each on a Dask `client`'s workers (the same images: renders are deterministic)."""
+    patch = patch_config(cfg)
+    maps = patch_errors(kinds)
+    if client is None:
+        images = []
+        for i, errors in enumerate(maps, 1):
+            images.append(_render_patch(patch, errors, rays_per_pixel, seed))
+            if progress:
+                progress(i, len(maps))
+        return images
+    from mlaqc.cluster import TASK_RETRIES, follow
+
+    futures = {client.submit(_render_patch, patch, e, rays_per_pixel, seed, retries=TASK_RETRIES): i
+               for i, e in enumerate(maps)}
+    images: list = [None] * len(maps)
+    for done, (i, img) in enumerate(follow(futures, "rendering signatures", progress=False), 1):
+        images[i] = img
+        if progress:
+            progress(done, len(maps))
+    return images
+
+
 def build_signatures(cfg: CameraConfig, *, rays_per_pixel: float = 400.0, kinds=KINDS, seed: int = 99,
                      model: ReferenceModel | None = None, progress=None,
-                     extra_blur_px: float | None = None) -> SignatureTable:
+                     extra_blur_px: float | None = None, images: list[np.ndarray] | None = None) -> SignatureTable:
     """Render every kind at every magnitude on the patch and tabulate the feature changes; the images
-    blurred as `BLUR_VARIANTS` says for `extra_blur_px` (None: the geometric image alone)."""
+    blurred as `BLUR_VARIANTS` says for `extra_blur_px` (None: the geometric image alone). `images`:
+    the renders of `render_patches` with the same settings, when they are at hand already."""
     patch = patch_config(cfg)
     model = model or build_reference(patch, rays_per_lens=2_000_000)
     c = PATCH // 2
     um_px = um_per_px_at_mla(patch)
-    images = []
+    if images is None:
+        images = render_patches(cfg, rays_per_pixel=rays_per_pixel, kinds=kinds, seed=seed, progress=progress)
+    images = [_blurred(img, patch, extra_blur_px) for img in images]
 
-    def metrics_for(errors: ErrorMap):
-        img = Renderer(patch, errors).render(WhiteScene(), rays_per_pixel=rays_per_pixel, seed=seed).photons
-        img = _blurred(img, patch, extra_blur_px)
-        images.append(img)
+    def metrics_of(img: np.ndarray):
         win, cx, cy = nominal_windows(img / img.max(), patch)
         return compute_metrics(win, cx, cy, model, um_per_px_at_mla=um_px)
 
-    base = metrics_for(ErrorMap.zeros(PATCH, PATCH))
+    base = metrics_of(images[0])
     edge_width = _edge_width(images[0], patch)
     mags, feats, phi0, rings = {}, {}, {}, {}
-    total, done = sum(len(k.magnitudes) for k in kinds), 0
+    first = 1
     for kind in kinds:
-        mets = []
-        for v in kind.magnitudes:
-            mets.append(metrics_for(ErrorMap.zeros(PATCH, PATCH).with_lens(c + 1, c + 1, **kind.fields(v))))
-            done += 1
-            if progress:
-                progress(done, total)
+        mets = [metrics_of(img) for img in images[first:first + len(kind.magnitudes)]]
+        first += len(kind.magnitudes)
         phi = 0.0
         if kind.directional:  # features are taken along the shift that an error at direction 0 causes
             big = mets[len(mets) // 2:]
@@ -239,16 +274,15 @@ def build_signatures(cfg: CameraConfig, *, rays_per_pixel: float = 400.0, kinds=
                            "extra_blur_px": extra_blur_px, "edge_width_px": edge_width})
 
 
-def build_signature_set(cfg: CameraConfig, *, rays_per_pixel: float = 400.0, progress=None) -> SignatureSet:
-    """`build_signatures` at every blur of BLUR_VARIANTS, one patch reference for all."""
+def build_signature_set(cfg: CameraConfig, *, rays_per_pixel: float = 400.0, progress=None,
+                        client=None) -> SignatureSet:
+    """`build_signatures` at every blur of BLUR_VARIANTS, from one set of renders (on a Dask `client`'s
+    workers if given) and one patch reference for all."""
     model = build_reference(patch_config(cfg), rays_per_lens=2_000_000)
-    per = sum(len(k.magnitudes) for k in KINDS)
-    tables = []
-    for i, blur in enumerate(BLUR_VARIANTS):
-        step = (lambda done, _total, i=i: progress(i * per + done, len(BLUR_VARIANTS) * per)) if progress else None
-        tables.append(build_signatures(cfg, rays_per_pixel=rays_per_pixel, model=model, progress=step,
-                                       extra_blur_px=blur))
-    return SignatureSet(tuple(tables), signature_key(cfg))
+    images = render_patches(cfg, rays_per_pixel=rays_per_pixel, progress=progress, client=client)
+    tables = tuple(build_signatures(cfg, rays_per_pixel=rays_per_pixel, model=model, extra_blur_px=blur, images=images)
+                   for blur in BLUR_VARIANTS)
+    return SignatureSet(tables, signature_key(cfg))
 
 
 def _blurred(img: np.ndarray, cfg: CameraConfig, extra_blur_px: float | None) -> np.ndarray:
@@ -268,16 +302,18 @@ def _edge_width(img: np.ndarray, cfg: CameraConfig) -> float:
     return float(grid.edge_width_px)
 
 
-def signature_table(cfg: CameraConfig, *, build_if_missing: bool = True, progress=None) -> SignatureSet:
-    """The tables for `cfg`'s optics: from the package, else the disk cache, else rendered and cached."""
+def signature_table(cfg: CameraConfig, *, build_if_missing: bool = True, progress=None, client=None,
+                    rebuild: bool = False) -> SignatureSet:
+    """The tables for `cfg`'s optics: from the package, else the disk cache, else rendered (on a Dask
+    `client` if given) and cached; `rebuild` renders them again whatever is stored."""
     key = signature_key(cfg)
-    for folder in (PACKAGE_DATA, cache_dir()):
+    for folder in (() if rebuild else (PACKAGE_DATA, cache_dir())):
         path = folder / f"signatures_{key}.json"
         if path.is_file():
             return SignatureSet.from_json_dict(json.loads(path.read_text()))
     if not build_if_missing:
         raise FileNotFoundError(f"no signature table for optics {key}")
-    tables = build_signature_set(cfg, progress=progress)
+    tables = build_signature_set(cfg, progress=progress, client=client)
     try:
         cache_dir().mkdir(parents=True, exist_ok=True)
         write_json_atomic(cache_dir() / f"signatures_{key}.json", tables.to_json_dict())

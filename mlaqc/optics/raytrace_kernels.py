@@ -19,6 +19,7 @@ import numpy as np
 
 from mlaqc.optics import lowdisc
 from mlaqc.optics.scene import FOUR_OVER_PI
+from mlaqc.optics.scene import aperture_point as _aperture_point
 from mlaqc.optics.unitcircle import GAMMA, HALF_PI, MIX1, MIX2, TO_UNIT
 from mlaqc.optics.unitcircle import poly_cos as _poly_cos
 from mlaqc.optics.unitcircle import poly_sin as _poly_sin
@@ -48,6 +49,7 @@ reverse32 = _jit_inline(lowdisc.reverse32)
 lk_hash = _jit_inline(lowdisc.lk_hash)
 hash32 = _jit_inline(lowdisc.hash32)
 SOBOL_DIRECTIONS = lowdisc.DIRECTIONS
+aperture_point = _jit_inline(_aperture_point)
 
 # Modes of the kernel.
 IMAGE_SIDE, POINT, OBJECT_SIDE = 0, 1, 2
@@ -59,7 +61,7 @@ IMAGE_SIDE, POINT, OBJECT_SIDE = 0, 1, 2
  # the low-discrepancy sampler: on/off, the job's block of cells (first row and column, width, cells) and
  # first point index, padded cells per row, and the MLA frame's 2 x 2 map to the start plane
  S_SOBOL, S_CR0, S_CC0, S_CBW, S_CB, S_J0, S_PCOLS, S_R00, S_R01, S_R10, S_R11,
- S_INVKR2, S_SQUARE, S_SQW, S_COUNT) = range(53)
+ S_INVKR, S_SQUARE, S_SQW, S_COUNT) = range(53)
 # Rows of the per-block scratch table `g`: the gathered parameters of each ray's lens (tab rows 0..6), its
 # current hit and direction in the lens frame, the distance t to it (NaN on a miss), and its pixel.
 G_FX, G_FY, G_DX, G_DY, G_C1, G_C2, G_ZR, G_HX, G_HY, G_HZ, G_LL, G_LM, G_LN, G_T, G_ROW, G_COL, G_COUNT = range(17)
@@ -255,14 +257,14 @@ def cos_sin_2pi(u):
 
 
 @_jit_inline
-def stage1_image_side(start, m, s, key, buf, fres, texture, g, sobol, kappa):
+def stage1_image_side(start, m, s, key, buf, fres, texture, g, sobol, shift_coef):
     """Rays from the rear aperture to the MLA, traced back through the main lens for their weight.
 
     Branch-free loops (sampling, rear surface, front surface) that vectorize; split because one loop
     holding the whole chain of square roots and divisions was bound by its latency. `g` is scratch and,
     for the low-discrepancy sampler, holds the draws and cells already (sobol_draws)."""
     if sobol and s[S_PCOLS] > 0.0:  # a block of cells
-        cell_starts(m, s, buf, g, kappa)
+        cell_starts(m, s, buf, g, shift_coef)
         m = compact(m, buf)
     else:  # a tile of the MLA's bounding box
         if not sobol:
@@ -289,14 +291,14 @@ def compact(m, buf):
 
 
 @_jit_inline
-def cell_starts(m, s, buf, g, kappa):
-    """Rays of the stratified sampler: start in their MLA cell, aperture point on the square moved by
-    kappa(|h|) h, kappa a cubic in |h|^2 (as scene.sample_image_cells)."""
+def cell_starts(m, s, buf, g, shift_coef):
+    """Rays of the stratified sampler: start in their MLA cell, aperture point a' on the square moved by
+    Phi(h, a'), weight times the Jacobian (as scene.sample_image_cells)."""
     p, ax0, ay0 = s[S_P], s[S_AX0], s[S_AY0]
     r00, r01, r10, r11, shx, shy = s[S_R00], s[S_R01], s[S_R10], s[S_R11], s[S_SHIFTX], s[S_SHIFTY]
     rp, zs, dz = s[S_RPUPIL], s[S_ZSTART], s[S_ZSTART] - s[S_ZEXIT]
-    inv_r2, sq, sqw = s[S_INVKR2], s[S_SQUARE], s[S_SQW]
-    k0, k1, k2, k3 = kappa[0], kappa[1], kappa[2], kappa[3]
+    inv_rm, sq, sqw = s[S_INVKR], s[S_SQUARE], s[S_SQW]
+    inv_ra = 1.0 / rp
     rp2 = rp * rp
     for j in range(m):
         u2, u3 = g[G_HZ, j], g[G_LL, j]
@@ -305,15 +307,14 @@ def cell_starts(m, s, buf, g, kappa):
         x = r00 * mx + r01 * my + shx
         y = r10 * mx + r11 * my + shy
         hx, hy = (u2 - 0.5) * p, (u3 - 0.5) * p
-        rho2 = (hx * hx + hy * hy) * inv_r2
-        k = k0 + rho2 * (k1 + rho2 * (k2 + rho2 * k3))
-        ax = sq * (2.0 * g[G_HX, j] - 1.0) + k * (r00 * hx + r01 * hy)
-        ay = sq * (2.0 * g[G_HY, j] - 1.0) + k * (r10 * hx + r11 * hy)
+        hcx, hcy = r00 * hx + r01 * hy, r10 * hx + r11 * hy
+        bx, by = sq * (2.0 * g[G_HX, j] - 1.0), sq * (2.0 * g[G_HY, j] - 1.0)
+        ax, ay, jac = aperture_point(shift_coef, inv_rm, inv_ra, hcx, hcy, bx, by)
         dx = x - ax
         dy = y - ay
         inv = 1.0 / math.sqrt(dx * dx + dy * dy + dz * dz)
         L, M, N = dx * inv, dy * inv, dz * inv
-        w = (N * N) * (N * N) * sqw
+        w = (N * N) * (N * N) * sqw * jac
         buf[0, j], buf[1, j], buf[2, j], buf[3, j], buf[4, j], buf[5, j] = x, y, zs, L, M, N
         buf[6, j] = w if ax * ax + ay * ay <= rp2 else 0.0
 
@@ -621,7 +622,7 @@ BLOCK = 256  # rays per block: every pass works on a block held in L1
 
 
 @_jit
-def kernel(s, key, count, tab, rot, grot, texture, kappa, rows, cols, wts, box):
+def kernel(s, key, count, tab, rot, grot, texture, shift_coef, rows, cols, wts, box):
     """Trace `count` rays drawn with `key`; appends the (row, col, weight) of those that landed, in ray
     order, grows box = [row min, row max, col min, col max] and returns how many landed."""
     mode = int(s[S_MODE])
@@ -648,7 +649,7 @@ def kernel(s, key, count, tab, rot, grot, texture, kappa, rows, cols, wts, box):
         if sobol:
             sobol_draws(start, m, s, seeds, shifts, jtab, g, ia, icf)
         if mode == IMAGE_SIDE:
-            m = stage1_image_side(start, m, s, key, buf, fres, texture, g, sobol, kappa)
+            m = stage1_image_side(start, m, s, key, buf, fres, texture, g, sobol, shift_coef)
         else:
             stage1_forward(start, m, mode, s, key, buf, fres, texture, g, sobol)
         if texture is not None:
@@ -698,8 +699,8 @@ class FastCamera:
             self.padded_cols = cells.padded_cols
             rp = image_region.exit_radius_mm
             sq = cells.square_half_mm or rp
-            s[S_INVKR2], s[S_SQUARE], s[S_SQW] = 1.0 / (cells.kappa_r_mm * cells.kappa_r_mm), sq, FOUR_OVER_PI * (sq / rp) ** 2
-        self.kappa = np.asarray(cells.kappa if cells is not None else (1.0, 0.0, 0.0, 0.0), dtype=np.float64)
+            s[S_INVKR], s[S_SQUARE], s[S_SQW] = 1.0 / cells.shift_r_mm, sq, FOUR_OVER_PI * (sq / rp) ** 2
+        self.shift_coef = np.asarray(cells.shift_coef if cells is not None else (1.0,) + (0.0,) * 7, dtype=np.float64)
         self.base = s
         self.image_region = image_region
         self.source_region = source_region
@@ -727,7 +728,7 @@ class FastCamera:
         cols = np.empty(n, np.int32)
         w = np.empty(n)
         box = np.array([2 ** 31, -1, 2 ** 31, -1], np.int64)
-        k = kernel(s, np.uint64(key), n, self.tab, self.rot, self.grot, tex, self.kappa, rows, cols, w, box)
+        k = kernel(s, np.uint64(key), n, self.tab, self.rot, self.grot, tex, self.shift_coef, rows, cols, w, box)
         return rows[:k], cols[:k], w[:k], box
 
     def trace(self, mode: int, key: int, n: int, tile=None, point=None, texture=None, cells=None):

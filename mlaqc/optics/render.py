@@ -18,6 +18,7 @@ plus one patch per batch in flight; there is no per-thread copy of the frame.
 
 from __future__ import annotations
 
+import json
 import math
 import os
 import time
@@ -53,6 +54,12 @@ class RenderResult:
     seed: int
 
 
+# A chunk (jobs summed into one partial image before it is added to the frame, and one task on a Dask
+# worker) ends after CHUNK_JOBS jobs or CHUNK_RAYS rays: about 0.5 s of one core, a few MiB of patches.
+CHUNK_JOBS = 64
+CHUNK_RAYS = 1 << 24
+
+
 @dataclass(frozen=True)
 class _Job:
     index: int
@@ -71,48 +78,86 @@ def _mla_half_extent(camera: Camera) -> tuple[float, float]:
     return hx * math.cos(angle) + hy * math.sin(angle), hy * math.cos(angle) + hx * math.sin(angle)
 
 
+_SHIFTS: dict[str, tuple[tuple[float, ...], float, float]] = {}  # aperture_shift per optics (0.1 s to fit)
+
+
 def cell_grid(camera: Camera, region: ImageRegion) -> CellGrid:
     """The MLA's cells in its own frame, the map of that frame onto the start plane, and the aperture
     shift that keeps a pixel's preimage a box (see CellGrid)."""
     mla, rot = camera.mla, camera.rot
-    kappa, r_max, reach = aperture_shift(camera.cfg, region)
+    d = camera.cfg.to_dict()
+    key = json.dumps([d["main_lens"], d["mla"], d["geometry"], d["sensor"], d["trace"]["fresnel"], repr(region)],
+                     sort_keys=True)
+    if key not in _SHIFTS:
+        _SHIFTS[key] = aperture_shift(camera.cfg, region)
+    coef, r_max, reach = _SHIFTS[key]
     return CellGrid(mla.x0, mla.y0, mla.p, mla.rows, mla.cols, float(rot[0, 0]), float(rot[0, 1]),
                     float(rot[1, 0]), float(rot[1, 1]), camera.shift_x, camera.shift_y,
-                    kappa, r_max, region.exit_radius_mm + 1.001 * reach)
+                    coef, r_max, region.exit_radius_mm + 1.01 * reach)
 
 
-def aperture_shift(cfg: CameraConfig, region: ImageRegion, n: int = 33) -> tuple[tuple[float, ...], float, float]:
-    """kappa(r) for the design lens nearest the axis: a ray that starts r (mm) from its cell centre and
-    leaves the aperture kappa(r) r further over lands where the ray through the centre does (paraxially
-    kappa is 1; the microlens' spherical aberration makes it fall to about -15 at the corner for Table 1).
-    Measured by tracing the design camera (no errors) along the cell's diagonal, fitted by a cubic in
-    (r / r_max)^2 (within 0.005; any kappa keeps the estimate unbiased, a close one keeps it smooth).
-    Returns the coefficients, r_max (the cell's corner) and the largest shift |kappa(r) r| (mm)."""
+def aperture_shift(cfg: CameraConfig, region: ImageRegion, n: int = 40_000,
+                   seed: int = 5) -> tuple[tuple[float, ...], float, float]:
+    """Coefficients c of the aperture shift Phi(h, a') (see CellGrid and `shift_terms`) for the design lens
+    nearest the axis: a ray that starts h (mm) from its cell centre towards a' + Phi lands where the ray
+    from a' through the centre does. Fitted by least squares to shifts found by tracing the design camera
+    (no errors; Newton steps on the landing point) at random h in the cell and a' on the aperture; rays
+    that leave the lens' own sub-image (through a corner or into a neighbour) are left out robustly.
+    Paraxially Phi = h; the microlens' spherical aberration and coma (c0..c3 and c4..c5) matter to tenths
+    of a pixel. Returns c, the cell's corner radius r_max and the largest |Phi| over cell and aperture."""
     cam = Camera(cfg)
     mla = cam.mla
     cx = mla.x0 + (mla.cols // 2 + 0.5) * mla.p
     cy = mla.y0 + (mla.rows // 2 + 0.5) * mla.p
-    r_max = 0.5 * math.sqrt(2.0) * mla.p
-    radii = np.linspace(1e-3, 1.0, n) * r_max
-    step = 1e-3 * region.exit_radius_mm
-    d = radii / math.sqrt(2.0)  # along the diagonal, so that every radius up to the corner is in the cell
-    mx = np.concatenate([cx + d, [cx, cx, cx]])
-    my = np.concatenate([cy + d, [cy, cy, cy]])
-    ax = np.concatenate([np.zeros(n), [0.0, step, -step]])
+    r_max, ra = 0.5 * math.sqrt(2.0) * mla.p, region.exit_radius_mm
     dz = region.z_mla_mm - region.z_exit_mm
-    dx, dy = mx - ax, my
-    inv = 1.0 / np.sqrt(dx * dx + dy * dy + dz * dz)
-    r = Rays(mx, my, np.full(len(mx), region.z_mla_mm), dx * inv, dy * inv, dz * inv, np.ones(len(mx)))
-    cam.trace_behind_main(r)
-    x0, gain = r.x[n], (r.x[n + 2] - r.x[n + 1]) / (2.0 * step)  # landing moves gain per mm of aperture
-    with np.errstate(invalid="ignore", divide="ignore"):
-        kappa = (r.x[:n] - x0) / (d * gain)
-    ok = (r.w[:n] > 0) & np.isfinite(kappa)
-    if ok.sum() < 8 or not (np.isfinite(gain) and gain != 0.0):
-        return (1.0, 0.0, 0.0, 0.0), r_max, r_max
-    coef = np.polynomial.polynomial.polyfit((radii[ok] / r_max) ** 2, kappa[ok], 3)
-    fit = np.polynomial.polynomial.polyval((radii / r_max) ** 2, coef)
-    return tuple(float(c) for c in coef), r_max, float(np.max(np.abs(fit * radii)))
+
+    def land(h: np.ndarray, a: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        mx, my = cx + h[0], cy + h[1]
+        dx, dy = mx - a[0], my - a[1]
+        inv = 1.0 / np.sqrt(dx * dx + dy * dy + dz * dz)
+        r = Rays(mx, my, np.full(len(mx), region.z_mla_mm), dx * inv, dy * inv, dz * inv, np.ones(len(mx)))
+        cam.trace_behind_main(r)
+        return np.stack([r.x, r.y]), r.w
+
+    rng = np.random.default_rng(seed)
+    h = (rng.random((2, n)) - 0.5) * mla.p
+    a = (2.0 * rng.random((2, n)) - 1.0) * ra
+    a = a[:, np.hypot(a[0], a[1]) < 0.98 * ra]
+    h = h[:, :a.shape[1]]
+    step = 1e-3 * ra
+    gain = (land(np.zeros((2, 1)), np.array([[step], [0.0]]))[0][0, 0]
+            - land(np.zeros((2, 1)), np.array([[-step], [0.0]]))[0][0, 0]) / (2.0 * step)
+    target, w0 = land(np.zeros_like(h), a)
+    phi = h.copy()
+    with np.errstate(invalid="ignore", over="ignore"):
+        for _ in range(4):
+            got, w = land(h, a + phi)
+            phi += (target - got) / gain
+        basis = shift_terms(h, a, r_max, ra)
+        design = np.concatenate([basis[:, 0], basis[:, 1]], axis=1).T
+        y = np.concatenate([phi[0], phi[1]])
+        good = np.tile((w > 0) & (w0 > 0) & np.isfinite(phi).all(axis=0), 2)
+        coef = np.zeros(design.shape[1])
+        for _ in range(5):  # drop rays that landed in another sub-image (huge shifts), refit
+            coef = np.linalg.lstsq(design[good], y[good], rcond=None)[0]
+            res = np.abs(y - design @ coef)
+            good &= res < 5.0 * np.median(res[good]) + 1e-9
+    if not np.all(np.isfinite(coef)) or good.mean() < 0.5:
+        coef = np.zeros(design.shape[1])
+        coef[0] = 1.0
+    # the largest shift, for a' out to a little beyond the disc (where the square's preimage reaches)
+    reach = float(np.max(np.abs(np.einsum("k,kdn->dn", coef, shift_terms(h, 1.1 * a, r_max, ra)))))
+    return tuple(float(c) for c in coef), r_max, reach
+
+
+def shift_terms(h: np.ndarray, a: np.ndarray, r_max: float, ra: float) -> np.ndarray:
+    """(8, 2, n) vector terms of Phi: h times 1, s1, s1^2, s1^3, s2, s3 and a' times s1, s2, with u = h / r_max,
+    v = a' / ra, s1 = |u|^2, s2 = u.v, s3 = |v|^2 (spherical aberration, coma, field curvature and their
+    mixtures, the terms a rotationally symmetric lens allows to this order)."""
+    u, v = h / r_max, a / ra
+    s1, s2, s3 = (u * u).sum(0), (u * v).sum(0), (v * v).sum(0)
+    return np.stack([h, h * s1, h * s1 ** 2, h * s1 ** 3, h * s2, h * s3, a * s1, a * s2])
 
 
 def image_region(camera: Camera) -> ImageRegion:
@@ -258,41 +303,55 @@ class Renderer:
                seed: int = 0, threads: int | None = None, progress: Progress | None = None) -> RenderResult:
         """Trace `rays` rays of `scene` and return expected photons per pixel."""
         start = time.perf_counter()
-        total = ray_count(self.cfg, rays, rays_per_pixel)
-        batch = self.cfg.trace.batch_rays
-        jobs = self.jobs(scene, total)
-        total = sum(j.n for j in jobs)
-        keys = np.random.SeedSequence(seed).generate_state(len(jobs), np.uint64)
-        if jobs and jobs[0].cells is not None:  # one key: a cell's shift must not depend on how it was batched
-            keys[:] = keys[0]
-        h, w = self.cfg.sensor.height_px, self.cfg.sensor.width_px
-        image = np.zeros((h, w))
+        plan = self.plan(scene, rays, rays_per_pixel, seed)
+        image = np.zeros((self.cfg.sensor.height_px, self.cfg.sensor.width_px))
         landed = done = 0
         n_threads = threads or self.cfg.trace.threads or os.cpu_count() or 1
 
         def work(job: _Job):
-            return self._trace_job(scene, job, int(keys[job.index]))
+            return self._trace_job(scene, job, int(plan.keys[job.index]))
 
         with ThreadPoolExecutor(max_workers=n_threads) as pool:
             pending: deque = deque()
-            it = iter(jobs)
+            it = iter(plan.jobs)
             for job in it:
                 pending.append((job, pool.submit(work, job)))
                 if len(pending) >= 2 * n_threads:
                     break
+            chunk: list = []
+            ends = set(plan.chunk_ends)
             while pending:
                 job, fut = pending.popleft()
-                r0, c0, patch, hits = fut.result()
-                image[r0:r0 + patch.shape[0], c0:c0 + patch.shape[1]] += patch
-                landed += hits
+                chunk.append(fut.result())
+                if job.index in ends:
+                    landed += add_chunk(image, sum_patches(chunk))
+                    chunk = []
                 done += job.n
                 nxt = next(it, None)
                 if nxt is not None:
                     pending.append((nxt, pool.submit(work, nxt)))
                 if progress is not None:
-                    progress(done, total)
-        image *= self._photons_per_weight(scene, total)
-        return RenderResult(image, total, landed, time.perf_counter() - start, seed)
+                    progress(done, plan.total)
+        image *= self.photons_per_weight(scene, plan.total)
+        return RenderResult(image, plan.total, landed, time.perf_counter() - start, seed)
+
+    def plan(self, scene: Scene, rays: int | None, rays_per_pixel: float | None, seed: int) -> RenderPlan:
+        """The jobs, their keys and their chunks for a render; the same wherever the jobs then run."""
+        jobs = self.jobs(scene, ray_count(self.cfg, rays, rays_per_pixel))
+        keys = np.random.SeedSequence(seed).generate_state(len(jobs), np.uint64)
+        if jobs and jobs[0].cells is not None:  # one key: a cell's shift must not depend on how it was batched
+            keys[:] = keys[0]
+        ends, rays_in, first = [], 0, 0
+        for job in jobs:
+            rays_in += job.n
+            if rays_in >= CHUNK_RAYS or job.index - first + 1 >= CHUNK_JOBS or job is jobs[-1]:
+                ends.append(job.index)
+                rays_in, first = 0, job.index + 1
+        return RenderPlan(jobs, keys, sum(j.n for j in jobs), tuple(ends))
+
+    def trace_chunk(self, scene: Scene, jobs: list[_Job], keys: np.ndarray) -> tuple[int, int, np.ndarray, int]:
+        """Trace a chunk's jobs one after the other and sum them as `render` does (a Dask worker's task)."""
+        return sum_patches([self._trace_job(scene, job, int(keys[job.index])) for job in jobs])
 
     def jobs(self, scene: Scene, total: int) -> list[_Job]:
         """The batches `total` rays of `scene` are traced in (their order fixes the sum's order)."""
@@ -365,7 +424,7 @@ class Renderer:
             t = (self.camera.layout.z_object_mm - back.z) / back.N
             r.w = r.w * texture_weight(scene, *self.texture_half_mm, back.x + t * back.L, back.y + t * back.M)
 
-    def _photons_per_weight(self, scene: Scene, total: int) -> float:
+    def photons_per_weight(self, scene: Scene, total: int) -> float:
         """Photons one unit of ray weight stands for, so that pixels read physical photon counts."""
         if isinstance(scene, PointScene):
             return scene.photons * len(scene.points_mm) / total
@@ -379,6 +438,49 @@ class Renderer:
             image_area = 4 * reg.half_x_mm * reg.half_y_mm * ratio * ratio
         pixel_area = (self.cfg.sensor.pixel_um * 1e-3) ** 2
         return self.cfg.sensor.exposure_photons * (image_area / pixel_area) / total
+
+
+@dataclass(frozen=True)
+class RenderPlan:
+    """A render cut into jobs (batches with their keys) and chunks of consecutive jobs: each chunk's
+    patches are summed in job order into one partial image, and the partial images are added to the frame
+    in chunk order. That order depends on the jobs alone, so a local render and one spread over any
+    number of Dask workers give the same image, bit for bit."""
+
+    jobs: list[_Job]
+    keys: np.ndarray
+    total: int
+    chunk_ends: tuple[int, ...]  # index of each chunk's last job
+
+    def chunks(self) -> list[list[_Job]]:
+        out, first = [], 0
+        for end in self.chunk_ends:
+            out.append(self.jobs[first:end + 1])
+            first = end + 1
+        return out
+
+
+def sum_patches(parts: list[tuple[int, int, np.ndarray, int]]) -> tuple[int, int, np.ndarray, int]:
+    """Patches (row0, col0, patch, hits) added in order over their common bounding box."""
+    parts = [p for p in parts if p[2].size]
+    hits = sum(p[3] for p in parts)
+    if not parts:
+        return 0, 0, np.zeros((0, 0)), hits
+    r0 = min(p[0] for p in parts)
+    c0 = min(p[1] for p in parts)
+    r1 = max(p[0] + p[2].shape[0] for p in parts)
+    c1 = max(p[1] + p[2].shape[1] for p in parts)
+    out = np.zeros((r1 - r0, c1 - c0))
+    for r, c, patch, _ in parts:
+        out[r - r0:r - r0 + patch.shape[0], c - c0:c - c0 + patch.shape[1]] += patch
+    return r0, c0, out, hits
+
+
+def add_chunk(image: np.ndarray, part: tuple[int, int, np.ndarray, int]) -> int:
+    """Add a chunk's partial image into the frame; returns its hits."""
+    r0, c0, patch, hits = part
+    image[r0:r0 + patch.shape[0], c0:c0 + patch.shape[1]] += patch
+    return hits
 
 
 def _bin_patch(idx: np.ndarray, wts: np.ndarray, width: int):

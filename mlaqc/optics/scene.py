@@ -110,12 +110,13 @@ class CellGrid:
     [y0 + row*p, ...) of the MLA frame; (x, y) of the MLA frame map to the start plane (camera frame, z of
     the MLA) by the MLA's rotation and shift, projected along the axis (area scale |det| of that 2 x 2 map).
 
-    The aperture point is drawn as a' on a square of half-side `square_half_mm` and moved by kappa(|h|) h,
-    h the start's offset from its cell centre: a ray then lands where the ray from a' through the cell
-    centre would, up to the microlens' aberration left over by the design lens' kappa (see
-    render.aperture_shift). A pixel's preimage is so nearly a box in a' alone, which the Sobol
-    points fill evenly, instead of a region whose edges move with the start point. For each start the
-    shift is a translation (uniform density), so the estimate stays unbiased whatever kappa is.
+    The aperture point is drawn as a' on a square of half-side `square_half_mm` and moved to
+    a = a' + Phi(h, a') (`aperture_point`), h the start's offset from its cell centre: a ray then lands
+    where the ray from a' through the cell centre would, to the accuracy of Phi's fit to the design
+    microlens (render.aperture_shift). A pixel's preimage is so nearly a box in a' alone, which the Sobol
+    points fill evenly, instead of a region whose edges move with the start point. For each start the map
+    a' -> a is smooth and one-to-one and the weight carries its Jacobian, so the estimate stays unbiased
+    whatever Phi is; the square is large enough that its image covers the aperture disc for every start.
     """
 
     x0_mm: float
@@ -129,8 +130,8 @@ class CellGrid:
     r11: float = 1.0
     shift_x_mm: float = 0.0
     shift_y_mm: float = 0.0
-    kappa: tuple[float, float, float, float] = (1.0, 0.0, 0.0, 0.0)  # polynomial in (r / kappa_r_mm)^2
-    kappa_r_mm: float = 1.0
+    shift_coef: tuple[float, ...] = (1.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)  # Phi's coefficients (aperture_point)
+    shift_r_mm: float = 1.0  # the cell corner radius Phi is scaled by
     square_half_mm: float = 0.0  # 0: the rear aperture's radius
 
     @property
@@ -186,21 +187,34 @@ def sample_image_cells(region: ImageRegion, cells: CellGrid, u: np.ndarray, row:
     px = cells.r00 * mx + cells.r01 * my + cells.shift_x_mm
     py = cells.r10 * mx + cells.r11 * my + cells.shift_y_mm
     hx, hy = (u[2] - 0.5) * p, (u[3] - 0.5) * p
-    k0, k1, k2, k3 = cells.kappa
-    rho2 = (hx * hx + hy * hy) * (1.0 / (cells.kappa_r_mm * cells.kappa_r_mm))
-    k = k0 + rho2 * (k1 + rho2 * (k2 + rho2 * k3))
     rp = region.exit_radius_mm
     sq = cells.square_half_mm or rp
-    ax = sq * (2.0 * u[0] - 1.0) + k * (cells.r00 * hx + cells.r01 * hy)
-    ay = sq * (2.0 * u[1] - 1.0) + k * (cells.r10 * hx + cells.r11 * hy)
+    hcx, hcy = cells.r00 * hx + cells.r01 * hy, cells.r10 * hx + cells.r11 * hy
+    bx, by = sq * (2.0 * u[0] - 1.0), sq * (2.0 * u[1] - 1.0)
+    ax, ay, jac = aperture_point(cells.shift_coef, 1.0 / cells.shift_r_mm, 1.0 / rp, hcx, hcy, bx, by)
     dx = px - ax
     dy = py - ay
     dz = region.z_mla_mm - region.z_exit_mm
     inv = 1.0 / np.sqrt(dx * dx + dy * dy + dz * dz)
     cos_t = dz * inv
     inside = ax * ax + ay * ay <= rp * rp
-    w = np.where(inside, (cos_t * cos_t) * (cos_t * cos_t) * (FOUR_OVER_PI * (sq / rp) ** 2), 0.0)
+    w = np.where(inside, (cos_t * cos_t) * (cos_t * cos_t) * (FOUR_OVER_PI * (sq / rp) ** 2) * jac, 0.0)
     return Rays(px, py, np.full(len(px), region.z_mla_mm), dx * inv, dy * inv, cos_t, w)
+
+
+def aperture_point(c, inv_rm, inv_ra, hx, hy, bx, by):
+    """a = a' + Phi(h, a') (CellGrid) and the Jacobian det(da/da') that keeps the estimate unbiased: with
+    u = h / r_max, v = a' / ra, Phi = h P + a' Q, P = c0 + s1 (c1 + s1 (c2 + s1 c3)) + c4 s2 + c5 s3,
+    Q = c6 s1 + c7 s2. Plain arithmetic: the compiled engine runs the same code on scalars."""
+    ux, uy, vx, vy = hx * inv_rm, hy * inv_rm, bx * inv_ra, by * inv_ra
+    s1, s2, s3 = ux * ux + uy * uy, ux * vx + uy * vy, vx * vx + vy * vy
+    p = c[0] + s1 * (c[1] + s1 * (c[2] + s1 * c[3])) + c[4] * s2 + c[5] * s3
+    q = c[6] * s1 + c[7] * s2
+    gx, gy = (c[4] * ux + 2.0 * c[5] * vx) * inv_ra, (c[4] * uy + 2.0 * c[5] * vy) * inv_ra  # dP/da'
+    tx, ty = c[7] * ux * inv_ra, c[7] * uy * inv_ra  # dQ/da'
+    j00, j01 = 1.0 + q + hx * gx + bx * tx, hx * gy + bx * ty
+    j10, j11 = hy * gx + by * tx, 1.0 + q + hy * gy + by * ty
+    return bx + p * hx + q * bx, by + p * hy + q * by, j00 * j11 - j01 * j10
 
 
 def sample_plane(region: SourceRegion, u: np.ndarray, tile: tuple[float, float, float, float],

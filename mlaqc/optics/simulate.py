@@ -40,18 +40,28 @@ class SimulatedRaw:
     scene: Scene
     noise: bool
     engine: str
+    sampler: str = "random"
 
 
 def simulate(cfg: CameraConfig, scene: Scene | None = None, errors: ErrorMap | None = None, *,
              rays: int | None = None, rays_per_pixel: float | None = None, seed: int = 0, noise: bool = True,
-             threads: int | None = None, progress: Progress | None = None, renderer: Renderer | None = None) -> SimulatedRaw:
-    """Render `scene` through the camera with `errors` and read it out with the sensor model."""
+             threads: int | None = None, progress: Progress | None = None, renderer: Renderer | None = None,
+             client=None) -> SimulatedRaw:
+    """Render `scene` through the camera with `errors` and read it out with the sensor model; with a Dask
+    `client` the rays are traced on its workers (the same image, bit for bit)."""
     scene = scene if scene is not None else WhiteScene()
     errors = errors if errors is not None else ErrorMap.zeros(cfg.mla.count_h, cfg.mla.count_w)
     renderer = renderer or Renderer(cfg, errors)
-    result = renderer.render(scene, rays=rays, rays_per_pixel=rays_per_pixel, seed=seed, threads=threads, progress=progress)
+    if client is not None:
+        from mlaqc.optics.distributed import render_on_cluster
+
+        result = render_on_cluster(client, renderer, scene, rays=rays, rays_per_pixel=rays_per_pixel, seed=seed,
+                                   progress=progress)
+    else:
+        result = renderer.render(scene, rays=rays, rays_per_pixel=rays_per_pixel, seed=seed, threads=threads,
+                                 progress=progress)
     raw = expose(apply_formation(result.photons, cfg), cfg.sensor, seed=seed + 1, noise=noise)
-    return SimulatedRaw(raw, result, errors, scene, noise, renderer.engine)
+    return SimulatedRaw(raw, result, errors, scene, noise, renderer.engine, renderer.sampler)
 
 
 def scene_record(scene: Scene) -> dict[str, Any]:
@@ -119,6 +129,7 @@ def _record(sim: SimulatedRaw, cfg: CameraConfig, out: Path) -> dict[str, Any]:
         "rays_landed": sim.render.rays_landed,
         "rays_per_pixel": sim.render.rays_traced / (s.width_px * s.height_px),
         "engine": sim.engine,
+        "sampler": sim.sampler,
         "noise": sim.noise,
         "render_seconds": round(sim.render.seconds, 3),
         "raw": {"file": out.name, "bits": s.bit_depth, "cfa": s.cfa, "black_level": s.black_level_dn,

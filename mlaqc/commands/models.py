@@ -1,0 +1,53 @@
+"""`mlaqc models`: render the reference model and signature tables of a camera before they are needed.
+
+`mlaqc inspect` renders them itself the first time it meets new optics (a minute or more), and keeps
+them in the cache ($MLAQC_CACHE or ~/.cache/mlaqc), keyed by the optics. A lab that changes its camera,
+or a QC line that wants the first inspection to be quick, builds them here — on a Dask cluster with
+--scheduler — and sees where they are stored.
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import sys
+import time
+
+from mlaqc.cluster import add_scheduler_option, check_address, connect, scheduler_address
+from mlaqc.optics.config import load_config
+from mlaqc.progress import ProgressBar
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    """Add the `models` subcommand."""
+    p = sub.add_parser("models", help="build (or rebuild) a camera's reference model and signature tables",
+                       description="Render the reference sub-image model and the signature tables that inspection "
+                                   "compares every lens with, for the camera's optics, and store them in the cache "
+                                   "($MLAQC_CACHE or ~/.cache/mlaqc). Tables already stored are kept unless --rebuild.")
+    p.add_argument("--config", "-c", help="camera config TOML (default: the paper's Table 1 camera)")
+    p.add_argument("--rebuild", action="store_true", help="render them again even if stored")
+    p.add_argument("--quiet", "-q", action="store_true", help="no progress bar or summary")
+    add_scheduler_option(p)
+    p.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    """Build what is missing (or everything with --rebuild); 0 on success."""
+    from mlaqc.models.reference import cache_dir, config_key, reference_model
+    from mlaqc.models.signatures import signature_key, signature_table
+
+    cfg = load_config(args.config)
+    address = scheduler_address(args.scheduler)
+    t0 = time.perf_counter()
+    bar = ProgressBar("signature renders", enabled=False if args.quiet else None)
+    with contextlib.ExitStack() as stack:
+        client = stack.enter_context(connect(check_address(address), quiet=args.quiet)) if address else None
+        try:
+            reference_model(cfg, client=client, rebuild=args.rebuild)
+            signature_table(cfg, client=client, rebuild=args.rebuild, progress=bar)
+        finally:
+            bar.close()
+    if not args.quiet:
+        print(f"reference model {config_key(cfg)} and signature tables {signature_key(cfg)} ready "
+              f"({time.perf_counter() - t0:.1f} s); cache: {cache_dir()}", file=sys.stderr)
+    return 0
