@@ -3,21 +3,40 @@
 One raw writes its report set into --out. Several raws (a production batch) share one calibration —
 from --white, from a saved --grid, or else each frame calibrates itself — and each writes its report set
 into --out/<raw name>/, plus --out/batch.csv with one line per frame. A bad frame in a batch is reported
-and skipped; the others are still inspected.
+and skipped; the others are still inspected. A scan folder (one with manifest.jsonl, from `mlaqc scan`)
+given as RAW stands for its raw files in manifest order.
+
+With --scheduler ADDRESS (or $MLAQC_SCHEDULER; see mlaqc.cluster) the frames are inspected on a Dask
+cluster: the config, levels and shared grid travel once (`BatchSpec`, `cluster.share`), each worker
+reads its raw by path — the workers must see the same files at the same absolute paths, as on a shared
+filesystem; a worker that cannot is one sentence, exit status 3 — inspects it (the reference model and
+signature table stay cached in the worker process, `pipeline._models`) and renders its report set in
+memory (`inspect_remote`). Only this process writes: each report set atomically as its frame completes,
+exactly once even when a worker died and its frame ran again, then batch.csv — the same rows, verdicts
+and exit status as on this machine.
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import csv
 import io
+import json
+import os
+import socket
 import sys
 import time
+import uuid
+from collections.abc import Iterator
+from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
+from mlaqc import cluster
 from mlaqc.atomic import write_bytes_atomic
 from mlaqc.commands.levels import add_level_options, stated_levels
-from mlaqc.errors import InputError
+from mlaqc.errors import DeviceError, InputError
 from mlaqc.inspection.rawio import Levels
 from mlaqc.inspection.results import detection_limit_text
 from mlaqc.optics.config import CameraConfig, load_config
@@ -33,8 +52,8 @@ def register(sub: argparse._SubParsersAction) -> None:
                                    "report.html. Several raws share one calibration (--white or --grid) and get "
                                    "one report folder each under --out, plus batch.csv. Exit status 0 = every "
                                    "frame PASS, 1 = some frame FAIL, 2 = input error (in a batch: some frame "
-                                   "could not be inspected; the others still are).")
-    p.add_argument("raw", nargs="+", help="raw image(s) (DNG, vendor raw, TIFF, PNG, NPY)")
+                                   "could not be inspected; the others still are), 3 = the Dask cluster failed.")
+    p.add_argument("raw", nargs="+", help="raw image(s) (DNG, vendor raw, TIFF, PNG, NPY), or a scan folder")
     src = p.add_mutually_exclusive_group()
     src.add_argument("--white", "-w", help="white image to calibrate the grid on (default: each raw itself)")
     src.add_argument("--grid", "-g", help="grid.json from `mlaqc calibrate`, reused without recalibrating")
@@ -42,6 +61,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--out", "-o", required=True, help="output folder for the report set(s)")
     p.add_argument("--quiet", "-q", action="store_true", help="no summary on stderr")
     add_level_options(p)
+    cluster.add_scheduler_option(p)
     p.set_defaults(func=run)
 
 
@@ -103,22 +123,68 @@ def report_folders(out: Path, raws: list[str]) -> list[Path]:
     return folders
 
 
-def inspect_one(raw: str, cfg: CameraConfig, grid, folder: Path, levels: Levels | None = None) -> dict:
-    """Load, inspect and report one raw; a row of batch.csv (InputError propagates)."""
+def scan_raws(folder: Path) -> list[str]:
+    """The raw files of a scan folder, in manifest order (a torn last line, from a kill mid-append, skipped)."""
+    manifest = folder / "manifest.jsonl"
+    if not manifest.is_file():
+        raise InputError(f"{str(folder)!r} is a folder but not a scan folder (it has no manifest.jsonl)")
+    try:
+        lines = manifest.read_text(encoding="utf-8").splitlines()
+    except (OSError, UnicodeDecodeError) as exc:
+        raise InputError(f"scan manifest {str(manifest)!r} cannot be read ({exc})") from None
+    raws = []
+    for k, line in enumerate(lines):
+        try:
+            record = json.loads(line)
+        except json.JSONDecodeError:
+            if k == len(lines) - 1:
+                break
+            raise InputError(f"scan manifest {str(manifest)!r} is damaged at line {k + 1}") from None
+        if isinstance(record, dict) and record.get("type") == "position":
+            raws += [str(folder / f["file"]) for f in record.get("files", []) if isinstance(f, dict) and "file" in f]
+    if not raws:
+        raise InputError(f"scan folder {str(folder)!r} records no frames yet")
+    return raws
+
+
+def batch_raws(args_raw: list[str]) -> tuple[list[str], bool]:
+    """The raws to inspect (each scan folder replaced by its frames) and whether they are a batch
+    (several raws, or any scan folder: one report folder each plus batch.csv)."""
+    raws: list[str] = []
+    for raw in args_raw:
+        raws += scan_raws(Path(raw)) if Path(raw).is_dir() else [raw]
+    return raws, len(raws) > 1 or any(Path(r).is_dir() for r in args_raw)
+
+
+def inspect_raw(raw: str, cfg: CameraConfig, grid, levels: Levels | None = None, *, path: str | None = None):
+    """Load and inspect one raw (read from `path` if given; the report names `raw`); InputError propagates."""
     from mlaqc.inspection.pipeline import inspect_image, load_frame
-    from mlaqc.report import write_report
 
     t0 = time.perf_counter()
     notes: list[str] = []
-    img = load_frame(raw, cfg, levels, notes)
+    img = load_frame(path or raw, cfg, levels, notes)
     load_s = time.perf_counter() - t0
     result = inspect_image(img, cfg, grid=grid, source=str(raw), notes=tuple(notes))
     result.timings_s["load"] = round(load_s, 4)  # the dict is mutable; the result is frozen
-    write_report(result, folder, config_dict=cfg.to_dict())
-    return {"result": result, "verdict": result.verdict, "flagged": len(result.defects),
+    return result
+
+
+def frame_row(result, folder: Path, seconds: float) -> dict:
+    """The batch.csv row of an inspected frame (plus its `summary` text)."""
+    return {"verdict": result.verdict, "flagged": len(result.defects),
             "out_of_tolerance": sum(1 for d in result.defects if not d.within_tolerance),
             "missing": sum(1 for d in result.defects if d.error_type == "missing"),
-            "seconds": round(time.perf_counter() - t0, 3), "report": str(folder), "error": ""}
+            "seconds": round(seconds, 3), "report": str(folder), "error": "", "summary": summary(result)}
+
+
+def inspect_one(raw: str, cfg: CameraConfig, grid, folder: Path, levels: Levels | None = None) -> dict:
+    """Load, inspect and report one raw; a row of batch.csv (InputError propagates)."""
+    from mlaqc.report import write_report
+
+    t0 = time.perf_counter()
+    result = inspect_raw(raw, cfg, grid, levels)
+    write_report(result, folder, config_dict=cfg.to_dict())
+    return {"result": result, **frame_row(result, folder, time.perf_counter() - t0)}
 
 
 def write_batch_csv(path: Path, rows: list[dict]) -> None:
@@ -130,29 +196,119 @@ def write_batch_csv(path: Path, rows: list[dict]) -> None:
     write_bytes_atomic(path, buf.getvalue().encode())
 
 
-def run(args: argparse.Namespace) -> int:
-    """Inspect and report; 0 all PASS, 1 some FAIL, 2 some frame was bad input (batch) or bad input."""
-    out = check_out_dir(args.out)
-    cfg = load_config(args.config)
-    grid = shared_grid(args, cfg)
-    if len(args.raw) == 1:
-        row = inspect_one(args.raw[0], cfg, grid, out, stated_levels(args))
-        if not args.quiet:
-            print(summary(row["result"]), file=sys.stderr)
-            print(f"  report: {out / 'report.html'}", file=sys.stderr)
-        return 1 if row["result"].failed else 0
-    out.mkdir(exist_ok=True)
-    rows, t0 = [], time.perf_counter()
-    for i, (raw, folder) in enumerate(zip(args.raw, report_folders(out, args.raw)), 1):
+# ------------------------------------------------------------------------------------- on a Dask cluster
+
+@dataclass(frozen=True)
+class BatchSpec:
+    """What every frame of a batch shares; travels to each Dask worker once."""
+
+    cfg: CameraConfig
+    grid: Any  # the shared Grid, or None: each frame calibrates itself
+    levels: Levels | None
+    config_dict: dict  # for report.json
+
+
+def inspect_remote(spec: BatchSpec, raw: str, path: str, client_sees_it: bool) -> dict:
+    """Run on a Dask worker: load the raw at `path` (absolute), inspect it and render its report set in
+    memory; nothing is written. Returns {"row": batch.csv row, "contents": {file key: bytes}}, or
+    {"error": sentence} for a frame that is bad input (a value, not an exception: Dask must not retry
+    it), or {"unseen": host} when this worker cannot see a file the client can."""
+    from mlaqc.report import render_report
+
+    if client_sees_it and not os.path.exists(path):
+        return {"unseen": socket.gethostname()}
+    t0 = time.perf_counter()
+    try:
+        result = inspect_raw(raw, spec.cfg, spec.grid, spec.levels, path=path)
+        contents = render_report(result, spec.config_dict)
+    except InputError as exc:
+        return {"error": str(exc)}
+    return {"row": frame_row(result, Path(), time.perf_counter() - t0), "contents": contents}
+
+
+def rows_on_cluster(client: Any, raws: list[str], folders: list[Path], spec: BatchSpec,
+                    quiet: bool) -> Iterator[tuple[int, dict]]:
+    """(index, row) of every frame inspected on the cluster of `client`, in the order they complete;
+    each frame's report set is written here, once, before its row is yielded."""
+    from mlaqc.inspection.pipeline import _models
+    from mlaqc.report import write_report_files
+
+    _models(spec.cfg)  # build the on-disk model cache once here, not in every worker at the same time
+    shared = cluster.share(client, spec, "inspect-spec")
+    run_id = uuid.uuid4().hex[:8]
+    futures = {}
+    for i, raw in enumerate(raws):
+        path = os.path.abspath(raw)  # workers have another working directory
+        fut = client.submit(inspect_remote, shared, raw, path, os.path.exists(path), pure=False,
+                            retries=cluster.TASK_RETRIES, key=f"inspect-{i + 1:05d}-{Path(raw).name}-{run_id}")
+        futures[fut] = i
+    label = f"inspecting {len(raws)} frames on Dask"
+    for i, value in cluster.follow(futures, label, progress=False if quiet else None):
+        if "unseen" in value:
+            raise DeviceError(f"the Dask worker on {value['unseen']} cannot see {os.path.abspath(raws[i])!r}: "
+                              "workers read raws by path, so they need the same files at the same paths "
+                              "(a shared filesystem)")
+        if "error" in value:
+            # the worker read the absolute path; name the raw as the user gave it, as on this machine
+            yield i, error_row(raws[i], value["error"].replace(os.path.abspath(raws[i]), raws[i]))
+            continue
+        t0 = time.perf_counter()
         try:
-            row = inspect_one(raw, cfg, grid, folder, stated_levels(args))
-            line = f"{row['verdict']}, {row['flagged']} flagged ({row['seconds']:.2f} s)"
+            write_report_files(value["contents"], folders[i])
         except InputError as exc:
-            row = {"raw": raw, "verdict": "ERROR", "error": str(exc), "report": ""}
-            line = f"ERROR: {exc}"
-        rows.append({**row, "raw": raw})
-        if not args.quiet:
-            print(f"[{i}/{len(args.raw)}] {raw}: {line}", file=sys.stderr)
+            yield i, error_row(raws[i], str(exc))
+            continue
+        row = value["row"]
+        yield i, {**row, "report": str(folders[i]), "seconds": round(row["seconds"] + time.perf_counter() - t0, 3)}
+
+
+def rows_here(raws: list[str], folders: list[Path], cfg: CameraConfig, grid,
+              levels: Levels | None) -> Iterator[tuple[int, dict]]:
+    """(index, row) of every frame inspected in this process, in order."""
+    for i, (raw, folder) in enumerate(zip(raws, folders)):
+        try:
+            row = inspect_one(raw, cfg, grid, folder, levels)
+        except InputError as exc:
+            yield i, error_row(raw, str(exc))
+            continue
+        del row["result"]  # its frame and sub-images: a batch keeps only the rows
+        yield i, row
+
+
+def error_row(raw: str, sentence: str) -> dict:
+    """The batch.csv row of a frame that could not be inspected."""
+    return {"raw": raw, "verdict": "ERROR", "error": sentence, "report": ""}
+
+
+def run(args: argparse.Namespace) -> int:
+    """Inspect and report; 0 all PASS, 1 some FAIL, 2 some frame was bad input (batch) or bad input,
+    3 the Dask cluster failed."""
+    out = check_out_dir(args.out)
+    raws, batch = batch_raws(args.raw)
+    cfg = load_config(args.config)
+    address = cluster.scheduler_address(args.scheduler)
+    if address is not None:
+        cluster.check_address(address)  # a malformed address is bad input, said before any work
+    grid = shared_grid(args, cfg)
+    levels = stated_levels(args)
+    folders = report_folders(out, raws) if batch else [out]
+    with contextlib.ExitStack() as stack:
+        if address is None:
+            frames = rows_here(raws, folders, cfg, grid, levels)
+        else:  # connected before anything is written: an unreachable cluster leaves no output
+            client = stack.enter_context(cluster.connect(address, quiet=args.quiet))
+            frames = rows_on_cluster(client, raws, folders, BatchSpec(cfg, grid, levels, cfg.to_dict()), args.quiet)
+        if not batch:
+            return _single(frames, out, args.quiet)
+        out.mkdir(exist_ok=True)
+        rows: list[dict] = [{}] * len(raws)
+        t0 = time.perf_counter()
+        for i, row in frames:
+            rows[i] = {**row, "raw": raws[i]}
+            if not args.quiet:
+                line = (f"ERROR: {row['error']}" if row["verdict"] == "ERROR"
+                        else f"{row['verdict']}, {row['flagged']} flagged ({row['seconds']:.2f} s)")
+                cluster.echo(f"[{i + 1}/{len(raws)}] {raws[i]}: {line}")
     write_batch_csv(out / "batch.csv", rows)
     verdicts = [r["verdict"] for r in rows]
     if not args.quiet:
@@ -160,3 +316,14 @@ def run(args: argparse.Namespace) -> int:
         print(f"{verdicts.count('PASS')} PASS, {verdicts.count('FAIL')} FAIL, {verdicts.count('ERROR')} ERROR "
               f"in {dt:.1f} s ({dt / len(rows):.2f} s/frame); {out / 'batch.csv'}", file=sys.stderr)
     return 2 if "ERROR" in verdicts else (1 if "FAIL" in verdicts else 0)
+
+
+def _single(frames: Iterator[tuple[int, dict]], out: Path, quiet: bool) -> int:
+    """One raw: its report set in --out, the summary on stderr; a bad frame is an InputError (exit 2)."""
+    (_, row), = frames
+    if row["verdict"] == "ERROR":
+        raise InputError(row["error"])
+    if not quiet:
+        print(row["summary"], file=sys.stderr)
+        print(f"  report: {out / 'report.html'}", file=sys.stderr)
+    return 1 if row["verdict"] == "FAIL" else 0

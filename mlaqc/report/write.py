@@ -1,10 +1,12 @@
 """Write the inspection report set: report.json, lenses.csv, defect_map(.png, _small.png), report.html.
 
-`write_report(result, out_dir)` renders every file in memory first and only then writes them, each
-through a temporary file renamed over the final name (mlaqc.atomic). If anything fails — a bad result,
-an encoder error, a full disk — every temporary file is removed and files from an earlier report are
-left as they were. report.json is renamed last, so a reader that finds a new report.json finds the
-new set beside it.
+`write_report(result, out_dir)` renders every file in memory first (`render_report`) and only then
+writes them (`write_report_files`), each through a temporary file renamed over the final name
+(mlaqc.atomic). If anything fails — a bad result, an encoder error, a full disk — every temporary file
+is removed and files from an earlier report are left as they were. report.json is renamed last, so a
+reader that finds a new report.json finds the new set beside it. The two halves are public so that the
+rendering can run elsewhere (a Dask worker, `mlaqc inspect --scheduler`) and only the bytes travel to
+the one process that writes them.
 """
 
 from __future__ import annotations
@@ -31,14 +33,25 @@ def write_report(result: InspectionResult, out_dir: str | os.PathLike[str], *,
     Returns {key: path} for the keys of REPORT_FILES. Raises InputError (one sentence) if the result
     is inconsistent or the folder cannot be written; no partial file is ever left behind.
     """
-    out = Path(out_dir)
-    if out.exists() and not out.is_dir():
-        raise InputError(f"cannot write the report: {out} exists and is not a folder.")
-    if not out.parent.is_dir():
-        raise InputError(f"cannot write the report: folder {out.parent} does not exist.")
-    view = View(result)
-    contents = _render_all(view, config_dict)  # everything in memory before the first byte is written
+    _check_out_dir(Path(out_dir))  # before the rendering: a bad folder is refused at once
+    return write_report_files(render_report(result, config_dict), out_dir)
 
+
+def render_report(result: InspectionResult, config_dict: dict | None = None) -> dict[str, bytes]:
+    """Every file of the report set in memory, {key of REPORT_FILES: bytes}; nothing is written.
+
+    Raises InputError (one sentence) if the result is inconsistent."""
+    return _render_all(View(result), config_dict)
+
+
+def write_report_files(contents: dict[str, bytes], out_dir: str | os.PathLike[str]) -> dict[str, Path]:
+    """Write a rendered report set (`render_report`) into `out_dir` (created if its parent exists),
+    atomically, report.json last. Returns {key: path}; InputError if the folder cannot be written."""
+    out = Path(out_dir)
+    _check_out_dir(out)
+    missing = [k for k in REPORT_FILES if k not in contents]
+    if missing:
+        raise InputError(f"cannot write the report: the rendered set lacks {', '.join(missing)}.")
     created = False
     try:
         try:
@@ -60,6 +73,13 @@ def write_report(result: InspectionResult, out_dir: str | os.PathLike[str], *,
             raise InputError(f"cannot write the report to {out}: {reason}.") from exc
         raise
     return {key: out / name for key, name in REPORT_FILES.items()}
+
+
+def _check_out_dir(out: Path) -> None:
+    if out.exists() and not out.is_dir():
+        raise InputError(f"cannot write the report: {out} exists and is not a folder.")
+    if not out.parent.is_dir():
+        raise InputError(f"cannot write the report: folder {out.parent} does not exist.")
 
 
 def _write_bytes(path: Path, data: bytes) -> None:
