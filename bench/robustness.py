@@ -188,10 +188,12 @@ def centre_rms(result, model, seeded_keys: set) -> tuple[float, float]:
 
 def tracer_frame(rpp: float, seed: int) -> tuple[Path, dict]:
     """A Table 1 frame with the accuracy bench's seeded defects (every type and band twice), realistic
-    formation, sensor noise; cached as DNG."""
+    formation, sensor noise; cached as DNG. Rendered with the default (low-discrepancy) sampler: its
+    render noise at 50 / 400 / 2,000 rays per pixel is about 4.8 / 1.0 / 0.34 % of a white pixel (plain
+    Monte-Carlo: 14 / 4.9 / 2.2 %), on top of the sensor's own."""
     cfg = default_config()
     errors, truth = seeded(seed)
-    path = CACHE / f"robust_rpp{int(rpp)}_seed{seed}.dng"
+    path = CACHE / f"robust_rpp{int(rpp)}_seed{seed}_{cfg.trace.sampler}.dng"  # the default sampler renders it
     if not path.is_file():
         CACHE.mkdir(parents=True, exist_ok=True)
         t0 = time.perf_counter()

@@ -32,6 +32,15 @@ SEEDED = {
 }
 
 
+def render(errors=None, **kw):
+    """A white frame of the small camera, traced with plain Monte-Carlo sampling: its noise is independent
+    from pixel to pixel and the same for a defective lens as for its neighbours, as a sensor's photon noise
+    is. (The stratified Sobol sampler reduces the noise of ideal lenses only: measured at 50 rays/pixel, a
+    -10 % radius lens came out 2.3 x noisier than its neighbours, which moves noise-sensitive indexes such
+    as the gradient-energy sharpness by more than the defect does, and its radius sign then reads wrong.)"""
+    return Renderer(SMALL, errors, sampler="random").render(WhiteScene(), **kw).photons
+
+
 def seeded_map():
     em = ErrorMap.zeros(24, 24)
     for (m, n), kw in SEEDED.items():
@@ -41,7 +50,7 @@ def seeded_map():
 
 @pytest.fixture(scope="module")
 def photons():
-    return Renderer(SMALL, seeded_map()).render(WhiteScene(), rays_per_pixel=50, seed=21).photons
+    return render(seeded_map(), rays_per_pixel=50, seed=21)
 
 
 def frame_of(ph, seed=2, scale=1.0):
@@ -128,7 +137,7 @@ def test_same_defects_found_under_exposure_vignetting_and_crop(photons, change):
 
 
 def test_a_perfect_array_passes_with_no_flags():
-    ph = Renderer(SMALL).render(WhiteScene(), rays_per_pixel=50, seed=8).photons
+    ph = render(rays_per_pixel=50, seed=8)
     result = inspect_image(prepare(frame_of(ph, seed=9)), SMALL)
     assert result.verdict == "PASS" and len(result.defects) == 0
 
@@ -150,7 +159,7 @@ def test_cut_windows_gather_the_right_lens():
 def raw_files(tmp_path_factory, photons):
     d = tmp_path_factory.mktemp("raws")
     np.save(d / "defects.npy", frame_of(photons).data)
-    ok = Renderer(SMALL).render(WhiteScene(), rays_per_pixel=30, seed=3).photons
+    ok = render(rays_per_pixel=30, seed=3)
     np.save(d / "perfect.npy", frame_of(ok).data)
     return d
 
@@ -200,7 +209,7 @@ def test_demo_runs_the_whole_chain(tmp_path, capsys):
 def test_inspect_with_a_separate_white_image(raw_files, tmp_path):
     """The grid comes from a white image of the same MLA; the raw's defects are still found."""
     white = raw_files / "white_defects.npy"
-    ph = Renderer(SMALL, seeded_map()).render(WhiteScene(), rays_per_pixel=30, seed=77).photons
+    ph = render(seeded_map(), rays_per_pixel=30, seed=77)
     np.save(white, frame_of(ph, seed=5).data)
     out = tmp_path / "rep"
     code = main(["inspect", str(raw_files / "defects.npy"), "--white", str(white), "-c",

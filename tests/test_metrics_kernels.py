@@ -12,7 +12,7 @@ from scipy.ndimage import gaussian_filter
 
 from mlaqc.inspection.identify import _scipy_baseline, local_deviation, local_deviations
 from mlaqc.inspection.metrics import compute_metrics, reference_images, reference_windows
-from mlaqc.inspection.metrics_kernels import INDEX_NAMES, MEDIAN25_PAIRS, N_RING, RING_EDGES
+from mlaqc.inspection.metrics_kernels import INDEX_NAMES, MEDIAN25_PAIRS, N_RING, RING_EDGES, TAPER_PX, median_baselines
 from mlaqc.models.reference import reference_model
 from mlaqc.optics.config import default_config
 
@@ -26,23 +26,45 @@ def _sum(a: np.ndarray) -> np.ndarray:
     return a.sum(axis=(-1, -2))
 
 
-def _register(img, valid, model, cx, cy, steps=2):
+def _taper(u, half):
+    """The kernel's pixel weight along one axis: 1 inside, down to 0 over the window's outermost TAPER_PX
+    (raised cosine)."""
+    return 0.5 - 0.5 * np.cos(np.pi * np.clip((half - np.abs(u)) / TAPER_PX, 0.0, 1.0))
+
+
+def _weights(cx, cy, h, w, inset=0.0):
+    """Per pixel taper weight (rows, cols, h, w) about the grid centre; `inset` px further in."""
+    tx = _taper(np.arange(w) - cx[..., None], 0.5 * w - inset)
+    ty = _taper(np.arange(h) - cy[..., None], 0.5 * h - inset)
+    return ty[..., :, None] * tx[..., None, :]
+
+
+def _register(img, wgt, model, cx, cy, steps=2):
+    """Weighted Gauss-Newton registration on the reference interpolated at the current estimate; the last
+    step's reference moved by that step to first order. Returns the shift, the final tables and centre."""
     h, w = img.shape[-2:]
-    dx, dy = np.zeros(cx.shape), np.zeros(cy.shape)
-    for _ in range(steps):
-        (r, gx, gy, _lap), qx, qy = reference_windows(model, cx + dx, cy + dy, h, w)
-        r, gx, gy = r * valid, gx * valid, gy * valid
-        a = _sum(img * r) / np.maximum(_sum(r * r), 1e-30)
+    qx, qy = cx.astype(np.float64).copy(), cy.astype(np.float64).copy()
+    lx, ly = np.zeros(cx.shape), np.zeros(cy.shape)
+    for st in range(max(steps, 1)):
+        tables = [t.astype(np.float64) for t in reference_windows(model, qx, qy, h, w)[0]]
+        if steps == 0:
+            break
+        r, gx, gy, _lap = tables
+        a = _sum(wgt * img * r) / np.maximum(_sum(wgt * r * r), 1e-30)
         d = img - a[..., None, None] * r
-        sxx, sxy, syy = _sum(gx * gx), _sum(gx * gy), _sum(gy * gy)
-        bx, by = _sum(gx * d), _sum(gy * d)
+        sxx, sxy, syy = _sum(wgt * gx * gx), _sum(wgt * gx * gy), _sum(wgt * gy * gy)
+        bx, by = _sum(wgt * gx * d), _sum(wgt * gy * d)
         det = sxx * syy - sxy * sxy
         safe = np.where(np.abs(det) > 1e-30, det, np.inf)
         ax = np.where(np.abs(a) > 1e-30, a, np.inf)
-        dx = qx - cx - (syy * bx - sxy * by) / safe / ax
-        dy = qy - cy - (sxx * by - sxy * bx) / safe / ax
-    tables, qx, qy = reference_windows(model, cx + dx, cy + dy, h, w)
-    return dx, dy, [t.astype(np.float64) for t in tables], (qx, qy)
+        lx = -(syy * bx - sxy * by) / safe / ax
+        ly = -(sxx * by - sxy * bx) / safe / ax
+        if st < steps - 1:
+            qx, qy = qx + lx, qy + ly
+    r, gx, gy, lap = tables
+    ref = r - (lx[..., None, None] * gx + ly[..., None, None] * gy)
+    qx, qy = qx + lx, qy + ly
+    return qx - cx, qy - cy, (ref, gx, gy, lap), (qx, qy)
 
 
 def _numpy_metrics(img, cx, cy, model, um_per_px):
@@ -52,17 +74,19 @@ def _numpy_metrics(img, cx, cy, model, um_per_px):
     x = x32.astype(np.float64)
     vf = valid.astype(np.float64)
     h, w = x.shape[-2:]
-    dx, dy, (r, gx, gy, lap), (qx, qy) = _register(x, vf, model, cx, cy)
-    r, lap = r * vf, lap * vf
-    a = _sum(x * r) / np.maximum(_sum(r * r), 1e-30)
+    wgt = _weights(cx, cy, h, w) * vf  # every index against the reference: tapered, valid pixels
+    tg = _weights(cx, cy, h, w, inset=1.0)  # gradient energy: one pixel further in, validity not masked
+    dx, dy, (r, gx, gy, lap), (qx, qy) = _register(x, wgt, model, cx, cy)
+    a = _sum(wgt * x * r) / np.maximum(_sum(wgt * r * r), 1e-30)
     an = np.where(a != 0, a, np.nan)
     resid = x - a[..., None, None] * r
     yy = np.arange(h)[:, None] - qy[..., None, None]
     xx = np.arange(w)[None, :] - qx[..., None, None]
     out = {}
-    flux = _sum(x)
+    flux = _sum(wgt * x)
     out["flux"] = flux
-    out["mean_gray"] = flux / np.maximum(_sum(vf), 1)
+    with np.errstate(divide="ignore", invalid="ignore"):  # (a lens wholly off the frame: lost, NaN)
+        out["mean_gray"] = flux / _sum(wgt)
     disc = ((xx * xx + yy * yy) <= (0.35 * h) ** 2) * vf
     nd = np.maximum(_sum(disc), 1)
     mean = _sum(x * disc) / nd
@@ -76,34 +100,34 @@ def _numpy_metrics(img, cx, cy, model, um_per_px):
     p = counts / np.maximum(counts.sum(axis=-1, keepdims=True), 1)
     with np.errstate(divide="ignore", invalid="ignore"):
         out["entropy"] = -np.sum(np.where(p > 0, p * np.log2(p), 0.0), axis=-1)
-    ge = _sum(np.square(np.gradient(x, axis=-1)) + np.square(np.gradient(x, axis=-2)))
-    out["sharpness"] = ge / np.maximum(_sum(gx * gx + gy * gy) * a * a, 1e-30)
+    ge = _sum(tg * (np.square(np.gradient(x, axis=-1)) + np.square(np.gradient(x, axis=-2))))
+    out["sharpness"] = ge / np.maximum(_sum(tg * (gx * gx + gy * gy)) * a * a, 1e-30)
     out["offset_x_px"], out["offset_y_px"] = dx, dy
     out["offset_um"] = np.hypot(dx, dy) * um_per_px
     top = x.max(axis=(-1, -2), keepdims=True)
-    wgt = np.clip(x - 0.5 * top, 0, None)
-    s = np.maximum(_sum(wgt), 1e-30)
-    mx, my = _sum(wgt * xx) / s, _sum(wgt * yy) / s
+    mw = wgt * np.clip(x - 0.5 * top, 0, None)
+    s = np.maximum(_sum(mw), 1e-30)
+    mx, my = _sum(mw * xx) / s, _sum(mw * yy) / s
     ux, uy = xx - mx[..., None, None], yy - my[..., None, None]
-    cxx, cyy, cxy = _sum(wgt * ux * ux) / s, _sum(wgt * uy * uy) / s, _sum(wgt * ux * uy) / s
+    cxx, cyy, cxy = _sum(mw * ux * ux) / s, _sum(mw * uy * uy) / s, _sum(mw * ux * uy) / s
     tr, det = cxx + cyy, cxx * cyy - cxy * cxy
     root = np.sqrt(np.maximum(tr * tr / 4 - det, 0))
     l1, l2 = tr / 2 + root, np.maximum(tr / 2 - root, 0)
     out["size_px"] = np.sqrt(tr)
     out["ellipticity"] = 1.0 - np.sqrt(l2 / np.where(l1 > 0, l1, np.nan))
-    out["blur"] = _sum(resid * lap) / np.maximum(_sum(lap * lap), 1e-30) / an
+    out["blur"] = _sum(wgt * resid * lap) / np.maximum(_sum(wgt * lap * lap), 1e-30) / an
     bx, by = r * xx / (0.5 * h), r * yy / (0.5 * h)
-    sxx, sxy, syy = _sum(bx * bx), _sum(bx * by), _sum(by * by)
-    px, py = _sum(bx * resid), _sum(by * resid)
+    sxx, sxy, syy = _sum(wgt * bx * bx), _sum(wgt * bx * by), _sum(wgt * by * by)
+    px, py = _sum(wgt * bx * resid), _sum(wgt * by * resid)
     tdet = np.where(np.abs(sxx * syy - sxy * sxy) > 1e-30, sxx * syy - sxy * sxy, np.inf)
     out["asym_x"], out["asym_y"] = (syy * px - sxy * py) / tdet / an, (sxx * py - sxy * px) / tdet / an
-    n = np.maximum(_sum(vf), 1)
+    n = np.where(_sum(wgt) > 0, _sum(wgt), np.nan)
     xs = x / an[..., None, None]
-    mse = _sum(np.square(xs - r) * vf) / n
-    peak = r.max(axis=(-1, -2))
-    mxs, mr = _sum(xs * vf) / n, _sum(r * vf) / n
-    dxm, drm = (xs - mxs[..., None, None]) * vf, (r - mr[..., None, None]) * vf
-    vx, vr, cov = _sum(dxm * dxm) / n, _sum(drm * drm) / n, _sum(dxm * drm) / n
+    mse = _sum(wgt * np.square(xs - r)) / n
+    peak = (r * vf).max(axis=(-1, -2))
+    mxs, mr = _sum(wgt * xs) / n, _sum(wgt * r) / n
+    dxm, drm = xs - mxs[..., None, None], r - mr[..., None, None]
+    vx, vr, cov = _sum(wgt * dxm * dxm) / n, _sum(wgt * drm * drm) / n, _sum(wgt * dxm * drm) / n
     c1, c2 = (0.01 * peak) ** 2, (0.03 * peak) ** 2
     out["ssim"] = ((2 * mxs * mr + c1) * (2 * cov + c2)) / ((mxs * mxs + mr * mr + c1) * (vx + vr + c2))
     with np.errstate(divide="ignore", invalid="ignore"):
@@ -115,8 +139,8 @@ def _numpy_metrics(img, cx, cy, model, um_per_px):
     with np.errstate(divide="ignore", invalid="ignore"):
         for k in range(N_RING):
             weight = np.clip(np.minimum(d + 0.5, edges[k + 1]) - np.maximum(d - 0.5, edges[k]), 0.0, 1.0)
-            out[f"ring{k}"] = _sum(resid * weight) / (a * _sum(r))
-    lost = ~(flux > 0) | (_sum(vf) < 0.5 * h * w)
+            out[f"ring{k}"] = _sum(wgt * resid * weight) / (a * _sum(wgt * r))
+    lost = ~(_sum(x) > 0) | (_sum(vf) < 0.5 * h * w)
     for v in out.values():
         v[lost] = np.nan
     return out
@@ -177,7 +201,8 @@ def test_threads_and_chunks_do_not_change_results(model):
 def test_reference_images_are_the_template_gather(model):
     rng = np.random.default_rng(0)
     cx, cy = rng.uniform(8, 12, (4, 5)), rng.uniform(8, 12, (4, 5))
-    assert np.array_equal(reference_images(model, cx, cy, 21, 19), reference_windows(model, cx, cy, 21, 19)[0][0])
+    assert np.array_equal(reference_images(model, cx, cy, 21, 19),
+                          reference_windows(model, cx, cy, 21, 19)[0][0].astype(np.float32))
 
 
 # ------------------------------------------------------------------------------------ median baselines
@@ -201,38 +226,96 @@ def test_median_network_selects_the_median_of_every_0_1_input():
 @pytest.mark.parametrize("size", [5, 3, 7])
 @pytest.mark.parametrize("axis", ["", "x"])
 def test_median_baselines_match_scipy(size, axis):
+    """The compiled median pass is scipy's median filter (mode 'nearest'), edges along their own line."""
     rng = np.random.default_rng(size)
     for values in (rng.normal(size=(17, 23)), rng.integers(0, 4, (12, 9)).astype(float),  # ties
                    rng.normal(size=(4, 30)), rng.normal(size=(1, 6))):  # smaller than the window
-        got = local_deviation(values, size=size, axis=axis)
-        assert np.array_equal(got, values - _scipy_baseline(values, size, axis))
+        got = np.empty((1,) + values.shape)
+        median_baselines(values[None].copy(), size, np.array([axis == "x"]), got)
+        assert np.array_equal(got[0], _scipy_baseline(values, size, axis))
 
 
-def test_local_deviations_fill_nan_with_the_median():
+def _baseline_oracle(values: np.ndarray, size: int, axis: str) -> np.ndarray:
+    """`local_deviation`'s baseline, lens by lens: the median over the scipy filter's window (clipped to
+    the array: mode 'nearest', an edge lens along its edge line, a corner along the columns for an x
+    index) of the lenses that belong in it: never a lens not measured (NaN), and not the array's
+    outermost lenses for a lens two or more rows in."""
+    rows, cols = values.shape
+    half = size // 2
+    edges = rows >= size and cols >= size
+    plain = _scipy_baseline(np.where(np.isfinite(values), values, np.nanmedian(values)), size, axis)
+    out = plain.copy()
+    clip = lambda k, n: min(max(k, 0), n - 1)  # noqa: E731
+    for m in range(rows):
+        for n in range(cols):
+            ring = min(m, n, rows - 1 - m, cols - 1 - n)
+            if edges and ring == 0:
+                on_col = n in (0, cols - 1) and (axis == "x" or m not in (0, rows - 1))
+                line, k = (values[:, n], m) if on_col else (values[m, :], n)
+                win = [line[clip(k + d, line.size)] for d in range(-half, half + 1)]
+            else:
+                win = [values[i, j] for i in (clip(m + d, rows) for d in range(-half, half + 1))
+                       for j in (clip(n + d, cols) for d in range(-half, half + 1))
+                       if not (edges and ring >= 2 and min(i, j, rows - 1 - i, cols - 1 - j) == 0)]
+            win = np.array(win)
+            if np.isfinite(win).any():
+                out[m, n] = np.median(win[np.isfinite(win)])
+    return out
+
+
+@pytest.mark.parametrize("axis", ["", "x"])
+def test_local_deviations_leave_out_unmeasured_and_outermost_lenses(axis):
+    """A lens not measured (NaN) counts in no neighbour's baseline; the outermost lenses, biased by the
+    neighbours they miss, count only in their own edge line's."""
     rng = np.random.default_rng(1)
-    values = rng.normal(size=(20, 20))
-    values[3, 4] = values[0, 0] = np.nan
-    fill = np.where(np.isfinite(values), values, np.nanmedian(values))
-    a, b = local_deviations([values, values.T.copy()], ["x", ""])
-    assert np.isnan(a[3, 4]) and np.isnan(a[0, 0])
-    assert np.array_equal(a, values - _scipy_baseline(fill, 5, "x"), equal_nan=True)
-    assert np.array_equal(b, values.T - _scipy_baseline(fill.T.copy(), 5, ""), equal_nan=True)
+    values = rng.normal(size=(20, 22))
+    values[0, :] += 5.0  # an outermost row far off the rest: it must not move the rows inside it
+    values[3, 4] = values[0, 0] = values[7, 21] = values[8, 21] = values[12, 0] = np.nan
+    values[15:18, 10:12] = np.nan
+    got = local_deviation(values, axis=axis)
+    want = values - _baseline_oracle(values, 5, axis)
+    assert np.array_equal(np.isnan(got), np.isnan(values))
+    np.testing.assert_allclose(got, want, rtol=0, atol=1e-12, equal_nan=True)
+    # the row two in from the shifted one is judged against its own population
+    assert np.abs(np.nanmedian(got[2, 2:-2])) < 0.3
+    # several maps at once: the same, each with its own NaN
+    other = np.where(np.arange(22) == 9, np.nan, values[::-1] * 2.0)  # another map, its own NaN
+    a, b = local_deviations([values, other], [axis, "x"])
+    np.testing.assert_allclose(a, got, rtol=0, atol=0, equal_nan=True)
+    np.testing.assert_allclose(b, other - _baseline_oracle(other, 5, "x"), rtol=0, atol=1e-12, equal_nan=True)
 
 
-def test_phase_table_gather_equals_the_clipped_template_gather(model):
-    """The contiguous phase-table copy and its element-wise fallback (windows far off the template) give
-    exactly the clipped gather of `reference_windows`, for every phase and shifts up to +-40 px."""
+def test_local_deviations_of_a_small_array_leave_out_only_the_unmeasured():
+    values = np.arange(12.0).reshape(3, 4)
+    values[1, 1] = np.nan
+    got = local_deviation(values)
+    np.testing.assert_allclose(got, values - _baseline_oracle(values, 5, ""), rtol=0, atol=1e-12, equal_nan=True)
+
+
+def test_reference_gather_is_the_bilinear_template_interpolation(model):
+    """`_gather_at` (the phase-table blend and its element-wise fallback for windows far off the template)
+    is the template interpolated bilinearly at the lens centre, indices clipped into the zero border, for
+    centres on and between the 1/8-px samples and shifts up to +-40 px."""
     from mlaqc.inspection.metrics import _PHASE_PAD, _phase_tables, _template_stack
-    from mlaqc.inspection.metrics_kernels import _gather_tables
+    from mlaqc.inspection.metrics_kernels import _gather_at
 
     stack, size, c = _template_stack(model)
+    full = stack.reshape(4, size, size)
     phases = _phase_tables(model)
     os_ = int(model.oversample)
     rng = np.random.default_rng(8)
     h, w = 21, 19
-    q = np.concatenate([np.arange(80, 96), rng.integers(-240, 400, 40)])  # every phase near centre, then wild
-    dst = np.empty((4, h * w), np.float32)
-    for qx, qy in zip(q, rng.permutation(q)):
-        _gather_tables(stack, size, c, os_, phases, _PHASE_PAD, int(qx), int(qy), h, w, 4, dst)
-        want = reference_windows(model, np.array([[qx / os_]]), np.array([[qy / os_]]), h, w)[0][:, 0, 0]
-        assert np.array_equal(dst.reshape(4, h, w), want), (qx, qy)
+    q = np.concatenate([np.arange(80, 96) + 0.0, 80 + 16 * rng.random(40), rng.uniform(-240, 400, 40)])
+    dst = np.empty((4, h * w + 8))
+    for fx, fy in zip(q, rng.permutation(q)):
+        _gather_at(stack, size, c, os_, phases, _PHASE_PAD, fx, fy, h, w, 4, dst)
+        x0, y0 = np.floor(fx), np.floor(fy)
+        tx, ty = fx - x0, fy - y0
+        wts = [(1 - tx) * (1 - ty), tx * (1 - ty), (1 - tx) * ty, tx * ty]
+        rows = [np.clip(c + np.arange(h) * os_ - int(y0) - k, 0, size - 1) for k in (0, 1)]
+        cols = [np.clip(c + np.arange(w) * os_ - int(x0) - k, 0, size - 1) for k in (0, 1)]
+        corner = lambda i, j: full[:, rows[i][:, None], cols[j][None, :]].astype(np.float64)  # noqa: E731
+        want = (wts[0] * corner(0, 0) + wts[1] * corner(0, 1)) + (wts[2] * corner(1, 0) + wts[3] * corner(1, 1))
+        np.testing.assert_allclose(dst[:, :h * w].reshape(4, h, w), want, rtol=1e-14, atol=1e-15, err_msg=str((fx, fy)))
+        if fx == int(fx) and fy == int(fy):  # on a sample: exactly the template's samples
+            assert np.array_equal(dst[:, :h * w].reshape(4, h, w), corner(0, 0)), (fx, fy)

@@ -50,10 +50,12 @@ FOCUS_KINDS = ("radius", "thickness")  # errors that defocus the lens: what the 
 
 
 def local_deviation(values: np.ndarray, size: int = 5, axis: str = "") -> np.ndarray:
-    """values minus a NaN-robust local baseline: the median over size x size lenses inside the array;
-    along an edge the running median of that edge (its lenses miss the same neighbours). A corner lens
-    misses neighbours on two sides: for an x index (axis='x') it is compared along its left/right edge,
-    otherwise along its top/bottom edge (and flagged only at 1.5 x the threshold, see `identify`)."""
+    """values minus a NaN-robust local baseline: the median over size x size lenses inside the array
+    (leaving out lenses not measured, and the outermost ones for lenses two or more in: see
+    `_refine_baselines`); along an edge the running median of that edge (its lenses miss the same
+    neighbours). A corner lens misses neighbours on two sides: for an x index (axis='x') it is compared
+    along its left/right edge, otherwise along its top/bottom edge (and flagged only at 1.5 x the
+    threshold, see `identify`)."""
     return local_deviations([values], [axis], size)[0]
 
 
@@ -77,7 +79,70 @@ def local_deviations(planes: list[np.ndarray], axes: list[str], size: int = 5) -
             median_baselines(stack, int(size), x_axis, base)
     else:
         base = np.stack([_scipy_baseline(f, size, a) for f, a in zip(stack, axes)])
+    _refine_baselines(stack, np.isfinite(np.array(planes, dtype=np.float64)), base, size, [a == "x" for a in axes])
     return [values - b for values, b in zip(planes, base)]
+
+
+def _refine_baselines(stack: np.ndarray, finite: np.ndarray, base: np.ndarray, size: int,
+                      x_axis: list[bool]) -> None:
+    """Recompute, in place, the baselines of the few lenses whose neighbourhood (the compiled pass'
+    window, clipped to the array as scipy's mode 'nearest') holds lenses that do not belong in it, as the
+    median of the others (`stack`: the maps, read only where `finite`). A lens not measured (NaN: off
+    the sensor, lost) is left out instead of counted as the whole map's median; the array's outermost
+    lenses, which miss neighbours and carry their own bias, are left out of the neighbourhoods of the
+    lenses two or more rows in (those next to the edge are their own class, judged against their own
+    spread, and keep them). Without this a lens beside the not-inspected part of an edge, or two lenses
+    in from the edge, is judged against a baseline pulled towards another population."""
+    n_f, rows, cols = stack.shape
+    half = size // 2
+    edges = rows >= size and cols >= size
+    ring = np.zeros((rows, cols), np.int64)  # distance to the array's edge, in lenses
+    if edges:
+        m_, n_ = np.ogrid[:rows, :cols]
+        ring = np.minimum(np.minimum(m_, n_), np.minimum(rows - 1 - m_, cols - 1 - n_))
+    outer = edges & (ring == 0)
+    # left out of a window: NaN lenses; the outermost ones too for lenses two or more in
+    near_nan = maximum_filter(~finite.all(axis=0), size=size, mode="nearest")
+    near_outer = maximum_filter(outer, size=size, mode="nearest") & (ring >= 2) if edges else np.zeros_like(outer)
+    m, n = np.nonzero((near_nan | near_outer) & ~outer)
+    if m.size:
+        off = np.arange(-half, half + 1)
+        ii, jj = np.broadcast_arrays(m[:, None, None] + off[None, :, None], n[:, None, None] + off[None, None, :])
+        ii, jj = np.clip(ii, 0, rows - 1).reshape(m.size, -1), np.clip(jj, 0, cols - 1).reshape(m.size, -1)
+        drop = ~finite[:, ii, jj] | (outer[ii, jj] & (ring[m, n] >= 2)[:, None])[None]
+        med, ok = _nan_medians(np.where(drop, np.nan, stack[:, ii, jj]))
+        base[:, m, n] = np.where(ok, med, base[:, m, n])
+    if not edges:
+        return
+    # the outermost lenses, along their edge line: only the lenses not measured are left out (all maps at
+    # once; a corner keeps the value of the line the compiled pass wrote last: columns for an x index)
+    if finite[:, outer].all():
+        return
+    x_planes = np.asarray(x_axis, bool)
+    for sl, corner_wins in (((0, slice(None)), ~x_planes), ((-1, slice(None)), ~x_planes),
+                            ((slice(None), 0), x_planes), ((slice(None), -1), x_planes)):
+        line_ok = finite[(slice(None),) + sl]  # (F, L)
+        if line_ok.all():
+            continue
+        q = np.flatnonzero(np.convolve(~line_ok.all(axis=0), np.ones(size), mode="same") > 0)
+        idx = np.clip(q[:, None] + np.arange(-half, half + 1)[None, :], 0, line_ok.shape[1] - 1)
+        med, ok = _nan_medians(np.where(line_ok[:, idx], stack[(slice(None),) + sl][:, idx], np.nan))
+        line = base[(slice(None),) + sl]  # (a view: written through)
+        ends = (q == 0) | (q == line_ok.shape[1] - 1)  # the corners: only where this line wins them
+        write = ok & (~ends[None, :] | corner_wins[:, None])
+        line[:, q] = np.where(write, med, line[:, q])
+
+
+def _nan_medians(vals: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Median over the last axis of the finite values of `vals` (…, K), and where there was any: one sort
+    (NaN sorts last), two order statistics (np.nanmedian goes through masked arrays, ten times slower)."""
+    k = np.isfinite(vals).sum(axis=-1)
+    s = np.sort(vals, axis=-1)
+    lo = np.maximum((k - 1) // 2, 0)[..., None]
+    hi = np.maximum(k // 2, 0)[..., None]
+    hi = np.minimum(hi, vals.shape[-1] - 1)
+    med = 0.5 * (np.take_along_axis(s, lo, -1) + np.take_along_axis(s, hi, -1))[..., 0]
+    return med, k > 0
 
 
 @functools.lru_cache(maxsize=1)

@@ -1,12 +1,21 @@
 """Per-lens sub-image indexes for all lenses at once: one compiled pass per lens over its window
 (mlaqc.inspection.metrics_kernels.lens_indexes), lenses split over a thread pool; no per-lens Python.
 
-The reference sub-image of each lens is gathered from the oversampled reference template at that lens'
-sub-pixel phase (quantized to 1/8 px and compensated exactly). Against it each sub-image is registered
-(Lucas-Kanade, two Gauss-Newton steps): the shift from its grid position is the QC position signal. The
-residual is projected on blur (the template's Laplacian) and intensity tilt (asymmetry); the usual
-no-reference and full-reference indexes (flux, uniformity, entropy, sharpness, moments, PSNR, SSIM,
-NCC) are computed alongside for the report.
+The reference sub-image of each lens is interpolated from the oversampled reference template at that
+lens' exact (current) position, bilinear between its 1/8-px samples, so that it moves continuously with
+the lens. Against it each sub-image is registered (Lucas-Kanade, Gauss-Newton steps from the grid
+centre): the shift from its grid position is the QC position signal. The residual is projected on blur
+(the template's Laplacian) and intensity tilt (asymmetry); the usual no-reference and full-reference
+indexes (flux, uniformity, entropy, sharpness, moments, PSNR, SSIM, NCC) are computed alongside for the
+report. Everything taken against the reference weights the window's outermost pixel fading to zero
+(`metrics_kernels.TAPER_PX`), so a window cut one pixel further over changes nothing.
+
+Why both: a sub-image whose profile differs from the reference's (another rim, no overlap light in the
+gaps) is registered with a step gain below 1. With the reference snapped to a 1/8-px phase the result was
+that phase plus a fraction of the rest, and it jumped by up to 0.05 px wherever the snapped phase
+changed; and a window cut on the nearest pixel swapped a mismatched edge column from one side to the
+other as the centre crossed half a pixel (jumps of 0.1-0.13 px, false `position` flags on an independent
+generator's frames). Now every index is a continuous function of the lens' position.
 """
 
 from __future__ import annotations
@@ -18,23 +27,29 @@ from itertools import pairwise
 
 import numpy as np
 
-from mlaqc.inspection.metrics_kernels import INDEX_NAMES, N_INDEX, gather_reference, lens_indexes
+from mlaqc.inspection.metrics_kernels import INDEX_NAMES, N_INDEX, gather_tables_at, lens_indexes
 from mlaqc.inspection.results import LensMetrics
 from mlaqc.models.reference import ReferenceModel
 
 
 def reference_windows(model: ReferenceModel, cx: np.ndarray, cy: np.ndarray, h: int, w: int):
     """Reference sub-image, its gradients and Laplacian for windows whose lens centre is at (cx, cy)
-    (window pixel units), as one (4, rows, cols, h, w) float32 gather; also the exact position (qx, qy)
-    the gathered reference is centred at (cx, cy quantized to 1/oversample px)."""
-    os_ = model.oversample
-    qx = np.rint(cx * os_).astype(np.int64)
-    qy = np.rint(cy * os_).astype(np.int64)
+    (window pixel units), as one (4, rows, cols, h, w) float64 gather, interpolated at exactly that
+    centre (what `lens_indexes` registers against); also that centre (qx, qy) = (cx, cy)."""
+    cx = np.asarray(cx, dtype=np.float64)
+    cy = np.asarray(cy, dtype=np.float64)
+    out = _gather(model, cx, cy, h, w, 4)
+    return np.moveaxis(out.reshape(cx.shape + (4, h, w)), -3, 0), cx.copy(), cy.copy()
+
+
+def _gather(model: ReferenceModel, cx: np.ndarray, cy: np.ndarray, h: int, w: int, ntab: int) -> np.ndarray:
+    """(N, ntab, h*w) float64: the first `ntab` template tables at every centre (compiled, continuous)."""
     stack, size, c = _template_stack(model)
-    ti = np.clip(c + np.arange(h)[None, None, :] * os_ - qy[..., None], 0, size - 1)  # (R, C, h)
-    tj = np.clip(c + np.arange(w)[None, None, :] * os_ - qx[..., None], 0, size - 1)  # (R, C, w)
-    flat = (ti[..., :, None] * size + tj[..., None, :]).astype(np.intp)
-    return np.take(stack, flat, axis=1), qx / os_, qy / os_
+    fx = np.ascontiguousarray(cx, dtype=np.float64).ravel()
+    fy = np.ascontiguousarray(cy, dtype=np.float64).ravel()
+    out = np.empty((fx.size, ntab, h * w))
+    gather_tables_at(stack, size, c, int(model.oversample), _phase_tables(model), _PHASE_PAD, fx, fy, h, w, ntab, out)
+    return out
 
 
 def _template_stack(model: ReferenceModel) -> tuple[np.ndarray, int, int]:
@@ -77,20 +92,16 @@ def _phase_tables(model: ReferenceModel) -> np.ndarray:
 
 
 def reference_images(model: ReferenceModel, cx: np.ndarray, cy: np.ndarray, h: int, w: int) -> np.ndarray:
-    """Only the reference sub-image (float32, cx.shape + (h, w)) of `reference_windows`, gathered by a
-    compiled loop: the report needs it for every lens, and the gradient tables would be 4x the work."""
-    stack, size, c = _template_stack(model)
-    fx = np.ascontiguousarray(cx, dtype=np.float64).ravel()
-    fy = np.ascontiguousarray(cy, dtype=np.float64).ravel()
-    out = np.empty((fx.size, h, w), np.float32)
-    gather_reference(stack, size, c, int(model.oversample), fx, fy, h, w, out)
-    return out.reshape(np.shape(cx) + (h, w))
+    """Only the reference sub-image (float32, cx.shape + (h, w)) of `reference_windows`: the report needs
+    it for every lens, and the gradient tables would be 4x the work."""
+    return _gather(model, np.asarray(cx), np.asarray(cy), h, w, 1).astype(np.float32).reshape(np.shape(cx) + (h, w))
 
 
 def compute_metrics(img: np.ndarray, cx: np.ndarray, cy: np.ndarray, model: ReferenceModel, *,
                     um_per_px_at_mla: float, threads: int | None = None, steps: int = 2) -> LensMetrics:
     """All indexes for sub-images `img` (rows, cols, h, w; NaN outside the frame) whose grid-predicted
-    centres are (cx, cy) in window pixel coordinates; `steps` Gauss-Newton registration steps.
+    centres are (cx, cy) in window pixel coordinates, at most half a pixel from the window's centre (as
+    `subimages.divide` cuts them); `steps` Gauss-Newton registration steps.
 
     One compiled pass per lens (mlaqc.inspection.metrics_kernels.lens_indexes); chunks of lenses run on a thread pool
     (the kernel releases the GIL). Only the flux normalization needs all lenses and is done after."""

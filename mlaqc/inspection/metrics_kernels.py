@@ -5,7 +5,7 @@ Why: the NumPy formulation builds a dozen (N_H, N_W, h, w) temporaries per index
 lenses); here every lens is handled start to finish while its 21 x 21 window sits in L1 cache. Kernels
 release the GIL and work on a [start, stop) range of lenses, so callers split the work over a thread
 pool (no Numba threading layer: safe to call from several threads at once). Sums are accumulated in
-float64; the discrete decisions (reference phase, entropy bins) follow the NumPy code's float32 rules.
+float64, the reference is interpolated in float64; the entropy bins follow the NumPy code's float32 rules.
 """
 
 from __future__ import annotations
@@ -33,6 +33,8 @@ INDEX_NAMES = ("flux", "mean_gray", "uniformity", "entropy", "sharpness", "offse
 N_INDEX = len(INDEX_NAMES)
 _RING0 = INDEX_NAMES.index("ring0")
 ENTROPY_BINS = 32
+# The outermost TAPER_PX of a window fade out of every index computed against the reference (`_taper`).
+TAPER_PX = 1.0
 
 
 @_jit
@@ -55,42 +57,104 @@ def cut_windows_kernel(img, ox, oy, h, w, data, valid):
 
 
 @_jit
-def gather_reference(stack, size, c, os_, cx, cy, h, w, out):
-    """out[k] = reference template (stack row 0) for a lens centred at (cx[k], cy[k]) quantized to 1/os_ px;
-    indices outside the template read its zero border (as metrics.reference_windows)."""
-    for k in range(cx.shape[0]):
-        qx = np.int64(np.rint(cx[k] * os_))
-        qy = np.int64(np.rint(cy[k] * os_))
-        for i in range(h):
-            ti = min(max(c + i * os_ - qy, 0), size - 1)
-            for j in range(w):
-                tj = min(max(c + j * os_ - qx, 0), size - 1)
-                out[k, i, j] = stack[0, ti * size + tj]
-
-
-@_jit
-def _gather_tables(stack, size, c, os_, phases, pad, qx, qy, h, w, ntab, dst):
-    """dst[k, i*w + j] = template table k at template pixel (c + i*os_ - qy, c + j*os_ - qx), indices
-    clipped into the zero border: a contiguous copy from the phase-decimated tables unless the window
-    falls off them (a wild shift), then element by element from the full `stack`."""
-    u = c - qy
-    uc = c - qx
-    pr = u % os_
-    pc = uc % os_
-    r0 = pad + (u - pr) // os_
-    c0 = pad + (uc - pc) // os_
-    if 0 <= r0 and r0 + h <= phases.shape[3] and 0 <= c0 and c0 + w <= phases.shape[4]:
+def _gather_at(stack, size, c, os_, phases, pad, fx, fy, h, w, ntab, dst):
+    """dst[k, i*w + j] (float64; rows of dst at least h*w + 8 long for the fast blend) = template table k
+    at the continuous template position (c + i*os_ - fy, c + j*os_ - fx), bilinear between its samples
+    (1/os_ px apart): the reference of a lens centred at (fx, fy) / os_ in window pixels, a continuous
+    function of that centre. Reads four phase-table blocks (the corners of the sample cell) at once;
+    falls back to the full `stack`, element by element, where a wild shift leaves the phase tables
+    (indices clipped into the zero border)."""
+    fx0 = math.floor(fx)
+    fy0 = math.floor(fy)
+    tx = fx - fx0
+    ty = fy - fy0
+    qx0 = np.int64(fx0)
+    qy0 = np.int64(fy0)
+    # (the blend in float64: in float32 the compiled kernel and its standalone use could round a value
+    # differently, depending on whether the compiler fuses the multiply-adds where it inlines this)
+    w00 = (1.0 - tx) * (1.0 - ty)  # corner (qx0, qy0)
+    w01 = tx * (1.0 - ty)  # (qx0 + 1, qy0)
+    w10 = (1.0 - tx) * ty  # (qx0, qy0 + 1)
+    w11 = tx * ty  # (qx0 + 1, qy0 + 1)
+    ua = c - qy0
+    ub = ua - 1
+    va = c - qx0
+    vb = va - 1
+    pra = ua % os_
+    prb = ub % os_
+    pca = va % os_
+    pcb = vb % os_
+    ra = pad + (ua - pra) // os_
+    rb = pad + (ub - prb) // os_
+    ca = pad + (va - pca) // os_
+    cb = pad + (vb - pcb) // os_
+    n_r = phases.shape[3]
+    n_c = phases.shape[4]
+    # rows are blended in whole vectors, a row's tail included, when dst has room for the last row's
+    # overrun (the next row overwrites the rest): no scalar remainder loop, a third faster at w = 21
+    wv = (w + 7) // 8 * 8 if dst.shape[1] >= h * w + 8 else w
+    if (0 <= min(ra, rb) and max(ra, rb) + h <= n_r and 0 <= min(ca, cb) and max(ca, cb) + wv <= n_c):
+        # flat offsets, unsigned: Numba then drops its negative-index handling and the row loop vectorizes
+        # (7x faster than signed offsets or a view per row)
+        flat = phases.reshape(-1)
+        un_c = np.uint64(n_c)
+        uw = np.uint64(w)
         for k in range(ntab):
-            for i in range(h):
-                src = phases[k, pr, pc, r0 + i]
-                for j in range(w):
-                    dst[k, i * w + j] = src[c0 + j]
+            base = k * os_ * os_
+            o00 = np.uint64(((base + pra * os_ + pca) * n_r + ra) * n_c + ca)
+            o01 = np.uint64(((base + pra * os_ + pcb) * n_r + ra) * n_c + cb)
+            o10 = np.uint64(((base + prb * os_ + pca) * n_r + rb) * n_c + ca)
+            o11 = np.uint64(((base + prb * os_ + pcb) * n_r + rb) * n_c + cb)
+            row = dst[k]
+            d0 = np.uint64(0)
+            for _i in range(h):
+                for jj in range(wv):
+                    j = np.uint64(jj)
+                    row[d0 + j] = ((w00 * flat[o00 + j] + w01 * flat[o01 + j])
+                                   + (w10 * flat[o10 + j] + w11 * flat[o11 + j]))
+                o00 += un_c
+                o01 += un_c
+                o10 += un_c
+                o11 += un_c
+                d0 += uw
     else:
         for k in range(ntab):
             for i in range(h):
-                row = min(max(c + i * os_ - qy, 0), size - 1) * size
+                r0 = min(max(ua + i * os_, 0), size - 1) * size
+                r1 = min(max(ub + i * os_, 0), size - 1) * size
                 for j in range(w):
-                    dst[k, i * w + j] = stack[k, row + min(max(c + j * os_ - qx, 0), size - 1)]
+                    j0 = min(max(va + j * os_, 0), size - 1)
+                    j1 = min(max(vb + j * os_, 0), size - 1)
+                    dst[k, i * w + j] = ((w00 * stack[k, r0 + j0] + w01 * stack[k, r0 + j1])
+                                         + (w10 * stack[k, r1 + j0] + w11 * stack[k, r1 + j1]))
+
+
+@_jit
+def gather_tables_at(stack, size, c, os_, phases, pad, cx, cy, h, w, ntab, out):
+    """out[k, t] (float64, (N, ntab, h*w)) = the first `ntab` template tables for a lens centred at
+    (cx[k], cy[k]) window px, continuous in that centre (`_gather_at`): what `lens_indexes` registers
+    against, for the report's reference images and the tests."""
+    npx = h * w
+    tab = np.empty((ntab, npx + 8))
+    for k in range(cx.shape[0]):
+        _gather_at(stack, size, c, os_, phases, pad, cx[k] * os_, cy[k] * os_, h, w, ntab, tab)
+        out[k] = tab[:, :npx]
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _taper(u, half):
+    """Weight of a window pixel at u px from the lens' grid centre along one axis, in a window reaching
+    `half` px either side of that centre: 1 inside, falling to 0 over the outermost TAPER_PX as a raised
+    cosine. A window is cut on the pixel nearest the grid centre, so when the centre crosses half a pixel
+    one pixel column (row) leaves the window at |u| = half and another enters at the other side: with
+    weight 0 there, no index jumps with the sub-pixel phase, and with a zero slope there none bends either
+    (a linear ramp left a kink that the smooth phase model of identification cannot follow)."""
+    t = (half - abs(u)) / TAPER_PX
+    if t >= 1.0:
+        return 1.0
+    if t <= 0.0:
+        return 0.0
+    return 0.5 - 0.5 * math.cos(math.pi * t)
 
 
 @_jit_fast
@@ -99,25 +163,45 @@ def lens_indexes(data, cx, cy, stack, size, c, os_, phases, pad, um_per_px, step
     out[k, :] (columns INDEX_NAMES; 'flux' raw, normalized over all lenses by the caller).
 
     Same definitions as the NumPy formulation in tests/test_metrics_kernels.py: Lucas-Kanade registration
-    (`steps` Gauss-Newton steps) on the template gathered at the lens' 1/os_-px phase, then flux, mean,
-    disc uniformity, 32-bin entropy, gradient-energy sharpness, offsets, half-max second moments, blur and
-    tilt projections of the residual, PSNR/SSIM/NCC of the flux-scaled sub-image. Centred sums are
-    expanded into raw sums (float64: no precision lost at these sizes) so that a few short, branch-free
-    loops over the window do everything, and they vectorize."""
+    (`steps` Gauss-Newton steps from the grid centre) on the reference interpolated at the current
+    estimate (`_gather_at`: continuous in it, so the fixed point the steps converge to is a continuous
+    function of the lens' position, whatever the sub-image's profile), then flux, mean, disc uniformity,
+    32-bin entropy, gradient-energy sharpness, offsets, half-max second moments, blur and tilt projections
+    of the residual, PSNR/SSIM/NCC of the flux-scaled sub-image and the residual's ring profile. Every
+    index but the disc uniformity and the entropy (discrete by nature, and only reported) weights the
+    window's pixels by `_taper` about the grid centre, so pixels that enter or leave the window as the
+    centre crosses half a pixel count for nothing: no index jumps with the sub-pixel phase. Centred
+    sums are expanded into raw sums (float64: no precision lost at these sizes) so that a few short,
+    branch-free loops over the window do everything, and they vectorize."""
     h, w = data.shape[1:]
     npx = h * w
     x32 = np.empty(npx, np.float32)
     x = np.empty(npx)
     v = np.empty(npx)
-    tab = np.empty((4, npx), np.float32)
+    om = np.empty(npx)  # validity x taper: the weight of a pixel in the sums against the reference
+    tp = np.empty(npx)  # the gradient energy's weights: the taper one pixel further in, validity not masked
+    tx_ = np.empty(w)
+    ty_ = np.empty(h)
+    gx_ = np.empty(w)
+    gy_ = np.empty(h)
+    tab = np.empty((4, npx + 8))  # (+8: room for `_gather_at`'s whole-vector rows)
+    ref = np.empty(npx)  # the final reference (moved by the last registration step)
     counts = np.empty((4, ENTROPY_BINS + 1), np.int64)
     bins = np.empty(npx, np.int32)
     ring = np.empty(N_RING + 1)  # the last one collects the corners, unused
     edges = RING_EDGES * (0.5 * h)
     inv_half = 1.0 / (0.5 * h)
     rdisc2 = (0.35 * h) ** 2
+    half_w = 0.5 * w
+    half_h = 0.5 * h
     nan = np.nan
     for k in range(start, stop):
+        for j in range(w):
+            tx_[j] = _taper(j - cx[k], half_w)
+            gx_[j] = _taper(j - cx[k], half_w - 1.0)  # (a gradient's stencil reaches one pixel further out)
+        for i in range(h):
+            ty_[i] = _taper(i - cy[k], half_h)
+            gy_[i] = _taper(i - cy[k], half_h - 1.0)
         nv = 0.0
         flux = 0.0
         top = np.float32(-np.inf)
@@ -130,71 +214,84 @@ def lens_indexes(data, cx, cy, stack, size, c, os_, phases, pad, um_per_px, step
                 x32[p] = xv
                 x[p] = xv
                 v[p] = 1.0 if ok else 0.0
+                tp[p] = gy_[i] * gx_[j]
+                om[p] = ty_[i] * tx_[j] if ok else 0.0
                 nv += 1.0 if ok else 0.0
                 flux += xv
         for p in range(npx):  # (apart, as the max would keep the loop above from vectorizing)
             top = x32[p] if x32[p] > top else top
-        # --- registration: I ~ a R(x - d) ~ a R - a d.grad R, so d = -(G'G)^-1 G'(I - a R) / a
-        dx = 0.0
-        dy = 0.0
-        for _ in range(steps):
-            qxi = np.int64(np.rint((cx[k] + dx) * os_))
-            qyi = np.int64(np.rint((cy[k] + dy) * os_))
-            _gather_tables(stack, size, c, os_, phases, pad, qxi, qyi, h, w, 3, tab)
+        # --- registration: I ~ a R(x - d) ~ a R - a d.grad R, so d = -(G'WG)^-1 G'W(I - a R) / a, with the
+        # reference R interpolated at the current estimate (qx, qy) and W the pixel weights. The last step's
+        # gather also takes the Laplacian, and its reference is moved by that step to first order
+        # (R - d.grad R) instead of gathered again: the indexes below are taken against it.
+        qx = cx[k]
+        qy = cy[k]
+        lx = 0.0
+        ly = 0.0
+        for st in range(max(steps, 1)):
+            _gather_at(stack, size, c, os_, phases, pad, qx * os_, qy * os_, h, w, 4 if st >= steps - 1 else 3, tab)
+            if steps == 0:
+                break
             sxr = srr = sxx = sxy = syy = sgxx = sgxr = sgyx = sgyr = 0.0
             for p in range(npx):
-                vp = v[p]
+                wp = om[p]
                 xp = x[p]
-                rp = tab[0, p] * vp
-                gxp = tab[1, p] * vp
-                gyp = tab[2, p] * vp
-                sxr += xp * rp
-                srr += rp * rp
-                sxx += gxp * gxp
-                sxy += gxp * gyp
-                syy += gyp * gyp
-                sgxx += gxp * xp
-                sgxr += gxp * rp
-                sgyx += gyp * xp
-                sgyr += gyp * rp
+                rp = tab[0, p]
+                gxp = tab[1, p]
+                gyp = tab[2, p]
+                wr = wp * rp
+                wgx = wp * gxp
+                wgy = wp * gyp
+                sxr += xp * wr
+                srr += rp * wr
+                sxx += gxp * wgx
+                sxy += gxp * wgy
+                syy += gyp * wgy
+                sgxx += wgx * xp
+                sgxr += wgx * rp
+                sgyx += wgy * xp
+                sgyr += wgy * rp
             a = sxr / max(srr, 1e-30)
             bx = sgxx - a * sgxr
             by = sgyx - a * sgyr
             det = sxx * syy - sxy * sxy
             safe = det if abs(det) > 1e-30 else np.inf
             ax = a if abs(a) > 1e-30 else np.inf
-            step_x = -(syy * bx - sxy * by) / safe / ax
-            step_y = -(sxx * by - sxy * bx) / safe / ax
-            # the reference sat at (qx, qy), not at (cx + dx, cy + dy): the measured shift is from (qx, qy)
-            dx = qxi / os_ - cx[k] + step_x
-            dy = qyi / os_ - cy[k] + step_y
-        qxi = np.int64(np.rint((cx[k] + dx) * os_))
-        qyi = np.int64(np.rint((cy[k] + dy) * os_))
-        qx = qxi / os_
-        qy = qyi / os_
-        _gather_tables(stack, size, c, os_, phases, pad, qxi, qyi, h, w, 4, tab)
-        # --- reference products (r and lap masked by validity, gradients not)
-        sxr = srr = slap2 = sg2 = sxl = srl = srv = sx2 = 0.0
+            lx = -(syy * bx - sxy * by) / safe / ax
+            ly = -(sxx * by - sxy * bx) / safe / ax
+            if st < steps - 1:
+                qx += lx
+                qy += ly
+        for p in range(npx):
+            ref[p] = tab[0, p] - (lx * tab[1, p] + ly * tab[2, p])
+        qx += lx  # the registered lens centre (window px): every index below is taken about it
+        qy += ly
+        dx = qx - cx[k]
+        dy = qy - cy[k]
+        # --- reference products, weighted (gradient energy by `tp`)
+        sxr = srr = slap2 = sg2 = sxl = srl = srv = sx2 = sxw = nw = 0.0
         peak = -np.inf
         for p in range(npx):
-            vp = v[p]
+            wp = om[p]
             xp = x[p]
-            rp = tab[0, p] * vp
-            lp = tab[3, p] * vp
-            gxp = np.float64(tab[1, p])
-            gyp = np.float64(tab[2, p])
-            sxr += xp * rp
-            srr += rp * rp
-            slap2 += lp * lp
-            sg2 += gxp * gxp + gyp * gyp
-            sxl += xp * lp
-            srl += rp * lp
-            srv += rp
-            sx2 += xp * xp * vp
+            rp = ref[p]
+            lp = tab[3, p]
+            gxp = tab[1, p]
+            gyp = tab[2, p]
+            sxr += wp * xp * rp
+            srr += wp * rp * rp
+            slap2 += wp * lp * lp
+            sg2 += tp[p] * (gxp * gxp + gyp * gyp)
+            sxl += wp * xp * lp
+            srl += wp * rp * lp
+            srv += wp * rp
+            sx2 += wp * xp * xp
+            sxw += wp * xp
+            nw += wp
         for p in range(npx):  # (apart: a max in the loop above would keep it from vectorizing)
-            rp = tab[0, p] * v[p]
+            rp = ref[p] * v[p]
             peak = rp if rp > peak else peak
-        # --- position-weighted sums: central disc, tilt basis, half-maximum moments
+        # --- position-weighted sums: central disc, tilt basis and half-maximum moments (weighted)
         nd = sxd = sx2d = tsxx = tsxy = tsyy = tbxx = tbxr = tbyx = tbyr = 0.0
         sw = swx = swy = swxx = swyy = swxy = 0.0
         half_top = 0.5 * np.float64(top)
@@ -204,53 +301,57 @@ def lens_indexes(data, cx, cy, stack, size, c, os_, phases, pad, um_per_px, step
                 p = i * w + j
                 xx = j - qx
                 vp = v[p]
+                wp = om[p]
                 xp = x[p]
-                rp = tab[0, p] * vp
+                rp = ref[p]
                 d = vp if xx * xx + yy * yy <= rdisc2 else 0.0
                 nd += d
                 sxd += xp * d
                 sx2d += xp * xp * d
                 bxp = rp * xx * inv_half
                 byp = rp * yy * inv_half
-                tsxx += bxp * bxp
-                tsxy += bxp * byp
-                tsyy += byp * byp
-                tbxx += bxp * xp
-                tbxr += bxp * rp
-                tbyx += byp * xp
-                tbyr += byp * rp
-                wgt = max(xp - half_top, 0.0)
+                tsxx += wp * bxp * bxp
+                tsxy += wp * bxp * byp
+                tsyy += wp * byp * byp
+                tbxx += wp * bxp * xp
+                tbxr += wp * bxp * rp
+                tbyx += wp * byp * xp
+                tbyr += wp * byp * rp
+                wgt = wp * max(xp - half_top, 0.0)
                 sw += wgt
                 swx += wgt * xx
                 swy += wgt * yy
                 swxx += wgt * xx * xx
                 swyy += wgt * yy * yy
                 swxy += wgt * xx * yy
-        # --- gradient energy (np.gradient, edge_order 1, both axes)
+        # --- gradient energy (np.gradient, edge_order 1, both axes), each pixel's weighted by `tp`: zero
+        # wherever the stencil could reach a pixel that leaves the window
         ge = 0.0
         if w > 1:
             for i in range(h):
                 b0 = i * w
                 e = x[b0 + 1] - x[b0]
-                ge += e * e
+                ge += tp[b0] * e * e
                 e = x[b0 + w - 1] - x[b0 + w - 2]
-                ge += e * e
+                ge += tp[b0 + w - 1] * e * e
                 xr = x[b0:b0 + w]
+                tr_ = tp[b0:b0 + w]
                 for j in range(1, w - 1):
                     e = 0.5 * (xr[j + 1] - xr[j - 1])
-                    ge += e * e
+                    ge += tr_[j] * e * e
         if h > 1:
             for j in range(w):
                 e = x[w + j] - x[j]
-                ge += e * e
+                ge += tp[j] * e * e
                 e = x[(h - 1) * w + j] - x[(h - 2) * w + j]
-                ge += e * e
+                ge += tp[(h - 1) * w + j] * e * e
             for i in range(1, h - 1):
                 up = x[(i - 1) * w:i * w]
                 dn = x[(i + 1) * w:(i + 2) * w]
+                tr_ = tp[i * w:(i + 1) * w]
                 for j in range(w):
                     e = 0.5 * (dn[j] - up[j])
-                    ge += e * e
+                    ge += tr_[j] * e * e
         # --- entropy: bins follow NumPy's float32 arithmetic, int(x / top * 32) clipped to 0..31
         # (four interleaved histograms: neighbouring pixels often share a bin, and one histogram would
         # serialize on its counter)
@@ -264,7 +365,7 @@ def lens_indexes(data, cx, cy, stack, size, c, os_, phases, pad, um_per_px, step
             bins[p] = bi if v[p] > 0 else ENTROPY_BINS
         for p in range(npx):
             counts[p & 3, bins[p]] += 1
-        # --- residual profile: light of the flux-scaled residual x - a R per ring around the lens centre
+        # --- residual profile: weighted light of the flux-scaled residual x - a R per ring around the lens centre
         a_reg = sxr / max(srr, 1e-30)
         ring[:] = 0.0
         for i in range(h):
@@ -276,7 +377,7 @@ def lens_indexes(data, cx, cy, stack, size, c, os_, phases, pad, um_per_px, step
                 for e in range(N_RING):
                     kk += 1 if d >= edges[e] else 0
                 p = i * w + j
-                res = x[p] - a_reg * tab[0, p] * v[p]
+                res = om[p] * (x[p] - a_reg * ref[p])
                 # soft membership: within half a pixel of an edge a pixel is shared linearly between the two
                 # rings, so a ring's light is continuous in the lens' sub-pixel position
                 lo = 0.5 - (d - edges[kk - 1]) if kk > 0 else 0.0
@@ -296,9 +397,8 @@ def lens_indexes(data, cx, cy, stack, size, c, os_, phases, pad, um_per_px, step
         a = sxr / max(srr, 1e-30)
         an = a if a != 0 else nan
         inv_an = 1.0 / an
-        n = max(nv, 1.0)
-        o[0] = flux
-        o[1] = flux / n
+        o[0] = sxw  # the weighted light: a window cut one pixel over does not change it (at the array's
+        o[1] = sxw / max(nw, 1e-30)  # edge the two outermost columns differ: one is lit, one is not)
         ndc = max(nd, 1.0)
         mean_d = sxd / ndc
         var_d = max((sx2d - 2.0 * mean_d * sxd + mean_d * mean_d * nd) / ndc, 0.0)
@@ -338,15 +438,16 @@ def lens_indexes(data, cx, cy, stack, size, c, os_, phases, pad, um_per_px, step
         tdet = tdet if abs(tdet) > 1e-30 else np.inf
         o[11] = (tsyy * tpx - tsxy * tpy) / tdet * inv_an
         o[12] = (tsxx * tpy - tsxy * tpx) / tdet * inv_an
-        # full reference against xs = x / a: means, mse, (co)variances from raw sums
-        mxs = flux * inv_an / n
-        mr = srv / n
+        # full reference against xs = x / a, weighted: means, mse, (co)variances from raw sums
+        nwc = max(nw, 1e-30)
+        mxs = sxw * inv_an / nwc
+        mr = srv / nwc
         sxs2 = sx2 * inv_an * inv_an
         sxsr = sxr * inv_an
-        mse = (sxs2 - 2.0 * sxsr + srr) / n
-        vx = max((sxs2 - 2.0 * mxs * flux * inv_an + mxs * mxs * nv) / n, 0.0)
-        vr = max((srr - 2.0 * mr * srv + mr * mr * nv) / n, 0.0)
-        cov = (sxsr - mr * flux * inv_an - mxs * srv + mxs * mr * nv) / n
+        mse = (sxs2 - 2.0 * sxsr + srr) / nwc
+        vx = max((sxs2 - 2.0 * mxs * sxw * inv_an + mxs * mxs * nw) / nwc, 0.0)
+        vr = max((srr - 2.0 * mr * srv + mr * mr * nw) / nwc, 0.0)
+        cov = (sxsr - mr * sxw * inv_an - mxs * srv + mxs * mr * nw) / nwc
         c1 = (0.01 * peak) ** 2
         c2 = (0.03 * peak) ** 2
         o[13] = 10.0 * np.log10(peak * peak / max(mse, 0.0))

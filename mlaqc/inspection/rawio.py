@@ -62,7 +62,7 @@ _TAGS_OF_INTEREST = (
 class RawFrame:
     """One raw frame as the sensor delivered it, plus the facts needed to interpret its counts."""
 
-    data: np.ndarray  # 2-D uint16 raw counts (float32 only when an NPY file held floats)
+    data: np.ndarray  # 2-D uint16 raw counts (float32 only when an NPY file held floats: counts, or 0..1)
     bits: int  # significant bit depth (8..16)
     cfa: str | None  # one of CFA_PATTERNS, or None for monochrome
     black_level: int
@@ -70,7 +70,8 @@ class RawFrame:
     metadata: dict = field(default_factory=dict)
     source: str = ""
     # where bits, black and white level came from: 'file' (tags, record, sidecar), 'container' (only the
-    # container's dtype: `resolve_levels` refines them), or what resolved them ('option', 'config', 'data')
+    # container's dtype: `resolve_levels` refines them), 'normalized' (float data within 0..1: black 0,
+    # white 1), or what resolved them ('option', 'config', 'data')
     levels_from: str = "file"
 
     def __post_init__(self) -> None:
@@ -647,9 +648,21 @@ def _load_npy(path: Path, sidecar: dict | None) -> RawFrame:
         if not np.isfinite(data).all():
             bad = int(data.size - np.count_nonzero(np.isfinite(data)))
             raise InputError(f"Raw file {path} contains {bad} NaN or infinite values.")
-        return _frame_from_record(data.astype(np.float32), 16, record, metadata, path)
+        data = data.astype(np.float32)
+        if record is None and _normalized_floats(data):
+            # a frame already scaled to 0..1 (white 1.0, black 0), not counts: read as 16-bit counts it
+            # would sit under 2e-5 of full scale and be refused as black
+            return RawFrame(data, 16, None, 0, 1, metadata, str(path), "normalized")
+        return _frame_from_record(data, 16, record, metadata, path)
     data = _integer_data(data, path)
     return _frame_from_record(data.astype(np.uint16), 8 if data.dtype == np.uint8 else 16, record, metadata, path)
+
+
+def _normalized_floats(data: np.ndarray) -> bool:
+    """A float frame whose values all lie within [0, 1] and are not all integers: a normalized frame (a
+    frame of float counts, or one holding only 0 and 1, is not)."""
+    lo, hi = float(data.min()), float(data.max())
+    return 0.0 <= lo and hi <= 1.0 and not bool(np.all(data == np.round(data)))
 
 
 def _frame_from_record(data: np.ndarray, bits: int, record: dict | None, metadata: dict, path: Path) -> RawFrame:
@@ -721,16 +734,41 @@ def resolve_levels(frame: RawFrame, stated: Levels | None = None, sensor: Levels
 def unlit_level(data: np.ndarray) -> float:
     """The counts of the pixels that see no light — in a white plenoptic frame, the gaps between the
     sub-images: the median of those within 2 % of the range above the 0.1th percentile, when that
-    percentile is under half the 99th (else the frame has no unlit pixels and 0 is returned)."""
+    percentile is under half the 99th (else the frame has no unlit pixels and 0 is returned); but never
+    more than three times their pixel noise above that darkest 0.1 %.
+
+    Why the cap: where the gaps are lit too (stray light, the tails of a wide blur) no pixel shows the
+    black, and the median of the gaps is their light (measured on an independent generator's frames: 888
+    for a true black of 512 in 14 bits, 1599 for 0 in 16 bits). The darkest pixels still bound the black
+    from above, as far as their noise lets them dip below it. The cap only ever lowers the estimate of a
+    frame that has lit pixels, so it cannot make a lit frame look black; on a black frame (no pixel lit)
+    the median already sits within the noise of the darkest pixels, so it does not move."""
     sample = data[::3, ::3] if min(data.shape) >= 300 else data
     dark, bright = (float(v) for v in np.percentile(sample, [0.1, 99.0]))
     if dark > 0.5 * bright:
         return 0.0
-    return float(np.median(sample[sample <= dark + 0.02 * (bright - dark)]))
+    cut = dark + 0.02 * (bright - dark)
+    return min(float(np.median(sample[sample <= cut])), dark + 3.0 * _dark_noise(data, cut))
+
+
+def _dark_noise(data: np.ndarray, cut: float) -> float:
+    """Pixel-to-pixel noise of the pixels at or under `cut`: 1.4826 x the median absolute difference of
+    neighbours (both at or under it) over sqrt 2, along rows and along columns, the smaller of the two
+    (one direction runs along the dark gaps, where the light hardly changes); inf with too few pairs."""
+    step = 8 if min(data.shape) >= 800 else 1  # every 8th row (column) of a big frame is plenty
+    out = np.inf
+    for a, b in ((data[::step, :-1], data[::step, 1:]), (data[:-1, ::step], data[1:, ::step])):
+        both = (a <= cut) & (b <= cut)
+        if np.count_nonzero(both) >= 50:
+            d = a[both].astype(np.float64) - b[both].astype(np.float64)
+            out = min(out, 1.4826 * float(np.median(np.abs(d - np.median(d)))) / np.sqrt(2.0))
+    return out
 
 
 def levels_note(frame: RawFrame) -> str:
     """One sentence saying which levels a frame was read with and where they came from."""
+    if frame.levels_from == "normalized":
+        return "Read as a normalized frame (its float values all lie within 0..1): black level 0, white level 1."
     origin = {"option": "as stated on the command line", "config": "from the camera config's [sensor]",
               "data": "estimated from the data (no level tags in the file)",
               "container": "from the container alone", "file": "from the file"}.get(frame.levels_from, "")
@@ -767,7 +805,8 @@ def check_exposure(
         median = float(np.median(excess))
         lower = excess[excess <= median]
         sigma = 1.4826 * float(np.median(median - lower)) if lower.size else 0.0
-    threshold = max(min(6.0 * sigma, 0.05 * span), min_signal_fraction * span, 1.0)
+    # (at least one count: 1/65535 of the span for a normalized frame)
+    threshold = max(min(6.0 * sigma, 0.05 * span), min_signal_fraction * span, min(1.0, span / 65535.0))
     if bright <= threshold:
         raise InputError(
             f"Frame {frame.source or '(in memory)'} is black: nothing rises above the black level "

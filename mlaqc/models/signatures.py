@@ -34,7 +34,7 @@ from mlaqc.optics.scene import WhiteScene
 FEATURES = ("shift_par", "shift_perp", "asym_par", "asym_perp", "blur", "flux", "ssim", "sharpness")
 RINGS = tuple(f"ring{k}" for k in range(N_RING))  # the residual profile: same in every direction
 PATCH = 9
-TABLE_VERSION = 4
+TABLE_VERSION = 5  # 5: indexes against the bilinearly interpolated reference, tapered window edge
 # The blurs the tables are rendered at: None = the tracer's geometric image alone; a number = the sensor
 # formation (diffraction, crosstalk: mlaqc.optics.formation) plus a Gaussian of that sigma in px (a
 # defocused main lens, a wider pixel response, another wavelength). A frame is classified with the tables
