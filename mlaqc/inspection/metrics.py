@@ -42,13 +42,23 @@ def reference_windows(model: ReferenceModel, cx: np.ndarray, cy: np.ndarray, h: 
     return np.moveaxis(out.reshape(cx.shape + (4, h, w)), -3, 0), cx.copy(), cy.copy()
 
 
-def _gather(model: ReferenceModel, cx: np.ndarray, cy: np.ndarray, h: int, w: int, ntab: int) -> np.ndarray:
-    """(N, ntab, h*w) float64: the first `ntab` template tables at every centre (compiled, continuous)."""
+def _gather(model: ReferenceModel, cx: np.ndarray, cy: np.ndarray, h: int, w: int, ntab: int,
+            dtype=np.float64) -> np.ndarray:
+    """(N, ntab, h*w) `dtype`: the first `ntab` template tables at every centre (compiled, continuous),
+    chunks of lenses on a thread pool (the kernel releases the GIL; 10,404 lenses take 23 ms on one core)."""
     stack, size, c = _template_stack(model)
     fx = np.ascontiguousarray(cx, dtype=np.float64).ravel()
     fy = np.ascontiguousarray(cy, dtype=np.float64).ravel()
-    out = np.empty((fx.size, ntab, h * w))
-    gather_tables_at(stack, size, c, int(model.oversample), _phase_tables(model), _PHASE_PAD, fx, fy, h, w, ntab, out)
+    out = np.empty((fx.size, ntab, h * w), dtype=dtype)
+    run = partial(gather_tables_at, stack, size, c, int(model.oversample), _phase_tables(model), _PHASE_PAD)
+    workers = max(1, min(os.cpu_count() or 1, fx.size // 512))
+    edges = np.linspace(0, fx.size, workers + 1).astype(int)
+    parts = [(a, b) for a, b in pairwise(edges) if b > a]
+    if len(parts) <= 1:
+        run(fx, fy, h, w, ntab, out)
+    else:
+        with ThreadPoolExecutor(len(parts)) as pool:
+            list(pool.map(lambda ab: run(fx[ab[0]:ab[1]], fy[ab[0]:ab[1]], h, w, ntab, out[ab[0]:ab[1]]), parts))
     return out
 
 
@@ -94,7 +104,7 @@ def _phase_tables(model: ReferenceModel) -> np.ndarray:
 def reference_images(model: ReferenceModel, cx: np.ndarray, cy: np.ndarray, h: int, w: int) -> np.ndarray:
     """Only the reference sub-image (float32, cx.shape + (h, w)) of `reference_windows`: the report needs
     it for every lens, and the gradient tables would be 4x the work."""
-    return _gather(model, np.asarray(cx), np.asarray(cy), h, w, 1).astype(np.float32).reshape(np.shape(cx) + (h, w))
+    return _gather(model, np.asarray(cx), np.asarray(cy), h, w, 1, np.float32).reshape(np.shape(cx) + (h, w))
 
 
 def compute_metrics(img: np.ndarray, cx: np.ndarray, cy: np.ndarray, model: ReferenceModel, *,
