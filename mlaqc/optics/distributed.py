@@ -5,7 +5,7 @@ each chunk is one task that a worker traces and sums in job order, and the clien
 partial images into the frame in chunk order, whatever order they finish in. So the frame does not
 depend on how many workers there are, or on a worker lost mid-render (its chunks run again elsewhere:
 tasks are pure). The camera, errors and scene go to the cluster once (`mlaqc.cluster.share`); each
-worker builds its Renderer once per render and keeps it for that render's chunks.
+worker builds the camera's Renderer once and keeps it (keyed by a hash of the camera) for later chunks and renders.
 """
 
 from __future__ import annotations
