@@ -527,6 +527,21 @@ def _fmt(v: Any, digits: int = 3) -> str:
 # ======================================================================================= lens detail
 
 
+def measured_text(measured: Any, m: int, n: int) -> str:
+    """One line of lens U(m,n)'s measured quantities (mlaqc.inspection.measure) with their 1-sigma."""
+    if measured is None:
+        return "measured: —"
+    v = {k: float(a[m - 1, n - 1]) for k, a in measured.values.items()}
+    centre = (f"centre shift ({_fmt(v['centre_dx_um'])}, {_fmt(v['centre_dy_um'])}) ± {_fmt(v['centre_sigma_um'], 2)} µm"
+              if math.isfinite(v["centre_dx_um"]) else "centre not measured")
+    if not math.isfinite(v["focal_rel"]):
+        return f"{centre} · focal length not measured"
+    sign = "sign known" if v["focal_sign_resolved"] == 1 else "sign not known"
+    alt = f", or {100 * v['focal_alt_rel']:+.2f} %" if math.isfinite(v["focal_alt_rel"]) else ""
+    return (f"{centre} · focal Δf/f {100 * v['focal_rel']:+.2f} ± {100 * v['focal_sigma_rel']:.2f} %{alt} "
+            f"({_fmt(v['focal_um'])} µm, {sign})")
+
+
 class LensDetail(QWidget):
     """The selected lens: its sub-image beside the reference (and their difference), and its indexes."""
 
@@ -602,7 +617,7 @@ class LensDetail(QWidget):
             state = (f"<span style='background:{col}'>&nbsp;&nbsp;&nbsp;</span> <b>{defect.error_type}</b> "
                      f"{_fmt(defect.magnitude)} {defect.unit}{direction} · {tol} · score {_fmt(defect.score, 3)}")
         self.title.setText(f"<span style='font-size:14pt'><b>U({m},{n})</b></span>&nbsp;&nbsp;row {m}, column {n} · "
-                           f"{where}<br>{state}")
+                           f"{where}<br>{state}<br>{measured_text(getattr(r, 'measurements', None), m, n)}")
         values = r.metrics.at(m, n)
         self.table.setRowCount(len(METRICS))
         for i, (name, (unit, meaning)) in enumerate(METRICS.items()):

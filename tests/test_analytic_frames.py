@@ -141,3 +141,24 @@ def test_a_frame_at_full_scale_with_no_noise_is_not_called_saturated(tmp_path):
     counts = to_counts(m.render() / m.render().max(), 12, 0, white_fraction=1.0)  # the peak at the white level
     result = inspect_file(write_container(tmp_path / "f.tif", counts, 12, 0, tags=True), SMALL)
     assert result.defects == ()
+
+
+@pytest.mark.parametrize("kw", [dict(rotation_deg=0.7, phase_px=(0.4, 0.15)),
+                                dict(rotation_deg=-1.8, phase_px=(-0.25, 0.5), rim="airy", extra_falloff=0.3)])
+def test_a_shifted_sub_image_is_measured_as_its_lens_shift_in_micrometres(kw):
+    """The model moves one disc by 0.4 px at 30°: that is a lens shift of 0.4 px × p / (sub-image pitch),
+    by the geometry of the chief rays (DESIGN.md §2), whatever made the frame."""
+    from mlaqc.models.signatures import um_per_px_at_mla
+
+    m = _small(**kw).with_anomalies([Anomaly(6, 7, "shift", 0.4, 30.0), Anomaly(12, 16, "blur", 1.5)])
+    M = inspect_image(m.render().astype(np.float32), SMALL).measurements
+    dx, dy = M["centre_dx_um"][6, 7], M["centre_dy_um"][6, 7]
+    assert np.hypot(dx, dy) == pytest.approx(0.4 * um_per_px_at_mla(SMALL), rel=0.02)
+    assert np.degrees(np.arctan2(-dy, dx)) == pytest.approx(30.0, abs=2.0)
+    healthy = np.isfinite(M["centre_dx_um"])
+    healthy[5:8, 6:9] = healthy[11:14, 15:18] = False
+    rms = np.sqrt(np.mean(M["centre_dx_um"][healthy] ** 2 + M["centre_dy_um"][healthy] ** 2))
+    assert rms < 0.01 * um_per_px_at_mla(SMALL) * np.sqrt(2)  # the 0.01 px centre bar, per axis
+    assert np.all(np.isfinite(M["centre_sigma_um"][healthy]))
+    focal = M["focal_rel"][healthy]  # a noise-free frame: finite readings, none made up from noise
+    assert np.isfinite(focal).all() and np.percentile(np.abs(focal), 90) < 0.01

@@ -208,6 +208,7 @@ def test_capture_and_inspect_seeded_defects(qtbot, window, seeded_raw, tmp_path)
     assert w.lens_detail.images[0].image.shape == view.result.subimages.shape[2:]
     assert w.lens_detail.images[1].image is not None
     assert w.lens_detail.table.rowCount() > 10
+    assert "focal Δf/f" in w.lens_detail.title.text() and "centre shift" in w.lens_detail.title.text()
 
     # a table row selects and zooms to its lens
     row = w.table_proxy.mapFromSource(model.index(model.row_of(5, 6), 0))

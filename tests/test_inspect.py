@@ -232,3 +232,57 @@ def test_signature_table_is_rendered_from_the_tracer():
     mags = table.magnitudes["pitch"]
     gain = SMALL.layout.subimage_pitch_px / (SMALL.mla.pitch_um / SMALL.sensor.pixel_um) / SMALL.sensor.pixel_um
     assert shift[mags == 2.0][0] == pytest.approx(2.0 * gain, rel=0.25)  # ~0.40 px for 2 um
+
+
+# ------------------------------------------------------------------ per-lens measured quantities
+
+
+def test_every_lens_gets_its_optical_centre_and_focal_error_with_uncertainties(photons):
+    """Physics, not captured output: a pitch error moves the optical centre by Δp along its direction; a
+    rear-surface decenter δ of the symmetric biconvex lens moves it by δ·R1/(R1+|R2|) = δ/2 (the axis through
+    both centres of curvature); a radius error ε changes f by the thick lens' Δf/f ≈ ε."""
+    result = inspect_image(prepare(frame_of(photons)), SMALL)
+    M = result.measurements
+    sig = float(np.nanmedian(M["centre_sigma_um"]))
+    assert 0 < sig < 0.5
+    for (m, n), truth in SEEDED.items():
+        dx, dy = M["centre_dx_um"][m - 1, n - 1], M["centre_dy_um"][m - 1, n - 1]
+        if "pitch_um" in truth or "decenter_um" in truth:
+            size = truth.get("pitch_um", 0.5 * truth.get("decenter_um", 0.0))
+            angle = truth.get("pitch_dir_deg", truth.get("decenter_dir_deg"))
+            assert np.hypot(dx, dy) == pytest.approx(size, rel=0.15, abs=3 * sig)
+            assert np.degrees(np.arctan2(-dy, dx)) % 360 == pytest.approx(angle, abs=8.0)
+        else:  # a radius error does not move the lens
+            assert np.hypot(dx, dy) < 4 * sig
+            eps = truth["radius_front_rel"]
+            assert M["focal_rel"][m - 1, n - 1] == pytest.approx(eps, rel=0.15)
+            assert M["focal_um"][m - 1, n - 1] == pytest.approx(eps * 420.36, rel=0.16)
+            assert 0 < M["focal_sigma_rel"][m - 1, n - 1] < abs(eps) / 3
+    healthy = np.ones((24, 24), bool)
+    for (mm, nn) in SEEDED:
+        healthy[mm - 2:mm + 1, nn - 2:nn + 1] = False
+    healthy[[0, -1], :] = healthy[:, [0, -1]] = False
+    centre = np.hypot(M["centre_dx_um"], M["centre_dy_um"])[healthy]
+    assert np.median(centre) < 2 * sig  # healthy lenses sit where the grid says, within their noise
+    focal = M["focal_rel"][healthy]
+    assert abs(np.median(focal)) < 0.01 and np.percentile(np.abs(focal), 90) < 0.03
+
+
+def test_measurements_reach_lenses_csv_report_json_and_the_maps(raw_files, tmp_path):
+    out = tmp_path / "rep"
+    assert main(["inspect", str(raw_files / "defects.npy"), "-c", str(FIXTURES / "small_camera.toml"), "-o", str(out), "-q"]) == 1
+    rows = (out / "lenses.csv").read_text().splitlines()
+    head = rows[0].split(",")
+    for name in ("centre_dx_um", "centre_dy_um", "centre_sigma_um", "focal_rel", "focal_um", "focal_sigma_rel"):
+        assert name in head
+    m_col, n_col, dx_col = head.index("row"), head.index("col"), head.index("centre_dx_um")
+    by_lens = {(int(r.split(",")[m_col]), int(r.split(",")[n_col])): r.split(",") for r in rows[1:]}
+    report = json.loads((out / "report.json").read_text())
+    meas = report["measurements"]
+    assert len(meas["lenses"]["centre_dx_um"]) == 24 and len(meas["lenses"]["centre_dx_um"][0]) == 24
+    assert float(by_lens[(5, 6)][dx_col]) == pytest.approx(meas["lenses"]["centre_dx_um"][4][5], rel=1e-4)
+    assert meas["summary"]["focal_length_um"] == pytest.approx(420.36, abs=0.05)
+    import cv2
+    maps = cv2.imread(str(out / "lens_maps.png"))
+    assert maps is not None and maps.shape[1] > 3 * 24 * 4
+    assert 'id="lens-maps"' in (out / "report.html").read_text()

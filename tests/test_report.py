@@ -20,6 +20,7 @@ import pytest
 from mlaqc import __version__
 from mlaqc.errors import InputError
 from mlaqc.inspection.results import METRICS, Defect, InspectionResult, LensMetrics
+from mlaqc.inspection.measure import MEASUREMENTS
 from mlaqc.report import ERROR_COLOURS, REPORT_FILES
 from mlaqc.report import html as report_html
 from mlaqc.report import load_report
@@ -173,7 +174,7 @@ def test_lenses_csv_rows_columns_and_u_m_n_indexing(written):
         rows = list(csv.reader(fh))
     header, body = rows[0], rows[1:]
     assert header == ["row", "col", "x_px", "y_px", "grid_x_px", "grid_y_px", "flagged", "error_type",
-                      *METRICS]
+                      *METRICS, *MEASUREMENTS]
     assert len(body) == ROWS * COLS
     assert [(int(r[0]), int(r[1])) for r in body[:3]] == [(1, 1), (1, 2), (1, 3)]  # m then n
     assert (int(body[-1][0]), int(body[-1][1])) == (ROWS, COLS)
@@ -195,6 +196,7 @@ def test_lenses_csv_rows_columns_and_u_m_n_indexing(written):
     assert all(gone[k] == "" for k in METRICS) and float(gone["grid_x_px"]) == pytest.approx(229.5)
     assert by_u[(2, 2)]["ssim"] == "" and by_u[(2, 2)]["flux"] != ""
     assert "nan" not in paths["csv"].read_text().lower()
+    assert all(lens[k] == "" for k in MEASUREMENTS)  # a result without measurements: empty, never made up
 
 
 def _ring(rgb: np.ndarray, cx: float, cy: float, r: float, width: float = 1.0) -> np.ndarray:

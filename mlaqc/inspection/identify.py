@@ -32,7 +32,7 @@ import functools
 import hashlib
 import os
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from itertools import pairwise
 
 import numpy as np
@@ -267,6 +267,19 @@ def remove_phase_pattern(planes: list[np.ndarray], model: PhaseModel) -> list[np
     stack = np.stack(planes, axis=-1).astype(np.float64)  # (rows, cols, J)
     for sel, basis, outer, full in model.groups:
         stack[sel] = _phase_fit(stack[sel], basis, outer, full)
+    return [stack[..., j] for j in range(len(planes))]
+
+
+def remove_phase_trend(planes: list[np.ndarray], model: PhaseModel) -> list[np.ndarray]:
+    """Smooth maps (local baselines) minus their plain least-squares fit on each group's phase basis:
+    a 5 x 5 median keeps the phase pattern, which beats with the pitch over ~20 lenses. No outlier pass:
+    a median baseline has none."""
+    stack = np.stack(planes, axis=-1).astype(np.float64)
+    for sel, basis, _, full in model.groups:
+        y = stack[sel]
+        p = basis.shape[1]
+        coef = np.linalg.solve(full.reshape(p, p) + 1e-9 * np.eye(p), basis.T @ np.where(np.isfinite(y), y, 0.0))
+        stack[sel] = y - basis @ coef
     return [stack[..., j] for j in range(len(planes))]
 
 
@@ -691,6 +704,9 @@ class Identification:
     detection_limit: dict  # per error type the smallest magnitude this frame detects (see `detection_limits`)
     below_reportable: int  # significant deviations smaller than the minimum reportable error (not flagged)
     not_inspected: int  # lenses whose sub-image leaves the sensor
+    noise: Noise | None = None  # the frame's noise the detection worked against (for measurements)
+    feature_sigmas: tuple[float, ...] = ()  # the classification FEATURES' spreads on this frame
+    readings: dict = field(default_factory=dict)  # per-lens index values against the typical lens (`_readings`)
 
 
 def detection_limits(table: SignatureTable, qc: QC, noise: Noise) -> dict:
@@ -740,16 +756,42 @@ def _lowest_from_which_all(mags: np.ndarray, ok: np.ndarray) -> float | None:
 def _all_deviations(metrics: LensMetrics, position, phase: PhaseModel | None, ring_floor: np.ndarray):
     """Every index map's local deviation, phase pattern removed, in one pass (the maps share the work):
     (classification deviations, their spreads, ring noise, detection deviations — the classification
-    ones with the offsets from the lower-noise `position` signal where it is given)."""
+    ones with the offsets from the lower-noise `position` signal where it is given — and the local
+    baselines' trend over the array, each map's baseline minus its median per edge class)."""
     values = [metrics[k] for k in _NAMES] + [metrics[r] for r in RINGS] + list(position or ())
     planes = local_deviations(values, _AXES + [""] * len(RINGS) + (["x", "y"] if position is not None else []))
+    trend = class_centred([v - p for v, p in zip(values, planes)])
     if phase is not None:
         planes = remove_phase_pattern(planes, phase)
+        trend = remove_phase_trend(trend, phase)
     n_dev, n_ring = len(_NAMES), len(RINGS)
     dev, sig = deviations(metrics, planes=planes[:n_dev])
     rings = ring_noise(metrics, floor=ring_floor, planes=planes[n_dev:n_dev + n_ring])
     detect_dev = dev if position is None else dict(dev, offset_x_px=planes[-2], offset_y_px=planes[-1])
-    return dev, sig, rings, detect_dev
+    names = list(_NAMES) + list(RINGS) + (["offset_x_px", "offset_y_px"] if position is not None else [])
+    return dev, sig, rings, detect_dev, dict(zip(names, trend))
+
+
+def class_centred(planes: list[np.ndarray]) -> list[np.ndarray]:
+    """Each (rows, cols) map minus its median over each edge class (edge lenses carry their own bias)."""
+    cls = edge_classes(planes[0].shape)
+    out = []
+    for p in planes:
+        q = np.array(p, dtype=np.float64)
+        for c in range(3):
+            sel = (cls == c) & np.isfinite(q)
+            if sel.any():
+                q[sel] -= np.median(q[sel])
+        out.append(q)
+    return out
+
+
+def _readings(detect_dev: dict[str, np.ndarray], rings: RingNoise, trend: dict[str, np.ndarray]) -> dict:
+    """Per-lens values against the array's typical lens: local deviation (phase pattern removed) plus its
+    neighbourhood's trend; what `measure.measure_lenses` reads centres and focus from."""
+    out = {k: detect_dev[k] + trend[k] for k in ("offset_x_px", "offset_y_px", "blur", "flux", "ssim", "sharpness")}
+    out.update({r: rings.dev[..., j] + trend[r] for j, r in enumerate(RINGS)})
+    return out
 
 
 def identify(metrics: LensMetrics, missing: np.ndarray, qc: QC, table: SignatureTable, position=None,
@@ -771,7 +813,7 @@ def identify(metrics: LensMetrics, missing: np.ndarray, qc: QC, table: Signature
         metrics = LensMetrics({k: np.where(outside, np.nan, v) for k, v in metrics.values.items()})
         position = None if position is None else tuple(np.where(outside, np.nan, p) for p in position)
         missing = missing & ~outside
-    dev, sig, rings, detect_dev = _all_deviations(metrics, position, phase, ring_floor)
+    dev, sig, rings, detect_dev, trend = _all_deviations(metrics, position, phase, ring_floor)
     noise = detection_noise(detect_dev, rings, det_floor)
     score = detection_score(detect_dev, noise, focus_score(rings, table))
     threshold = np.full(score.shape, qc.detect_sigma)
@@ -812,7 +854,7 @@ def identify(metrics: LensMetrics, missing: np.ndarray, qc: QC, table: Signature
                               abs(mag) <= limit, indexes, alternatives=alts))
         error_type[m, n] = kind
     return Identification(tuple(defects), flagged, error_type, score, detection_limits(table, qc, noise), below,
-                          int(outside.sum()))
+                          int(outside.sum()), noise, tuple(float(x) for x in sigmas), _readings(detect_dev, rings, trend))
 
 
 __all__ = ["identify", "Identification", "classify", "deviations", "detection_score", "detection_limits", "FEATURES"]

@@ -12,6 +12,7 @@ import numpy as np
 from mlaqc.errors import InputError
 from mlaqc.inspection.calibrate import Grid, calibrate
 from mlaqc.inspection.identify import identify
+from mlaqc.inspection.measure import measure_lenses
 from mlaqc.inspection.metrics import compute_metrics, reference_images
 from mlaqc.inspection.rawio import (Levels, RawFrame, check_exposure, levels_note, load_raw, normalized,
                                     resolve_levels, suppress_hot_pixels)
@@ -88,6 +89,8 @@ def inspect_image(img: np.ndarray, cfg: CameraConfig, *, grid: Grid | None = Non
                      outside=grid.clipped)
     defects, flagged, error_type = found.defects, found.flagged, found.error_type
     lap("identify")
+    measured = measure_lenses(found, table, cfg, (grid.residual_x_px, grid.residual_y_px) if own_grid else None)
+    lap("measure")
     qc = cfg.qc
     out_of_tol = sum(1 for d in defects if d.error_type != "missing" and not d.within_tolerance)
     n_missing = sum(1 for d in defects if d.error_type == "missing")
@@ -97,7 +100,8 @@ def inspect_image(img: np.ndarray, cfg: CameraConfig, *, grid: Grid | None = Non
     return InspectionResult(verdict, grid, metrics, defects, flagged, error_type, np.asarray(img, dtype=np.float32),
                             sub, ref, source, _tolerance_dict(cfg), t,
                             notes=tuple(notes), detection_limit=found.detection_limit,
-                            below_reportable=found.below_reportable, not_inspected=found.not_inspected)
+                            below_reportable=found.below_reportable, not_inspected=found.not_inspected,
+                            measurements=measured)
 
 
 _MODELS: dict[tuple[str, str], tuple[ReferenceModel, SignatureSet]] = {}

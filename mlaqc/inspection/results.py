@@ -103,6 +103,7 @@ class InspectionResult:
     detection_limit: dict[str, Any] = field(default_factory=dict)
     below_reportable: int = 0  # significant deviations smaller than the minimum reportable error
     not_inspected: int = 0  # lenses whose sub-image leaves the sensor
+    measurements: Any = None  # mlaqc.inspection.measure.LensMeasurements: every lens' centre and focal error
 
     @property
     def failed(self) -> bool:

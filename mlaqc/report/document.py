@@ -23,6 +23,7 @@ import numpy as np
 
 from mlaqc import __version__
 from mlaqc.errors import InputError
+from mlaqc.inspection.measure import MEASUREMENTS
 from mlaqc.inspection.results import METRICS, InspectionResult
 from mlaqc.report.maps import _type_order
 from mlaqc.report.view import View
@@ -37,12 +38,13 @@ REPORT_FILES: dict[str, str] = {
     "csv": "lenses.csv",
     "defect_map": "defect_map.png",
     "defect_map_small": "defect_map_small.png",
+    "lens_maps": "lens_maps.png",
     "html": "report.html",
 }
 
 GALLERY_MAX = 200
 CSV_COLUMNS: tuple[str, ...] = (
-    "row", "col", "x_px", "y_px", "grid_x_px", "grid_y_px", "flagged", "error_type", *METRICS)
+    "row", "col", "x_px", "y_px", "grid_x_px", "grid_y_px", "flagged", "error_type", *METRICS, *MEASUREMENTS)
 
 
 def build_report_dict(result: InspectionResult, *, config_dict: dict | None = None,
@@ -103,6 +105,8 @@ def build_report_dict(result: InspectionResult, *, config_dict: dict | None = No
         "files": dict(REPORT_FILES),
         "config": config_dict,
         "defects": [d.to_json_dict() for d in result.defects],
+        # every lens' optical-centre displacement and focal-length error with 1-sigma (mlaqc.inspection.measure)
+        "measurements": _measurements_json(v),
     }
     return _jsonable(report)
 
@@ -194,12 +198,31 @@ def lenses_csv(view: View | InspectionResult) -> str:
         ["1" if f else "0" for f in v.flagged.ravel().tolist()],
         [t if f else "" for t, f in zip(v.error_type.ravel().tolist(), v.flagged.ravel().tolist())],
         *(_fmt_column(np.asarray(v.result.metrics[k], dtype=float), "{:.6g}") for k in METRICS),
+        *(_fmt_column(_measured(v, k), "{:.5g}") for k in MEASUREMENTS),
     ]
     buf = io.StringIO()
     writer = csv.writer(buf, lineterminator="\n")
     writer.writerow(CSV_COLUMNS)
     writer.writerows(zip(*columns))
     return buf.getvalue()
+
+
+def _measured(v: View, name: str) -> np.ndarray:
+    """A per-lens measurement map, NaN everywhere when the result carries none."""
+    m = getattr(v.result, "measurements", None)
+    return np.asarray(m[name], dtype=float) if m is not None else np.full((v.rows, v.cols), np.nan)
+
+
+def _measurements_json(v: View) -> dict[str, Any] | None:
+    """report.json's per-lens measurements: units and meanings, array-wide summary, and each map as
+    rows of values (5 significant digits; null where not measured)."""
+    m = getattr(v.result, "measurements", None)
+    if m is None:
+        return None
+    maps = {k: [[float(f"{x:.5g}") if math.isfinite(x) else None for x in row] for row in np.asarray(m[k], float).tolist()]
+            for k in MEASUREMENTS}
+    return {"meaning": {k: {"unit": u, "meaning": t} for k, (u, t) in MEASUREMENTS.items()},
+            "summary": m.summary(), "lenses": maps}
 
 
 def _fmt_column(arr: np.ndarray, fmt: str) -> list[str]:

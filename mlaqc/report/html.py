@@ -127,7 +127,7 @@ def _severity(d: Defect) -> tuple:
     return (d.within_tolerance, -score, d.m, d.n)
 
 
-def _html(v: View, report: dict[str, Any], small_png: bytes) -> str:
+def _html(v: View, report: dict[str, Any], small_png: bytes, lens_png: bytes | None = None) -> str:
     r = v.result
     s, g = report["summary"], report["grid_summary"]
     defects = sorted(r.defects, key=_severity)
@@ -167,6 +167,8 @@ def _html(v: View, report: dict[str, Any], small_png: bytes) -> str:
       f"tick = direction. Full resolution: <a href=\"{_E(REPORT_FILES['defect_map'])}\">"
       f"{_E(REPORT_FILES['defect_map'])}</a>; every lens: <a href=\"{_E(REPORT_FILES['csv'])}\">"
       f"{_E(REPORT_FILES['csv'])}</a>.</p>\n")
+
+    _measurement_section(w, report.get("measurements"), lens_png)
 
     w(f"<h2>Flagged lenses ({len(defects)})</h2>\n")
     if defects:
@@ -218,6 +220,33 @@ def _html(v: View, report: dict[str, Any], small_png: bytes) -> str:
         w("</pre></details>\n")
     w(f"</main>\n<script>{_JS}</script>\n</body>\n</html>\n")
     return "".join(out)
+
+
+def _measurement_section(w, measured: dict[str, Any] | None, lens_png: bytes | None) -> None:
+    """Per-lens measurements: array-wide figures and the three maps (centre x, y; focal length)."""
+    w("<h2>Measured per lens</h2>\n")
+    if not measured:
+        w("<p>No per-lens measurements in this result.</p>\n")
+        return
+    s = measured["summary"]
+    pct = (lambda x: "–" if x is None else f"{100 * x:+.3g} %")
+    cards = [("centre RMS", "–" if s["centre_rms_um"] is None else f"{s['centre_rms_um']:.3g} µm"),
+             ("centre 1σ per lens", "–" if s["centre_sigma_median_um"] is None else f"{s['centre_sigma_median_um']:.2g} µm"),
+             ("median focal error", pct(s["focal_rel_median"])),
+             ("focal 1σ per lens", "–" if s["focal_sigma_rel_median"] is None else f"{100 * s['focal_sigma_rel_median']:.2g} %"),
+             ("focal signs known", f"{s['focal_sign_resolved']}")]
+    w("<div class=\"cards\" id=\"measurements\">\n")
+    for label, value in cards:
+        w(f"<div class=\"card\"><b>{_E(value)}</b>{_E(label)}</div>\n")
+    w("</div>\n")
+    if lens_png:
+        w(f"<div class=\"map\"><a href=\"{_E(REPORT_FILES['lens_maps'])}\"><img id=\"lens-maps\" alt=\"per-lens maps\" "
+          f"src=\"{_data_uri(lens_png)}\"></a></div>\n")
+    w(f"<p class=\"note\">One block per lens, U(1,1) top left. Centre: the optical centre's displacement in the MLA "
+      f"plane against the array's typical lens (a white image alone cannot say whether pitch or a surface "
+      f"decenter moved it); focal: Δf/f read from the lens' focus, f = {s['focal_length_um']:.1f} µm. Grey: not "
+      f"measured (off the sensor, missing, or flagged as shifted/tilted for focal). Every value with its 1σ: "
+      f"<a href=\"{_E(REPORT_FILES['csv'])}\">{_E(REPORT_FILES['csv'])}</a>.</p>\n")
 
 
 def _swatch(error_type: str) -> str:

@@ -1,4 +1,5 @@
-"""Write the inspection report set: report.json, lenses.csv, defect_map(.png, _small.png), report.html.
+"""Write the inspection report set: report.json, lenses.csv, defect_map(.png, _small.png), lens_maps.png,
+report.html.
 
 `write_report(result, out_dir)` renders every file in memory first (`render_report`) and only then
 writes them (`write_report_files`), each through a temporary file renamed over the final name
@@ -21,6 +22,7 @@ from mlaqc.errors import InputError
 from mlaqc.inspection.results import InspectionResult
 from mlaqc.report.document import REPORT_FILES, _dumps, build_report_dict, lenses_csv
 from mlaqc.report.html import _html
+from mlaqc.report.lensmaps import render_lens_maps
 from mlaqc.report.maps import _encode_png, render_defect_map
 from mlaqc.report.view import View
 
@@ -61,7 +63,7 @@ def write_report_files(contents: dict[str, bytes], out_dir: str | os.PathLike[st
             pass
         with contextlib.ExitStack() as stack:
             # Entered first = renamed last: report.json marks the set as complete.
-            for key in ("json", "html", "csv", "defect_map_small", "defect_map"):
+            for key in ("json", "html", "csv", "lens_maps", "defect_map_small", "defect_map"):
                 tmp = stack.enter_context(atomic_path(out / REPORT_FILES[key]))
                 _write_bytes(tmp, contents[key])
     except BaseException as exc:
@@ -102,6 +104,7 @@ def _render_all(view: View, config_dict: dict | None) -> dict[str, bytes]:
         finally:
             full_png = full_job.result()  # waits; re-raises an encoder error
         small_png = full_png if small_png is None else small_png
-        text["html"] = _html(view, report, small_png)
+        lens_png = _encode_png(render_lens_maps(getattr(view.result, "measurements", None), (view.rows, view.cols)), level=6)
+        text["html"] = _html(view, report, small_png, lens_png)
     return {**{k: t.encode("utf-8") for k, t in text.items()},
-            "defect_map": full_png, "defect_map_small": small_png}
+            "defect_map": full_png, "defect_map_small": small_png, "lens_maps": lens_png}

@@ -1,0 +1,68 @@
+"""Per-lens measurement maps: one coloured block per lens, so array-wide trends (a pitch drift, form
+error growing along the diagonals) show at a glance. Three panels: optical-centre displacement along x
+and along y (µm, MLA plane) and focal-length error (%), each on a diverging scale symmetric about 0."""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+
+LENS_PX = 4  # block side per lens: 102 lenses -> 408 px
+_NAN_GREY = 128
+_PANELS = (("centre_dx_um", "centre shift x", "µm", 1.0, "centre_sigma_um"),
+           ("centre_dy_um", "centre shift y (down)", "µm", 1.0, "centre_sigma_um"),
+           ("focal_rel", "focal length error", "%", 100.0, "focal_sigma_rel"))
+NOISE_SPAN = 5.0  # the colour scale spans at least this many per-lens sigmas: noise alone stays pale
+
+
+def diverging(values: np.ndarray, limit: float) -> np.ndarray:
+    """RGB uint8 of values on blue (−limit) - white (0) - red (+limit); NaN grey."""
+    t = np.clip(np.nan_to_num(values / max(limit, 1e-30), nan=0.0), -1.0, 1.0)
+    blue, red = np.array([33, 102, 172], float), np.array([178, 24, 43], float)
+    white = np.array([247, 247, 247], float)
+    a = np.abs(t)[..., None]
+    rgb = np.where((t < 0)[..., None], white + a * (blue - white), white + a * (red - white))
+    rgb[~np.isfinite(values)] = _NAN_GREY
+    return rgb.astype(np.uint8)
+
+
+def _limit(v: np.ndarray, sigma: np.ndarray) -> float:
+    """Colour-scale half-range: the 99th percentile of |v| (a few strong defects do not wash out the
+    trend), and at least NOISE_SPAN times the median per-lens sigma (so that noise alone looks pale)."""
+    f = np.abs(v[np.isfinite(v)])
+    s = sigma[np.isfinite(sigma)]
+    lim = max(float(np.percentile(f, 99)) if f.size else 0.0, NOISE_SPAN * float(np.median(s)) if s.size else 0.0)
+    return lim if lim > 0 else 1.0
+
+
+def _panel(values: np.ndarray, sigma: np.ndarray, title: str, unit: str) -> np.ndarray:
+    """One map with its title above and a colour bar with the scale's ends below."""
+    lim = _limit(values, sigma)
+    body = np.repeat(np.repeat(diverging(values, lim), LENS_PX, 0), LENS_PX, 1)
+    h, w = body.shape[:2]
+    bar = diverging(np.linspace(-lim, lim, w)[None, :].repeat(10, 0), lim)
+    out = np.full((h + 70, w, 3), 255, np.uint8)
+    out[26:26 + h] = body
+    out[h + 32:h + 42] = bar
+    font, black = cv2.FONT_HERSHEY_SIMPLEX, (20, 20, 20)
+    cv2.putText(out, title, (2, 18), font, 0.55, black, 1, cv2.LINE_AA)
+    cv2.putText(out, f"-{lim:.3g} {unit}", (2, h + 62), font, 0.45, black, 1, cv2.LINE_AA)
+    right = f"+{lim:.3g} {unit}"
+    (tw, _), _ = cv2.getTextSize(right, font, 0.45, 1)
+    cv2.putText(out, right, (w - tw - 2, h + 62), font, 0.45, black, 1, cv2.LINE_AA)
+    cv2.putText(out, "0", (w // 2 - 4, h + 62), font, 0.45, black, 1, cv2.LINE_AA)
+    return out
+
+
+def render_lens_maps(measurements, shape: tuple[int, int]) -> np.ndarray:
+    """The three panels side by side as one RGB uint8 image; grey panels when nothing was measured."""
+    panels = []
+    for name, title, unit, scale, sigma in _PANELS:
+        v, s = ((np.asarray(measurements[k], float) * scale for k in (name, sigma)) if measurements is not None
+                else (np.full(shape, np.nan),) * 2)
+        panels.append(_panel(v, s, title, unit))
+    gap = np.full((panels[0].shape[0], 12, 3), 255, np.uint8)
+    return np.concatenate([panels[0], gap, panels[1], gap, panels[2]], axis=1)
+
+
+__all__ = ["render_lens_maps", "diverging", "LENS_PX"]
