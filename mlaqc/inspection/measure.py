@@ -259,8 +259,7 @@ def measure_lenses(found: Identification, table: SignatureTable, cfg: CameraConf
     other = (found.flagged & ~focus_kind).ravel()
     ok &= ~other  # a lens flagged as shifted or tilted: its focus indexes carry that error
     k = _birge_scale(np.where(ok, fit[3].min(axis=1), np.nan), dof)
-    f_rel, f_sig, f_alt, f_res = (np.where(ok, a, np.nan).reshape(shape) for a in _focal(fit, k))
-    f_sig = f_sig * k
+    f_rel, f_sig, f_alt, f_res = (np.where(ok, a, np.nan).reshape(shape) for a in _focal(fit, k))  # k in f_sig
     f0 = focal_length_um(cfg)
     values = {"centre_dx_um": cx, "centre_dy_um": cy, "centre_sigma_um": np.where(np.isfinite(cx), csig, np.nan),
               "focal_rel": focal_change_um(cfg, f_rel) / f0, "focal_um": focal_change_um(cfg, f_rel),
