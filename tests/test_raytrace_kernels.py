@@ -1,6 +1,7 @@
 """The compiled fast path against the NumPy reference where its code differs most: lenses pushed far into
-their neighbours' cells (the re-trace near cell edges), tilted lenses, both corner models, the hit
-compaction and the in-kernel binning. Renders of the same seed use the same draws in both engines.
+their neighbours' cells (the re-trace near cell edges), tilted lenses, both corner models, both lens
+boundary models (the sag-intersection neighbour pass) and the black matrix, the hit compaction and the
+in-kernel binning. Renders of the same seed use the same draws in both engines.
 """
 
 import dataclasses
@@ -32,10 +33,33 @@ def _harsh_errors() -> ErrorMap:
     return em.with_globals(mla_rotation_deg=-1.1, mla_tilt_y_deg=0.3, mla_shift_y_um=-20)
 
 
-@pytest.mark.parametrize("corners", ["opaque", "clear"])
-def test_fast_path_matches_the_reference_under_large_per_lens_errors(corners):
-    cfg = dataclasses.replace(SMALL, mla=dataclasses.replace(SMALL.mla, corners=corners))
-    em = _harsh_errors()
+def _moderate_errors() -> ErrorMap:
+    """Every lens with random pitch, decenter, radius, thickness and tilt errors small enough that the
+    sag-intersection fast path is active (margins well below half a pitch), plus global errors."""
+    rng = np.random.default_rng(8)
+    shape = (24, 24)
+    lens = {"pitch_um": rng.uniform(0, 5, shape), "pitch_dir_deg": rng.uniform(0, 360, shape),
+            "decenter_um": rng.uniform(0, 5, shape), "decenter_dir_deg": rng.uniform(0, 360, shape),
+            "radius_front_rel": rng.uniform(-0.08, 0.08, shape), "radius_back_rel": rng.uniform(-0.08, 0.08, shape),
+            "tilt_x_deg": rng.uniform(-0.5, 0.5, shape), "tilt_y_deg": rng.uniform(-0.5, 0.5, shape),
+            "thickness_um": rng.uniform(-1.5, 1.5, shape)}
+    return ErrorMap(shape, lens).with_globals(mla_rotation_deg=0.7, mla_tilt_x_deg=-0.2, mla_shift_x_um=13)
+
+
+def _mla(cfg, **mla):
+    return dataclasses.replace(cfg, mla=dataclasses.replace(cfg.mla, **mla))
+
+
+SAG = "sag-intersection"
+
+
+@pytest.mark.parametrize("corners, boundaries, black_um, errors", [
+    ("opaque", "grid", 0.0, "harsh"), ("clear", "grid", 0.0, "harsh"),
+    ("opaque", SAG, 0.0, "harsh"), ("clear", SAG, 0.0, "harsh"),
+    ("opaque", SAG, 0.0, "moderate"), ("clear", SAG, 6.0, "moderate"), ("opaque", "grid", 6.0, "moderate")])
+def test_fast_path_matches_the_reference_under_large_per_lens_errors(corners, boundaries, black_um, errors):
+    cfg = _mla(SMALL, corners=corners, boundaries=boundaries, black_matrix_um=black_um)
+    em = _harsh_errors() if errors == "harsh" else _moderate_errors()
     a = Renderer(cfg, em, engine="numpy")
     b = Renderer(cfg, em, engine="numba")
     i1, w1 = a.trace_batch(WhiteScene(), 7, 60_000, tile=(-1.2, 1.2, -1.2, 1.2))
@@ -45,11 +69,13 @@ def test_fast_path_matches_the_reference_under_large_per_lens_errors(corners):
     assert np.allclose(w1, w2, rtol=1e-13, atol=0)
 
 
-def test_engines_render_the_same_image():
+@pytest.mark.parametrize("boundaries, errors", [("grid", "harsh"), (SAG, "moderate")])
+def test_engines_render_the_same_image(boundaries, errors):
     """Same draws, same order of summation per pixel: the images agree to rounding, pixel by pixel."""
-    em = _harsh_errors()
-    a = Renderer(SMALL, em, engine="numpy").render(WhiteScene(), rays=600_000, seed=4, threads=2)
-    b = Renderer(SMALL, em, engine="numba").render(WhiteScene(), rays=600_000, seed=4, threads=2)
+    em = _harsh_errors() if errors == "harsh" else _moderate_errors()
+    cfg = _mla(SMALL, boundaries=boundaries)
+    a = Renderer(cfg, em, engine="numpy").render(WhiteScene(), rays=600_000, seed=4, threads=2)
+    b = Renderer(cfg, em, engine="numba").render(WhiteScene(), rays=600_000, seed=4, threads=2)
     assert a.rays_landed == b.rays_landed
     assert np.array_equal(a.photons > 0, b.photons > 0)
     assert np.allclose(a.photons, b.photons, rtol=1e-12, atol=0)

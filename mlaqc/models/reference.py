@@ -47,10 +47,22 @@ class ReferenceModel:
         return int(self.centre // self.oversample)
 
 
+def mla_hash_view(mla: dict, *, design: bool = False) -> dict:
+    """The MLA keys that shape the images, for a content hash: the lens-boundary model and the black matrix
+    only when they differ from the defaults (so that the keys of the shipped tables stay valid), and the
+    boundary model never for `design` (an error-free array: sag-intersection boundaries lie on the grid)."""
+    out = dict(mla)
+    if design or out.get("boundaries") == "grid":
+        out.pop("boundaries", None)
+    if not out.get("black_matrix_um"):
+        out.pop("black_matrix_um", None)
+    return out
+
+
 def config_key(cfg: CameraConfig) -> str:
     """Hash of everything that shapes the ideal sub-images (optics, geometry, sensor geometry)."""
     d = cfg.to_dict()
-    keep = {"main_lens": d["main_lens"], "mla": d["mla"], "geometry": d["geometry"],
+    keep = {"main_lens": d["main_lens"], "mla": mla_hash_view(d["mla"], design=True), "geometry": d["geometry"],
             "sensor": {k: d["sensor"][k] for k in ("pixel_um", "width_px", "height_px")},
             "fresnel": d["trace"]["fresnel"], "format": FORMAT_VERSION}
     return hashlib.sha256(json.dumps(keep, sort_keys=True).encode()).hexdigest()[:16]

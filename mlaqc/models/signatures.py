@@ -24,7 +24,7 @@ from scipy.ndimage import gaussian_filter
 from mlaqc.atomic import write_json_atomic
 from mlaqc.inspection.metrics import compute_metrics
 from mlaqc.inspection.metrics_kernels import N_RING
-from mlaqc.models.reference import PACKAGE_DATA, ReferenceModel, build_reference, cache_dir
+from mlaqc.models.reference import PACKAGE_DATA, ReferenceModel, build_reference, cache_dir, mla_hash_view
 from mlaqc.optics.config import CameraConfig
 from mlaqc.optics.errormap import ErrorMap
 from mlaqc.optics.formation import apply_formation, blur_key, formation_kernels
@@ -146,7 +146,7 @@ def _blend(lo: SignatureTable, hi: SignatureTable, frac: float, edge_width_px: f
 def signature_key(cfg: CameraConfig) -> str:
     """Hash of what shapes a single lens' sub-image: optics, geometry, pixel size, Fresnel."""
     d = cfg.to_dict()
-    mla = {k: v for k, v in d["mla"].items() if k not in ("count_w", "count_h")}
+    mla = {k: v for k, v in mla_hash_view(d["mla"]).items() if k not in ("count_w", "count_h")}
     keep = {"main_lens": d["main_lens"], "mla": mla, "geometry": d["geometry"], "pixel_um": d["sensor"]["pixel_um"],
             "fresnel": d["trace"]["fresnel"], "version": TABLE_VERSION, **blur_key(cfg)}
     return hashlib.sha256(json.dumps(keep, sort_keys=True).encode()).hexdigest()[:16]

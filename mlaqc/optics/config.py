@@ -19,6 +19,7 @@ from mlaqc.optics.paraxial import ThickLens, image_distance, thick_lens
 
 CFA_CHOICES = ("none", "RGGB", "BGGR", "GRBG", "GBRG")
 CORNER_CHOICES = ("opaque", "clear")
+BOUNDARY_CHOICES = ("grid", "sag-intersection")
 ENGINE_CHOICES = ("auto", "numba", "numpy")
 SAMPLER_CHOICES = ("sobol", "random")
 
@@ -40,6 +41,14 @@ class MLA:
 
     `corners`: where the two spherical surfaces would cross (beyond r ≈ 68 µm for Table 1) there is no
     lens. 'opaque' blocks those rays (a black matrix); 'clear' lets them pass undeviated.
+
+    `boundaries`: which lens a ray belongs to. 'grid': the lens of the design-grid cell its hit point lies
+    in (a pitch error moves the surfaces, not the square aperture). 'sag-intersection': a replicated
+    100 %-fill array, where each lens ends where its sag meets its neighbours' sags (a ray enters the
+    front sphere it meets first and leaves the rear sphere it meets last; see mlaqc.optics.raytrace).
+
+    `black_matrix_um`: width of an opaque mask centred on the design grid lines in the front vertex
+    plane (0 = none); rays crossing that plane within half the width of a grid line are absorbed.
     """
 
     count_w: int = 102
@@ -50,6 +59,8 @@ class MLA:
     thickness_um: float = 10.0
     refractive_index: float = 1.56
     corners: str = "opaque"
+    boundaries: str = "grid"
+    black_matrix_um: float = 0.0
 
 
 @dataclass(frozen=True)
@@ -307,6 +318,9 @@ def validate(cfg: CameraConfig, source: str = "config") -> None:
         _require(r != 0 and abs(r) > half_diag, source, f"mla.{key}",
                  f"must exceed the cell's half-diagonal {half_diag:.1f} µm in magnitude so the surface covers the aperture", r)
     _require(mla.corners in CORNER_CHOICES, source, "mla.corners", f"must be one of {CORNER_CHOICES}", mla.corners)
+    _require(mla.boundaries in BOUNDARY_CHOICES, source, "mla.boundaries", f"must be one of {BOUNDARY_CHOICES}", mla.boundaries)
+    _require(0 <= mla.black_matrix_um < mla.pitch_um, source, "mla.black_matrix_um",
+             f"must be in [0, pitch {mla.pitch_um} µm)", mla.black_matrix_um)
     for key in ("pixel_um",):
         _require(getattr(s, key) > 0, source, f"sensor.{key}", "must be positive", getattr(s, key))
     for key in ("width_px", "height_px"):

@@ -135,13 +135,45 @@ class MainLens:
             r.w = np.where(keep, r.w * (fresnel_transmittance(ci, ct, n1, n2) if self.fresnel else 1.0), 0.0)
 
 
+@dataclass(frozen=True)
+class LensChoice:
+    """Which lens each ray went through (flat indices row * cols + col), from `MicrolensArray.lens_of`."""
+
+    front: np.ndarray  # lens whose front surface the ray entered
+    rear: np.ndarray  # lens whose rear surface it left (meaningless where corner)
+    corner: np.ndarray  # True where the front hit is outside every lens' material (`mla.corners`)
+    after_front: Rays  # the rays just after the front surface (MLA frame), for checks of the rear choice
+
+
 class MicrolensArray:
     """The MLA with every lens' own errors, traced lens by lens in one vectorized pass.
 
     Each lens is looked up from the ray's crossing point (cell = floor((coord - origin) / p)), its
     parameters gathered from flat per-lens tables, and both its surfaces intersected in its own frame.
-    Rays that land in another cell than the one first guessed (near cell edges) are re-traced with the
-    right lens. Where the two surfaces of a lens cross (its corners) there is no lens (`mla.corners`).
+    Where the two surfaces of a lens cross (its corners) there is no lens (`mla.corners`).
+
+    Lens boundaries (`mla.boundaries`):
+
+    - 'grid': a ray belongs to the lens of the design-grid cell its surface hit lies in; rays whose hit
+      lands in another cell than the one first guessed are re-traced once with that cell's lens. A pitch
+      error moves a lens' surfaces, not its square aperture.
+    - 'sag-intersection': a 100 %-fill array replicated from a master, whose lenses end where their sags
+      meet. The material is the union of the lenses' solids, so its front surface is the lower envelope
+      z = min_k front_k(x, y) of the front spheres (curvature c1 > 0, material behind) and its rear
+      surface the upper envelope max_k rear_k(x, y) of the rear spheres (c2 < 0, material in front). A ray
+      (travelling +z, far steeper than the surfaces) crosses each envelope once: it enters the front
+      sphere it meets first (argmin of the distance t over the candidates) and leaves by the rear sphere
+      it meets last (argmax of t); refraction uses the winning sphere's normal. Two equal lenses meet on
+      the perpendicular bisector of their vertices (a lens shifted by Δ moves its boundaries by Δ/2, a
+      rear-surface decenter δ moves only the rear boundaries by δ/2); unequal radii or vertex heights
+      (radius, thickness, tilt errors) move the boundary to where the two sags are equal. Candidates are
+      the 3 x 3 lenses around the cell of the hit; only rays whose hit lies within a per-cell margin of
+      their cell's edge (or in another cell) need them (`boundary_margins_mm`), the others keep the lens
+      of their cell. Corners: the front hit lies outside the union of the lenses' rear regions (no lens
+      has material there); on the design array that is the grid mode's corner.
+
+    `mla.black_matrix_um` (both modes): an opaque mask of that width centred on the design grid lines in
+    the front vertex plane; a ray crossing that plane within half the width of a grid line is absorbed.
     """
 
     def __init__(self, cfg: CameraConfig, errors: ErrorMap | None = None) -> None:
@@ -176,6 +208,77 @@ class MicrolensArray:
         if self.tilted:
             rots = [_rotation(ax, ay, 0.0) for ax, ay in zip(e["tilt_x_deg"].ravel(), e["tilt_y_deg"].ravel())]
             self.rot = np.stack(rots)  # (K, 3, 3), lens frame -> MLA frame
+        self.sag = mla.boundaries == "sag-intersection"
+        self.half_black_mm = 0.5 * mla.black_matrix_um * 1e-3
+        self.gx, self.gy = cx.ravel(), cy.ravel()  # design centres
+        self.c1_design = 1.0 / (mla.radius_front_um * 1e-3)
+        self.c2_design = 1.0 / (mla.radius_back_um * 1e-3)
+        self.z_rear_design = self.z_front + t
+        zero = np.zeros(rows * cols)
+        self.margin_front, self.margin_rear = self.boundary_margins_mm() if self.sag else (zero, zero)
+
+    def sphere_offsets_mm(self, rear: bool) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Per lens, how its front or rear sphere departs from the design one, in the MLA frame: the
+        lateral offset |u| of the sphere's centre from the design centre (pitch, decenter and tilt: a lens
+        tilted by a about its centre moves its centre of curvature sideways by about |R| a), the offset w
+        of its vertex height (thickness error; tilt), and its radius R (signed, as c)."""
+        if rear:
+            vx, vy, vz, radius, vz0 = self.dx, self.dy, self.z_rear, 1.0 / self.c2, self.z_rear_design
+        else:
+            zero = np.zeros_like(self.fx)
+            vx, vy, vz, radius, vz0 = zero, zero, np.full_like(self.fx, self.z_front), 1.0 / self.c1, self.z_front
+        cx, cy, cz = vx, vy, vz + radius  # centre of curvature in the lens frame
+        if self.tilted:
+            cx, cy, cz = _rotate_batch(self.rot, cx, cy, cz)
+        u = np.hypot(self.fx + cx - self.gx, self.fy + cy - self.gy)
+        w = (cz - radius) - vz0
+        return u, w, radius
+
+    def boundary_margins_mm(self) -> tuple[np.ndarray, np.ndarray]:
+        """Per cell, how far (mm) inside its edges a neighbour's region can reach, front and rear surface.
+
+        A point x of cell k at distance >= margin from its edges belongs to lens k whatever the errors:
+        the sag-intersection fast path keeps lens k there. Bound (front; the rear is the same with |R|):
+        write every lens' surface height as the design sphere H(rho) = z_v + R0 - sqrt(R0^2 - rho^2) of its
+        design centre plus an error |h_i(x) - H(rho_i)| <= E_i(rho_i) with (mean-value theorem, exact)
+            E(rho) = |w| + |sag_R(rho + |u|) - sag_R0(rho + |u|)| + |u| sag'_R0(rho + |u|),
+        sag_R(r) = R - sqrt(R^2 - r^2), sag'(r) = r / sqrt(R0^2 - r^2) (u, w, R: `sphere_offsets_mm`).
+        With Q = rho_i^2 - rho_k^2 the design heights differ by
+            H(rho_i) - H(rho_k) = Q / (sqrt(R0^2 - rho_k^2) + sqrt(R0^2 - rho_i^2)) >= Q / 2R0,
+        so lens k is strictly lowest at x if Q / 2R0 > E_i(rho_i) + E_k(rho_k). In cell k rho_k <= p/sqrt(2)
+        and rho_i^2 <= p^2/2 + Q; at distance >= d from the cell's edges Q >= 2 p d (edge neighbours;
+        >= 4 p d diagonally). Per pair (k, i) the smallest d* with g(d) = 2 p d / 2R0 - E_i - E_k > 0 is
+        found by fixed-point iteration (to first order the boundary moves by (|u_i| + |u_k|)/sqrt(2) at a
+        cell corner, |u|/2 mid-edge, and by R0 |w_i - w_k| / p for a vertex height difference: a 1 µm
+        thickness error moves the rear boundaries ~4.7 µm); g is then checked on a grid up to d = p, and
+        a cell whose bound fails there gets margin p (every ray brute-forced). Margin = max over the 8
+        neighbours of d* (+ 1 nm). Cells whose whole neighbourhood is error-free get 0: equal lenses meet
+        exactly on the grid lines. Lenses two cells away are assumed never to win (errors well below p).
+        """
+        return self._margins(False), self._margins(True)
+
+    def _margins(self, rear: bool) -> np.ndarray:
+        u, w, radius = self.sphere_offsets_mm(rear)
+        r0 = abs(1.0 / (self.c2_design if rear else self.c1_design))
+        ra = np.abs(radius)
+        rows, cols, p = self.rows, self.cols, self.p
+        flawed = (u > 1e-9) | (np.abs(w) > 1e-9) | (np.abs(ra - r0) > 1e-12 * r0)  # mm; rounding is not an error
+        margin = np.zeros(rows * cols)
+        for dr in (-1, 0, 1):
+            for dc in (-1, 0, 1):
+                if dr == 0 and dc == 0:
+                    continue
+                r_k, c_k = np.divmod(np.arange(rows * cols), cols)
+                r_i, c_i = r_k + dr, c_k + dc
+                ok = (r_i >= 0) & (r_i < rows) & (c_i >= 0) & (c_i < cols)
+                k = np.flatnonzero(ok)
+                i = r_i[k] * cols + c_i[k]
+                pair = flawed[k] | flawed[i]
+                k, i = k[pair], i[pair]
+                if k.size:
+                    d = _pair_margin(p, r0, u[i], np.abs(w[i]), ra[i], u[k], np.abs(w[k]), ra[k])
+                    np.maximum.at(margin, k, d)
+        return margin
 
     def cell_of(self, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Flat lens index of each point (clipped into range) and whether it lies on the array."""
@@ -230,11 +333,26 @@ class MicrolensArray:
 
     def trace(self, r: Rays) -> None:
         """Trace rays given in the MLA frame through their lenses, in place (MLA frame out)."""
+        self._trace(r, record=False)
+
+    def lens_of(self, r: Rays) -> LensChoice:
+        """Which lenses the rays (MLA frame; left unchanged) go through: for tests and diagnostics."""
+        r = Rays(*(np.array(a, dtype=float, copy=True) for a in (r.x, r.y, r.z, r.L, r.M, r.N, r.w)))
+        return self._trace(r, record=True)
+
+    def _trace(self, r: Rays, record: bool) -> LensChoice | None:
         t = (self.z_front - r.z) / r.N
         r.advance(t)
         k, on_array = self.cell_of(r.x, r.y)
-        k, local, ldir, nrm, hit = self._hit(k, r, rear=False)
-        corner = ~self._inside_lens(k, *local)
+        if self.half_black_mm > 0.0:
+            on_array = on_array & ~self.black_matrix(r.x, r.y)
+        if self.sag:
+            k, local, ldir, nrm, hit = self._hit_sag(k, r, rear=False)
+            corner = self._corner_sag(k, *local)
+        else:
+            k, local, ldir, nrm, hit = self._hit(k, r, rear=False)
+            corner = ~self._inside_lens(k, *local)
+        k_front = k
         L, M, N, ci, ct, ok = refract(*ldir, *nrm, self.mu_in)
         if self.clear_corners:
             L, M, N = (np.where(corner, a, b) for a, b in zip(ldir, (L, M, N)))
@@ -244,7 +362,8 @@ class MicrolensArray:
         w = r.w * (np.where(corner, 1.0, fresnel_transmittance(ci, ct, 1.0, self.n)) if self.fresnel else 1.0)
         r.x, r.y, r.z, r.L, r.M, r.N = self._from_lens(k, *local, L, M, N)
         front_state = (r.x, r.y, r.z, r.L, r.M, r.N)
-        k, local, ldir, nrm, hit2 = self._hit(k, r, rear=True)
+        after_front = Rays(*front_state, np.where(keep & ok, w, 0.0)) if record else None
+        k, local, ldir, nrm, hit2 = (self._hit_sag if self.sag else self._hit)(k, r, rear=True)
         L, M, N, ci, ct, ok2 = refract(*ldir, *nrm, self.n)
         if self.fresnel:
             w = w * np.where(corner, 1.0, fresnel_transmittance(ci, ct, self.n, 1.0))
@@ -255,6 +374,90 @@ class MicrolensArray:
         r.x, r.y, r.z, r.L, r.M, r.N = out
         with np.errstate(invalid="ignore"):
             r.w = np.where(keep & ok & hit2 & ok2, w, 0.0)
+        return LensChoice(k_front, k, corner, after_front) if record else None
+
+    def black_matrix(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+        """True where a point of the front vertex plane (MLA frame) lies under the black matrix: within
+        half its width of a design grid line."""
+        u = (x - self.x0) * self.inv_p
+        v = (y - self.y0) * self.inv_p
+        fu, fv = u - np.floor(u), v - np.floor(v)
+        return (self.p * np.minimum(fu, 1.0 - fu) < self.half_black_mm) | (self.p * np.minimum(fv, 1.0 - fv) < self.half_black_mm)
+
+    def edge_distance(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+        """Distance (mm) of MLA-plane points from the nearest edge of the design cell they lie in."""
+        u = (x - self.x0) * self.inv_p
+        v = (y - self.y0) * self.inv_p
+        fu, fv = u - np.floor(u), v - np.floor(v)
+        return self.p * np.minimum(np.minimum(fu, 1.0 - fu), np.minimum(fv, 1.0 - fv))
+
+    def neighbours(self, x: np.ndarray, y: np.ndarray) -> list[tuple[np.ndarray, np.ndarray]]:
+        """The 3 x 3 candidate lenses around the cell of each point (clipped onto the array), row-major:
+        a list of 9 (flat index, exists) pairs; the order is the tie-break (first wins)."""
+        col = np.clip(np.floor((x - self.x0) * self.inv_p), 0, self.cols - 1)
+        row = np.clip(np.floor((y - self.y0) * self.inv_p), 0, self.rows - 1)
+        out = []
+        for dr in (-1.0, 0.0, 1.0):
+            for dc in (-1.0, 0.0, 1.0):
+                rr, cc = row + dr, col + dc
+                ok = (rr >= 0) & (rr < self.rows) & (cc >= 0) & (cc < self.cols)
+                out.append((np.where(ok, rr * self.cols + cc, 0).astype(np.int64), ok))
+        return out
+
+    def _hit_sag(self, k, r: Rays, rear: bool):
+        """'sag-intersection' lookup: lens k's surface first; rays whose hit is near their cell's edge
+        (within the cell's margin) or in another cell take the first-met front / last-met rear sphere of
+        the 3 x 3 lenses around the hit's cell."""
+        local, ldir, nrm, t = self._surface(k, r.x, r.y, r.z, r.L, r.M, r.N, rear)
+        gx, gy, _, _, _, _ = self._from_lens(k, *local, *ldir)
+        k2, inside = self.cell_of(gx, gy)
+        margin = self.margin_rear if rear else self.margin_front
+        with np.errstate(invalid="ignore"):
+            near = (k2 != k) | ~inside | (self.edge_distance(gx, gy) < margin[k])
+        todo = np.flatnonzero(near & np.isfinite(t))
+        if todo.size:
+            sub = [a[todo] for a in (r.x, r.y, r.z, r.L, r.M, r.N)]
+            kb = self.extreme_lens(k[todo], t[todo], gx[todo], gy[todo], *sub, rear)
+            k = k.copy()
+            k[todo] = kb
+            l2, d2, n2, t2 = self._surface(kb, *sub, rear)
+            local, ldir, nrm = (tuple(_put(a, todo, b) for a, b in zip(g1, g2)) for g1, g2 in ((local, l2), (ldir, d2), (nrm, n2)))
+            t = _put(t, todo, t2)
+        return k, local, ldir, nrm, np.isfinite(t)
+
+    def extreme_lens(self, k, t_k, gx, gy, x, y, z, L, M, N, rear: bool) -> np.ndarray:
+        """Brute force over the 3 x 3 lenses around the cell of (gx, gy): the front sphere met first
+        (smallest t) or the rear sphere met last (largest t), starting from lens k met at t_k (it keeps
+        a tie; among the others the first in row-major order wins); misses are skipped."""
+        best_k = np.array(k, dtype=np.int64, copy=True)
+        best_t = np.array(t_k, dtype=float, copy=True)
+        for kc, ok in self.neighbours(gx, gy):
+            _, _, _, t = self._surface(kc, x, y, z, L, M, N, rear)
+            with np.errstate(invalid="ignore"):
+                better = (t < best_t) if not rear else (t > best_t)
+            take = ok & (kc != best_k) & np.isfinite(t) & (better | np.isnan(best_t))
+            best_k = np.where(take, kc, best_k)
+            best_t = np.where(take, t, best_t)
+        return best_k
+
+    def _corner_sag(self, k, hx, hy, hz) -> np.ndarray:
+        """'sag-intersection' corners: the front hit (lens k's frame) lies outside the union of the lenses'
+        rear regions. Far from its cell's edge (rear margin) only lens k's rear can hold it."""
+        corner = ~self._inside_lens(k, hx, hy, hz)
+        gx, gy, gz, _, _, _ = self._from_lens(k, hx, hy, hz, 0.0, 0.0, 0.0)  # a point: no direction
+        k2, inside = self.cell_of(gx, gy)
+        with np.errstate(invalid="ignore"):
+            near = (k2 != k) | ~inside | (self.edge_distance(gx, gy) < self.margin_rear[k])
+        todo = np.flatnonzero(near & np.isfinite(hz))
+        if todo.size:
+            px, py, pz = gx[todo], gy[todo], gz[todo]
+            any_in = np.zeros(todo.size, dtype=bool)
+            for kc, ok in self.neighbours(px, py):
+                lx, ly, lz, _, _, _ = self._to_lens(kc, px, py, pz, 0.0, 0.0, 0.0)
+                any_in |= ok & self._inside_lens(kc, lx, ly, lz)
+            corner = corner.copy()
+            corner[todo] = ~any_in
+        return corner
 
     def _inside_lens(self, k, hx, hy, hz):
         """True where the lens has positive thickness under a front-surface point (not a corner)."""
@@ -265,6 +468,36 @@ class MicrolensArray:
         with np.errstate(invalid="ignore"):
             z_back = self.z_rear[k] + c2 * rho2 / (1.0 + np.sqrt(arg))
         return (arg >= 0.0) & (z_back > hz)
+
+
+def _sag_abs(radius, rho):
+    """Sag magnitude of a sphere of radius |radius| at height rho (NaN beyond the sphere)."""
+    return radius - np.sqrt(radius * radius - rho * rho)
+
+
+def _height_error(rho, u, w, radius, r0):
+    """Bound E(rho) on a surface's height error against the design sphere (see boundary_margins_mm)."""
+    r = rho + u
+    return w + np.abs(_sag_abs(radius, r) - _sag_abs(r0, r)) + u * r / np.sqrt(r0 * r0 - r * r)
+
+
+def _pair_margin(p: float, r0: float, u_i, w_i, r_i, u_k, w_k, r_k) -> np.ndarray:
+    """Smallest d (mm) beyond which neighbour i cannot reach into cell k (see boundary_margins_mm); p
+    where the bound fails anywhere up to d = p."""
+    e_k = _height_error(np.full_like(u_k, p / math.sqrt(2.0)), u_k, w_k, r_k, r0)
+
+    def rhs_d(d):  # the d at which the design height gap 2 p d / 2R0 equals E_i + E_k
+        with np.errstate(invalid="ignore"):
+            return (_height_error(np.sqrt(0.5 * p * p + 2.0 * p * d), u_i, w_i, r_i, r0) + e_k) * r0 / p
+
+    d = np.zeros_like(u_k)
+    for _ in range(60):  # increasing from 0 to the smallest root; contraction ratio ~ |u|/R0 + |eps|
+        d = np.minimum(rhs_d(d), p)
+    d = np.where(np.isfinite(d), d + 1e-6, p)  # + 1 nm: strictly beyond the root
+    grid = d[:, None] + (p - d[:, None]) * np.linspace(0.0, 1.0, 65)[None, :]
+    with np.errstate(invalid="ignore"):
+        holds = np.all(grid > rhs_d(grid.T).T, axis=1)  # NaN (a sphere too small for the cell) fails
+    return np.where(holds & (d < 0.5 * p), d, p)
 
 
 def _rotate_batch(r: np.ndarray, x, y, z):

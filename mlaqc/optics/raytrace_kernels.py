@@ -5,7 +5,9 @@ so tests compare the two ray by ray (same pixels; weights to rounding, FMA contr
 Rays go in blocks of BLOCK through a sequence of short loops (a pass per surface or step), each
 branch-free over the block so that LLVM vectorizes it (4 doubles per AVX2 instruction) and independent
 rays overlap in the pipeline; a single loop carrying one ray's whole chain of square roots and divisions
-was bound by their latency. The rare neighbour re-trace near cell edges is a scalar pass of its own.
+was bound by their latency. The rare neighbour re-trace near cell edges is a scalar pass of its own, in
+both lens boundary models ('grid': the lens of the hit's cell; 'sag-intersection': the first / last of
+the 3 x 3 spheres met, for hits within a per-cell margin of the edge).
 Hits are appended in ray order and summed per pixel in compiled code, as np.bincount would. It releases
 the GIL, so the renderer's thread pool keeps every core busy. The NumPy path stays the reference; this
 module is used when Numba is importable.
@@ -61,10 +63,16 @@ IMAGE_SIDE, POINT, OBJECT_SIDE = 0, 1, 2
  # the low-discrepancy sampler: on/off, the job's block of cells (first row and column, width, cells) and
  # first point index, padded cells per row, and the MLA frame's 2 x 2 map to the start plane
  S_SOBOL, S_CR0, S_CC0, S_CBW, S_CB, S_J0, S_PCOLS, S_R00, S_R01, S_R10, S_R11,
- S_INVKR, S_SQUARE, S_SQW, S_COUNT) = range(53)
+ S_INVKR, S_SQUARE, S_SQW,
+ # half the black matrix' width (mm; sag-intersection boundaries are a kernel of their own, kernel_sag)
+ S_HALFBM, S_COUNT) = range(54)
 # Rows of the per-block scratch table `g`: the gathered parameters of each ray's lens (tab rows 0..6), its
 # current hit and direction in the lens frame, the distance t to it (NaN on a miss), and its pixel.
-G_FX, G_FY, G_DX, G_DY, G_C1, G_C2, G_ZR, G_HX, G_HY, G_HZ, G_LL, G_LM, G_LN, G_T, G_ROW, G_COL, G_COUNT = range(17)
+# Sag-intersection mode also gathers the lens' front and rear margins (G_MF, G_MR).
+G_FX, G_FY, G_DX, G_DY, G_C1, G_C2, G_ZR, G_HX, G_HY, G_HZ, G_LL, G_LM, G_LN, G_T, G_ROW, G_COL, G_MF, G_MR, G_COUNT = range(19)
+# Rows of the per-lens `margins` table of sag-intersection mode (kernel_sag): front and rear margins (mm,
+# raytrace.MicrolensArray.boundary_margins_mm).
+T_MARGIN_FRONT, T_MARGIN_REAR = 0, 1
 
 
 @_jit_inline
@@ -487,23 +495,177 @@ def retrace_neighbours(m, flag, kk, buf, g, tab, rot, s, rear):
 
 
 @_jit_inline
-def stage2_block(m, buf, s, tab, rot, grot, clear, fres, n_mla, mu_in, g, kk, flag, corner_of, rows, cols, wts,
-                 nout, box):
-    """Stage 2 for one block: MLA (per-lens errors, neighbour re-trace) -> sensor pixel, appending hits.
+def hit_xy(k, hx, hy, hz, tab, rot):
+    """MLA-frame x, y of a point given in lens k's frame."""
+    gx, gy, _, _, _, _ = from_lens(k, hx, hy, hz, 0.0, 0.0, 0.0, tab, rot)
+    return gx, gy
 
-    Done in passes over the block, each branch-free over rays so that it vectorizes (the ray-by-ray
-    version was bound by the latency of its chain of divisions and square roots); the rare re-trace near
-    cell edges is a scalar pass of its own. Operations are those of raytrace.MicrolensArray, in the same
-    order, so both engines agree to rounding."""
-    zfront, shx, shy, zmla, zsens = s[S_ZFRONT], s[S_SHIFTX], s[S_SHIFTY], s[S_ZMLA], s[S_ZSENS]
-    ax0, ay0, invp, ncols, nrows = s[S_AX0], s[S_AY0], s[S_INVP], s[S_COLS], s[S_ROWS]
-    sx0, sy0, invpix, width, height = s[S_SX0], s[S_SY0], s[S_INVPIX], s[S_W], s[S_H]
+
+@_jit_inline
+def surface_hit_edge(px, py, pz, L, M, N, ox, oy, oz, c, fx, fy, rot, k, ax0, ay0, invp, p, ncols, nrows):
+    """As surface_hit, plus the hit's distance (mm) from the nearest edge of the cell it lies in: the
+    sag-intersection fast path doubts hits in another cell or within a margin of the edge."""
+    if rot is not None:
+        r00, r01, r02, r10, r11, r12, r20, r21, r22 = rot_of(rot, k)
+        px, py, pz = rot_t(r00, r01, r02, r10, r11, r12, r20, r21, r22, px, py, pz)
+        L, M, N = rot_t(r00, r01, r02, r10, r11, r12, r20, r21, r22, L, M, N)
+    t = sphere_t(px - ox, py - oy, pz - oz, L, M, N, c)
+    hx, hy, hz = px + t * L, py + t * M, pz + t * N
+    gx, gy = hx, hy
+    if rot is not None:
+        gx, gy, _ = rot_n(r00, r01, r02, r10, r11, r12, r20, r21, r22, hx, hy, hz)
+    gx, gy = gx + fx, gy + fy
+    u = (gx - ax0) * invp
+    v = (gy - ay0) * invp
+    fu = u - np.floor(u)
+    fv = v - np.floor(v)
+    eu = fu if fu < 1.0 - fu else 1.0 - fu  # selects: the builtin min's NaN handling does not vectorize
+    ev = fv if fv < 1.0 - fv else 1.0 - fv
+    edge = p * (eu if eu < ev else ev)
+    return hx, hy, hz, L, M, N, t, cell_f(gx, gy, ax0, ay0, invp, ncols, nrows), edge
+
+
+@_jit_inline
+def centre_cell(gx, gy, s):
+    """Row and column of the cell holding an MLA-frame point, clipped onto the array."""
+    col = min(max(math.floor((gx - s[S_AX0]) * s[S_INVP]), 0), int(s[S_COLS]) - 1)
+    row = min(max(math.floor((gy - s[S_AY0]) * s[S_INVP]), 0), int(s[S_ROWS]) - 1)
+    return row, col
+
+
+@_jit_inline
+def retrace_sag(m, flag, kk, buf, g, tab, rot, s, rear, cflag, margins):
+    """Flagged rays (near a cell edge) take the front sphere they meet first / the rear sphere they meet
+    last among the 3 x 3 lenses around their hit's cell: lens kk's hit (in g) unless another is strictly
+    earlier / later, the first in row-major order winning a tie (as raytrace.MicrolensArray.extreme_lens;
+    a scalar pass: it is rare). Front re-traces also flag the ray's corner test (cflag)."""
+    rows, cols = int(s[S_ROWS]), int(s[S_COLS])
+    for j in range(m):
+        if flag[j]:
+            k0 = kk[j]
+            gx, gy = hit_xy(k0, g[G_HX, j], g[G_HY, j], g[G_HZ, j], tab, rot)
+            row0, col0 = centre_cell(gx, gy, s)
+            best, bt = k0, g[G_T, j]
+            bx, by, bz, bL, bM, bN = g[G_HX, j], g[G_HY, j], g[G_HZ, j], g[G_LL, j], g[G_LM, j], g[G_LN, j]
+            for dr in range(-1, 2):
+                for dc in range(-1, 2):
+                    rr, cc = row0 + dr, col0 + dc
+                    kc = rr * cols + cc
+                    if rr < 0 or rr >= rows or cc < 0 or cc >= cols or kc == k0:
+                        continue
+                    hx, hy, hz, lL, lM, lN, t = lens_surface(kc, buf[0, j], buf[1, j], buf[2, j], buf[3, j], buf[4, j],
+                                                             buf[5, j], rear, tab, rot, s[S_ZFRONT])
+                    if t == t and (t > bt if rear else t < bt):
+                        best, bt, bx, by, bz, bL, bM, bN = kc, t, hx, hy, hz, lL, lM, lN
+            if best != k0:
+                kk[j] = best
+                gather(j, best, tab, g)
+                g[G_MR, j] = margins[T_MARGIN_REAR, best]
+                g[G_HX, j], g[G_HY, j], g[G_HZ, j], g[G_LL, j], g[G_LM, j], g[G_LN, j], g[G_T, j] = bx, by, bz, bL, bM, bN, bt
+            if not rear:
+                cflag[j] = True
+
+
+@_jit_inline
+def inside_rear(k, px, py, pz, tab):
+    """A point of lens k's frame lies in front of (in the material of) its rear sphere."""
+    rx, ry = px - tab[2, k], py - tab[3, k]
+    c2 = tab[5, k]
+    rho2 = rx * rx + ry * ry
+    arg = 1.0 - c2 * c2 * rho2
+    return (arg >= 0.0) & (tab[6, k] + c2 * rho2 / (1.0 + math.sqrt(max(arg, 0.0))) > pz)
+
+
+@_jit_inline
+def corners_sag(m, cflag, kk, g, tab, rot, s, corner_of):
+    """Sag-intersection corners of the flagged rays (front hit within the rear margin of its cell's edge,
+    or re-traced): the front hit lies in no rear region of the 3 x 3 lenses around its cell (as
+    raytrace.MicrolensArray._corner_sag; elsewhere lens kk's rear decides, in pass B). Scalar: rare."""
+    rows, cols = int(s[S_ROWS]), int(s[S_COLS])
+    for j in range(m):
+        if cflag[j]:
+            gx, gy, gz, _, _, _ = from_lens(kk[j], g[G_HX, j], g[G_HY, j], g[G_HZ, j], 0.0, 0.0, 0.0, tab, rot)
+            row0, col0 = centre_cell(gx, gy, s)
+            inside = False
+            for dr in range(-1, 2):
+                for dc in range(-1, 2):
+                    rr, cc = row0 + dr, col0 + dc
+                    if rr < 0 or rr >= rows or cc < 0 or cc >= cols:
+                        continue
+                    kc = rr * cols + cc
+                    px, py, pz, _, _, _ = to_lens(kc, gx, gy, gz, 0.0, 0.0, 0.0, tab, rot)
+                    inside = inside or inside_rear(kc, px, py, pz, tab)
+            corner_of[j] = not inside
+
+
+@_jit_inline
+def black_matrix(m, buf, s):
+    """Absorb rays crossing the front vertex plane (buf, MLA frame) within half the black matrix' width of
+    a grid line (as raytrace.MicrolensArray.black_matrix)."""
+    ax0, ay0, invp, p, hw = s[S_AX0], s[S_AY0], s[S_INVP], s[S_P], s[S_HALFBM]
+    for j in range(m):
+        u = (buf[0, j] - ax0) * invp
+        v = (buf[1, j] - ay0) * invp
+        fu = u - np.floor(u)
+        fv = v - np.floor(v)
+        masked = (p * min(fu, 1.0 - fu) < hw) | (p * min(fv, 1.0 - fv) < hw)
+        buf[6, j] = 0.0 if masked else buf[6, j]
+
+
+@_jit_inline
+def front_sag(m, buf, s, tab, rot, g, kk, flag, cflag, corner_of):
+    """Pass B in sag-intersection mode (branch-free): lens kk's front hit; flag hits in another cell or
+    within the front margin of the cell's edge (re-traced), and those within the rear margin (their
+    corner test needs the neighbours' rear regions); the corner test with lens kk's rear for the rest."""
+    zfront, ax0, ay0, invp, p, ncols, nrows = s[S_ZFRONT], s[S_AX0], s[S_AY0], s[S_INVP], s[S_P], s[S_COLS], s[S_ROWS]
+    for j in range(m):
+        fx, fy, c, k = g[G_FX, j], g[G_FY, j], g[G_C1, j], kk[j]
+        px, py, pz, L, M, N = buf[0, j] - fx, buf[1, j] - fy, buf[2, j], buf[3, j], buf[4, j], buf[5, j]
+        hx, hy, hz, L, M, N, t, k2, edge = surface_hit_edge(px, py, pz, L, M, N, 0.0, 0.0, zfront, c, fx, fy, rot, k,
+                                                            ax0, ay0, invp, p, ncols, nrows)
+        g[G_HX, j], g[G_HY, j], g[G_HZ, j], g[G_LL, j], g[G_LM, j], g[G_LN, j], g[G_T, j] = hx, hy, hz, L, M, N, t
+        live = (buf[6, j] > 0.0) & (t == t)
+        moved = k2 != k
+        flag[j] = live & (moved | (edge < g[G_MF, j]))
+        cflag[j] = live & (moved | (edge < g[G_MR, j]))
+        rx, ry = hx - g[G_DX, j], hy - g[G_DY, j]
+        c2 = g[G_C2, j]
+        rho2 = rx * rx + ry * ry
+        arg = 1.0 - c2 * c2 * rho2
+        corner_of[j] = not ((arg >= 0.0) & (g[G_ZR, j] + c2 * rho2 / (1.0 + math.sqrt(max(arg, 0.0))) > hz))
+
+
+@_jit_inline
+def rear_sag(m, buf, s, tab, rot, g, kk, flag, corner_of):
+    """Pass C' in sag-intersection mode (branch-free): lens kk's rear hit; flag live non-corner rays whose
+    hit is in another cell or within the rear margin of the cell's edge."""
+    ax0, ay0, invp, p, ncols, nrows = s[S_AX0], s[S_AY0], s[S_INVP], s[S_P], s[S_COLS], s[S_ROWS]
+    for j in range(m):
+        x, y, z, L, M, N = buf[0, j], buf[1, j], buf[2, j], buf[3, j], buf[4, j], buf[5, j]
+        fx, fy, vx, vy, c2, vz, k = g[G_FX, j], g[G_FY, j], g[G_DX, j], g[G_DY, j], g[G_C2, j], g[G_ZR, j], kk[j]
+        hx, hy, hz, L, M, N, t, k2, edge = surface_hit_edge(x - fx, y - fy, z, L, M, N, vx, vy, vz, c2, fx, fy, rot, k,
+                                                            ax0, ay0, invp, p, ncols, nrows)
+        g[G_HX, j], g[G_HY, j], g[G_HZ, j], g[G_LL, j], g[G_LM, j], g[G_LN, j], g[G_T, j] = hx, hy, hz, L, M, N, t
+        live = (buf[6, j] > 0.0) & (not corner_of[j]) & (t == t)
+        flag[j] = live & ((k2 != k) | (edge < g[G_MR, j]))
+
+
+@_jit_inline
+def grot_entries(grot):
+    """The MLA's global rotation, nine entries (zeros where there is none)."""
     g00 = g01 = g02 = g10 = g11 = g12 = g20 = g21 = g22 = 0.0
     if grot is not None:
         g00, g01, g02, g10, g11, g12, g20, g21, g22 = (grot[0, 0], grot[0, 1], grot[0, 2], grot[1, 0], grot[1, 1],
                                                        grot[1, 2], grot[2, 0], grot[2, 1], grot[2, 2])
-    r00 = r01 = r02 = r10 = r11 = r12 = r20 = r21 = r22 = 0.0
-    # --- A: into the MLA frame, onto the front plane, which cell ---
+    return g00, g01, g02, g10, g11, g12, g20, g21, g22
+
+
+@_jit_inline
+def pass_enter(m, buf, s, tab, grot, g, kk):
+    """Pass A: into the MLA frame, onto the front plane, which cell; the black matrix; gather the lenses."""
+    zfront, shx, shy, zmla = s[S_ZFRONT], s[S_SHIFTX], s[S_SHIFTY], s[S_ZMLA]
+    ax0, ay0, invp, ncols, nrows = s[S_AX0], s[S_AY0], s[S_INVP], s[S_COLS], s[S_ROWS]
+    g00, g01, g02, g10, g11, g12, g20, g21, g22 = grot_entries(grot)
     for j in range(m):
         x, y, z, L, M, N, w = buf[0, j] - shx, buf[1, j] - shy, buf[2, j] - zmla, buf[3, j], buf[4, j], buf[5, j], buf[6, j]
         if grot is not None:
@@ -518,9 +680,16 @@ def stage2_block(m, buf, s, tab, rot, grot, clear, fres, n_mla, mu_in, g, kk, fl
         kk[j] = np.int32(kf) if alive else np.int32(0)  # int32: converts four at a time on AVX2
         buf[0, j], buf[1, j], buf[2, j], buf[3, j], buf[4, j], buf[5, j] = x, y, z, L, M, N
         buf[6, j] = w if alive else 0.0
+    if s[S_HALFBM] > 0.0:
+        black_matrix(m, buf, s)
     for j in range(m):
         gather(j, kk[j], tab, g)
-    # --- B: front surface of that lens; flag hits that fall in another cell ---
+
+
+@_jit_inline
+def pass_front_grid(m, buf, s, tab, rot, g, kk, flag):
+    """Pass B (grid): front surface of the cell's lens; re-trace hits that fall in another cell."""
+    zfront, ax0, ay0, invp, ncols, nrows = s[S_ZFRONT], s[S_AX0], s[S_AY0], s[S_INVP], s[S_COLS], s[S_ROWS]
     for j in range(m):
         fx, fy, c = g[G_FX, j], g[G_FY, j], g[G_C1, j]
         px, py, pz, L, M, N = buf[0, j] - fx, buf[1, j] - fy, buf[2, j], buf[3, j], buf[4, j], buf[5, j]
@@ -529,7 +698,14 @@ def stage2_block(m, buf, s, tab, rot, grot, clear, fres, n_mla, mu_in, g, kk, fl
         g[G_HX, j], g[G_HY, j], g[G_HZ, j], g[G_LL, j], g[G_LM, j], g[G_LN, j], g[G_T, j] = hx, hy, hz, L, M, N, t
         flag[j] = (buf[6, j] > 0.0) & (t == t) & (k2 >= 0.0) & (k2 != kk[j])
     retrace_neighbours(m, flag, kk, buf, g, tab, rot, s, False)
-    # --- C: corner test, front refraction, back to the MLA frame ---
+
+
+@_jit_inline
+def pass_front_refract(m, buf, s, rot, clear, fres, n_mla, mu_in, g, kk, corner_of, sag):
+    """Pass C: corner test (grid: lens kk's rear; sag: corner_of, from corners_sag), front refraction,
+    back to the MLA frame."""
+    zfront = s[S_ZFRONT]
+    r00 = r01 = r02 = r10 = r11 = r12 = r20 = r21 = r22 = 0.0
     for j in range(m):
         w = buf[6, j]
         hx, hy, hz, lL, lM, lN, t = g[G_HX, j], g[G_HY, j], g[G_HZ, j], g[G_LL, j], g[G_LM, j], g[G_LN, j], g[G_T, j]
@@ -538,6 +714,7 @@ def stage2_block(m, buf, s, tab, rot, grot, clear, fres, n_mla, mu_in, g, kk, fl
         rho2 = rx * rx + ry * ry
         arg = 1.0 - c2 * c2 * rho2
         corner = not ((arg >= 0.0) & (vz + c2 * rho2 / (1.0 + math.sqrt(max(arg, 0.0))) > hz))
+        corner = corner_of[j] if sag else corner
         nL, nM, nN, tr = refract(lL, lM, lN, c1 * hx, c1 * hy, c1 * (hz - zfront) - 1.0, mu_in, fres, 1.0, n_mla)
         alive = (w > 0.0) & (t == t) & (clear | (not corner)) & (corner | (tr >= 0.0))
         w = w if corner else w * tr
@@ -553,7 +730,12 @@ def stage2_block(m, buf, s, tab, rot, grot, clear, fres, n_mla, mu_in, g, kk, fl
         buf[0, j], buf[1, j], buf[2, j], buf[3, j], buf[4, j], buf[5, j] = x, y, z, L, M, N
         buf[6, j] = w if alive else 0.0
         corner_of[j] = corner
-    # --- C': rear surface of the same lens; flag hits that fall in another cell ---
+
+
+@_jit_inline
+def pass_rear_grid(m, buf, s, tab, rot, g, kk, flag, corner_of):
+    """Pass C' (grid): rear surface of the same lens; re-trace hits that fall in another cell."""
+    ax0, ay0, invp, ncols, nrows = s[S_AX0], s[S_AY0], s[S_INVP], s[S_COLS], s[S_ROWS]
     for j in range(m):
         x, y, z, L, M, N = buf[0, j], buf[1, j], buf[2, j], buf[3, j], buf[4, j], buf[5, j]
         fx, fy, vx, vy, c2, vz = g[G_FX, j], g[G_FY, j], g[G_DX, j], g[G_DY, j], g[G_C2, j], g[G_ZR, j]
@@ -563,7 +745,17 @@ def stage2_block(m, buf, s, tab, rot, grot, clear, fres, n_mla, mu_in, g, kk, fl
         g[G_HX, j], g[G_HY, j], g[G_HZ, j], g[G_LL, j], g[G_LM, j], g[G_LN, j], g[G_T, j] = hx, hy, hz, L, M, N, t
         flag[j] = (buf[6, j] > 0.0) & (not corner_of[j]) & (t == t) & (k2 >= 0.0) & (k2 != kk[j])
     retrace_neighbours(m, flag, kk, buf, g, tab, rot, s, True)
-    # --- D: rear refraction (corners go on straight), back to the camera frame, onto the sensor ---
+
+
+@_jit_inline
+def pass_leave(m, buf, s, rot, grot, fres, n_mla, g, kk, corner_of, rows, cols, wts, nout, box):
+    """Passes D (rear refraction, corners go on straight), D' (back to the camera frame, onto the sensor,
+    which pixel) and E (append the hits in ray order, grow the bounding box). Returns the hit count."""
+    shx, shy, zmla, zsens = s[S_SHIFTX], s[S_SHIFTY], s[S_ZMLA], s[S_ZSENS]
+    sx0, sy0, invpix, width, height = s[S_SX0], s[S_SY0], s[S_INVPIX], s[S_W], s[S_H]
+    g00, g01, g02, g10, g11, g12, g20, g21, g22 = grot_entries(grot)
+    r00 = r01 = r02 = r10 = r11 = r12 = r20 = r21 = r22 = 0.0
+    # --- D: rear refraction (corners go on straight) ---
     for j in range(m):
         w, corner = buf[6, j], corner_of[j]
         hx, hy, hz, lL, lM, lN, t = g[G_HX, j], g[G_HY, j], g[G_HZ, j], g[G_LL, j], g[G_LM, j], g[G_LN, j], g[G_T, j]
@@ -618,13 +810,50 @@ def stage2_block(m, buf, s, tab, rot, grot, clear, fres, n_mla, mu_in, g, kk, fl
     return nout
 
 
+@_jit_inline
+def stage2_block(m, buf, s, tab, rot, grot, clear, fres, n_mla, mu_in, g, kk, flag, corner_of, rows, cols, wts,
+                 nout, box):
+    """Stage 2 for one block, grid boundaries: MLA (per-lens errors, neighbour re-trace) -> sensor pixel,
+    appending hits.
+
+    Done in passes over the block, each branch-free over rays so that it vectorizes (the ray-by-ray
+    version was bound by the latency of its chain of divisions and square roots); the rare re-trace near
+    cell edges is a scalar pass of its own. Operations are those of raytrace.MicrolensArray, in the same
+    order, so both engines agree to rounding."""
+    pass_enter(m, buf, s, tab, grot, g, kk)
+    pass_front_grid(m, buf, s, tab, rot, g, kk, flag)
+    pass_front_refract(m, buf, s, rot, clear, fres, n_mla, mu_in, g, kk, corner_of, False)
+    pass_rear_grid(m, buf, s, tab, rot, g, kk, flag, corner_of)
+    return pass_leave(m, buf, s, rot, grot, fres, n_mla, g, kk, corner_of, rows, cols, wts, nout, box)
+
+
+@_jit_inline
+def stage2_block_sag(m, buf, s, tab, rot, grot, clear, fres, n_mla, mu_in, g, kk, flag, corner_of, rows, cols, wts,
+                     nout, box, cflag, margins):
+    """Stage 2 for one block, sag-intersection boundaries: as stage2_block, with passes B and C' that also
+    flag hits within a per-cell margin of the edge (front_sag, rear_sag) for the 3 x 3 neighbour pass
+    (retrace_sag), and corners from the union of the rear regions (corners_sag). A kernel of its own
+    (kernel_sag), so that grid kernels compile none of it."""
+    pass_enter(m, buf, s, tab, grot, g, kk)
+    for j in range(m):  # in a loop of its own, as gather: an indexed load keeps a pass from vectorizing
+        k = kk[j]
+        g[G_MF, j], g[G_MR, j] = margins[T_MARGIN_FRONT, k], margins[T_MARGIN_REAR, k]
+    front_sag(m, buf, s, tab, rot, g, kk, flag, cflag, corner_of)
+    retrace_sag(m, flag, kk, buf, g, tab, rot, s, False, cflag, margins)
+    corners_sag(m, cflag, kk, g, tab, rot, s, corner_of)
+    pass_front_refract(m, buf, s, rot, clear, fres, n_mla, mu_in, g, kk, corner_of, True)
+    rear_sag(m, buf, s, tab, rot, g, kk, flag, corner_of)
+    retrace_sag(m, flag, kk, buf, g, tab, rot, s, True, cflag, margins)
+    return pass_leave(m, buf, s, rot, grot, fres, n_mla, g, kk, corner_of, rows, cols, wts, nout, box)
+
+
 BLOCK = 256  # rays per block: every pass works on a block held in L1
 
 
 @_jit
 def kernel(s, key, count, tab, rot, grot, texture, shift_coef, rows, cols, wts, box):
-    """Trace `count` rays drawn with `key`; appends the (row, col, weight) of those that landed, in ray
-    order, grows box = [row min, row max, col min, col max] and returns how many landed."""
+    """Trace `count` rays drawn with `key` (grid boundaries); appends the (row, col, weight) of those that
+    landed, in ray order, grows box = [row min, row max, col min, col max] and returns how many landed."""
     mode = int(s[S_MODE])
     fres = s[S_FRES] != 0.0
     clear = s[S_CLEAR] != 0.0
@@ -661,6 +890,46 @@ def kernel(s, key, count, tab, rot, grot, texture, shift_coef, rows, cols, wts, 
 
 
 @_jit
+def kernel_sag(s, key, count, tab, rot, grot, texture, shift_coef, rows, cols, wts, box, margins):
+    """As kernel (the same loop), with sag-intersection boundaries (`margins`: per-lens front and rear
+    margins, mm)."""
+    cflag = np.empty(BLOCK, np.bool_)
+    mode = int(s[S_MODE])
+    fres = s[S_FRES] != 0.0
+    clear = s[S_CLEAR] != 0.0
+    n_mla = s[S_NMLA]
+    mu_mla_in = 1.0 / n_mla
+    tex_hx, tex_hy = s[S_TEXHX], s[S_TEXHY]
+    buf = np.empty((9, BLOCK))
+    g = np.empty((G_COUNT, BLOCK))
+    kk = np.empty(BLOCK, np.int32)
+    flag = np.empty(BLOCK, np.bool_)
+    corner_of = np.empty(BLOCK, np.bool_)
+    ia = np.empty(BLOCK, np.int64)
+    icf = np.empty(BLOCK, np.int64)
+    sobol = s[S_SOBOL] != 0.0
+    if sobol:
+        seeds, shifts, jtab = sobol_tables(s, key)
+    else:
+        seeds, shifts, jtab = np.zeros(4, np.uint64), np.zeros((1, 4), np.uint64), np.zeros((1, 4), np.uint64)
+    nout = 0
+    for start in range(0, count, BLOCK):
+        m = min(BLOCK, count - start)
+        if sobol:
+            sobol_draws(start, m, s, seeds, shifts, jtab, g, ia, icf)
+        if mode == IMAGE_SIDE:
+            m = stage1_image_side(start, m, s, key, buf, fres, texture, g, sobol, shift_coef)
+        else:
+            stage1_forward(start, m, mode, s, key, buf, fres, texture, g, sobol)
+        if texture is not None:
+            for j in range(m):
+                buf[6, j] *= texel(texture, buf[7, j], buf[8, j], tex_hx, tex_hy)
+        nout = stage2_block_sag(m, buf, s, tab, rot, grot, clear, fres, n_mla, mu_mla_in, g, kk, flag, corner_of,
+                                rows, cols, wts, nout, box, cflag, margins)
+    return nout
+
+
+@_jit
 def bin_hits(rows, cols, wts, n, box):
     """Sum the weights per pixel over the hits' bounding box, in hit order (as np.bincount would)."""
     if n == 0:
@@ -679,6 +948,7 @@ class FastCamera:
         """`cells` (a scene.CellGrid) switches on the low-discrepancy sampler."""
         mla, main, cfg = camera.mla, camera.main, camera.cfg
         self.tab = np.ascontiguousarray(np.stack([mla.fx, mla.fy, mla.dx, mla.dy, mla.c1, mla.c2, mla.z_rear]))
+        self.margins = np.ascontiguousarray(np.stack([mla.margin_front, mla.margin_rear])) if mla.sag else None
         # None (not an identity) where unused: Numba then compiles a kernel without those branches.
         self.rot = np.ascontiguousarray(mla.rot) if mla.tilted else None
         self.grot = np.ascontiguousarray(camera.rot) if camera.rotated else None
@@ -689,6 +959,7 @@ class FastCamera:
         s[S_TEXHX], s[S_TEXHY] = texture_half_mm
         s[S_P], s[S_AX0], s[S_AY0], s[S_ROWS], s[S_COLS] = mla.p, mla.x0, mla.y0, mla.rows, mla.cols
         s[S_ZFRONT], s[S_NMLA], s[S_CLEAR] = mla.z_front, mla.n, float(mla.clear_corners)
+        s[S_HALFBM] = mla.half_black_mm
         s[S_ZMLA], s[S_ZSENS] = camera.z_mla, camera.z_sensor
         s[S_SHIFTX], s[S_SHIFTY] = camera.shift_x, camera.shift_y
         s[S_PIX], s[S_SX0], s[S_SY0], s[S_W], s[S_H] = camera.pixel, camera.sx0, camera.sy0, camera.width, camera.height
@@ -728,7 +999,8 @@ class FastCamera:
         cols = np.empty(n, np.int32)
         w = np.empty(n)
         box = np.array([2 ** 31, -1, 2 ** 31, -1], np.int64)
-        k = kernel(s, np.uint64(key), n, self.tab, self.rot, self.grot, tex, self.shift_coef, rows, cols, w, box)
+        args = (s, np.uint64(key), n, self.tab, self.rot, self.grot, tex, self.shift_coef, rows, cols, w, box)
+        k = kernel(*args) if self.margins is None else kernel_sag(*args, self.margins)
         return rows[:k], cols[:k], w[:k], box
 
     def trace(self, mode: int, key: int, n: int, tile=None, point=None, texture=None, cells=None):
