@@ -5,7 +5,6 @@ healthy lenses, seeded anomalies found, centres where the model put them."""
 from __future__ import annotations
 
 import math
-from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
