@@ -194,11 +194,11 @@ def lenses_csv(view: View | InspectionResult) -> str:
     columns: list[list[str]] = [
         [str(i) for i in m.ravel().tolist()],
         [str(i) for i in n.ravel().tolist()],
-        *(_fmt_column(a, "{:.3f}") for a in (v.mx, v.my, v.gx, v.gy)),
+        *(_fmt_column(a, "%.3f") for a in (v.mx, v.my, v.gx, v.gy)),
         ["1" if f else "0" for f in v.flagged.ravel().tolist()],
         [t if f else "" for t, f in zip(v.error_type.ravel().tolist(), v.flagged.ravel().tolist())],
-        *(_fmt_column(np.asarray(v.result.metrics[k], dtype=float), "{:.6g}") for k in METRICS),
-        *(_fmt_column(_measured(v, k), "{:.5g}") for k in MEASUREMENTS),
+        *(_fmt_column(np.asarray(v.result.metrics[k], dtype=float), "%.6g") for k in METRICS),
+        *(_fmt_column(_measured(v, k), "%.5g") for k in MEASUREMENTS),
     ]
     buf = io.StringIO()
     writer = csv.writer(buf, lineterminator="\n")
@@ -226,8 +226,17 @@ def _measurements_json(v: View) -> dict[str, Any] | None:
 
 
 def _fmt_column(arr: np.ndarray, fmt: str) -> list[str]:
-    f = fmt.format
-    return [f(x) if math.isfinite(x) else "" for x in np.asarray(arr, dtype=float).ravel().tolist()]
+    """Each value in printf format `fmt` (e.g. "%.6g"), non-finite ones empty: one %-operation over the
+    whole column (a format call per value cost 0.2 s per 10,404-lens report)."""
+    a = np.asarray(arr, dtype=float).ravel()
+    finite = np.isfinite(a)
+    text = ((fmt + "\0") * int(finite.sum()) % tuple(a[finite].tolist())).split("\0")[:-1]
+    if finite.all():
+        return text
+    out = [""] * a.size
+    for i, t in zip(np.flatnonzero(finite).tolist(), text):
+        out[i] = t
+    return out
 
 
 def load_report(path: str | os.PathLike[str]) -> dict[str, Any]:
