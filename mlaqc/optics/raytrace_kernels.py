@@ -850,6 +850,31 @@ def stage2_block_sag(m, buf, s, tab, rot, grot, clear, fres, n_mla, mu_in, g, kk
 BLOCK = 256  # rays per block: every pass works on a block held in L1
 
 
+@_jit_inline
+def sampler_tables(s, key, sobol):
+    """The low-discrepancy sampler's scramble seeds, cell shifts and room for direction tables (empty
+    placeholders of the same types for the random sampler)."""
+    if sobol:
+        return sobol_tables(s, key)
+    return np.zeros(4, np.uint64), np.zeros((1, 4), np.uint64), np.zeros((1, 4), np.uint64)
+
+
+@_jit_inline
+def stage1_block(start, m, mode, s, key, buf, fres, texture, g, sobol, shift_coef, seeds, shifts, jtab, ia, icf):
+    """Stage 1 for one block, shared by both kernels: draws, rays to the MLA's side of the main lens, the
+    texture's radiance; returns the block's ray count (the image-side sampler compacts it)."""
+    if sobol:
+        sobol_draws(start, m, s, seeds, shifts, jtab, g, ia, icf)
+    if mode == IMAGE_SIDE:
+        m = stage1_image_side(start, m, s, key, buf, fres, texture, g, sobol, shift_coef)
+    else:
+        stage1_forward(start, m, mode, s, key, buf, fres, texture, g, sobol)
+    if texture is not None:
+        for j in range(m):
+            buf[6, j] *= texel(texture, buf[7, j], buf[8, j], s[S_TEXHX], s[S_TEXHY])
+    return m
+
+
 @_jit
 def kernel(s, key, count, tab, rot, grot, texture, shift_coef, rows, cols, wts, box):
     """Trace `count` rays drawn with `key` (grid boundaries); appends the (row, col, weight) of those that
@@ -859,7 +884,6 @@ def kernel(s, key, count, tab, rot, grot, texture, shift_coef, rows, cols, wts, 
     clear = s[S_CLEAR] != 0.0
     n_mla = s[S_NMLA]
     mu_mla_in = 1.0 / n_mla
-    tex_hx, tex_hy = s[S_TEXHX], s[S_TEXHY]
     buf = np.empty((9, BLOCK))
     g = np.empty((G_COUNT, BLOCK))
     kk = np.empty(BLOCK, np.int32)
@@ -868,22 +892,11 @@ def kernel(s, key, count, tab, rot, grot, texture, shift_coef, rows, cols, wts, 
     ia = np.empty(BLOCK, np.int64)
     icf = np.empty(BLOCK, np.int64)
     sobol = s[S_SOBOL] != 0.0
-    if sobol:
-        seeds, shifts, jtab = sobol_tables(s, key)
-    else:
-        seeds, shifts, jtab = np.zeros(4, np.uint64), np.zeros((1, 4), np.uint64), np.zeros((1, 4), np.uint64)
+    seeds, shifts, jtab = sampler_tables(s, key, sobol)
     nout = 0
     for start in range(0, count, BLOCK):
-        m = min(BLOCK, count - start)
-        if sobol:
-            sobol_draws(start, m, s, seeds, shifts, jtab, g, ia, icf)
-        if mode == IMAGE_SIDE:
-            m = stage1_image_side(start, m, s, key, buf, fres, texture, g, sobol, shift_coef)
-        else:
-            stage1_forward(start, m, mode, s, key, buf, fres, texture, g, sobol)
-        if texture is not None:
-            for j in range(m):
-                buf[6, j] *= texel(texture, buf[7, j], buf[8, j], tex_hx, tex_hy)
+        m = stage1_block(start, min(BLOCK, count - start), mode, s, key, buf, fres, texture, g, sobol, shift_coef,
+                         seeds, shifts, jtab, ia, icf)
         nout = stage2_block(m, buf, s, tab, rot, grot, clear, fres, n_mla, mu_mla_in, g, kk, flag, corner_of,
                             rows, cols, wts, nout, box)
     return nout
@@ -899,7 +912,6 @@ def kernel_sag(s, key, count, tab, rot, grot, texture, shift_coef, rows, cols, w
     clear = s[S_CLEAR] != 0.0
     n_mla = s[S_NMLA]
     mu_mla_in = 1.0 / n_mla
-    tex_hx, tex_hy = s[S_TEXHX], s[S_TEXHY]
     buf = np.empty((9, BLOCK))
     g = np.empty((G_COUNT, BLOCK))
     kk = np.empty(BLOCK, np.int32)
@@ -908,22 +920,11 @@ def kernel_sag(s, key, count, tab, rot, grot, texture, shift_coef, rows, cols, w
     ia = np.empty(BLOCK, np.int64)
     icf = np.empty(BLOCK, np.int64)
     sobol = s[S_SOBOL] != 0.0
-    if sobol:
-        seeds, shifts, jtab = sobol_tables(s, key)
-    else:
-        seeds, shifts, jtab = np.zeros(4, np.uint64), np.zeros((1, 4), np.uint64), np.zeros((1, 4), np.uint64)
+    seeds, shifts, jtab = sampler_tables(s, key, sobol)
     nout = 0
     for start in range(0, count, BLOCK):
-        m = min(BLOCK, count - start)
-        if sobol:
-            sobol_draws(start, m, s, seeds, shifts, jtab, g, ia, icf)
-        if mode == IMAGE_SIDE:
-            m = stage1_image_side(start, m, s, key, buf, fres, texture, g, sobol, shift_coef)
-        else:
-            stage1_forward(start, m, mode, s, key, buf, fres, texture, g, sobol)
-        if texture is not None:
-            for j in range(m):
-                buf[6, j] *= texel(texture, buf[7, j], buf[8, j], tex_hx, tex_hy)
+        m = stage1_block(start, min(BLOCK, count - start), mode, s, key, buf, fres, texture, g, sobol, shift_coef,
+                         seeds, shifts, jtab, ia, icf)
         nout = stage2_block_sag(m, buf, s, tab, rot, grot, clear, fres, n_mla, mu_mla_in, g, kk, flag, corner_of,
                                 rows, cols, wts, nout, box, cflag, margins)
     return nout
