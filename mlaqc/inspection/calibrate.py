@@ -704,10 +704,10 @@ class _DiscFit:
         flip = np.einsum("li,li->l", step[:, 1:3], self.prev_step[idx, 1:3]) < 0
         step[flip, 1:] *= 0.5
         # idx holds each lens once (`sweep` makes it unique, one colour class): a per-lens update, not an
-        # accumulation of hits
-        self.amp[idx] += step[:, 0]
-        self.cx[idx] += step[:, 1]
-        self.cy[idx] += step[:, 2]
+        # accumulation of hits, written as one
+        self.amp[idx] = self.amp[idx] + step[:, 0]
+        self.cx[idx] = self.cx[idx] + step[:, 1]
+        self.cy[idx] = self.cy[idx] + step[:, 2]
         # a lens' sub-image radius may differ from the typical one by a pixel (size defects), no more:
         # two strongly overlapping discs could otherwise trade radius against amplitude without end
         self.radius[idx] = np.clip(self.radius[idx] + step[:, 3], self.r_norm - 1.0, self.r_norm + 1.0)

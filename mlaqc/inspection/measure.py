@@ -85,10 +85,9 @@ def focal_length_um(cfg: CameraConfig) -> float:
 def focal_change_um(cfg: CameraConfig, radius_rel: np.ndarray) -> np.ndarray:
     """Δf (µm) of the microlens with both radii scaled by 1 + radius_rel, thickness kept (thick-lens power)."""
     m = cfg.mla
-    n, t, c1, c2 = m.refractive_index, m.thickness_um, 1.0 / m.radius_front_um, 1.0 / m.radius_back_um
     s = 1.0 + np.asarray(radius_rel, dtype=np.float64)
-    power = (n - 1.0) * ((c1 - c2) / s + (n - 1.0) * t * c1 * c2 / (n * s * s))
-    return 1.0 / power - focal_length_um(cfg)
+    return thick_lens(m.radius_front_um * s, m.radius_back_um * s, m.thickness_um, m.refractive_index).efl \
+        - focal_length_um(cfg)
 
 
 def _centre(found: Identification, table: SignatureTable, cfg: CameraConfig, disc=None):

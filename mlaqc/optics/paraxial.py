@@ -20,9 +20,9 @@ class ThickLens:
 
 
 def thick_lens(radius_front: float, radius_back: float, thickness: float, n: float) -> ThickLens:
-    """Lensmaker's equation for a thick lens and its principal planes (Hecht, Optics §6.1)."""
-    c1 = 0.0 if radius_front == float("inf") else 1.0 / radius_front
-    c2 = 0.0 if radius_back == float("inf") else 1.0 / radius_back
+    """Lensmaker's equation for a thick lens and its principal planes (Hecht, Optics §6.1); scalars or
+    arrays (a flat surface is an infinite radius: 1 / inf = 0)."""
+    c1, c2 = 1.0 / radius_front, 1.0 / radius_back
     power = (n - 1.0) * (c1 - c2 + (n - 1.0) * thickness * c1 * c2 / n)
     efl = 1.0 / power
     p1 = (n - 1.0) * c1

@@ -851,12 +851,23 @@ BLOCK = 256  # rays per block: every pass works on a block held in L1
 
 
 @_jit_inline
-def sampler_tables(s, key, sobol):
-    """The low-discrepancy sampler's scramble seeds, cell shifts and room for direction tables (empty
-    placeholders of the same types for the random sampler)."""
+def kernel_settings(s, key):
+    """What both kernels read from the settings: mode, Fresnel, clear corners, the MLA's index, whether the
+    low-discrepancy sampler is on, and its scramble seeds, cell shifts and room for direction tables
+    (empty placeholders of the same types for the random sampler)."""
+    sobol = s[S_SOBOL] != 0.0
     if sobol:
-        return sobol_tables(s, key)
-    return np.zeros(4, np.uint64), np.zeros((1, 4), np.uint64), np.zeros((1, 4), np.uint64)
+        seeds, shifts, jtab = sobol_tables(s, key)
+    else:
+        seeds, shifts, jtab = np.zeros(4, np.uint64), np.zeros((1, 4), np.uint64), np.zeros((1, 4), np.uint64)
+    return int(s[S_MODE]), s[S_FRES] != 0.0, s[S_CLEAR] != 0.0, s[S_NMLA], sobol, seeds, shifts, jtab
+
+
+@_jit_inline
+def block_scratch():
+    """One block's scratch arrays: rays, per-ray table, lens index, re-trace and corner flags, sampler cells."""
+    return (np.empty((9, BLOCK)), np.empty((G_COUNT, BLOCK)), np.empty(BLOCK, np.int32), np.empty(BLOCK, np.bool_),
+            np.empty(BLOCK, np.bool_), np.empty(BLOCK, np.int64), np.empty(BLOCK, np.int64))
 
 
 @_jit_inline
@@ -879,25 +890,13 @@ def stage1_block(start, m, mode, s, key, buf, fres, texture, g, sobol, shift_coe
 def kernel(s, key, count, tab, rot, grot, texture, shift_coef, rows, cols, wts, box):
     """Trace `count` rays drawn with `key` (grid boundaries); appends the (row, col, weight) of those that
     landed, in ray order, grows box = [row min, row max, col min, col max] and returns how many landed."""
-    mode = int(s[S_MODE])
-    fres = s[S_FRES] != 0.0
-    clear = s[S_CLEAR] != 0.0
-    n_mla = s[S_NMLA]
-    mu_mla_in = 1.0 / n_mla
-    buf = np.empty((9, BLOCK))
-    g = np.empty((G_COUNT, BLOCK))
-    kk = np.empty(BLOCK, np.int32)
-    flag = np.empty(BLOCK, np.bool_)
-    corner_of = np.empty(BLOCK, np.bool_)
-    ia = np.empty(BLOCK, np.int64)
-    icf = np.empty(BLOCK, np.int64)
-    sobol = s[S_SOBOL] != 0.0
-    seeds, shifts, jtab = sampler_tables(s, key, sobol)
+    mode, fres, clear, n_mla, sobol, seeds, shifts, jtab = kernel_settings(s, key)
+    buf, g, kk, flag, corner_of, ia, icf = block_scratch()
     nout = 0
     for start in range(0, count, BLOCK):
         m = stage1_block(start, min(BLOCK, count - start), mode, s, key, buf, fres, texture, g, sobol, shift_coef,
                          seeds, shifts, jtab, ia, icf)
-        nout = stage2_block(m, buf, s, tab, rot, grot, clear, fres, n_mla, mu_mla_in, g, kk, flag, corner_of,
+        nout = stage2_block(m, buf, s, tab, rot, grot, clear, fres, n_mla, 1.0 / n_mla, g, kk, flag, corner_of,
                             rows, cols, wts, nout, box)
     return nout
 
@@ -907,25 +906,13 @@ def kernel_sag(s, key, count, tab, rot, grot, texture, shift_coef, rows, cols, w
     """As kernel (the same loop), with sag-intersection boundaries (`margins`: per-lens front and rear
     margins, mm)."""
     cflag = np.empty(BLOCK, np.bool_)
-    mode = int(s[S_MODE])
-    fres = s[S_FRES] != 0.0
-    clear = s[S_CLEAR] != 0.0
-    n_mla = s[S_NMLA]
-    mu_mla_in = 1.0 / n_mla
-    buf = np.empty((9, BLOCK))
-    g = np.empty((G_COUNT, BLOCK))
-    kk = np.empty(BLOCK, np.int32)
-    flag = np.empty(BLOCK, np.bool_)
-    corner_of = np.empty(BLOCK, np.bool_)
-    ia = np.empty(BLOCK, np.int64)
-    icf = np.empty(BLOCK, np.int64)
-    sobol = s[S_SOBOL] != 0.0
-    seeds, shifts, jtab = sampler_tables(s, key, sobol)
+    mode, fres, clear, n_mla, sobol, seeds, shifts, jtab = kernel_settings(s, key)
+    buf, g, kk, flag, corner_of, ia, icf = block_scratch()
     nout = 0
     for start in range(0, count, BLOCK):
         m = stage1_block(start, min(BLOCK, count - start), mode, s, key, buf, fres, texture, g, sobol, shift_coef,
                          seeds, shifts, jtab, ia, icf)
-        nout = stage2_block_sag(m, buf, s, tab, rot, grot, clear, fres, n_mla, mu_mla_in, g, kk, flag, corner_of,
+        nout = stage2_block_sag(m, buf, s, tab, rot, grot, clear, fres, n_mla, 1.0 / n_mla, g, kk, flag, corner_of,
                                 rows, cols, wts, nout, box, cflag, margins)
     return nout
 
