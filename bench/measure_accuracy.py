@@ -46,6 +46,19 @@ def seeded(rows: int, cols: int, count: int, seed: int) -> ErrorMap:
     return em
 
 
+PAPER = ((50, 50, {"pitch_um": 1.0, "pitch_dir_deg": 90.0}), (50, 53, {"decenter_um": 10.0, "decenter_dir_deg": 90.0}),
+         (53, 50, {"radius_front_rel": -0.10, "radius_back_rel": -0.10}))  # the paper's examples, on lattice cells
+
+
+def with_paper_examples(em: ErrorMap) -> ErrorMap:
+    """`em` with the paper's three examples (Δp = 1 µm at 90°, δ = 10 µm at 90°, ε_r = -10 %) on three
+    lattice cells near the centre, replacing whatever was seeded there."""
+    clean = {k: 0.0 for k in ("pitch_um", "decenter_um", "radius_front_rel", "radius_back_rel")}
+    for m, n, fields in PAPER:
+        em = em.with_lens(m + 1, n + 1, **(clean | fields))
+    return em
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--rays-per-pixel", type=float, default=1000.0)
@@ -56,8 +69,8 @@ def main() -> int:
     cfg = default_config()
     cfg = dataclasses.replace(cfg, mla=dataclasses.replace(cfg.mla, boundaries=args.boundaries))
     rows, cols = cfg.mla.count_h, cfg.mla.count_w
-    em = seeded(rows, cols, args.defects, args.seed)
-    path = Path(tempfile.gettempdir()) / f"mlaqc_measure_{args.boundaries}_{args.rays_per_pixel:g}_{args.seed}_{args.defects}.tif"
+    em = with_paper_examples(seeded(rows, cols, args.defects, args.seed))
+    path = Path(tempfile.gettempdir()) / f"mlaqc_measure_{args.boundaries}_{args.rays_per_pixel:g}_{args.seed}_{args.defects}_p.tif"
     if not path.exists():
         t0 = time.perf_counter()
         write_simulation(path, simulate(cfg, None, em, rays_per_pixel=args.rays_per_pixel, seed=args.seed), cfg)
@@ -71,6 +84,10 @@ def main() -> int:
           f"{args.defects} seeded lenses; detection limit {result.detection_limit}")
     healthy = kind == ""
     print(f"healthy lenses flagged: {int((result.flagged & healthy).sum())} of {int(healthy.sum())}")
+    for m, n, fields in PAPER:
+        print(f"  paper example U({m + 1},{n + 1}) {fields}: typed {typed[m, n] or 'not flagged'!r}, "
+              + ", ".join(f"{d.error_type} {d.magnitude:.3g} {d.unit} at {d.direction_deg or 0:.0f} deg"
+                          for d in result.defects if (d.m, d.n) == (m + 1, n + 1)))
     for name in ("pitch", "decenter", "radius"):
         sel = kind == name
         flagged = result.flagged & sel

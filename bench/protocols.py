@@ -3,7 +3,9 @@ MLA in the same Table 1 camera, each a config change plus a scene.
 
 All frames start from the f-number-matched layout FROZEN (object and MLA distances written into
 cfg.geometry), so that stopping the main lens down or changing the wavelength does not move the MLA:
-`cfg.layout` would otherwise re-derive the distances from the new diameter or index.
+`cfg.layout` would otherwise re-derive the distances from the new diameter or index. `frozen`,
+`stopped` (which freezes first), `object_for_image_offset` and `magnification` come from
+mlaqc.optics.throughfocus, the through-focus protocol's home.
 
 - white: the calibration image (Lambertian plane), full aperture f/2.5, 632.8 nm.
 - stop f/N: the same with the main lens' rim diameter cut to f/N. In this tracer the rim is checked on
@@ -31,7 +33,6 @@ from functools import lru_cache
 import numpy as np
 
 from mlaqc.optics.config import CameraConfig
-from mlaqc.optics.paraxial import image_distance
 from mlaqc.optics.raytrace import (
     Camera,
     MainLens,
@@ -41,6 +42,7 @@ from mlaqc.optics.raytrace import (
 )
 from mlaqc.optics.render import source_region
 from mlaqc.optics.scene import PointScene, WhiteScene, sample_points
+from mlaqc.optics.throughfocus import frozen, magnification, object_for_image_offset, stopped  # noqa: F401 (re-exported)
 from mlaqc.optics.unitcircle import counter_uniforms
 
 LAMBDA0_NM = 632.8
@@ -79,36 +81,10 @@ def n_mla(wavelength_nm: float, abbe: float = MLA_ABBE) -> float:
     return a + b / (wavelength_nm * 1e-3) ** 2
 
 
-def frozen(cfg: CameraConfig) -> CameraConfig:
-    """The config with the f-number-matched distances written into cfg.geometry."""
-    lay = cfg.layout
-    return replace(cfg, geometry=replace(cfg.geometry, object_distance_mm=lay.object_distance_mm,
-                                         mla_distance_mm=lay.mla_distance_mm))
-
-
-def stopped(cfg: CameraConfig, f_number: float) -> CameraConfig:
-    """Main lens rim cut to f/N (N = efl / D) on a frozen config."""
-    return replace(cfg, main_lens=replace(cfg.main_lens, diameter_mm=cfg.layout.main.efl / f_number))
-
-
 def at_wavelength(cfg: CameraConfig, wavelength_nm: float, abbe: float = MLA_ABBE) -> CameraConfig:
     return replace(cfg, geometry=replace(cfg.geometry, wavelength_nm=wavelength_nm),
                    main_lens=replace(cfg.main_lens, refractive_index=n_main(wavelength_nm)),
                    mla=replace(cfg.mla, refractive_index=n_mla(wavelength_nm, abbe)))
-
-
-def object_for_image_offset(cfg: CameraConfig, u_mm: float) -> CameraConfig:
-    """Move the object (MLA fixed) so the main lens' paraxial image lies u_mm behind (+) the MLA."""
-    lay = cfg.layout
-    b = lay.mla_distance_mm + lay.main.rear_principal + u_mm
-    a = image_distance(lay.main.efl, b)
-    return replace(cfg, geometry=replace(cfg.geometry, object_distance_mm=a - lay.main.front_principal))
-
-
-def magnification(cfg: CameraConfig) -> float:
-    """|image / object| from the object plane to the MLA (paraxial, b / a)."""
-    lay = cfg.layout
-    return lay.pupil_to_mla_mm / (lay.object_distance_mm + lay.main.front_principal)
 
 
 def trace_fan(cfg: CameraConfig, x_obj_mm: float, y_obj_mm: float, n: int = 100_000, seed: int = 7):

@@ -42,7 +42,9 @@ def register(sub: argparse._SubParsersAction) -> None:
         description="Run a scan plan (TOML: a raster or a list of positions): at each position move the stage, "
                     "settle, capture and write the frame and its sidecar atomically, then append the position to "
                     "DIR/manifest.jsonl (fsync'd). --resume continues an interrupted scan from its manifest, "
-                    "re-checking every recorded frame's checksum.")
+                    "re-checking every recorded frame's checksum. A [through_focus] table adds the through-focus "
+                    "pinhole frames at every position (see fixtures/scan_plan_throughfocus.toml): the stage must "
+                    "also drive the pinhole mask's Z, A and B axes (stage URL aux=z,a,b).")
     s.add_argument("--camera", required=True, metavar="URL", help="camera URL, e.g. 'mock://?wafer=3x3'")
     s.add_argument("--stage", required=True, metavar="URL",
                    help="stage URL, e.g. 'serial:///dev/ttyUSB0?protocol=grbl' or 'mock://'")

@@ -27,7 +27,37 @@ Plan (TOML; see fixtures/scan_plan_raster.toml and fixtures/scan_plan_list.toml)
     y_mm = 10.0
     label = "W(1,1)"            # optional; default p00001, p00002, ...
 
+    [through_focus]             # optional: the second measurement's frames at every position
+    focus_offsets_mm = [10.0, -10.0]  # u of each lattice (mlaqc.optics.throughfocus), |u| >= 0.5, distinct
+    f_number = 8.0              # main lens stopped to f/N for these frames
+    spacing_lenses = 9          # pinhole images this many lens pitches apart
+    offsets = "cover"           # lattice shifts: "cover" (every lens inside some disc) or [[0, 0], [3, 0], ...]
+    exposure_us = 10000.0       # optional: exposure of these frames (default: the white frames')
+    settle_s = 0.05             # optional: wait after each carrier move (default: scan.settle_s)
+    average = 1                 # optional: frames averaged into each file (default: scan.average)
+    iris = "camera"             # camera: the runner sets f/N through the camera (set_f_number) and back;
+                                # manual: the lens is at f/N for the whole scan (needs white_frames = false)
+    white_frames = true         # also capture the scan's white frames at each position
+    config = "camera.toml"      # optional camera config (relative to the plan) for the geometry; default:
+                                # the camera's own (mock) or the Table 1 camera
+    z_white_mm = 50.0           # the carrier (mlaqc.optics.throughfocus.Carrier): Z with the mask in the
+    a_centre_mm = 10.0          # white target's plane, A centring the lattices, B of the clear window,
+    b_window_mm = 0.0           # and the spacing of the mask's fields along B (window, then one lattice
+    field_pitch_mm = 25.0       # per focus offset, in the order of focus_offsets_mm)
+
 Every key is checked; an error names it (``scan plan 'p.toml': key 'raster.count' must be ...``).
+
+Through-focus frames: at each position, after the white frames (taken with the carrier's clear window
+on the axis and the iris back at its starting f-number and the white exposure), the runner stops the
+iris to f/N, sets the exposure, and for each focus offset and lattice offset moves the stage's
+auxiliary axes Z, A, B to `carrier_axes` (Z from `stage_z_mm`, the field and offset on A and B),
+settles, reads them back and captures. The stage must have the axes (URL ``aux=z,a,b``) and every
+target within their soft limits, checked before the first move. Files ``pos_NNNNN_tfKK.tiff``
+(K = 1.. in plan order: focus offsets outer, lattice offsets inner); each sidecar's ``context`` has
+``through_focus`` (the frame's `ThroughFocus` record with its derived facts, the carrier targets and
+the axes read back) and the manifest lists each file's ``through_focus`` record (null for white
+frames). The header gets ``through_focus``: the expanded frames, the carrier, and where the camera
+config came from; a resume with other frames is refused. The inspection hook runs on white frames only.
 
 Output folder: ``pos_NNNNN.tiff`` (``pos_NNNNN_fK.tiff`` with several frames per position; N is the
 1-based index in plan order) with ``.meta.json`` sidecars (see drivers.capture), ``manifest.jsonl``
@@ -87,6 +117,8 @@ from drivers.capture import (MAX_AVERAGE, SavedFrame, jsonable, check_out_dir, f
                              save_frame, sha256_file, versions)
 from mlaqc.atomic import write_bytes_atomic, write_json_atomic
 from mlaqc.errors import DeviceError, InputError, MlaqcError
+from mlaqc.optics.config import CameraConfig, default_config, load_config
+from mlaqc.optics.throughfocus import Carrier, ThroughFocus, carrier_axes, coverage_offsets, white_axes
 
 log = logging.getLogger(__name__)
 
@@ -100,6 +132,12 @@ SCAN_KEYS = {"settle_s", "frames_per_position", "average", "retries", "retry_del
              "capture_timeout_s", "home", "format", "exposure_us", "gain"}
 RASTER_KEYS = {"origin_mm", "step_mm", "count", "serpentine", "fast_axis"}
 POSITION_KEYS = {"x_mm", "y_mm", "label"}
+THROUGH_FOCUS_KEYS = {"focus_offsets_mm", "f_number", "spacing_lenses", "offsets", "exposure_us", "settle_s", "average",
+                      "iris", "white_frames", "config", "z_white_mm", "a_centre_mm", "b_window_mm", "field_pitch_mm"}
+IRIS_CHOICES = ("camera", "manual")
+MAX_FOCUS_OFFSETS = 20
+MAX_THROUGH_FOCUS_FRAMES = 1000
+CARRIER_AXES = ("z", "a", "b")
 HOME_TIMEOUT_S = 120.0
 READBACK_TIMEOUT_S = 5.0
 
@@ -150,6 +188,36 @@ class PlanPosition:
 
 
 @dataclass(frozen=True)
+class ThroughFocusPlan:
+    """The plan's [through_focus] table, validated; `frames(cfg)` expands it for a camera."""
+
+    focus_offsets_mm: tuple[float, ...] = (10.0, -10.0)
+    f_number: float = 8.0
+    spacing_lenses: int = 9
+    offsets: str | tuple[tuple[int, int], ...] = "cover"
+    exposure_us: float | None = None
+    settle_s: float | None = None
+    average: int | None = None
+    iris: str = "camera"
+    white_frames: bool = True
+    config: str | None = None  # resolved path of a camera config, None = the camera's own or Table 1
+    carrier: Carrier = field(default_factory=Carrier)
+
+    def frames(self, cfg: CameraConfig) -> list[ThroughFocus]:
+        """The frames of one position: each focus offset (outer) at each lattice offset (inner)."""
+        offsets = self.offsets
+        if offsets == "cover":
+            covers = [coverage_offsets(cfg, ThroughFocus(u, self.f_number, self.spacing_lenses))
+                      for u in self.focus_offsets_mm]
+            if any(not c for c in covers):
+                raise InputError(f"through_focus.offsets = 'cover' has no answer: at f/{self.f_number:g} the smallest "
+                                 "lit disc cannot hold a whole lens; use larger focus offsets or a smaller f-number")
+            offsets = tuple(max(covers, key=len))  # the smallest disc needs the finest set
+        return [ThroughFocus(u, self.f_number, self.spacing_lenses, tuple(o)) for u in self.focus_offsets_mm
+                for o in offsets]
+
+
+@dataclass(frozen=True)
 class ScanPlan:
     """A validated scan plan: positions in order plus how to capture at each."""
 
@@ -167,6 +235,7 @@ class ScanPlan:
     gain: float | None = None
     kind: str = "list"
     source: str = "plan"
+    through_focus: ThroughFocusPlan | None = None
 
     @property
     def suffix(self) -> str:
@@ -187,6 +256,10 @@ class ScanPlan:
         key = {"positions": [[p.x_mm, p.y_mm, p.label] for p in self.positions],
                "frames_per_position": self.frames_per_position, "average": self.average,
                "format": self.file_format}
+        if self.through_focus is not None:  # (absent from older plans' digests)
+            tf = asdict(self.through_focus)
+            key["through_focus"] = {k: tf[k] for k in ("focus_offsets_mm", "f_number", "spacing_lenses", "offsets",
+                                                       "average", "white_frames", "carrier")}
         return hashlib.sha256(json.dumps(key, sort_keys=True).encode()).hexdigest()
 
 
@@ -273,12 +346,12 @@ def load_plan(path: str | os.PathLike[str]) -> ScanPlan:
         raise InputError(f"scan plan {str(p)!r} cannot be read ({exc.__class__.__name__})") from None
     except tomllib.TOMLDecodeError as exc:
         raise InputError(f"scan plan {str(p)!r} is not valid TOML: {exc}") from None
-    return plan_from_dict(data, str(p))
+    return plan_from_dict(data, str(p), base_dir=p.parent)
 
 
-def plan_from_dict(data: dict[str, Any], source: str = "plan") -> ScanPlan:
-    """Build a validated ScanPlan from the TOML tables."""
-    _Checker(source, "", data, {"scan", "raster", "positions"})  # unknown top-level keys
+def plan_from_dict(data: dict[str, Any], source: str = "plan", base_dir: str | os.PathLike[str] | None = None) -> ScanPlan:
+    """Build a validated ScanPlan from the TOML tables (`base_dir`: where relative paths in it start)."""
+    _Checker(source, "", data, {"scan", "raster", "positions", "through_focus"})  # unknown top-level keys
     s = _Checker(source, "scan", data.get("scan", {}), SCAN_KEYS)
     if ("raster" in data) == ("positions" in data):
         raise InputError(f"scan plan {source!r} needs exactly one of a [raster] table or a [[positions]] list")
@@ -303,7 +376,81 @@ def plan_from_dict(data: dict[str, Any], source: str = "plan") -> ScanPlan:
         gain=s.number("gain", None, minimum=0.0, strict=True),
         kind=kind,
         source=source,
+        through_focus=(_through_focus(source, data["through_focus"], base_dir,
+                                      s.number("exposure_us", None, minimum=0.0, strict=True))
+                       if "through_focus" in data else None),
     )
+
+
+def _through_focus(source: str, table: Any, base_dir: str | os.PathLike[str] | None,
+                   scan_exposure: float | None) -> ThroughFocusPlan:
+    """The [through_focus] table; InputError naming the key."""
+    c = _Checker(source, "through_focus", table, THROUGH_FOCUS_KEYS)
+    d = ThroughFocusPlan()
+    offs = table.get("focus_offsets_mm", list(d.focus_offsets_mm))
+    if (not isinstance(offs, list) or not 1 <= len(offs) <= MAX_FOCUS_OFFSETS
+            or not all(isinstance(u, (int, float)) and not isinstance(u, bool) and math.isfinite(u) and abs(u) >= 0.5
+                       for u in offs)
+            or len({float(u) for u in offs}) != len(offs)):
+        raise c.error("through_focus.focus_offsets_mm", f"must be a list of 1 to {MAX_FOCUS_OFFSETS} distinct distances "
+                      "in mm, each at least 0.5 from zero (+ behind the MLA, - in front)", offs)
+    f_number = c.number("f_number", d.f_number, minimum=1.0)
+    spacing = c.integer("spacing_lenses", d.spacing_lenses, 2, 1000)
+    offsets: str | tuple[tuple[int, int], ...] = d.offsets
+    if "offsets" in table:
+        raw = table["offsets"]
+        if raw == "cover":
+            offsets = "cover"
+        else:
+            ok = (isinstance(raw, list) and raw
+                  and all(isinstance(o, list) and len(o) == 2
+                          and all(isinstance(v, int) and not isinstance(v, bool) and 0 <= v < spacing for v in o)
+                          for o in raw))
+            if not ok or len({tuple(o) for o in raw}) != len(raw):
+                raise c.error("through_focus.offsets", f"must be \"cover\" or a non-empty list of distinct [x, y] whole "
+                              f"lens pitches from 0 to {spacing - 1} (below spacing_lenses)", raw)
+            offsets = tuple((int(o[0]), int(o[1])) for o in raw)
+    iris = c.choice("iris", d.iris, IRIS_CHOICES)
+    white = c.boolean("white_frames", d.white_frames)
+    if iris == "manual" and white:
+        raise c.error("through_focus.iris", "is 'manual' (the lens stays at f/N for the whole scan), so the white frames "
+                      "would be stopped down too; set through_focus.white_frames = false and scan the white frames "
+                      "with their own plan", iris)
+    config = None
+    if "config" in table:
+        raw_cfg = table["config"]
+        if not isinstance(raw_cfg, str) or not raw_cfg.strip():
+            raise c.error("through_focus.config", "must be the path of a camera config TOML", raw_cfg)
+        path = Path(raw_cfg)
+        if not path.is_absolute() and base_dir is not None:
+            path = Path(base_dir) / path
+        try:
+            load_config(path)
+        except InputError as exc:
+            raise c.error("through_focus.config", f"names an unusable camera config ({exc})") from None
+        config = str(path)
+    dc = d.carrier
+    try:
+        carrier = Carrier(focus_offsets_mm=tuple(float(u) for u in offs), spacing_lenses=spacing,
+                          z_white_mm=c.number("z_white_mm", dc.z_white_mm, minimum=-math.inf),
+                          a_centre_mm=c.number("a_centre_mm", dc.a_centre_mm, minimum=-math.inf),
+                          b_window_mm=c.number("b_window_mm", dc.b_window_mm, minimum=-math.inf),
+                          field_pitch_mm=c.number("field_pitch_mm", dc.field_pitch_mm, minimum=0.0, strict=True))
+    except InputError as exc:
+        raise InputError(f"scan plan {source!r}: [through_focus]: {exc}") from None
+    plan = ThroughFocusPlan(
+        focus_offsets_mm=tuple(float(u) for u in offs), f_number=f_number, spacing_lenses=spacing, offsets=offsets,
+        exposure_us=c.number("exposure_us", None, minimum=0.0, strict=True),
+        settle_s=c.number("settle_s", None, minimum=0.0),
+        average=c.integer("average", None, 1, MAX_AVERAGE) if "average" in table else None,
+        iris=iris, white_frames=white, config=config, carrier=carrier)
+    if plan.exposure_us is not None and white and scan_exposure is None:
+        raise c.error("through_focus.exposure_us", "needs scan.exposure_us too, so that the white frames get their own "
+                      "exposure back after the through-focus frames", plan.exposure_us)
+    if isinstance(offsets, tuple) and len(offsets) * len(offs) > MAX_THROUGH_FOCUS_FRAMES:
+        raise c.error("through_focus.offsets", f"makes more than {MAX_THROUGH_FOCUS_FRAMES} frames per position",
+                      table["offsets"])
+    return plan
 
 
 def _raster(source: str, table: Any) -> list[PlanPosition]:
@@ -588,6 +735,10 @@ class ScanRunner:
         self._attached = False
         self._current: PlanPosition | None = None
         self._pending: list[dict[str, Any]] = []  # events found before events.jsonl is open
+        self._tf_frames: list[ThroughFocus] = []  # through-focus frames of each position (empty without)
+        self._tf_axes: list[dict[str, float]] = []  # the carrier's Z, A, B for each
+        self._tf_header: dict[str, Any] | None = None
+        self._white_f_number: float | None = None
 
     # ------------------------------------------------------------ public
 
@@ -595,6 +746,7 @@ class ScanRunner:
         """Run (or resume) the scan to the end; raise ScanFailed, ScanInterrupted or InputError."""
         start = time.monotonic()
         try:
+            self._prepare_through_focus()
             self._read_out_dir()
             self._open_devices()
             self._check_limits()
@@ -635,6 +787,11 @@ class ScanRunner:
         if recorded is not None and callable(truth_fn) and _digest(truth_fn()) != recorded:
             raise InputError(f"the scan in {str(self.out)!r} was made with a camera showing other ground truth "
                              "(a different mock wafer or seed); resume it with the same camera URL")
+        recorded_tf = (data.header.get("through_focus") or {}).get("frames")
+        ours = None if self._tf_header is None else self._tf_header["frames"]
+        if recorded_tf != ours:
+            raise InputError(f"the scan in {str(self.out)!r} was made with other through-focus frames (another camera "
+                             "config, carrier or lattice offsets); resume it with the same camera, plan and config")
         self._header = data.header
         self._rewrite = data.torn
         for rec in data.records:
@@ -653,6 +810,29 @@ class ScanRunner:
             self._done[index] = rec
         self.result.resumed = len(self._done)
 
+    def _prepare_through_focus(self) -> None:
+        """Expand the plan's [through_focus] for this camera (no device I/O): frames, carrier axes, header."""
+        tf = self.plan.through_focus
+        if tf is None:
+            return
+        if tf.config is not None:
+            cfg, origin = load_config(tf.config), tf.config
+        elif isinstance(getattr(self.camera, "cfg", None), CameraConfig):
+            cfg, origin = self.camera.cfg, "camera"
+        else:
+            cfg, origin = default_config(), "table1"
+        self._tf_frames = tf.frames(cfg)
+        self._tf_axes = [{k: round(v, 6) for k, v in carrier_axes(cfg, tf.carrier, f).items()} for f in self._tf_frames]
+        self._white_f_number = round(cfg.layout.main.efl / cfg.main_lens.diameter_mm, 6)
+        from mlaqc.optics.simulate import protocol_record
+
+        self._tf_header = {
+            "frames": [protocol_record(cfg, f) | {"carrier_axes_mm": a} for f, a in zip(self._tf_frames, self._tf_axes)],
+            "white_axes_mm": white_axes(tf.carrier), "white_f_number": self._white_f_number,
+            "carrier": tf.carrier.to_dict(), "config_source": origin, "config": cfg.to_dict(), "iris": tf.iris,
+            "white_frames": tf.white_frames,
+        }
+
     def _open_devices(self) -> None:
         """Open the camera and the stage (URLs), home if the plan says so, apply exposure and gain."""
         if self._own_camera or not self.camera.is_open:
@@ -666,8 +846,17 @@ class ScanRunner:
         self._apply_camera_settings()
         attach = getattr(self.camera, "attach_stage", None)
         if callable(attach):
-            attach(lambda: self.stage.last_position if self.stage is not None else None)
+            attach(self._stage_reading)
             self._attached = True
+
+    def _stage_reading(self) -> tuple[float, float, dict[str, float] | None] | None:
+        """What a following (mock) camera sees of the stage: (x, y, auxiliary axes or None), None before a report."""
+        stage = self.stage
+        pos = None if stage is None else stage.last_position
+        if pos is None:
+            return None
+        aux = getattr(stage, "last_aux", None)
+        return float(pos[0]), float(pos[1]), (dict(aux) if aux else None)
 
     def _open_stage(self) -> Any:
         from drivers.stage import open_stage
@@ -686,7 +875,27 @@ class ScanRunner:
             self.camera.set_gain(self.plan.gain)
 
     def _check_limits(self) -> None:
-        """Refuse the whole plan up front if any position is outside the stage's soft limits."""
+        """Refuse the whole plan up front if any position (or carrier target) is outside the stage's soft
+        limits, if the stage lacks the carrier's axes, or if the camera cannot set the iris it must."""
+        tf = self.plan.through_focus
+        if tf is not None:
+            have = tuple(getattr(self.stage, "aux_axes", ()))
+            missing = [a.upper() for a in CARRIER_AXES if a not in have]
+            if missing:
+                raise InputError(f"scan plan {self.plan.source!r} has through-focus frames, but stage {self._stage_label()} "
+                                 f"has no {', '.join(missing)} axis; they move the pinhole mask (name the axes in the "
+                                 "stage URL, e.g. aux=z,a,b)")
+            aux_limits = getattr(self.stage, "aux_limits", {})
+            for k, (frame, axes) in enumerate(zip(self._tf_frames, self._tf_axes), start=1):
+                for name, value in (*axes.items(), *(white_axes(tf.carrier).items() if tf.white_frames else ())):
+                    lo, hi = aux_limits[name]
+                    if not lo <= value <= hi:
+                        raise InputError(f"scan plan {self.plan.source!r}: through-focus frame {k} (u {frame.focus_offset_mm:+g} mm, "
+                                         f"offset {frame.offset_lenses}) needs {name.upper()}={value:.3f} mm, outside the "
+                                         f"stage's soft limits ({name} {lo:g}..{hi:g} mm); check the carrier keys")
+            if tf.iris == "camera" and not callable(getattr(self.camera, "set_f_number", None)):
+                raise InputError(f"camera {self._camera_label()} cannot set its iris, which through_focus.iris = 'camera' "
+                                 "needs; set the lens to f/N by hand with iris = 'manual' and white_frames = false")
         limits = getattr(self.stage, "limits", None)
         if limits is None:
             return
@@ -723,7 +932,7 @@ class ScanRunner:
                 "plan": self.plan.to_dict(), "camera": self._camera_label(), "stage": self._stage_label(),
                 "camera_settings": jsonable(self.camera.settings()), "created": _now_iso(), "truth": truth,
                 "truth_digest": None if truth is None else _digest(truth),
-                "versions": versions()}
+                "versions": versions(), **({"through_focus": self._tf_header} if self._tf_header else {})}
 
     def _camera_label(self) -> str:
         return self.camera_url or self.camera.url
@@ -755,8 +964,19 @@ class ScanRunner:
                 if self.progress is not None:
                     self.progress(self.result.done, total)
             self._current = None
+            self._reopen_iris()
         finally:
             self.result.loop_s += time.monotonic() - loop_start
+
+    def _reopen_iris(self) -> None:
+        """After a scan with through-focus frames: the iris back at full aperture (best effort)."""
+        tf = self.plan.through_focus
+        if tf is None or tf.iris != "camera" or not self.camera.is_open:
+            return
+        try:
+            self.camera.set_f_number(self._white_f_number)  # type: ignore[attr-defined]
+        except DeviceError as exc:
+            self._event("iris_not_reopened", error=str(exc))
 
     def _position(self, pos: PlanPosition) -> None:
         """Attempt a position until it is recorded or the retries are used up."""
@@ -789,7 +1009,7 @@ class ScanRunner:
             return
 
     def _attempt(self, pos: PlanPosition, attempt: int, phase: list[str]) -> dict[str, Any]:
-        """One try: recover devices, move, settle, read back, capture, write, record."""
+        """One try: recover devices, move, settle, read back, capture (white, then through-focus), write, record."""
         t0 = time.monotonic()
         phase[0] = "stage"
         self._recover_stage()
@@ -805,38 +1025,104 @@ class ScanRunner:
         t3 = time.monotonic()
         self.result.motion_s += t3 - t1
         read_back = tuple(float(v) for v in self.stage.position(timeout_s=READBACK_TIMEOUT_S))
-        phase[0] = "camera"
-        grabs = [grab(self.camera, self.plan.average, self.plan.capture_timeout_s)
-                 for _ in range(self.plan.frames_per_position)]
-        t4 = time.monotonic()
-        phase[0] = "write"
+        tf = self.plan.through_focus
         names = pos.file_names(self.plan.frames_per_position, self.plan.suffix)
+        grabs: list = []
+        contexts: list[dict[str, Any]] = []
+        if tf is None or tf.white_frames:
+            if tf is not None:
+                self._white_state(phase)
+            phase[0] = "camera"
+            grabs = [grab(self.camera, self.plan.average, self.plan.capture_timeout_s)
+                     for _ in range(self.plan.frames_per_position)]
+            contexts = [{} for _ in grabs]
+        else:
+            names = []
+        t4 = time.monotonic()
+        if tf is not None:
+            base = f"pos_{pos.index + 1:05d}"
+            for k, (frame, axes) in enumerate(zip(self._tf_frames, self._tf_axes), start=1):
+                grabs.append(self._through_focus_grab(k, frame, axes, phase, contexts))
+                names.append(f"{base}_tf{k:02d}{self.plan.suffix}")
+        t5 = time.monotonic()
+        phase[0] = "write"
         saved: list[SavedFrame] = []
-        for k, (name, g) in enumerate(zip(names, grabs), start=1):
+        for k, (name, g, extra) in enumerate(zip(names, grabs, contexts), start=1):
             (self.out / (name + ".inspect.json")).unlink(missing_ok=True)
             context = {"scan": {"index": pos.index, "label": pos.label, "frame": k, "target_mm": [pos.x_mm, pos.y_mm],
-                                "attempt": attempt, "plan_digest": self.plan.digest}}
+                                "attempt": attempt, "plan_digest": self.plan.digest}, **extra}
             item = save_frame(self.out / name, g, position_mm=read_back, context=context)
             saved.append(item)
             for text in item.warnings:
                 self.result.warnings += 1
                 self._event("frame_warning", index=pos.index, file=name, warning=text)
         _fsync_dir(self.out)
-        t5 = time.monotonic()
+        t6 = time.monotonic()
+        timing = {"recover": round(t_recover, 6), "move": round(t2 - t1, 6), "settle": round(t3 - t2, 6),
+                  "capture": round(t4 - t3, 6), "write": round(t6 - t5, 6), "total": round(t6 - t0, 6)}
+        if tf is not None:
+            timing["through_focus"] = round(t5 - t4, 6)
         record: dict[str, Any] = {
             "type": "position", "index": pos.index, "label": pos.label, "target_mm": [pos.x_mm, pos.y_mm],
             "position_mm": list(read_back),
             "files": [{"file": s.path.name, "sha256": s.sha256, "bytes": s.record["bytes"], "sidecar": s.sidecar.name,
-                       "sequence": s.record["sequence"], "warnings": s.warnings} for s in saved],
+                       "sequence": s.record["sequence"], "warnings": s.warnings,
+                       **({"through_focus": extra.get("through_focus", {}).get("record")} if tf is not None else {})}
+                      for s, extra in zip(saved, contexts)],
             "attempts": attempt, "completed": _now_iso(),
-            "timing_s": {"recover": round(t_recover, 6), "move": round(t2 - t1, 6), "settle": round(t3 - t2, 6),
-                         "capture": round(t4 - t3, 6), "write": round(t5 - t4, 6), "total": round(t5 - t0, 6)},
+            "timing_s": timing,
         }
         truth = grabs[0].first.extra.get("truth")
         if isinstance(truth, dict):
             record["truth"] = {k: v for k, v in truth.items() if k != "error_map"}
         self._writer.append(record)
         return record
+
+    def _white_state(self, phase: list[str]) -> None:
+        """Carrier window on the axis, iris open, white exposure: what the white frames need."""
+        tf = self.plan.through_focus
+        phase[0] = "stage"
+        target = white_axes(tf.carrier)
+        last = self.stage.last_aux or {}
+        if any(abs(last.get(k, math.inf) - v) > 0.001 for k, v in target.items()):
+            t0 = time.monotonic()
+            self.stage.move_aux(target, timeout_s=self.plan.move_timeout_s)
+            settle = self.plan.settle_s if tf.settle_s is None else tf.settle_s
+            if settle:
+                time.sleep(settle)
+            self.result.motion_s += time.monotonic() - t0
+        phase[0] = "camera"
+        if tf.iris == "camera":
+            self.camera.set_f_number(self._white_f_number)  # type: ignore[attr-defined]
+        if tf.exposure_us is not None:
+            self.camera.set_exposure_us(self.plan.exposure_us)
+
+    def _through_focus_grab(self, k: int, frame: ThroughFocus, axes: dict[str, float], phase: list[str],
+                            contexts: list[dict[str, Any]]):
+        """Stop down, move the carrier to frame k's Z, A, B, settle, read back, capture."""
+        tf = self.plan.through_focus
+        phase[0] = "camera"
+        f_read = None
+        if tf.iris == "camera":
+            f_read = self.camera.set_f_number(frame.f_number)  # type: ignore[attr-defined]
+        if tf.exposure_us is not None:
+            self.camera.set_exposure_us(tf.exposure_us)
+        phase[0] = "stage"
+        t0 = time.monotonic()
+        self.stage.move_aux(axes, timeout_s=self.plan.move_timeout_s)
+        settle = self.plan.settle_s if tf.settle_s is None else tf.settle_s
+        if settle:
+            time.sleep(settle)
+        self.result.motion_s += time.monotonic() - t0
+        read_aux = self.stage.aux_position(timeout_s=READBACK_TIMEOUT_S)
+        phase[0] = "camera"
+        g = grab(self.camera, self.plan.average if tf.average is None else tf.average, self.plan.capture_timeout_s)
+        header = self._tf_header["frames"][k - 1]
+        contexts.append({"through_focus": {"frame": k, "record": frame.to_dict(),
+                                           "derived": header["frame"], "carrier_axes_mm": axes,
+                                           "aux_mm": {n: read_aux.get(n) for n in CARRIER_AXES},
+                                           "f_number_read_back": f_read, "iris": tf.iris}})
+        return g
 
     def _recover_stage(self) -> None:
         """Reconnect (and re-home) the stage after a failure, or if it lost its connection or homing."""
@@ -870,6 +1156,8 @@ class ScanRunner:
         if self.inspect is None:
             return
         for item in record["files"]:
+            if item.get("through_focus"):
+                continue  # the second measurement's frames are not white images
             path = self.out / item["file"]
             frame = ScanFrame(path, self.out / item["sidecar"], record, self._header or {}, self.out)
             try:

@@ -11,6 +11,7 @@ import gc
 import logging
 import sys
 import time
+from collections import OrderedDict
 from pathlib import Path
 from typing import Any
 
@@ -23,8 +24,9 @@ from PySide6.QtWidgets import (QAbstractItemView, QApplication, QDockWidget, QFi
 from gui.panels import CameraPanel, InspectionPanel, ScanPanel, StagePanel
 from gui.widgets import (MONO, DefectSortProxy, DefectTableModel, ImagePanel, LensDetail, LogView, StatusDot,
                          VerdictBanner)
-from gui.workers import (CameraWorker, CancelToken, FrameMailbox, InspectionRequest, InspectionWorker, IoWorker,
-                         ScanControl, ScanRequest, ScanWorker, StageControl, StageWorker, WorkerThread)
+from gui.workers import (CameraWorker, CancelToken, FrameMailbox, FrameWorker, InspectionRequest, InspectionWorker,
+                         IoWorker, ScanControl, ScanRequest, ScanWorker, StageControl, StageWorker, WorkerThread,
+                         through_focus_label, through_focus_summary)
 from mlaqc.errors import InputError
 
 log = logging.getLogger(__name__)
@@ -65,9 +67,13 @@ class MainWindow(QMainWindow):
     _write_report = Signal(int, object, str, object)
     _save_frame = Signal(int, object, str, object)
     _scan = Signal(object)
+    _describe_tf = Signal(int, object, object)
+    _load_tf_frame = Signal(int, str, object)
 
     # notifications (for tests and scripting)
     inspectionShown = Signal(object)
+    frameShown = Signal(int)  # the frame selector's entry now on display (0: the inspected frame)
+    throughFocusChanged = Signal(object)  # the through-focus frames in use (a tuple of TfFrame; empty: none)
     scanFinished = Signal(str, str)
     reportWritten = Signal(object)
 
@@ -87,6 +93,11 @@ class MainWindow(QMainWindow):
         self.last_frame: Any = None
         self.input: tuple[str, Any] | None = None  # ('raw', path) or ('frame', Frame)
         self.white: str | None = None
+        self.tf_frames: tuple[Any, ...] = ()  # through-focus frames in use (gui.workers.TfFrame), checked
+        self.tf_pending: tuple[str, ...] | None = None  # paths chosen, being checked by the frames worker
+        self.tf_job = 0
+        self.frame_job = 0  # the through-focus frame asked for display
+        self.frame_cache: OrderedDict[str, tuple[Any, Any]] = OrderedDict()  # path -> (image, levels)
         self.view: Any = None  # the InspectionView on display
         self.job = 0
         self.token: CancelToken | None = None
@@ -163,6 +174,7 @@ class MainWindow(QMainWindow):
         self.table.horizontalHeader().setSectionResizeMode(QHeaderView.ResizeMode.ResizeToContents)
         self.table.horizontalHeader().setStretchLastSection(True)
         self.table_title = QLabel("No inspection yet.")
+        self.table_title.setWordWrap(True)
         table_box = QWidget()
         tl = QVBoxLayout(table_box)
         tl.setContentsMargins(4, 4, 4, 4)
@@ -207,6 +219,7 @@ class MainWindow(QMainWindow):
         m = self.menuBar().addMenu("&File")
         self._action(m, "Open raw…", self.browse_raw, QKeySequence.StandardKey.Open)
         self._action(m, "Open white image…", self.browse_white)
+        self._action(m, "Through-focus frames…", self.browse_through_focus)
         self._action(m, "Camera config…", self.browse_config)
         self._action(m, "Export report…", self.browse_export, "Ctrl+E")
         self._action(m, "Load scan plan…", self.browse_plan)
@@ -239,6 +252,8 @@ class MainWindow(QMainWindow):
         ip.openRawRequested.connect(self.browse_raw)
         ip.openWhiteRequested.connect(self.browse_white)
         ip.clearWhiteRequested.connect(lambda: self.set_white(None))
+        ip.openThroughFocusRequested.connect(self.browse_through_focus)
+        ip.clearThroughFocusRequested.connect(self.clear_through_focus)
         ip.useFrameRequested.connect(self.use_last_frame)
         ip.configRequested.connect(self.browse_config)
         ip.runRequested.connect(self.run_inspection)
@@ -254,6 +269,7 @@ class MainWindow(QMainWindow):
         sc.wafer.positionClicked.connect(self._wafer_clicked)
         self.image.hovered.connect(self._hovered)
         self.image.clicked.connect(self._image_clicked)
+        self.image.frameChosen.connect(self.show_frame_choice)
         self.table.clicked.connect(self._table_clicked)
         self.table.selectionModel().currentRowChanged.connect(lambda cur, _prev: self._table_current_changed(cur))
 
@@ -275,8 +291,9 @@ class MainWindow(QMainWindow):
         self.inspection_worker = InspectionWorker()
         self.io_worker = IoWorker()
         self.scan_worker = ScanWorker()
-        cw, sw, sc, iw, io, scw = (self.camera_worker, self.stage_worker, self.stage_control, self.inspection_worker,
-                                   self.io_worker, self.scan_worker)
+        self.frame_worker = FrameWorker()
+        cw, sw, sc, iw, io, scw, fw = (self.camera_worker, self.stage_worker, self.stage_control, self.inspection_worker,
+                                       self.io_worker, self.scan_worker, self.frame_worker)
         # requests (queued: the slot runs in the worker's thread)
         for sig, slot in ((self._cam_connect, cw.connectCamera), (self._cam_disconnect, cw.disconnectCamera),
                           (self._cam_exposure, cw.setExposure), (self._cam_gain, cw.setGain),
@@ -291,7 +308,7 @@ class MainWindow(QMainWindow):
                           (self._ctl_stage, sc.setStage), (self._ctl_stop, sc.stop), (self._ctl_shutdown, sc.shutdown),
                           (self._inspect, iw.run), (self._preview, iw.preview),
                           (self._write_report, io.writeReport), (self._save_frame, io.saveFrame),
-                          (self._scan, scw.run)):
+                          (self._scan, scw.run), (self._describe_tf, fw.describe), (self._load_tf_frame, fw.loadFrame)):
             sig.connect(slot, Q)
         # results (queued back to the GUI thread)
         cw.stateChanged.connect(self._camera_state, Q)
@@ -316,6 +333,10 @@ class MainWindow(QMainWindow):
         iw.cancelled.connect(self._inspection_cancelled, Q)
         iw.previewReady.connect(self._preview_ready, Q)
         iw.previewFailed.connect(self._preview_failed, Q)
+        fw.described.connect(self._tf_described, Q)
+        fw.describeFailed.connect(self._tf_failed, Q)
+        fw.frameReady.connect(self._tf_frame_ready, Q)
+        fw.frameFailed.connect(self._tf_frame_failed, Q)
         io.reportWritten.connect(self._report_written, Q)
         io.frameSaved.connect(self._frame_saved, Q)
         io.failed.connect(self._io_failed, Q)
@@ -328,7 +349,8 @@ class MainWindow(QMainWindow):
         scw.finished.connect(self._scan_finished, Q)
         # threads last, so no signal is missed
         self.threads = {name: WorkerThread(w, name) for name, w in (
-            ("camera", cw), ("stage", sw), ("stage-control", sc), ("inspection", iw), ("io", io), ("scan", scw))}
+            ("camera", cw), ("stage", sw), ("stage-control", sc), ("inspection", iw), ("io", io), ("scan", scw),
+            ("frames", fw))}
 
     # ============================================================================== helpers
     # Worker signals are connected to bound methods of this window only (never to lambdas): a queued
@@ -538,6 +560,107 @@ class MainWindow(QMainWindow):
         self.white = str(path) if path else None
         self.inspection_panel.white.setText(self.white or "none (the image calibrates itself)")
 
+    # ------------------------------------------------------------------ through-focus frames
+
+    def browse_through_focus(self) -> None:
+        paths, _ = QFileDialog.getOpenFileNames(self, "Through-focus frames (+u and −u pairs)", "", RAW_FILTER)
+        if paths:
+            self.set_through_focus(paths)
+
+    def set_through_focus(self, paths: Any) -> int:
+        """Use these pinhole frames with the next inspection; the frames worker checks their records, sizes
+        and pairs first (a bad set shows one sentence and is not used). Returns the check's job number."""
+        paths = tuple(str(p) for p in (paths or ()))
+        if not paths:
+            self.clear_through_focus()
+            return 0
+        self.tf_job += 1
+        self.tf_pending = paths
+        self.inspection_panel.throughfocus.setText(f"checking {len(paths)} frame{'s' if len(paths) != 1 else ''}…")
+        self.inspection_panel.throughfocus.setToolTip("\n".join(paths))
+        self._describe_tf.emit(self.tf_job, paths, self.cfg)
+        return self.tf_job
+
+    def clear_through_focus(self) -> None:
+        self.tf_job += 1  # a check still running is stale
+        self.tf_pending = None
+        self._set_tf_frames(())
+
+    def _set_tf_frames(self, frames: tuple[Any, ...]) -> None:
+        self.tf_frames = tuple(frames)
+        self.inspection_panel.throughfocus.setText(through_focus_label(self.tf_frames))
+        self.inspection_panel.throughfocus.setToolTip("\n".join(f.label for f in self.tf_frames))
+        self.throughFocusChanged.emit(self.tf_frames)
+
+    def _tf_described(self, job: int, frames: Any) -> None:
+        if job != self.tf_job:
+            return
+        self.tf_pending = None
+        self.inspection_panel.error.clear_error()
+        self._set_tf_frames(frames)
+        self.log(f"Through-focus frames in use: {through_focus_label(self.tf_frames)}.")
+
+    def _tf_failed(self, job: int, text: str) -> None:
+        if job != self.tf_job:
+            return
+        self.tf_pending = None
+        self._set_tf_frames(())
+        self.inspection_panel.error.show_error(text)
+        self.log(f"Through-focus frames not used: {text}", "error")
+
+    def show_frame_choice(self, index: int) -> int:
+        """Show entry `index` of the frame selector: 0 the inspected frame, k the k-th through-focus frame
+        (loaded and prepared in the frames worker; `frameShown` tells when it is on display). Returns the
+        load's job number (0 when nothing had to be loaded)."""
+        v = self.view
+        if v is None or not 0 <= index <= len(v.frames):
+            return 0
+        on_result = self.image.mode == "result" and self.image.view is v
+        if index == 0:
+            self.frame_job += 1  # a frame still loading is no longer wanted
+            if not (on_result and self.image.frame_index == 0):
+                self.image.show_result(v)  # (rings and the selected lens stay)
+            self.frameShown.emit(0)
+            return 0
+        if not on_result:
+            self.image.show_result(v)
+        path = v.frames[index - 1].path
+        self.frame_job += 1
+        hit = self.frame_cache.get(path)
+        if hit is not None:
+            self.frame_cache.move_to_end(path)
+            self._display_tf_frame(index, *hit)
+            return 0
+        self.image.info.setText("loading…")
+        self._load_tf_frame.emit(self.frame_job, path, v.cfg)
+        return self.frame_job
+
+    FRAME_CACHE = 4  # prepared through-focus frames kept for the selector (16 MB each for Table 1)
+
+    def _tf_frame_ready(self, job: int, path: str, data: Any, levels: Any) -> None:
+        v = self.view
+        if job != self.frame_job or v is None:
+            return
+        index = next((k + 1 for k, f in enumerate(v.frames) if f.path == path), 0)
+        if not index:
+            return
+        self.frame_cache[path] = (data, levels)
+        while len(self.frame_cache) > self.FRAME_CACHE:
+            self.frame_cache.popitem(last=False)
+        self._display_tf_frame(index, data, levels)
+
+    def _display_tf_frame(self, index: int, data: Any, levels: Any) -> None:
+        self.image.show_result_frame(index, data, levels)
+        self.frameShown.emit(index)
+
+    def _tf_frame_failed(self, job: int, text: str) -> None:
+        if job != self.frame_job:
+            return
+        self.image.info.setText("")
+        self.image.set_frame_index(self.image.frame_index)
+        self.inspection_panel.error.show_error(text)
+        self.log(text, "error")
+
     def load_config(self, path: str) -> bool:
         from mlaqc.optics.config import load_config
 
@@ -574,8 +697,9 @@ class MainWindow(QMainWindow):
         self.job += 1
         self.token = CancelToken()
         kind, what = self.input
+        tf = self.tf_pending if self.tf_pending is not None else tuple(f.path for f in self.tf_frames)
         req = InspectionRequest(self.cfg, raw=what if kind == "raw" else None, frame=what if kind == "frame" else None,
-                                white=self.white, token=self.token)
+                                white=self.white, token=self.token, through_focus=tf)
         self.inspection_panel.error.clear_error()
         self.inspection_panel.set_running(True)
         self.inspection_panel.progress.setValue(0)
@@ -610,14 +734,22 @@ class MainWindow(QMainWindow):
         """Display an inspection result: image + rings, verdict, table, first lens selected."""
         self.view = view
         r = view.result
+        self.frame_job += 1  # a through-focus frame of the previous result is no longer wanted
+        self.frame_cache.clear()
         self.image.clear_result()
         self.image.show_result(view)
-        self.table_model.set_defects(r.defects)
+        self.image.set_frames([f"White frame · {Path(view.source).name}"] + [f.label for f in view.frames])
+        self.table_model.set_defects(r.defects, view.sources)
         self.table.sortByColumn(-1, Qt.SortOrder.AscendingOrder)
         self.table.resizeColumnsToContents()
         out = sum(1 for d in r.defects if not d.within_tolerance)
+        tf_line = ""
+        if getattr(r, "through_focus", None) is not None:
+            pinholes = sum(1 for s in view.sources.values() if "pinholes" in s)
+            tf_line = (f"<br><span style='color:#6639ba'>{through_focus_summary(r.through_focus)}; {pinholes} flagged "
+                       "lens(es) read by the pinhole pairs (Source column)</span>")
         self.table_title.setText(f"<b>{len(r.defects)}</b> flagged lenses, <b style='color:#cf222e'>{out}</b> out of "
-                                 f"tolerance — click a row to zoom to the lens; click a header to sort.")
+                                 f"tolerance — click a row to zoom to the lens; click a header to sort.{tf_line}")
         self._restore_banner()
         self.inspection_panel.export.setEnabled(True)
         t = ", ".join(f"{k} {v:.2f} s" for k, v in r.timings_s.items())
@@ -962,6 +1094,7 @@ class MainWindow(QMainWindow):
         ok = th["scan"].stop(30.0)
         ok &= th["inspection"].stop(120.0)
         ok &= th["io"].stop(300.0)  # a report being written is finished, never cut
+        ok &= th["frames"].stop(30.0)
         self._cam_shutdown.emit()
         ok &= th["camera"].thread.wait(15_000)
         self._stage_shutdown.emit()

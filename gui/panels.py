@@ -359,11 +359,14 @@ class StagePanel(QWidget):
 
 
 class InspectionPanel(QWidget):
-    """Inspection inputs (raw, white, last frame, config), run/cancel with progress, export."""
+    """Inspection inputs (raw, white, through-focus frames, last frame, config), run/cancel with progress,
+    export."""
 
     openRawRequested = Signal()
     openWhiteRequested = Signal()
     clearWhiteRequested = Signal()
+    openThroughFocusRequested = Signal()
+    clearThroughFocusRequested = Signal()
     useFrameRequested = Signal()
     configRequested = Signal()
     runRequested = Signal()
@@ -378,13 +381,18 @@ class InspectionPanel(QWidget):
         self.source.setWordWrap(True)
         self.white = QLabel("none (the image calibrates itself)")
         self.white.setWordWrap(True)
+        self.throughfocus = QLabel("none")
+        self.throughfocus.setWordWrap(True)
+        self.throughfocus.setToolTip("pinhole frames of the same array imaged ±u behind / in front of the MLA: "
+                                     "they read every covered lens' focal error with its sign")
         self.config = QLabel("—")
         self.config.setWordWrap(True)
-        for w in (self.source, self.white, self.config):
+        for w in (self.source, self.white, self.throughfocus, self.config):
             w.setStyleSheet("color: #24292f")
             w.setSizePolicy(QSizePolicy.Policy.Ignored, QSizePolicy.Policy.Preferred)
         form.addRow("Image", self.source)
         form.addRow("White", self.white)
+        form.addRow("Through-focus", self.throughfocus)
         form.addRow("Config", self.config)
         lay.addLayout(form)
         row = QHBoxLayout()
@@ -399,6 +407,17 @@ class InspectionPanel(QWidget):
         for w in (self.open_raw, self.open_white, self.clear_white, self.use_frame, self.open_config):
             row.addWidget(w)
         lay.addLayout(row)
+        tf_row = QHBoxLayout()
+        self.open_tf = QPushButton("Through-focus frames…")
+        self.open_tf.setToolTip("choose the +u / −u pinhole frames of the same array (several files at once); "
+                                "each needs its .sim.json or .meta.json record")
+        self.clear_tf = QPushButton("✕")
+        self.clear_tf.setToolTip("inspect without through-focus frames")
+        self.clear_tf.setMaximumWidth(28)
+        tf_row.addWidget(self.open_tf)
+        tf_row.addWidget(self.clear_tf)
+        tf_row.addStretch(1)
+        lay.addLayout(tf_row)
         row2 = QHBoxLayout()
         self.run = _button("Inspect", "calibrate the grid, measure every lens, flag defects", primary=True)
         self.cancel = QPushButton("Cancel")
@@ -425,6 +444,8 @@ class InspectionPanel(QWidget):
         self.open_raw.clicked.connect(self.openRawRequested)
         self.open_white.clicked.connect(self.openWhiteRequested)
         self.clear_white.clicked.connect(self.clearWhiteRequested)
+        self.open_tf.clicked.connect(self.openThroughFocusRequested)
+        self.clear_tf.clicked.connect(self.clearThroughFocusRequested)
         self.use_frame.clicked.connect(self.useFrameRequested)
         self.open_config.clicked.connect(self.configRequested)
         self.run.clicked.connect(self.runRequested)
@@ -436,7 +457,8 @@ class InspectionPanel(QWidget):
     def set_running(self, running: bool) -> None:
         self.run.setEnabled(not running)
         self.cancel.setEnabled(running)
-        for w in (self.open_raw, self.open_white, self.clear_white, self.use_frame, self.open_config):
+        for w in (self.open_raw, self.open_white, self.clear_white, self.open_tf, self.clear_tf, self.use_frame,
+                  self.open_config):
             w.setEnabled(not running)
 
 

@@ -16,10 +16,12 @@ import numpy as np
 import pyqtgraph as pg
 from PySide6.QtCore import QAbstractTableModel, QModelIndex, QRectF, QSortFilterProxyModel, Qt, Signal
 from PySide6.QtGui import QBrush, QColor, QFont, QPen, QTransform
-from PySide6.QtWidgets import (QCheckBox, QGraphicsRectItem, QHBoxLayout, QHeaderView, QLabel, QPlainTextEdit,
-                               QPushButton, QSizePolicy, QTableWidget, QTableWidgetItem, QVBoxLayout, QWidget)
+from PySide6.QtWidgets import (QCheckBox, QComboBox, QGraphicsRectItem, QHBoxLayout, QHeaderView, QLabel,
+                               QPlainTextEdit, QPushButton, QSizePolicy, QTableWidget, QTableWidgetItem, QVBoxLayout,
+                               QWidget)
 
 from mlaqc.report import ERROR_COLOURS, VERDICT_COLOURS, error_colour
+from mlaqc.inspection.combine import SOURCE_KEY as TF_SOURCE_KEY
 from mlaqc.inspection.results import METRICS
 
 pg.setConfigOptions(imageAxisOrder="row-major", antialias=True)
@@ -161,6 +163,7 @@ class ImagePanel(QWidget):
     hovered = Signal(float, float, object)  # x, y, pixel value (None outside the image)
     clicked = Signal(float, float)
     fitLevelsRequested = Signal()
+    frameChosen = Signal(int)  # frame selector: 0 the inspected (white) frame, k the k-th through-focus frame
 
     def __init__(self, parent: QWidget | None = None) -> None:
         super().__init__(parent)
@@ -177,8 +180,19 @@ class ImagePanel(QWidget):
         self.defects_box.setChecked(True)
         self.info = QLabel("")
         self.info.setFont(MONO)
-        for w in (self.fit_button, self.levels_button, self.auto_levels, self.grid_box, self.defects_box):
+        self.frame_label = QLabel("Frame")
+        self.frame_box = QComboBox()
+        self.frame_box.setToolTip("show the inspected white frame or one of the through-focus pinhole frames "
+                                  "under the same defect rings")
+        self.frame_box.setSizeAdjustPolicy(QComboBox.SizeAdjustPolicy.AdjustToMinimumContentsLengthWithIcon)
+        self.frame_box.setMinimumContentsLength(16)  # long file names are elided, never widen the window
+        self.frame_box.view().setMinimumWidth(380)  # the list shows them whole
+        self.frame_box.view().setTextElideMode(Qt.TextElideMode.ElideMiddle)
+        for w in (self.fit_button, self.levels_button, self.auto_levels, self.grid_box, self.defects_box,
+                  self.frame_label, self.frame_box):
             bar.addWidget(w)
+        self.frame_label.hide()
+        self.frame_box.hide()
         bar.addStretch(1)
         bar.addWidget(self.info)
         lay.addLayout(bar)
@@ -222,6 +236,7 @@ class ImagePanel(QWidget):
         self._ring_d = 0.0
         self.data: np.ndarray | None = None
         self.mode = "empty"  # 'empty', 'frame', 'live', 'result'
+        self.frame_index = 0  # in 'result' mode: 0 the inspected frame, k the k-th through-focus frame
         self._shape: tuple[int, int] | None = None
         self.displayed = 0
         self._fps_t0 = time.perf_counter()
@@ -235,6 +250,7 @@ class ImagePanel(QWidget):
         self.vb.sigRangeChanged.connect(self._update_ring_scale)
         self.glw.scene().sigMouseMoved.connect(self._on_move)
         self.glw.scene().sigMouseClicked.connect(self._on_click)
+        self.frame_box.activated.connect(self.frameChosen)
 
     # ------------------------------------------------------------------ images
 
@@ -261,6 +277,7 @@ class ImagePanel(QWidget):
         self.view = view
         self.data = np.asarray(view.result.image)
         self.mode = "result"
+        self.set_frame_index(0)
         self.info.setText("")
         lo, hi = view.levels
         self.img.setImage(self.data, autoLevels=False, levels=(lo, hi))
@@ -270,6 +287,39 @@ class ImagePanel(QWidget):
         if self._shape != self.data.shape:
             self._shape = self.data.shape
             self.fit_view()
+        self._update_visibility()
+
+    def set_frames(self, labels: list[str]) -> None:
+        """The frame selector's entries (the inspected frame first); shown only with through-focus frames."""
+        self.frame_box.blockSignals(True)
+        self.frame_box.clear()
+        self.frame_box.addItems(labels)
+        self.frame_box.setCurrentIndex(0)
+        self.frame_box.blockSignals(False)
+        on = len(labels) > 1
+        self.frame_label.setVisible(on)
+        self.frame_box.setVisible(on)
+
+    def set_frame_index(self, index: int) -> None:
+        """Record which frame of the result is shown and put the selector on it (without a signal)."""
+        self.frame_index = index
+        if 0 <= index < self.frame_box.count() and self.frame_box.currentIndex() != index:
+            self.frame_box.blockSignals(True)
+            self.frame_box.setCurrentIndex(index)
+            self.frame_box.blockSignals(False)
+
+    def show_result_frame(self, index: int, data: np.ndarray, levels: tuple[float, float]) -> None:
+        """Another frame of the result on display (a through-focus frame the worker prepared, same size):
+        the grid, rings and selection stay where they are."""
+        if self.view is None or data.shape != np.shape(self.view.result.image):
+            return
+        self.data = data
+        self.mode = "result"
+        self.set_frame_index(index)
+        self.info.setText("")
+        lo, hi = levels
+        self.img.setImage(data, autoLevels=False, levels=(lo, hi))
+        self.hist.setLevels(lo, hi)
         self._update_visibility()
 
     def _draw_rings(self, view: Any) -> None:
@@ -433,16 +483,26 @@ def robust_levels(data: np.ndarray) -> tuple[float, float]:
 class DefectTableModel(QAbstractTableModel):
     """Flagged lenses of an inspection; sortable via `DefectSortProxy` (numbers sort as numbers)."""
 
-    COLUMNS = ("Lens", "Type", "Magnitude", "Unit", "Dir (°)", "Score", "Tolerance")
+    COLUMNS = ("Lens", "Type", "Magnitude", "Unit", "Dir (°)", "Score", "Tolerance", "Source")
+    SOURCE_TIPS = {"white": "flagged by the white frame",
+                   "white + pinholes": "flagged by the white frame and read by the +u / −u pinhole pairs too "
+                                       "(they settle the sign of its focal error)",
+                   "pinholes": "flagged by the +u / −u pinhole pairs only (a significant focal error the white "
+                               "frame did not flag)",
+                   "white (not covered)": "flagged by the white frame; no pinhole pair lit this lens fully, so "
+                                          "its sign is the white frame's"}
     SORT_ROLE = Qt.ItemDataRole.UserRole
     LENS_ROLE = Qt.ItemDataRole.UserRole + 1
 
     def __init__(self, parent: Any = None) -> None:
         super().__init__(parent)
         self.defects: list[Any] = []
+        self.sources: dict[tuple[int, int], str] = {}
 
-    def set_defects(self, defects: Any) -> None:
+    def set_defects(self, defects: Any, sources: dict[tuple[int, int], str] | None = None) -> None:
+        """`sources`: which measurement flagged each lens (gui.workers.defect_sources); 'white' by default."""
         self.beginResetModel()
+        self.sources = dict(sources or {})
         # default order: out of tolerance first, then most certain
         self.defects = sorted(defects, key=lambda d: (d.within_tolerance, -_finite_or(d.score, -1e9)))
         self.endResetModel()
@@ -468,10 +528,17 @@ class DefectTableModel(QAbstractTableModel):
         if role == Qt.ItemDataRole.DisplayRole:
             return (f"U({d.m},{d.n})", d.error_type, _fmt(d.magnitude), d.unit,
                     "" if d.direction_deg is None else f"{d.direction_deg:.0f}", f"{d.score:.1f}",
-                    "within" if d.within_tolerance else "OUT")[c]
+                    "within" if d.within_tolerance else "OUT", self.source_of(d))[c]
         if role == self.SORT_ROLE:
             return ((d.m, d.n), d.error_type, _finite_or(d.magnitude, -math.inf), d.unit,
-                    _finite_or(d.direction_deg, -math.inf), _finite_or(d.score, -math.inf), int(d.within_tolerance))[c]
+                    _finite_or(d.direction_deg, -math.inf), _finite_or(d.score, -math.inf), int(d.within_tolerance),
+                    self.source_of(d))[c]
+        if role == Qt.ItemDataRole.ForegroundRole and c == 7 and "pinholes" in self.source_of(d):
+            return QBrush(QColor("#6639ba"))
+        if role == Qt.ItemDataRole.ToolTipRole and c == 7:
+            src = self.source_of(d)
+            z = (d.indexes or {}).get(TF_SOURCE_KEY)
+            return self.SOURCE_TIPS.get(src, src) + (f" (z = {z:.1f})" if z is not None and math.isfinite(z) else "")
         if role == Qt.ItemDataRole.DecorationRole and c == 1:
             return qcolor(error_colour(d.error_type))
         if role == Qt.ItemDataRole.ForegroundRole and c == 6 and not d.within_tolerance:
@@ -486,6 +553,13 @@ class DefectTableModel(QAbstractTableModel):
             alts = "; ".join(f"{t} {_fmt(v)} {u}" for t, v, u, _a in (d.alternatives or ()))
             return f"U({d.m},{d.n}) {d.error_type}" + (f"\nalso fits: {alts}" if alts else "")
         return None
+
+    def source_of(self, d: Any) -> str:
+        """'white', 'white + pinholes', 'pinholes' or 'white (not covered)' (see gui.workers.defect_sources)."""
+        src = self.sources.get((d.m, d.n))
+        if src is None:
+            src = "pinholes" if TF_SOURCE_KEY in (d.indexes or {}) else "white"
+        return src
 
     def row_of(self, m: int, n: int) -> int:
         for i, d in enumerate(self.defects):
@@ -542,6 +616,25 @@ def measured_text(measured: Any, m: int, n: int) -> str:
             f"({_fmt(v['focal_um'])} µm, {sign})")
 
 
+def throughfocus_text(tf: Any, m: int, n: int) -> str:
+    """One line of lens U(m,n)'s through-focus reading (mlaqc.inspection.throughfocus.ThroughFocusResult):
+    focal error with its sign and 1-sigma, the radius error it equals, covered or not, the optical-centre
+    shift from the spot positions."""
+    i, j = m - 1, n - 1
+
+    def at(name: str) -> float:
+        return float(np.asarray(getattr(tf, name))[i, j])
+
+    dx, dy, cs = at("centre_dx_um"), at("centre_dy_um"), at("centre_sigma_um")
+    centre = (f"optical centre ({_fmt(dx)}, {_fmt(dy)}) ± {_fmt(cs, 2)} µm" if math.isfinite(dx) and math.isfinite(dy)
+              else "optical centre not measured")
+    f, sig, r = at("focal_rel"), at("focal_sigma_rel"), at("radius_rel")
+    if not (bool(np.asarray(tf.covered)[i, j]) and math.isfinite(f)):
+        return f"not covered (no +u / −u pair lit this lens fully) · {centre}"
+    return (f"focal Δf/f {100 * f:+.2f} ± {100 * sig:.2f} % · radius-equivalent {100 * r:+.2f} % · covered · "
+            f"{centre}")
+
+
 class LensDetail(QWidget):
     """The selected lens: its sub-image beside the reference (and their difference), and its indexes."""
 
@@ -553,6 +646,13 @@ class LensDetail(QWidget):
         self.title.setWordWrap(True)
         self.title.setTextFormat(Qt.TextFormat.RichText)
         lay.addWidget(self.title)
+        self.throughfocus = QLabel("")  # the pinhole frames' reading of the lens, under the white frame's
+        self.throughfocus.setWordWrap(True)
+        self.throughfocus.setTextFormat(Qt.TextFormat.RichText)
+        self.throughfocus.setToolTip("through-focus reading: from the +u / −u pinhole pairs, against the "
+                                     "array's typical lens")
+        self.throughfocus.hide()
+        lay.addWidget(self.throughfocus)
         self.glw = pg.GraphicsLayoutWidget()
         self.glw.setBackground("#1e1e1e")
         self.glw.setMinimumHeight(150)
@@ -581,6 +681,8 @@ class LensDetail(QWidget):
         for item in self.images:
             item.clear()
         self.table.setRowCount(0)
+        self.throughfocus.setText("")
+        self.throughfocus.hide()
 
     def show_lens(self, view: Any, m: int, n: int) -> None:
         r = view.result
@@ -616,8 +718,16 @@ class LensDetail(QWidget):
             direction = "" if defect.direction_deg is None else f" @ {defect.direction_deg:.0f}°"
             state = (f"<span style='background:{col}'>&nbsp;&nbsp;&nbsp;</span> <b>{defect.error_type}</b> "
                      f"{_fmt(defect.magnitude)} {defect.unit}{direction} · {tol} · score {_fmt(defect.score, 3)}")
+        tf = getattr(r, "through_focus", None)
+        white = measured_text(getattr(r, "measurements", None), m, n)
         self.title.setText(f"<span style='font-size:14pt'><b>U({m},{n})</b></span>&nbsp;&nbsp;row {m}, column {n} · "
-                           f"{where}<br>{state}<br>{measured_text(getattr(r, 'measurements', None), m, n)}")
+                           f"{where}<br>{state}<br>" + (white if tf is None else f"<b>white frame</b>: {white}"))
+        if tf is None:
+            self.throughfocus.setText("")
+            self.throughfocus.hide()
+        else:
+            self.throughfocus.setText(f"<b>pinhole frames</b>: {throughfocus_text(tf, m, n)}")
+            self.throughfocus.show()
         values = r.metrics.at(m, n)
         self.table.setRowCount(len(METRICS))
         for i, (name, (unit, meaning)) in enumerate(METRICS.items()):

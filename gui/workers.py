@@ -14,7 +14,12 @@ Threads (one QThread each, the worker QObject moved into it):
   is blocked in a move, and it publishes `last_position` (no I/O) at 20 Hz for the live display.
 - ``inspection``: `InspectionWorker` loads, calibrates and inspects, then precomputes everything the
   display needs (levels, ring positions, a k-d tree of lens centres) so the GUI thread only draws.
+  With through-focus frames it then reads them on the result's grid (mlaqc.inspection.throughfocus) and
+  combines both measurements (mlaqc.inspection.combine).
   Cancel is a `CancelToken` checked between stages; a cancelled job's result is never shown.
+- ``frames``: `FrameWorker` checks the through-focus pinhole frames the operator picks (their records,
+  sizes and +u / -u pairs) and loads one of them for display when the frame selector asks, so neither
+  waits for a running inspection nor blocks the GUI.
 - ``io``: `IoWorker` writes report sets (`mlaqc.report.write_report`) and saves frames; on close the
   app waits for it, so a report is never left half written.
 - ``scan``: `ScanWorker` runs `drivers.scan.ScanRunner` with the devices the app already has open (the
@@ -518,6 +523,90 @@ class InspectionRequest:
     frame: Any = None  # drivers.camera.Frame
     white: str | None = None
     token: CancelToken = field(default_factory=CancelToken)
+    through_focus: tuple[str, ...] = ()  # pinhole frame files (+u / -u pairs), read after the white inspection
+
+
+@dataclass(frozen=True)
+class TfFrame:
+    """One through-focus pinhole frame as the app lists it: its file and how it was taken."""
+
+    path: str
+    u_mm: float  # focus offset: the pinholes' image this far behind (+) / in front of (-) the MLA
+    offset: tuple[int, int]  # pinhole lattice offset, in lens pitches
+    f_number: float
+    spacing: int
+
+    @property
+    def name(self) -> str:
+        return Path(self.path).name
+
+    @property
+    def label(self) -> str:
+        return f"{self.name} · u = {self.u_mm:+g} mm · offset ({self.offset[0]}, {self.offset[1]})"
+
+
+def describe_through_focus(paths: Any, cfg: Any, *, check_size: bool = True) -> tuple[TfFrame, ...]:
+    """Read each pinhole frame's record (its `.sim.json` / `.meta.json` sidecar) and check the set: one
+    series (same f-number and pinhole spacing), every frame once, every +u frame with its -u partner at the
+    same offset, and (with `check_size`) every file of the config's sensor size. Returns the frames sorted
+    pair by pair (+u first); InputError with one sentence naming the file otherwise."""
+    from mlaqc.inspection.pinhole_frames import frame_record
+    from mlaqc.inspection.rawio import load_raw
+
+    paths = [str(p) for p in paths]
+    if not paths:
+        return ()
+    s = cfg.sensor
+    frames = []
+    for path in paths:
+        rec = frame_record(path)
+        if check_size:
+            load_raw(path, expected_shape=(s.height_px, s.width_px))
+        frames.append(TfFrame(path, float(rec.focus_offset_mm), (int(rec.offset_lenses[0]), int(rec.offset_lenses[1])),
+                              float(rec.f_number), int(rec.spacing_lenses)))
+    first = frames[0]
+    for f in frames[1:]:
+        if (f.f_number, f.spacing) != (first.f_number, first.spacing):
+            raise InputError(f"through-focus frame {f.name} was taken at f/{f.f_number:g} with pinholes {f.spacing} "
+                             f"lenses apart but {first.name} at f/{first.f_number:g} and {first.spacing}: choose the "
+                             "frames of one series")
+    slots: dict[tuple[float, tuple[int, int]], dict[int, TfFrame]] = {}
+    for f in frames:
+        slot = slots.setdefault((abs(f.u_mm), f.offset), {})
+        sign = 1 if f.u_mm > 0 else -1
+        if sign in slot:
+            raise InputError(f"through-focus frames {slot[sign].name} and {f.name} are both u = {f.u_mm:+g} mm at "
+                             f"offset {f.offset}: choose each frame once")
+        slot[sign] = f
+    for (_u, off), slot in slots.items():
+        if len(slot) != 2:
+            f = next(iter(slot.values()))
+            raise InputError(f"through-focus frame {f.name} (u = {f.u_mm:+g} mm, offset {off}) has no partner at "
+                             f"u = {-f.u_mm:+g} mm with the same pinhole offset: choose both frames of each pair")
+    return tuple(slot[sign] for _, slot in sorted(slots.items()) for sign in (1, -1))
+
+
+def through_focus_label(frames: tuple[TfFrame, ...]) -> str:
+    """'18 frames: 9 +u / −u pairs at u = ±10 mm' (the inspection panel's line)."""
+    if not frames:
+        return "none"
+    us = ", ".join(f"±{u:g}" for u in sorted({abs(f.u_mm) for f in frames}))
+    n = len(frames)
+    return f"{n} frames: {n // 2} +u / −u pair{'s' if n // 2 != 1 else ''} at u = {us} mm"
+
+
+def spot_levels(img: np.ndarray) -> tuple[float, float]:
+    """Display levels of a pinhole frame (mostly dark, a few bright spots): from the background to near
+    the brightest spots, so both the spots and their spread show."""
+    step = max(1, int(math.sqrt(img.size / 1_000_000)))
+    s = np.asarray(img[::step, ::step], np.float32)
+    s = s[np.isfinite(s)]
+    if not s.size:
+        return 0.0, 1.0
+    lo, hi = (float(v) for v in np.percentile(s, [1.0, 99.97]))
+    if not hi > lo:
+        hi = float(s.max()) if s.max() > lo else lo + 1.0
+    return lo, hi
 
 
 @dataclass
@@ -555,6 +644,8 @@ class InspectionView:
     elapsed_s: float
     _tree: Any = None
     _tree_index: np.ndarray | None = None
+    frames: tuple[TfFrame, ...] = ()  # the through-focus frames read into `result` (frame selector order)
+    sources: dict[tuple[int, int], str] = field(default_factory=dict)  # lens -> which measurement flagged/read it
 
     def lens_at(self, x: float, y: float) -> tuple[int, int] | None:
         """U(m,n) of the lens whose centre is nearest to pixel (x, y), if within its cell."""
@@ -589,8 +680,42 @@ def frame_to_image(frame: Any) -> np.ndarray:
     return prepare(raw)
 
 
-def build_view(result: Any, cfg: Any, source: str, elapsed_s: float) -> InspectionView:
-    """Precompute the display data of an inspection (runs in the worker)."""
+def defect_sources(result: Any, white_flagged: Any = None) -> dict[tuple[int, int], str]:
+    """Which measurement flagged or read each defect, for the table's Source column: 'white', 'white +
+    pinholes' (the white frame flagged it, the +u / -u pairs read its focal error), 'pinholes' (only the
+    pairs flagged it), 'white (not covered)' (a radius lens no pair lit fully: its sign is the white
+    frame's). Empty without through-focus frames. `white_flagged`: the lenses the white frame flagged."""
+    from mlaqc.inspection.combine import SOURCE_KEY
+
+    tf = getattr(result, "through_focus", None)
+    if tf is None:
+        return {}
+    covered = np.asarray(tf.covered, bool)
+    out = {}
+    for d in result.defects:
+        lens = (d.m, d.n)
+        if SOURCE_KEY in (d.indexes or {}):
+            out[lens] = "white + pinholes" if white_flagged is not None and lens in white_flagged else "pinholes"
+        elif d.error_type == "radius" and not covered[d.m - 1, d.n - 1]:
+            out[lens] = "white (not covered)"
+        else:
+            out[lens] = "white"
+    return out
+
+
+def through_focus_summary(tf: Any) -> str:
+    """One clause on the through-focus reading: lenses covered, pairs, median focal 1-sigma."""
+    sm = tf.summary()
+    sig = sm.get("focal_sigma_rel_median")
+    return (f"through-focus: {sm['lenses_covered']} lenses read ({100 * sm['coverage']:.0f} %) in "
+            f"{len(sm['pairs'])} pair{'s' if len(sm['pairs']) != 1 else ''}, focal 1σ "
+            f"{'—' if sig is None else f'{100 * sig:.2f} %'}")
+
+
+def build_view(result: Any, cfg: Any, source: str, elapsed_s: float, *, frames: tuple[TfFrame, ...] = (),
+               white_flagged: Any = None) -> InspectionView:
+    """Precompute the display data of an inspection (runs in the worker); `frames`: the through-focus
+    frames read into it, `white_flagged`: the lenses the white frame flagged before they were combined."""
     from scipy.spatial import cKDTree
 
     from mlaqc.inspection.results import METRICS, detection_limit_text
@@ -640,10 +765,12 @@ def build_view(result: Any, cfg: Any, source: str, elapsed_s: float) -> Inspecti
                 f"{g.lenses_missing} missing")
     detail = (f"{kinds}; {detection_limit_text(result.detection_limit)}; grid pitch {g.pitch_px[0]:.3f} × "
               f"{g.pitch_px[1]:.3f} px, rotation {g.rotation_deg:+.3f}°, RMS residual {g.rms_residual_px:.3f} px")
-    summary = f"{headline} ({detail})"
+    tf = getattr(result, "through_focus", None)
+    summary = f"{headline} ({detail}{'; ' + through_focus_summary(tf) if tf is not None else ''})"
     ok_grid = np.isfinite(gx) & np.isfinite(gy)
     return InspectionView(result, cfg, source, (float(lo), float(hi)), cx, cy, gx[ok_grid], gy[ok_grid], pitch, rings,
-                          medians, summary, headline, detail, elapsed_s, tree, idx)
+                          medians, summary, headline, detail, elapsed_s, tree, idx, frames=tuple(frames),
+                          sources=defect_sources(result, white_flagged))
 
 
 class InspectionWorker(QObject):
@@ -705,8 +832,15 @@ class InspectionWorker(QObject):
                              expected_shape=(cfg.mla.count_h, cfg.mla.count_w))
             stage(60, "measuring and identifying every lens")
             result = inspect_image(img, cfg, grid=grid, source=source)
+            frames: tuple[TfFrame, ...] = ()
+            white_flagged = None
+            if req.through_focus:
+                frames = describe_through_focus(req.through_focus, cfg, check_size=False)
+                white_flagged = {(d.m, d.n) for d in result.defects}
+                result = self._through_focus(result, frames, cfg, stage)
             stage(90, "preparing the view")
-            view = build_view(result, cfg, source, time.perf_counter() - t0)
+            view = build_view(result, cfg, source, time.perf_counter() - t0, frames=frames,
+                              white_flagged=white_flagged)
             stage(100, "done")
         except Cancelled:
             self.cancelled.emit(job)
@@ -718,6 +852,60 @@ class InspectionWorker(QObject):
             self.cancelled.emit(job)
         else:
             self.finished.emit(job, view)
+
+    @staticmethod
+    def _through_focus(result: Any, frames: tuple[TfFrame, ...], cfg: Any, stage: Any) -> Any:
+        """The second measurement: load the pinhole frames (cancellable between frames), read every
+        covered lens' focal error and optical centre on `result`'s grid, and combine (as
+        `pipeline.with_through_focus`, in stages)."""
+        from mlaqc.inspection.combine import combine_through_focus
+        from mlaqc.inspection.pinhole_frames import load_pinhole_frames
+        from mlaqc.inspection.throughfocus import measure_through_focus
+
+        t0 = time.perf_counter()
+        loaded = []
+        for k, f in enumerate(frames):
+            stage(62 + (14 * k) // len(frames), f"reading through-focus frames ({k + 1} of {len(frames)})")
+            loaded += load_pinhole_frames([f.path], cfg)
+        t1 = time.perf_counter()
+        stage(78, "reading through-focus frames: the focal length of every lens")
+        tf = measure_through_focus(loaded, result.grid, cfg)
+        stage(88, "combining the white and the through-focus readings")
+        out = combine_through_focus(result, tf, cfg.qc)
+        out.timings_s["load_through_focus"] = round(t1 - t0, 4)
+        out.timings_s["through_focus"] = round(time.perf_counter() - t1, 4)
+        return out
+
+
+class FrameWorker(QObject):
+    """The ``frames`` thread: checks the through-focus frames the operator picks and loads one for display."""
+
+    described = Signal(int, object)  # job, tuple[TfFrame, ...]
+    describeFailed = Signal(int, str)
+    frameReady = Signal(int, str, object, object)  # job, path, prepared image (H, W) float32, (lo, hi) levels
+    frameFailed = Signal(int, str)
+
+    @Slot(int, object, object)
+    def describe(self, job: int, paths: Any, cfg: Any) -> None:
+        try:
+            frames = describe_through_focus(paths, cfg)
+        except Exception as exc:  # noqa: BLE001 - every failure becomes one sentence in the panel
+            self.describeFailed.emit(job, one_sentence(exc))
+            return
+        self.described.emit(job, frames)
+
+    @Slot(int, str, object)
+    def loadFrame(self, job: int, path: str, cfg: Any) -> None:
+        """A pinhole frame as the analysis sees it (black-subtracted, normalized), with display levels."""
+        try:
+            from mlaqc.inspection.pinhole_frames import load_pinhole_frames
+
+            img = load_pinhole_frames([path], cfg)[0][0]
+            levels = spot_levels(img)
+        except Exception as exc:  # noqa: BLE001
+            self.frameFailed.emit(job, one_sentence(exc))
+            return
+        self.frameReady.emit(job, path, img, levels)
 
 
 # ================================================================================================ io

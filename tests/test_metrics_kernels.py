@@ -208,19 +208,30 @@ def test_reference_images_are_the_template_gather(model):
 # ------------------------------------------------------------------------------------ median baselines
 
 
+def _packed_wire(k: int, n: int) -> np.ndarray:
+    """Bit k of every input i < n, packed 8 inputs per byte (input 8j + b in bit b of byte j), as 64-bit words."""
+    if k < 3:  # bit k of 8j + b is bit k of b: the same byte throughout
+        byte = sum(1 << b for b in range(8) if (b >> k) & 1)
+        return np.full(n >> 6, int.from_bytes(bytes([byte]) * 8, "little"), np.uint64)
+    j = np.arange(n >> 3, dtype=np.uint32)  # bit k of 8j + b is bit k - 3 of j: the byte is all ones or none
+    return (((j >> (k - 3)) & 1) * 0xFF).astype(np.uint8).view(np.uint64)
+
+
 def test_median_network_selects_the_median_of_every_0_1_input():
     """0-1 principle: a comparator network that selects the median of all 2^25 binary inputs selects it
     for every input. Bit-parallel: wire k of input i is bit k of i, packed 8 inputs per byte."""
     n = 1 << 25
-    idx = np.arange(n >> 3, dtype=np.uint32)[:, None] * 8 + np.arange(8, dtype=np.uint32)  # (n/8, 8)
-    wires = [np.packbits(((idx >> k) & 1).astype(bool), axis=1, bitorder="little").ravel() for k in range(25)]
+    i = np.arange(1 << 12, dtype=np.uint32)  # the packed wires, against bit k of i written out
+    for k in range(25):
+        direct = np.packbits(((i >> k) & 1).astype(bool), bitorder="little")
+        assert np.array_equal(_packed_wire(k, n).view(np.uint8)[: direct.size], direct)
+    wires = [_packed_wire(k, n) for k in range(25)]
     for a, b in MEDIAN25_PAIRS:
         wires[a], wires[b] = wires[a] & wires[b], wires[a] | wires[b]
-    ones = np.zeros(idx.shape, np.uint8)
-    for k in range(25):
-        ones += ((idx >> k) & 1).astype(np.uint8)
-    want = np.packbits(ones >= 13, axis=1, bitorder="little").ravel()
-    assert np.array_equal(wires[12], want)
+    # the median of 25 bits is 1 where 13 or more are: popcount(i) = popcount(i >> 12) + popcount(i & 4095)
+    ones_hi, ones_lo = (sum((np.arange(1 << bits) >> k) & 1 for k in range(bits)) for bits in (13, 12))
+    want = np.packbits((np.add.outer(ones_hi, ones_lo) >= 13).ravel(), bitorder="little")
+    assert np.array_equal(wires[12].view(np.uint8), want)
 
 
 @pytest.mark.parametrize("size", [5, 3, 7])

@@ -109,9 +109,14 @@ def test_signature_tables_built_on_the_cluster_equal_the_local_build(client):
 
 
 def test_models_command_builds_into_the_cache_on_the_cluster(dask_cluster, tmp_path, monkeypatch, capsys):
+    from mlaqc.models import signatures
     from mlaqc.models.reference import config_key
     from mlaqc.models.signatures import signature_key
 
+    # The command's own path (reference, then signature renders on the cluster, then the cache) at 10 rays
+    # per pixel, not the tables' 400: the table a cluster builds is the local one (the test above).
+    build = signatures.build_signature_set
+    monkeypatch.setattr(signatures, "build_signature_set", lambda cfg, **kw: build(cfg, **kw, rays_per_pixel=10))
     monkeypatch.setenv("MLAQC_CACHE", str(tmp_path))
     monkeypatch.setenv("MLAQC_SCHEDULER", dask_cluster.scheduler_address)
     assert main(["models", "-c", str(SMALL_TOML), "--rebuild"]) == 0

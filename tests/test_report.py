@@ -21,6 +21,7 @@ from mlaqc import __version__
 from mlaqc.errors import InputError
 from mlaqc.inspection.results import METRICS, Defect, InspectionResult, LensMetrics
 from mlaqc.inspection.measure import MEASUREMENTS
+from mlaqc.inspection.throughfocus import TF_MEASUREMENTS
 from mlaqc.report import ERROR_COLOURS, REPORT_FILES
 from mlaqc.report import html as report_html
 from mlaqc.report import load_report
@@ -174,8 +175,9 @@ def test_lenses_csv_rows_columns_and_u_m_n_indexing(written):
         rows = list(csv.reader(fh))
     header, body = rows[0], rows[1:]
     assert header == ["row", "col", "x_px", "y_px", "grid_x_px", "grid_y_px", "flagged", "error_type",
-                      *METRICS, *MEASUREMENTS]
+                      *METRICS, *MEASUREMENTS, *TF_MEASUREMENTS]
     assert len(body) == ROWS * COLS
+    assert all(r[-len(TF_MEASUREMENTS):] == [""] * len(TF_MEASUREMENTS) for r in body)  # no pinhole frames: empty
     assert [(int(r[0]), int(r[1])) for r in body[:3]] == [(1, 1), (1, 2), (1, 3)]  # m then n
     assert (int(body[-1][0]), int(body[-1][1])) == (ROWS, COLS)
     g = result.grid

@@ -4,7 +4,8 @@ URL (every parameter optional)::
 
     mock://?config=small&wafer=3x3&pitch_mm=5&origin_mm=10,10&defects=5&seed=1&rpp=4
            &exposure_us=5000&gain=1&pos_mm=10,10&stage=NAME&quantum_um=1&cache_mb=256
-           &light=1&faults=timeout@5,black@9x2&threads=0
+           &light=1&faults=timeout@5,black@9x2&threads=0&f_number=8&mask=10,-10&mask_spacing=9
+           &z_white_mm=50&a_centre_mm=10&b_window_mm=0&field_pitch_mm=25&pinhole_photons=2.2e6
 
 - ``config``: camera config — ``small`` (default: the 24x24-lens, 496x496-px test camera, the same as
   fixtures/small_camera.toml), ``table1`` (the paper's full camera) or a TOML path.
@@ -26,16 +27,32 @@ URL (every parameter optional)::
 - ``light=0``: the illumination is off (every frame is a dark frame: black level plus read noise).
 - ``faults``: faults armed at given capture attempts, ``KIND@N`` or ``KIND@NxCOUNT`` (see below).
 - ``threads``: tracer threads (default: one per core).
+- ``f_number``: the main lens' iris (default: full aperture, efl / D = 2.5 for Table 1); also
+  `set_f_number()` at run time (the scan runner stops down for through-focus frames). A stopped-down
+  white view passes (D_N / D)^2 of the light (`white_flux_scale`), as a real iris does.
+- The through-focus bench (see mlaqc.optics.throughfocus, `Carrier`): when the stage also reports the
+  target carrier's auxiliary axes Z, A and B (a stage URL with ``aux=z,a,b``), the camera renders
+  what the mask shows there instead of the plain white target: the clear window (field 0: the white
+  frame), a pinhole lattice field (the pinholes at the object distance Z gives, moved by A and B) or
+  opaque chrome (dark). ``mask`` (the lattices' focus offsets, mm, in field order along B),
+  ``mask_spacing`` (lenses), ``z_white_mm``, ``a_centre_mm``, ``b_window_mm``, ``field_pitch_mm``
+  describe the mask and where it sits (defaults: `Carrier()`), ``pinhole_photons`` the photons each
+  pinhole sends into the pupil at the reference exposure (default 2.2e6: spot peaks near 80 % of full
+  well at 10 ms on the Table 1 sensor). Pinhole views go through the config's image formation model
+  (diffraction, crosstalk, PRNU; mlaqc.optics.formation) as `mlaqc simulate` does: their spots are
+  about a pixel wide. Without auxiliary readings every frame shows the white target.
 
 Frames: each capture takes the stage position, finds the wafer array nearest to it, renders (or takes
 from the cache) the expected photons with the tracer, the array's ErrorMap given
-``mla_shift = centre - position``, scales by exposure, and reads it out with `mlaqc.optics.sensor.expose`
+``mla_shift = centre - position`` and the view (white target, or the carrier's mask at its quantized
+Z, A, B, through the iris), scales by exposure, and reads it out with `mlaqc.optics.sensor.expose`
 seeded per frame, so repeated frames differ by fresh shot and read noise. Pixel format ``Y16`` (or the
 16-bit Bayer format of a CFA config) with the config's bit depth. Sequence numbers count frames since
 the camera was made (dropped frames leave gaps); `device_timestamp_s` is time.monotonic() when the
 frame completed. ``Frame.extra`` holds ``sequence_gap``, ``black_level``, ``white_level``, ``truth``
-(array name and W(m,n), its centre, the stage position and offset, and the array's error map) and
-``mock`` (cache hit, render time, fault).
+(array name and W(m,n), its centre, the stage position and offset, the array's error map and, with a
+carrier, ``bench``: the axes read, the view's kind, field and through-focus record) and ``mock``
+(cache hit, render time, fault).
 
 Faults (``inject_fault(kind, at=None, count=1)`` or the ``faults`` URL parameter; `at` is the 1-based
 capture attempt counted over the camera's life, None = the next one):
@@ -70,11 +87,14 @@ from drivers.wafer import Wafer, WaferArray
 from mlaqc.errors import DeviceError, InputError
 from mlaqc.optics.config import CameraConfig, config_from_dict, default_config, load_config
 from mlaqc.optics.sensor import expose, white_level
+from mlaqc.optics.throughfocus import (PHOTONS_PER_PINHOLE, Carrier, CarrierView, carrier_view, iris_config,
+                                      native_f_number, white_flux_scale)
 
 log = logging.getLogger(__name__)
 
 URL_PARAMS = ("config", "wafer", "pitch_mm", "origin_mm", "defects", "defect_types", "seed", "rpp", "exposure_us",
-              "gain", "pos_mm", "stage", "quantum_um", "cache_mb", "light", "faults", "threads")
+              "gain", "pos_mm", "stage", "quantum_um", "cache_mb", "light", "faults", "threads", "f_number", "mask",
+              "mask_spacing", "z_white_mm", "a_centre_mm", "b_window_mm", "field_pitch_mm", "pinhole_photons")
 FAULT_KINDS = ("timeout", "disconnect", "drop", "black", "saturated")
 REFERENCE_EXPOSURE_US = 10_000.0  # the config's exposure_photons are the photons of this exposure
 DEFAULT_EXPOSURE_US = 5_000.0  # half the reference: sub-image peaks stay below full well even at low rpp
@@ -82,9 +102,11 @@ EXPOSURE_RANGE_US = (10.0, 10_000_000.0)
 EXPOSURE_STEP_US = 1.0
 GAIN_RANGE = (0.1, 16.0)
 GAIN_STEP = 0.01
+F_NUMBER_MAX = 64.0
+F_NUMBER_STEP = 0.01
 SMALL_CAMERA = {"mla": {"count_w": 24, "count_h": 24}, "sensor": {"width_px": 496, "height_px": 496}}
 
-PositionSource = Callable[[], "tuple[float, float] | None"]
+PositionSource = Callable[[], "tuple[float, float] | tuple[float, float, dict[str, float] | None] | None"]
 
 _PUBLISHED: dict[str, PositionSource] = {}
 _PUBLISHED_LOCK = threading.Lock()
@@ -102,12 +124,21 @@ def unpublish_stage(name: str) -> None:
         _PUBLISHED.pop(name, None)
 
 
+def stage_reading(stage: Any) -> tuple[float, float, dict[str, float] | None] | None:
+    """(x, y, auxiliary axes or None) a stage last reported, None before its first report."""
+    pos = stage.last_position
+    if pos is None:
+        return None
+    aux = getattr(stage, "last_aux", None)
+    return float(pos[0]), float(pos[1]), (dict(aux) if aux else None)
+
+
 def _as_source(source: Any) -> PositionSource:
-    """A callable returning (x_mm, y_mm) or None, from a stage-like object or a callable."""
+    """A callable returning (x_mm, y_mm), (x_mm, y_mm, {axis: mm}) or None, from a stage-like object or a callable."""
     if callable(source):
         return source
     if hasattr(source, "last_position"):
-        return lambda: source.last_position
+        return lambda: stage_reading(source)
     raise TypeError(f"a position source must be a stage (with last_position) or a callable, not {type(source).__name__}")
 
 
@@ -125,7 +156,9 @@ class MockCamera(Camera):
                  rays_per_pixel: float = 4.0, exposure_us: float = DEFAULT_EXPOSURE_US, gain: float = 1.0,
                  position_mm: tuple[float, float] | None = None, stage: Any = None, stage_name: str | None = None,
                  quantum_um: float = 1.0, cache_mb: float = 256.0, light: bool = True, seed: int = 0,
-                 faults: list[tuple[str, int | None, int]] = (), threads: int | None = None) -> None:
+                 faults: list[tuple[str, int | None, int]] = (), threads: int | None = None,
+                 f_number: float | None = None, carrier: Carrier | None = None,
+                 pinhole_photons: float = PHOTONS_PER_PINHOLE) -> None:
         super().__init__(url)
         self.cfg = cfg or (wafer.cfg if wafer is not None else config_from_dict(SMALL_CAMERA, "small camera"))
         self.wafer = wafer or Wafer(self.cfg, seed=seed)
@@ -150,6 +183,10 @@ class MockCamera(Camera):
         self._stage_name = stage_name
         self._exposure_us = self._snap_exposure(exposure_us)
         self._gain = self._snap_gain(gain)
+        self.carrier = carrier or Carrier()
+        _check_positive("pinhole_photons", pinhole_photons)
+        self.pinhole_photons = float(pinhole_photons)
+        self._f_number = self._snap_f_number(native_f_number(self.cfg) if f_number is None else f_number)
         self._format = _format_for(self.cfg)
         self._sequence = 0
         self._attempts = 0
@@ -190,6 +227,16 @@ class MockCamera(Camera):
             except InputError as exc:
                 raise InputError(f"camera URL {text!r}: {exc}") from None
         threads = p.integer("threads", 0, minimum=0)
+        d = Carrier()
+        try:
+            carrier = Carrier(focus_offsets_mm=p.numbers("mask", d.focus_offsets_mm),
+                              spacing_lenses=p.integer("mask_spacing", d.spacing_lenses, minimum=2),
+                              z_white_mm=p.number("z_white_mm", d.z_white_mm),
+                              a_centre_mm=p.number("a_centre_mm", d.a_centre_mm),
+                              b_window_mm=p.number("b_window_mm", d.b_window_mm),
+                              field_pitch_mm=p.number("field_pitch_mm", d.field_pitch_mm, positive=True))
+        except InputError as exc:
+            raise InputError(f"camera URL {text!r}: {exc}") from None
         kwargs: dict[str, Any] = dict(
             cfg=cfg, wafer=wafer, seed=seed,
             rays_per_pixel=p.number("rpp", 4.0, positive=True),
@@ -202,6 +249,9 @@ class MockCamera(Camera):
             light=p.flag("light", True),
             faults=parse_faults(text, parsed.param("faults", "")),
             threads=threads or None,
+            f_number=p.number("f_number", None, positive=True),
+            carrier=carrier,
+            pinhole_photons=p.number("pinhole_photons", PHOTONS_PER_PINHOLE, positive=True),
         )
         kwargs.update(options)
         try:
@@ -246,6 +296,18 @@ class MockCamera(Camera):
             self._light = bool(on)
             return self._light
 
+    @property
+    def f_number(self) -> float:
+        """The main lens' iris setting (its full aperture efl / D when wide open)."""
+        return self._f_number
+
+    def set_f_number(self, f_number: float) -> float:
+        """Set the iris to f/N (snapped to 0.01; no wider than the lens' full aperture); return it as read back."""
+        with self._lock:
+            self._require_open("setting the iris")
+            self._f_number = self._snap_f_number(f_number)
+            return self._f_number
+
     # ----------------------------------------------------------------- open / close
 
     def open(self) -> MockCamera:
@@ -279,6 +341,11 @@ class MockCamera(Camera):
 
     def position_mm(self) -> tuple[tuple[float, float], str]:
         """(stage position used for the next frame, where it came from: 'stage', 'published' or 'fixed')."""
+        pos, _, origin = self._reading()
+        return pos, origin
+
+    def _reading(self) -> tuple[tuple[float, float], dict[str, float] | None, str]:
+        """(x, y) and the auxiliary axes (or None) for the next frame, and where they came from."""
         source, origin = self._source, "stage"
         if source is None and self._stage_name is not None:
             with _PUBLISHED_LOCK:
@@ -290,9 +357,10 @@ class MockCamera(Camera):
         if source is not None:
             pos = source()
             if pos is not None:
-                return (float(pos[0]), float(pos[1])), origin
+                aux = pos[2] if len(pos) > 2 and isinstance(pos[2], dict) else None
+                return (float(pos[0]), float(pos[1])), aux, origin
             log.debug("camera %s: stage has not reported a position yet; using the fixed position", self.name)
-        return (float(self._fixed_position[0]), float(self._fixed_position[1])), "fixed"
+        return (float(self._fixed_position[0]), float(self._fixed_position[1])), None, "fixed"
 
     def truth(self) -> dict[str, Any]:
         """The wafer's ground truth (every array's position and error map), as JSON."""
@@ -311,6 +379,7 @@ class MockCamera(Camera):
                 "exposure_us": self._exposure_us, "gain": self._gain, "light": self._light,
                 "black_level": s.black_level_dn, "white_level": white_level(self._sensor()),
                 "rays_per_pixel": self.rays_per_pixel, "quantum_um": self.quantum_um, "seed": self.seed,
+                "f_number": self._f_number, "carrier": self.carrier.to_dict(), "pinhole_photons": self.pinhole_photons,
                 "wafer": self.wafer.layout(), "position_source": self._source_name(), "config": self.cfg.to_dict(),
                 "cache": self.cache_info(), "stats": dict(self.stats),
             }
@@ -358,6 +427,14 @@ class MockCamera(Camera):
         if not lo <= value <= hi:
             raise InputError(f"gain {value:g} is outside the mock camera's range {lo:g}..{hi:g}")
         return float(round(value / GAIN_STEP) * GAIN_STEP)
+
+    def _snap_f_number(self, f_number: float) -> float:
+        value = _finite("f_number", f_number)
+        lo = native_f_number(self.cfg)
+        if not 1.0 <= value <= F_NUMBER_MAX:
+            raise InputError(f"f-number {value:g} is outside the mock lens' range f/1..f/{F_NUMBER_MAX:g} (anything "
+                             f"wider than its full aperture f/{lo:.2f} opens the iris fully)")
+        return max(round(lo, 2), float(round(value / F_NUMBER_STEP) * F_NUMBER_STEP))
 
     def _sensor(self):
         """The sensor model at the current gain."""
@@ -418,9 +495,10 @@ class MockCamera(Camera):
                 self._closing.wait(timeout_s)
                 raise DeviceError(f"camera {self.name} timed out after {timeout_s:g} s waiting for a frame while "
                                   "capturing a frame (simulated)")
-            position, origin = self.position_mm()
+            position, aux, origin = self._reading()
             array, offset = self.wafer.locate(*position)
-            photons, hit, render_s, key = self._photons(array, offset)
+            view, axes = self._view(aux)
+            photons, hit, render_s, key = self._photons(array, offset, view, axes)
             gap = fault.count if kind == "drop" else 0
             self.stats["dropped_frames"] += gap
             self._sequence += 1 + gap
@@ -439,52 +517,81 @@ class MockCamera(Camera):
             truth = {"array": array.name, "m": array.m, "n": array.n, "array_centre_mm": list(array.centre_mm),
                      "stage_mm": list(position), "position_source": origin,
                      "offset_um": [round(offset[0], 6), round(offset[1], 6)],
-                     "rendered_offset_um": list(key[2:]) if key[2:] else None,
+                     "rendered_offset_um": list(key[2:4]) if key[2:4] else None,
                      "in_view": self.wafer.in_view(offset), "error_map": array.error_map_json}
+            if aux is not None:
+                truth["bench"] = {"axes_mm": dict(aux), "rendered_axes_mm": axes, "f_number": self._f_number,
+                                  **view.to_dict()}
             extra = {"sequence_gap": gap, "black_level": sensor.black_level_dn, "white_level": wl, "truth": truth,
                      "mock": {"cache_hit": hit, "render_s": round(render_s, 6), "fault": kind, "light": self._light,
-                              "rays_per_pixel": self.rays_per_pixel, "noise_seed": noise_seed}}
+                              "rays_per_pixel": self.rays_per_pixel, "noise_seed": noise_seed,
+                              "f_number": self._f_number, "view": view.kind}}
             s = self.cfg.sensor
             return Frame(data=data, bits=s.bit_depth, pixel_format=self._format,
                          cfa=None if s.cfa == "none" else s.cfa, sequence=self._sequence,
                          device_timestamp_s=time.monotonic(), host_timestamp_s=time.time(),
                          exposure_us=self._exposure_us, gain=self._gain, device=self.url, extra=extra)
 
-    def expected_photons(self, position_mm: tuple[float, float] | None = None) -> np.ndarray:
-        """The noise-free expected photons at the reference exposure for a stage position (default: now)."""
+    def expected_photons(self, position_mm: tuple[float, float] | None = None,
+                         aux_mm: dict[str, float] | None = None) -> np.ndarray:
+        """The noise-free expected photons at the reference exposure for a stage position and auxiliary
+        axes (default: where the stage is now)."""
         with self._lock:
-            position = position_mm if position_mm is not None else self.position_mm()[0]
+            position, aux, _ = self._reading()
+            if position_mm is not None:
+                position, aux = position_mm, aux_mm
             array, offset = self.wafer.locate(*position)
-            return self._photons(array, offset)[0]
+            return self._photons(array, offset, *self._view(aux))[0]
 
     def _quantize(self, offset_um: tuple[float, float]) -> tuple[float, float]:
         q = self.quantum_um
         return (round(offset_um[0] / q) * q + 0.0, round(offset_um[1] / q) * q + 0.0)
 
-    def _photons(self, array: WaferArray, offset_um: tuple[float, float]) -> tuple[np.ndarray, bool, float, tuple]:
-        """(expected photons, cache hit?, render seconds, cache key) for an array at an offset."""
+    def _view(self, aux: dict[str, float] | None) -> tuple[CarrierView, dict[str, float] | None]:
+        """What the camera looks at: the carrier's mask at the quantized Z, A, B if the stage reports them
+        all, else the white target; through the iris. Also the quantized axes (None without a carrier)."""
+        if aux is None or not all(k in aux for k in ("z", "a", "b")):
+            cam = iris_config(self.cfg, self._f_number)
+            from mlaqc.optics.scene import WhiteScene
+
+            return CarrierView("white", cam, WhiteScene(), 0, flux_scale=white_flux_scale(self.cfg, self._f_number)), None
+        q = self.quantum_um * 1e-3
+        axes = {k: round(round(float(aux[k]) / q) * q, 9) + 0.0 for k in ("z", "a", "b")}
+        return carrier_view(self.cfg, self.carrier, axes, self._f_number, self.pinhole_photons), axes
+
+    def _photons(self, array: WaferArray, offset_um: tuple[float, float], view: CarrierView,
+                 axes: dict[str, float] | None) -> tuple[np.ndarray, bool, float, tuple]:
+        """(expected photons, cache hit?, render seconds, cache key) for an array at an offset, seen as `view`."""
         s = self.cfg.sensor
-        if not self.wafer.in_view(offset_um):
+        if not self.wafer.in_view(offset_um) or view.scene is None:
             if self._empty is None:
                 self._empty = np.zeros((s.height_px, s.width_px), np.float32)
                 self._empty.setflags(write=False)
             return self._empty, True, 0.0, (array.m, array.n)
         qx, qy = self._quantize(offset_um)
-        key = (array.m, array.n, qx, qy)
+        key: tuple = (array.m, array.n, qx, qy)
+        tag = ""
+        if view.cfg is not self.cfg or view.kind != "white":  # the plain white view keeps its historical key and seed
+            key += (view.kind, self._f_number, *((axes["z"], axes["a"], axes["b"]) if view.kind != "white" else ()))
+            tag = ":" + ":".join(f"{v}" for v in key[4:])
         cached = self._cache.get(key)
         if cached is not None:
             self._cache.move_to_end(key)
             self.stats["cache_hits"] += 1
             return cached, True, 0.0, key
         from mlaqc.optics.render import Renderer
-        from mlaqc.optics.scene import WhiteScene
 
         start = time.perf_counter()
         errors = array.errors.with_globals(mla_shift_x_um=qx, mla_shift_y_um=qy)
-        render_seed = zlib.crc32(f"{self.seed}:{array.m}:{array.n}:{qx:.6f}:{qy:.6f}".encode())
-        result = Renderer(self.cfg, errors).render(WhiteScene(), rays_per_pixel=self.rays_per_pixel,
+        render_seed = zlib.crc32(f"{self.seed}:{array.m}:{array.n}:{qx:.6f}:{qy:.6f}{tag}".encode())
+        result = Renderer(view.cfg, errors).render(view.scene, rays_per_pixel=self.rays_per_pixel,
                                                    seed=render_seed, threads=self.threads)
-        photons = result.photons.astype(np.float32)
+        photons = result.photons * view.flux_scale if view.flux_scale != 1.0 else result.photons
+        if view.kind == "pinholes":  # spots about a pixel wide: diffraction and crosstalk shape their peaks
+            from mlaqc.optics.formation import apply_formation
+
+            photons = apply_formation(photons, view.cfg)
+        photons = photons.astype(np.float32)
         photons.setflags(write=False)
         elapsed = time.perf_counter() - start
         self.stats["renders"] += 1
@@ -606,6 +713,17 @@ class _Params:
         if value < minimum:
             raise self._bad(name, f"must be at least {minimum}")
         return value
+
+    def numbers(self, name: str, default: tuple[float, ...]) -> tuple[float, ...]:
+        if name not in self.params:
+            return default
+        try:
+            values = tuple(float(v) for v in self.params[name].split(","))
+        except ValueError:
+            raise self._bad(name, "must be numbers separated by commas, e.g. 10,-10") from None
+        if not all(math.isfinite(v) for v in values):
+            raise self._bad(name, "must be finite")
+        return values
 
     def pair(self, name: str, default: tuple[float, float] | None) -> tuple[float, float] | None:
         if name not in self.params:

@@ -6,7 +6,9 @@ with 'ok' at once and executed at `speed_mm_s` (state Run, position interpolated
 reports with MPos (or WPos) and FS, WCO every 10th report; '!' feed hold (Hold:1 for `decel_s`, then
 Hold:0), '~' resume, 0x18 soft reset (ALARM:3 if moving, ALARM:6 if homing: position lost; from Idle or
 Hold:0 the position is kept); controller-side soft limits (ALARM:2, locked until reset); G-code in
-alarm -> error:9; malformed lines -> GRBL's error codes.
+alarm -> error:9; malformed lines -> GRBL's error codes. `axes` is "XYZ" (GRBL 1.1, the default) or
+"XYZAB" (a 5-axis port such as grblHAL: A and B words, five MPos values); every axis homes to 0 and has
+controller soft limits 0..travel (`travel_mm` for X and Y, `aux_travel_mm` for Z, A, B).
 
 GRBL-specific fault injection (see drivers.sim.base for the common ones):
 - `fail_next(code=20, match="")`: the next command line (starting with `match`) gets 'error:code';
@@ -32,7 +34,7 @@ WCO_EVERY = 10
 
 
 class GrblSim(SimDevice):
-    """Simulated GRBL 1.1 controller with an XY(Z) machine of `travel_mm` (machine coords 0..travel)."""
+    """Simulated GRBL 1.1 controller with an XYZ (or XYZAB) machine of `travel_mm` (machine coords 0..travel)."""
 
     name = "grbl-sim"
 
@@ -40,10 +42,19 @@ class GrblSim(SimDevice):
                  travel_mm: tuple[float, float] = (200.0, 200.0), start_mm: tuple[float, float] | None = None,
                  latency_s: float = 0.0, decel_s: float = 0.005, soft_limits: bool = True,
                  homing_lock: bool = True, report_wpos: bool = False,
-                 wco_mm: tuple[float, float, float] = (0.0, 0.0, 0.0)) -> None:
+                 wco_mm: tuple[float, ...] = (0.0, 0.0, 0.0), axes: str = "XYZ",
+                 aux_travel_mm: float | tuple[float, ...] = 100.0) -> None:
         super().__init__(latency_s=latency_s)
         if speed_mm_s <= 0:
             raise ValueError(f"speed_mm_s {speed_mm_s} must be positive")
+        if axes not in ("XYZ", "XYZA", "XYZAB"):
+            raise ValueError(f"axes {axes!r} must be XYZ, XYZA or XYZAB")
+        self.axes = axes
+        n_aux = len(axes) - 2
+        aux = (float(aux_travel_mm),) * n_aux if isinstance(aux_travel_mm, (int, float)) else tuple(aux_travel_mm)
+        if len(aux) < n_aux or min(aux[:n_aux]) <= 0:
+            raise ValueError(f"aux_travel_mm {aux_travel_mm!r} needs a positive travel for each of {axes[2:]}")
+        self.aux_travel_mm = aux[:n_aux]
         self.speed_mm_s = speed_mm_s
         self.homing_speed_mm_s = homing_speed_mm_s or speed_mm_s
         self.travel_mm = travel_mm
@@ -51,9 +62,9 @@ class GrblSim(SimDevice):
         self.soft_limits = soft_limits
         self.homing_lock = homing_lock
         self.report_wpos = report_wpos
-        self.wco_mm = wco_mm
+        self.wco_mm = tuple(wco_mm) + (0.0,) * (len(axes) - len(wco_mm))
         start = start_mm if start_mm is not None else (travel_mm[0] / 2, travel_mm[1] / 2)
-        self._pos: tuple[float, float, float] = (start[0], start[1], 0.0)
+        self._pos: tuple[float, ...] = (start[0], start[1]) + (0.0,) * n_aux
         self._state = "Idle"
         self._hold_sub = 0
         self._hold_until = 0.0
@@ -61,8 +72,8 @@ class GrblSim(SimDevice):
         self._homed = False
         self._home_done_at: float | None = None
         self._motion: Motion | None = None
-        self._planner: deque[tuple[tuple[float, float, float], float]] = deque()
-        self._resume: tuple[tuple[float, float, float], float] | None = None
+        self._planner: deque[tuple[tuple[float, ...], float]] = deque()
+        self._resume: tuple[tuple[float, ...], float] | None = None
         self._line = bytearray()
         self._overflow = False
         self._absolute = True
@@ -89,6 +100,13 @@ class GrblSim(SimDevice):
             self._advance(time.monotonic())
             pos = self._current(time.monotonic())
             return (pos[0], pos[1])
+
+    @property
+    def axes_mm(self) -> tuple[float, ...]:
+        """True machine position of every axis (X, Y, Z[, A, B]) now."""
+        with self._lock:
+            self._advance(time.monotonic())
+            return tuple(self._current(time.monotonic()))
 
     @property
     def homed(self) -> bool:
@@ -178,12 +196,12 @@ class GrblSim(SimDevice):
     def _finish_homing(self, now: float) -> None:
         """Homing cycle completed: machine origin, Idle, 'ok' for the '$H'."""
         self._home_done_at = None
-        self._pos = (0.0, 0.0, 0.0)
+        self._pos = (0.0,) * len(self.axes)
         self._homed = True
         self._set_state("Idle")
         self._emit(gc.encode_ok(), now)
 
-    def _current(self, now: float) -> tuple[float, float, float]:
+    def _current(self, now: float) -> tuple[float, ...]:
         """Position now (interpolated while moving)."""
         if self._motion is not None:
             return self._motion.position(now)  # type: ignore[return-value]
@@ -321,6 +339,7 @@ class GrblSim(SimDevice):
         elif command == "$$":
             settings = [(22, "1"), (110, f"{self.speed_mm_s * 60:g}"), (111, f"{self.speed_mm_s * 60:g}"),
                         (130, f"{self.travel_mm[0]:g}"), (131, f"{self.travel_mm[1]:g}")]
+            settings += [(132 + k, f"{t:g}") for k, t in enumerate(self.aux_travel_mm)]
             self._emit(b"".join(gc.encode_setting(n, v) for n, v in settings) + gc.encode_ok(), now)
         else:
             self._emit(gc.encode_error(3), now)
@@ -330,7 +349,7 @@ class GrblSim(SimDevice):
         if self._state not in ("Idle", "Alarm"):
             self._emit(gc.encode_error(8), now)
             return
-        distance = max(abs(self._pos[0]), abs(self._pos[1]))
+        distance = max(abs(v) for v in self._pos)
         self._home_done_at = now + max(0.005, distance / self.homing_speed_mm_s)
         self._set_state("Home")
 
@@ -355,11 +374,11 @@ class GrblSim(SimDevice):
         if self._state == "Idle":
             self._start_next(now)
 
-    def _interpret(self, block: gc.Block) -> tuple[tuple[float, float, float] | None, float]:
+    def _interpret(self, block: gc.Block) -> tuple[tuple[float, ...] | None, float]:
         """Target (machine mm) and speed (mm/s) of a block, after applying its modal words."""
         g_words = [int(v) if v == int(v) else v for v in block.values("G")]
         for letter, _ in block.words:
-            if letter not in "GMXYZF" and letter not in IGNORED_WORDS:
+            if letter not in "GMF" + self.axes and letter not in IGNORED_WORDS:
                 raise gc.GcodeError(20)
         if any(g not in SUPPORTED_G for g in g_words) or any(m not in SUPPORTED_M for m in block.values("M")):
             raise gc.GcodeError(20)
@@ -372,7 +391,7 @@ class GrblSim(SimDevice):
             self._absolute = 90 in g_words
         if motion:
             self._rapid = motion[0] == 0
-        axes = {a: block.get(a) for a in "XYZ"}
+        axes = {a: block.get(a) for a in self.axes}
         if all(v is None for v in axes.values()):
             if 53 in g_words:
                 raise gc.GcodeError(26)
@@ -383,11 +402,11 @@ class GrblSim(SimDevice):
             raise gc.GcodeError(22)
         return self._target(axes, machine=53 in g_words), self._speed()
 
-    def _target(self, axes: dict[str, float | None], *, machine: bool) -> tuple[float, float, float]:
+    def _target(self, axes: dict[str, float | None], *, machine: bool) -> tuple[float, ...]:
         """Machine target from axis words: G53 machine coords, G90 work coords (+WCO) or G91 increments."""
         base = self._planner[-1][0] if self._planner else self._current(time.monotonic())
         target = []
-        for i, letter in enumerate("XYZ"):
+        for i, letter in enumerate(self.axes):
             value = axes[letter]
             if value is None:
                 target.append(base[i])
@@ -397,7 +416,7 @@ class GrblSim(SimDevice):
                 target.append(value + self.wco_mm[i])
             else:
                 target.append(base[i] + value)
-        return (target[0], target[1], target[2])
+        return tuple(target)
 
     def _speed(self) -> float:
         """mm/s of the current motion mode."""
@@ -405,10 +424,11 @@ class GrblSim(SimDevice):
             return self.speed_mm_s
         return min(self.speed_mm_s, self._feed_mm_min / 60.0)
 
-    def _within_travel(self, target: tuple[float, float, float]) -> bool:
-        """Controller-side soft limits: 0..travel on X and Y."""
+    def _within_travel(self, target: tuple[float, ...]) -> bool:
+        """Controller-side soft limits: 0..travel on every axis."""
         eps = 1e-9
-        return all(-eps <= target[i] <= self.travel_mm[i] + eps for i in (0, 1))
+        travel = (*self.travel_mm[:2], *self.aux_travel_mm)
+        return all(-eps <= target[i] <= travel[i] + eps for i in range(len(target)))
 
     def _start_next(self, now: float) -> None:
         """Start the next queued move, or go Idle."""

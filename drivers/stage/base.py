@@ -11,6 +11,13 @@ Contract (what the scan runner and the GUI may rely on):
   without waiting for the command lock, and cancels the move in flight and moves queued on the lock.
 - A lost connection raises DeviceError naming the device and what it was doing; the stage is then
   disconnected and unhomed until `connect()` and `home()` again.
+
+Auxiliary axes: a controller may drive more than the MLA's X and Y. `aux_axes` names them, from
+AUX_AXES: ``z`` (the target carrier's focus axis, along the optical axis) and ``a``, ``b`` (the
+carrier's two lateral axes), each with its own soft limits in `aux_limits`. `move_aux({"z": 42.0})`,
+`aux_position()` and `last_aux` work like `move_to`, `position()` and `last_position` (same lock,
+deadlines, stop, limit and homing checks); a stage without the axis refuses with InputError before
+sending anything. `home()` homes every axis.
 """
 
 from __future__ import annotations
@@ -21,7 +28,7 @@ import threading
 import time
 from abc import ABC, abstractmethod
 from dataclasses import dataclass
-from typing import Callable, Protocol, Sequence, TypeVar
+from typing import Callable, Mapping, Protocol, Sequence, TypeVar
 
 from mlaqc.errors import DeviceError, InputError
 
@@ -30,6 +37,31 @@ from .transport import PortError
 log = logging.getLogger(__name__)
 
 T = TypeVar("T")
+
+
+AUX_AXES = ("z", "a", "b")  # auxiliary axes a stage may have, in the order controllers number them
+DEFAULT_AUX_LIMITS_MM = (0.0, 100.0)
+
+
+def check_aux_limits(aux_limits: Mapping[str, tuple[float, float]] | None) -> dict[str, tuple[float, float]]:
+    """{axis: (min, max)} for known auxiliary axes with finite, non-empty ranges, else InputError."""
+    out: dict[str, tuple[float, float]] = {}
+    for name, bounds in (aux_limits or {}).items():
+        if name not in AUX_AXES:
+            raise InputError(f"stage axis {name!r} is not an auxiliary axis; expected some of {', '.join(AUX_AXES)}")
+        try:
+            lo, hi = (float(v) for v in bounds)
+        except (TypeError, ValueError):
+            raise InputError(f"stage {name.upper()} limits {bounds!r} must be two numbers (min, max) in mm") from None
+        if not (math.isfinite(lo) and math.isfinite(hi) and lo < hi):
+            raise InputError(f"stage {name.upper()} limits {lo:g}..{hi:g} mm must be finite and non-empty")
+        out[name] = (lo, hi)
+    return {name: out[name] for name in AUX_AXES if name in out}
+
+
+def format_aux(values: Mapping[str, float]) -> str:
+    """'Z=42.000 A=1.250 mm'."""
+    return " ".join(f"{k.upper()}={v:.3f}" for k, v in values.items()) + " mm"
 
 
 class StageStopped(DeviceError):
@@ -114,10 +146,12 @@ class Stage(ABC):
     sim: object | None = None  # the simulator behind a sim+.../mock:// stage (fault injection), else None
 
     def __init__(self, *, url: str, limits: Limits, name: str | None = None, poll_s: float = 0.05,
-                 stop_timeout_s: float = 2.0, owned: Sequence[_Closeable] = ()) -> None:
+                 stop_timeout_s: float = 2.0, owned: Sequence[_Closeable] = (),
+                 aux_limits: Mapping[str, tuple[float, float]] | None = None) -> None:
         self.url = url
         self.name = name or f"{self.protocol} stage {url}"
         self.limits = limits
+        self.aux_limits = check_aux_limits(aux_limits)
         self.poll_s = poll_s
         self.stop_timeout_s = stop_timeout_s
         self._owned = list(owned)
@@ -129,6 +163,7 @@ class Stage(ABC):
         self._connected = False
         self._doing = "idle"
         self._last_position: tuple[float, float] | None = None
+        self._last_aux: dict[str, float] | None = None
 
     # ------------------------------------------------------------ lifecycle
 
@@ -156,6 +191,17 @@ class Stage(ABC):
     def last_position(self) -> tuple[float, float] | None:
         """The most recent position the device reported (mm), without asking it: for live displays."""
         return self._last_position
+
+    @property
+    def aux_axes(self) -> tuple[str, ...]:
+        """The auxiliary axes this stage drives (see AUX_AXES), () for a plain XY stage."""
+        return tuple(self.aux_limits)
+
+    @property
+    def last_aux(self) -> dict[str, float] | None:
+        """The most recent auxiliary-axis positions the device reported (mm), without asking it; None if none."""
+        aux = self._last_aux
+        return None if aux is None else dict(aux)
 
     def connect(self) -> None:
         """Open the port and synchronise with the controller; a no-op when already connected."""
@@ -231,6 +277,23 @@ class Stage(ABC):
 
         self._run(f"moving by ({dx:.3f}, {dy:.3f}) mm", timeout, step, gen=gen, stop_on_timeout=True)
 
+    def move_aux(self, targets: Mapping[str, float], timeout_s: float = 30.0) -> None:
+        """Move auxiliary axes to absolute positions, e.g. {"z": 42.0, "a": 10.1}, and block until there;
+        refused (before anything is sent) for an axis the stage lacks, outside its limits or before homing."""
+        clean = self._check_aux_move(targets)
+        timeout = _check_timeout(timeout_s)
+        gen = self._stop_gen
+        doing = f"moving {format_aux(clean)}"
+        self._run(doing, timeout, lambda deadline: self._move_aux_locked(clean, deadline, gen), gen=gen,
+                  stop_on_timeout=True)
+
+    def aux_position(self, timeout_s: float = 5.0) -> dict[str, float]:
+        """Auxiliary-axis positions read back from the device now ({} for a plain XY stage)."""
+        timeout = _check_timeout(timeout_s)
+        if not self.aux_axes:
+            return {}
+        return self._run("reading its auxiliary axes", timeout, self._aux_position_locked)
+
     def position(self, timeout_s: float = 5.0) -> tuple[float, float]:
         """(x_mm, y_mm) read back from the device now (waits for a command in flight to finish)."""
         timeout = _check_timeout(timeout_s)
@@ -267,6 +330,27 @@ class Stage(ABC):
         if not self.limits.contains(x_mm, y_mm):
             raise InputError(f"{self.name} refused a move to ({x_mm:.3f}, {y_mm:.3f}) mm: it is outside the soft limits ({self.limits})")
         self._check_homed(f"a move to ({x_mm:.3f}, {y_mm:.3f}) mm")
+
+    def _check_aux_move(self, targets: Mapping[str, float]) -> dict[str, float]:
+        """Targets in AUX_AXES order, checked against the stage's axes, limits and homing."""
+        if not isinstance(targets, Mapping) or not targets:
+            raise InputError(f"{self.name}: an auxiliary move needs at least one axis target, e.g. {{'z': 40.0}}")
+        clean: dict[str, float] = {}
+        for name in targets:
+            if name not in self.aux_limits:
+                have = ", ".join(a.upper() for a in self.aux_axes) or "none"
+                raise InputError(f"{self.name} has no {str(name).upper()} axis (its auxiliary axes: {have}); "
+                                 "name them in the stage URL, e.g. aux=z,a,b")
+        for name in AUX_AXES:
+            if name in targets:
+                value = _check_number(f"{name}_mm", targets[name])
+                lo, hi = self.aux_limits[name]
+                if not lo <= value <= hi:
+                    raise InputError(f"{self.name} refused a move to {name.upper()}={value:.3f} mm: it is outside the "
+                                     f"soft limits ({name} {lo:g}..{hi:g} mm)")
+                clean[name] = value
+        self._check_homed(f"a move to {format_aux(clean)}")
+        return clean
 
     def _check_homed(self, what: str) -> None:
         """Refuse `what` (a move) with NotHomedError unless the stage is homed."""
@@ -347,6 +431,12 @@ class Stage(ABC):
         """Remember the latest reported position for `last_position`."""
         self._last_position = (x_mm, y_mm)
 
+    def _set_aux(self, values: Mapping[str, float]) -> None:
+        """Remember the latest reported auxiliary positions for `last_aux` (merged with earlier ones)."""
+        merged = dict(self._last_aux or {})
+        merged.update(values)
+        self._last_aux = merged
+
     # ------------------------------------------------------------ protocol hooks
 
     @abstractmethod
@@ -368,6 +458,14 @@ class Stage(ABC):
     @abstractmethod
     def _position_locked(self, deadline: float) -> tuple[float, float]:
         """Ask the device for its position in mm."""
+
+    def _move_aux_locked(self, targets: dict[str, float], deadline: float, gen: int) -> None:
+        """Move auxiliary axes by `deadline` (drivers with auxiliary axes override this)."""
+        raise self._fail(DeviceError, "cannot drive auxiliary axes")
+
+    def _aux_position_locked(self, deadline: float) -> dict[str, float]:
+        """Ask the device for its auxiliary-axis positions (drivers with auxiliary axes override this)."""
+        raise self._fail(DeviceError, "cannot read auxiliary axes")
 
     @abstractmethod
     def _busy_locked(self, deadline: float) -> bool:

@@ -13,13 +13,16 @@ Behaviour:
 - timeout: the same halt, and a soft reset if the hold is not confirmed (then the stage is unhomed).
 - ALARM:N -> StageAlarm with GRBL's text, stage unhomed; error:N -> DeviceError with GRBL's text;
   garbage lines are logged and counted (`garbage_lines`) and otherwise ignored.
+- auxiliary axes (`aux_limits` keys, URL ``aux=z`` or ``aux=z,a,b``): Z is GRBL 1.1's third axis; A
+  and B are the fourth and fifth axes of 5-axis GRBL ports (grblHAL), reported as the 4th and 5th MPos
+  values. `move_aux` sends one 'G90 G53 G0 Z.. A.. B..' line and polls like an XY move.
 """
 
 from __future__ import annotations
 
 import logging
 import time
-from typing import Sequence
+from typing import Mapping, Sequence
 
 from mlaqc.errors import DeviceError
 
@@ -30,6 +33,7 @@ from .transport import Transport
 log = logging.getLogger(__name__)
 
 TARGET_TOLERANCE_MM = 0.0015  # GRBL reports 3 decimals
+AXIS_INDEX = {"z": 2, "a": 3, "b": 4}  # auxiliary axis -> index in MPos/WPos reports
 
 
 class GrblStage(Stage):
@@ -39,9 +43,10 @@ class GrblStage(Stage):
 
     def __init__(self, port: str, *, url: str | None = None, baud: int = 115200, limits: Limits = Limits(),
                  feed_mm_min: float | None = None, connect_timeout_s: float = 3.0, poll_s: float = 0.1,
-                 stop_timeout_s: float = 2.0, name: str | None = None, owned: Sequence[_Closeable] = ()) -> None:
+                 stop_timeout_s: float = 2.0, name: str | None = None, owned: Sequence[_Closeable] = (),
+                 aux_limits: Mapping[str, tuple[float, float]] | None = None) -> None:
         super().__init__(url=url or port, limits=limits, name=name, poll_s=poll_s,
-                         stop_timeout_s=stop_timeout_s, owned=owned)
+                         stop_timeout_s=stop_timeout_s, owned=owned, aux_limits=aux_limits)
         self.port = port
         self.feed_mm_min = feed_mm_min
         self.connect_timeout_s = connect_timeout_s
@@ -123,6 +128,9 @@ class GrblStage(Stage):
         pos = status.machine_position(self._wco_mm)
         if pos is not None and len(pos) >= 2:
             self._set_position(pos[0], pos[1])
+            aux = {name: pos[AXIS_INDEX[name]] for name in self.aux_axes if AXIS_INDEX[name] < len(pos)}
+            if aux:
+                self._set_aux(aux)
 
     # ------------------------------------------------------------ exchanges
 
@@ -228,13 +236,23 @@ class GrblStage(Stage):
 
     def _move_locked(self, x_mm: float, y_mm: float, deadline: float, gen: int) -> None:
         """Send the move, wait for 'ok', then poll '?' until Idle at the target."""
+        self._move_axes_locked({0: x_mm, 1: y_mm}, gc.encode_move(x_mm, y_mm, feed_mm_min=self.feed_mm_min),
+                               deadline, gen)
+
+    def _move_aux_locked(self, targets: dict[str, float], deadline: float, gen: int) -> None:
+        """Move the auxiliary axes with one G53 line, then poll like an XY move."""
+        line = gc.encode_move_axes({name.upper(): v for name, v in targets.items()}, feed_mm_min=self.feed_mm_min)
+        self._move_axes_locked({AXIS_INDEX[name]: v for name, v in targets.items()}, line, deadline, gen)
+
+    def _move_axes_locked(self, target_mm: dict[int, float], line: bytes, deadline: float, gen: int) -> None:
+        """Send a move line, wait for 'ok', then poll '?' until Idle with every axis (by report index) at its target."""
         self._ready(deadline)
         if self._stopped(gen):  # stop() arrived during the readiness check: clear its hold, send nothing
             self._settle_locked(time.monotonic() + self.stop_timeout_s)
             raise StopRequested()
         resets = self._unexpected_resets
-        self._send_line(gc.encode_move(x_mm, y_mm, feed_mm_min=self.feed_mm_min), deadline, "'ok' for the move command")
-        target = (round(x_mm, 3), round(y_mm, 3))
+        self._send_line(line, deadline, "'ok' for the move command")
+        target = {i: round(v, 3) for i, v in target_mm.items()}
         while True:
             if self._stopped(gen):
                 self._settle_locked(time.monotonic() + self.stop_timeout_s)
@@ -250,10 +268,15 @@ class GrblStage(Stage):
             if time.monotonic() >= deadline:
                 raise Expired("Idle status at the target")
 
-    def _at(self, status: gc.Status, target: tuple[float, float]) -> bool:
-        """True if the report's machine position is the target (within GRBL's 3-decimal rounding)."""
+    def _at(self, status: gc.Status, target: dict[int, float]) -> bool:
+        """True if the report's machine position is the target (axis index -> mm, within GRBL's 3-decimal rounding)."""
         pos = status.machine_position(self._wco_mm)
-        return pos is not None and all(abs(p - t) <= TARGET_TOLERANCE_MM for p, t in zip(pos, target))
+        if pos is None:
+            return False
+        if any(i >= len(pos) for i in target):
+            raise self._fail(DeviceError, f"reports only {len(pos)} axes, not the {gc.AXIS_LETTERS[max(target)]} axis it "
+                                          "was asked to move (check the URL's aux= against the controller)")
+        return all(abs(pos[i] - t) <= TARGET_TOLERANCE_MM for i, t in target.items())
 
     def _position_locked(self, deadline: float) -> tuple[float, float]:
         """Machine position from a fresh status report (waits for a WCO if GRBL reports WPos only)."""
@@ -263,6 +286,20 @@ class GrblStage(Stage):
             if pos is not None:
                 return (pos[0], pos[1])
             self._pause(deadline)
+
+    def _aux_position_locked(self, deadline: float) -> dict[str, float]:
+        """Auxiliary-axis machine positions from a fresh status report."""
+        self._drain()
+        while True:
+            pos = self._query_status(deadline).machine_position(self._wco_mm)
+            if pos is not None:
+                break
+            self._pause(deadline)
+        missing = [name.upper() for name in self.aux_axes if AXIS_INDEX[name] >= len(pos)]
+        if missing:
+            raise self._fail(DeviceError, f"reports only {len(pos)} axes, so it has no {', '.join(missing)} axis "
+                                          "(check the URL's aux= against the controller)")
+        return {name: pos[AXIS_INDEX[name]] for name in self.aux_axes}
 
     def _busy_locked(self, deadline: float) -> bool:
         """True if GRBL reports motion (Run, Jog, Home or a hold still decelerating)."""

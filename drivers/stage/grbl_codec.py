@@ -22,6 +22,7 @@ CYCLE_START = b"~"
 SOFT_RESET = b"\x18"
 REALTIME_BYTES = frozenset({ord("?"), ord("!"), ord("~"), 0x18})
 
+AXIS_LETTERS = ("X", "Y", "Z", "A", "B", "C")  # report order of MPos/WPos values
 LINE_MAX_CHARS = 80  # GRBL's serial line buffer (LINE_BUFFER_SIZE) on the ATmega328p
 VERSION = "1.1h"
 
@@ -371,6 +372,23 @@ def encode_move(x_mm: float, y_mm: float, *, feed_mm_min: float | None = None) -
     if feed_mm_min is None:
         return encode_line(f"G90 G53 G0 X{_num(x_mm)} Y{_num(y_mm)}")
     return encode_line(f"G90 G53 G1 X{_num(x_mm)} Y{_num(y_mm)} F{feed_mm_min:g}")
+
+
+def encode_move_axes(targets: dict[str, float], *, feed_mm_min: float | None = None) -> bytes:
+    """Absolute move of any axes in machine coordinates, e.g. {'Z': 40.0, 'A': 1.5} ->
+    'G90 G53 G0 Z40 A1.5' (GRBL 1.1 has X, Y, Z; grblHAL and other GRBL ports add A, B, C)."""
+    if not targets:
+        raise ValueError("a move needs at least one axis")
+    words = []
+    for letter, value in targets.items():
+        if letter not in AXIS_LETTERS:
+            raise ValueError(f"{letter!r} is not a GRBL axis letter ({', '.join(AXIS_LETTERS)})")
+        if not math.isfinite(value):
+            raise ValueError(f"move target {letter}={value} is not finite")
+        words.append(f"{letter}{_num(value)}")
+    mode = "G0" if feed_mm_min is None else "G1"
+    feed = "" if feed_mm_min is None else f" F{feed_mm_min:g}"
+    return encode_line(f"G90 G53 {mode} {' '.join(words)}{feed}")
 
 
 def encode_home() -> bytes:

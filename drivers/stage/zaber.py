@@ -12,6 +12,8 @@ Same layering as GRBL: zaber_codec (messages), transport (port), this state mach
 - RJ replies -> DeviceError with the reason; F* fault flags -> StageAlarm (stage unhomed);
   WR/WH during motion -> StageAlarm; other flags are logged.
 Positions convert with `microstep_um` (µm per microstep): steps = round(mm * 1000 / microstep_um).
+Auxiliary axes (`aux`: {"z": AxisAddress(1, 3), ...}, URL ``aux=z:1.3,a:2.1,b:2.2``) are further axes on
+the same chain: homed with X and Y, moved by `move_aux` ('move abs' on each, poll, check 'get pos').
 """
 
 from __future__ import annotations
@@ -21,12 +23,12 @@ import logging
 import threading
 import time
 from dataclasses import dataclass
-from typing import Sequence
+from typing import Mapping, Sequence
 
 from mlaqc.errors import DeviceError, InputError
 
 from . import zaber_codec as zc
-from .base import Expired, Limits, NotHomedError, Stage, StageAlarm, StopRequested, _Closeable
+from .base import Expired, Limits, NotHomedError, Stage, StageAlarm, StopRequested, _Closeable, format_aux
 from .transport import Transport
 
 log = logging.getLogger(__name__)
@@ -64,6 +66,33 @@ def parse_axes(text: str) -> tuple[AxisAddress, AxisAddress]:
     return addresses[0], addresses[1]
 
 
+def parse_aux_axes(text: str, xy: tuple[AxisAddress, AxisAddress] = ()) -> dict[str, AxisAddress]:
+    """'z:1.3,a:2.1,b:2.2' -> {"z": AxisAddress(1, 3), ...}; InputError if malformed or reusing an axis."""
+    from .base import AUX_AXES
+
+    out: dict[str, AxisAddress] = {}
+    for part in (p.strip() for p in text.split(",")):
+        if not part:
+            continue
+        name, sep, where = part.partition(":")
+        name = name.strip().lower()
+        if not sep or name not in AUX_AXES:
+            raise InputError(f"Zaber auxiliary axis {part!r} in {text!r} must be NAME:DEVICE.AXIS with NAME one of "
+                             f"{', '.join(AUX_AXES)}, e.g. 'z:1.3'")
+        if name in out:
+            raise InputError(f"Zaber auxiliary axes {text!r} name axis {name!r} twice")
+        device, _, axis = where.strip().partition(".")
+        if not device.isdigit() or (axis and not axis.isdigit()):
+            raise InputError(f"Zaber auxiliary axis {part!r} in {text!r} is not 'NAME:device' or 'NAME:device.axis'")
+        addr = AxisAddress(int(device), int(axis or 1))
+        if not (1 <= addr.device <= 99 and 1 <= addr.axis <= 9):
+            raise InputError(f"Zaber auxiliary axis {part!r} in {text!r} is out of range (device 1-99, axis 1-9)")
+        if addr in xy or addr in out.values():
+            raise InputError(f"Zaber auxiliary axis {part!r} in {text!r} reuses {addr}")
+        out[name] = addr
+    return out
+
+
 class ZaberStage(Stage):
     """An XY stage made of two Zaber ASCII axes on `port` (any pyserial URL or device path)."""
 
@@ -73,13 +102,21 @@ class ZaberStage(Stage):
                  axes: tuple[AxisAddress, AxisAddress] = (AxisAddress(1, 1), AxisAddress(1, 2)),
                  microstep_um: float = 0.1, connect_timeout_s: float = 2.0, poll_s: float = 0.05,
                  stop_timeout_s: float = 2.0, checksum: bool = False, name: str | None = None,
-                 owned: Sequence[_Closeable] = ()) -> None:
+                 owned: Sequence[_Closeable] = (), aux: Mapping[str, AxisAddress] | None = None,
+                 aux_limits: Mapping[str, tuple[float, float]] | None = None) -> None:
+        aux = dict(aux or {})
+        if aux_limits is None:
+            aux_limits = {name: (0.0, 100.0) for name in aux}
+        if set(aux) != set(aux_limits):
+            raise InputError(f"Zaber auxiliary axes {sorted(aux)} and their limits {sorted(aux_limits)} differ")
         super().__init__(url=url or port, limits=limits, name=name, poll_s=poll_s,
-                         stop_timeout_s=stop_timeout_s, owned=owned)
+                         stop_timeout_s=stop_timeout_s, owned=owned, aux_limits=aux_limits)
         if not microstep_um > 0:
             raise InputError(f"Zaber microstep_um {microstep_um!r} must be positive")
         self.port = port
         self.axes = axes
+        self.aux = {name: aux[name] for name in self.aux_axes}
+        self._every_axis = (*axes, *self.aux.values())
         self.microstep_um = microstep_um
         self.connect_timeout_s = connect_timeout_s
         self.checksum = checksum
@@ -90,8 +127,8 @@ class ZaberStage(Stage):
 
     @property
     def devices(self) -> list[int]:
-        """Distinct device numbers used by the two axes."""
-        return sorted({a.device for a in self.axes})
+        """Distinct device numbers used by the axes (X, Y and any auxiliary ones)."""
+        return sorted({a.device for a in self._every_axis})
 
     # ------------------------------------------------------------ units
 
@@ -112,8 +149,10 @@ class ZaberStage(Stage):
         self._transport.discard_input()
         for device in self.devices:
             self._command(AxisAddress(device, 0), "", deadline)
-        self._homed = not any(self._unreferenced(addr, deadline) for addr in self.axes)
+        self._homed = not any(self._unreferenced(addr, deadline) for addr in self._every_axis)
         self._position_locked(deadline)
+        if self.aux:
+            self._aux_position_locked(deadline)
 
     def _close_port(self) -> None:
         """Close the port."""
@@ -186,19 +225,21 @@ class ZaberStage(Stage):
     # ------------------------------------------------------------ commands
 
     def _home_locked(self, deadline: float, gen: int) -> None:
-        """Clear warnings, 'home' both axes, wait until both are IDLE."""
+        """Clear warnings, 'home' every axis, wait until all are IDLE."""
         self._drain()
-        for addr in self.axes:
+        for addr in self._every_axis:
             self._command(addr, "warnings clear", deadline, check=False)
         if self._stopped(gen):
             raise StopRequested()
-        for addr in self.axes:
+        for addr in self._every_axis:
             self._command(addr, "home", deadline)
         self._await_idle(deadline, gen, "IDLE after homing")
-        if any(self._unreferenced(addr, deadline) for addr in self.axes):
+        if any(self._unreferenced(addr, deadline) for addr in self._every_axis):
             raise self._fail(DeviceError, "still has no reference position after homing")
         self._homed = True
         self._position_locked(deadline)
+        if self.aux:
+            self._aux_position_locked(deadline)
 
     def _move_locked(self, x_mm: float, y_mm: float, deadline: float, gen: int) -> None:
         """'move abs' on both axes, wait for IDLE, check the position read back is the target."""
@@ -220,13 +261,41 @@ class ZaberStage(Stage):
         if steps_now != target:
             raise self._fail(DeviceError, f"stopped at ({self.to_mm(steps_now[0]):.4f}, {self.to_mm(steps_now[1]):.4f}) mm instead of the target")
 
+    def _move_aux_locked(self, targets: dict[str, float], deadline: float, gen: int) -> None:
+        """'move abs' on each auxiliary axis, wait for IDLE, check the positions read back are the targets."""
+        self._drain()
+        if not self._homed:
+            raise self._fail(NotHomedError, "is no longer homed; call home() first")
+        steps = {name: self.to_steps(v) for name, v in targets.items()}
+        try:
+            for name, target in steps.items():
+                if self._stopped(gen):
+                    break
+                self._command(self.aux[name], f"move abs {target}", deadline)
+        except DeviceError:
+            self._halt_now()
+            raise
+        self._await_idle(deadline, gen, "IDLE at the target")
+        now = {name: self._get_pos(self.aux[name], deadline) for name in steps}
+        self._set_aux({name: self.to_mm(v) for name, v in now.items()})
+        if now != steps:
+            raise self._fail(DeviceError, f"stopped at {format_aux({n: self.to_mm(v) for n, v in now.items()})} "
+                                          "instead of the target")
+
+    def _aux_position_locked(self, deadline: float) -> dict[str, float]:
+        """Every auxiliary axis' position in mm."""
+        self._drain()
+        aux = {name: self.to_mm(self._get_pos(addr, deadline)) for name, addr in self.aux.items()}
+        self._set_aux(aux)
+        return aux
+
     def _await_idle(self, deadline: float, gen: int, waiting_for: str) -> None:
-        """Poll both axes until IDLE; stop() -> settle and StopRequested; Expired at the deadline."""
+        """Poll every axis until IDLE; stop() -> settle and StopRequested; Expired at the deadline."""
         while True:
             if self._stopped(gen):
                 self._settle_locked(time.monotonic() + self.stop_timeout_s)
                 raise StopRequested()
-            if not any(self._command(addr, "", deadline).busy for addr in self.axes):
+            if not any(self._command(addr, "", deadline).busy for addr in self._every_axis):
                 return
             self._pause(deadline)
             if time.monotonic() >= deadline:
@@ -248,9 +317,9 @@ class ZaberStage(Stage):
         return (x_mm, y_mm)
 
     def _busy_locked(self, deadline: float) -> bool:
-        """True if either axis reports BUSY."""
+        """True if any axis reports BUSY."""
         self._drain()
-        return any(self._command(addr, "", deadline).busy for addr in self.axes)
+        return any(self._command(addr, "", deadline).busy for addr in self._every_axis)
 
     # ------------------------------------------------------------ stopping
 
@@ -260,9 +329,9 @@ class ZaberStage(Stage):
             self._transport.write(zc.encode_command(device, 0, "stop", checksum=self.checksum))
 
     def _settle_locked(self, deadline: float) -> None:
-        """Stop again (an axis may have started after the first stop) and poll until both axes are IDLE."""
+        """Stop again (an axis may have started after the first stop) and poll until every axis is IDLE."""
         self._halt_now()
-        while any(self._command(addr, "", deadline).busy for addr in self.axes):
+        while any(self._command(addr, "", deadline).busy for addr in self._every_axis):
             time.sleep(max(0.0, min(self.poll_s, deadline - time.monotonic())))
             if time.monotonic() >= deadline:
                 raise Expired("IDLE after a stop")

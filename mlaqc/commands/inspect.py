@@ -14,6 +14,10 @@ signature table stay cached in the worker process, `pipeline._models`) and rende
 memory (`inspect_remote`). Only this process writes: each report set atomically as its frame completes,
 exactly once even when a worker died and its frame ran again, then batch.csv — the same rows, verdicts
 and exit status as on this machine.
+
+--through-focus adds the second measurement (mlaqc.inspection.throughfocus): pinhole frames of the same
+array, read on the inspected frame's grid and combined into its report (mlaqc.inspection.combine). A scan
+folder whose plan had a [through_focus] step pairs each white frame with the pinhole frames of its position.
 """
 
 from __future__ import annotations
@@ -57,6 +61,10 @@ def register(sub: argparse._SubParsersAction) -> None:
     src = p.add_mutually_exclusive_group()
     src.add_argument("--white", "-w", help="white image to calibrate the grid on (default: each raw itself)")
     src.add_argument("--grid", "-g", help="grid.json from `mlaqc calibrate`, reused without recalibrating")
+    p.add_argument("--through-focus", "-t", nargs="+", metavar="FRAME", default=[],
+                   help="through-focus pinhole frames of the same array (+u and -u pairs, each with its "
+                        ".sim.json or .meta.json record): every covered lens' focal error with its sign, "
+                        "combined into the report (one raw only; a scan folder pairs its own)")
     p.add_argument("--config", "-c", help="camera config TOML (default: the paper's Table 1 camera)")
     p.add_argument("--out", "-o", required=True, help="output folder for the report set(s)")
     p.add_argument("--quiet", "-q", action="store_true", help="no summary on stderr")
@@ -87,8 +95,17 @@ def summary(result) -> str:
              f"RMS residual {g.rms_residual_px:.3f} px",
              "  by type: " + (", ".join(f"{k} {v}" for k, v in sorted(kinds.items())) or "none"),
              f"  this frame {detection_limit_text(result.detection_limit)}",
+             *([through_focus_text(result.through_focus)] if getattr(result, "through_focus", None) is not None else []),
              "  time: " + ", ".join(f"{k} {v:.2f} s" for k, v in result.timings_s.items())]
     return "\n".join(lines)
+
+
+def through_focus_text(tf) -> str:
+    """One line on the through-focus pairs: how many lenses they read, and how well."""
+    sm = tf.summary()
+    sig = sm["focal_sigma_rel_median"]
+    return (f"  through-focus: {sm['lenses_covered']} lenses read ({100 * sm['coverage']:.1f} %) in {len(sm['pairs'])} "
+            f"pairs, focal error 1σ {'–' if sig is None else f'{100 * sig:.2f} %'} (median)")
 
 
 def shared_grid(args: argparse.Namespace, cfg: CameraConfig):
@@ -123,8 +140,9 @@ def report_folders(out: Path, raws: list[str]) -> list[Path]:
     return folders
 
 
-def scan_raws(folder: Path) -> list[str]:
-    """The raw files of a scan folder, in manifest order (a torn last line, from a kill mid-append, skipped)."""
+def scan_raws(folder: Path) -> list[tuple[str, tuple[str, ...]]]:
+    """The white raw files of a scan folder, in manifest order, each with the through-focus frames taken
+    at its position (a torn last line, from a kill mid-append, skipped)."""
     manifest = folder / "manifest.jsonl"
     if not manifest.is_file():
         raise InputError(f"{str(folder)!r} is a folder but not a scan folder (it has no manifest.jsonl)")
@@ -141,24 +159,35 @@ def scan_raws(folder: Path) -> list[str]:
                 break
             raise InputError(f"scan manifest {str(manifest)!r} is damaged at line {k + 1}") from None
         if isinstance(record, dict) and record.get("type") == "position":
-            raws += [str(folder / f["file"]) for f in record.get("files", []) if isinstance(f, dict) and "file" in f]
+            files = [f for f in record.get("files", []) if isinstance(f, dict) and "file" in f]
+            tf = tuple(str(folder / f["file"]) for f in files if f.get("through_focus"))
+            raws += [(str(folder / f["file"]), tf) for f in files if not f.get("through_focus")]
     if not raws:
         raise InputError(f"scan folder {str(folder)!r} records no frames yet")
     return raws
 
 
-def batch_raws(args_raw: list[str]) -> tuple[list[str], bool]:
-    """The raws to inspect (each scan folder replaced by its frames) and whether they are a batch
-    (several raws, or any scan folder: one report folder each plus batch.csv)."""
-    raws: list[str] = []
+def batch_raws(args_raw: list[str], through_focus: list[str] = ()) -> tuple[list[str], dict[str, tuple[str, ...]], bool]:
+    """The raws to inspect (each scan folder replaced by its white frames), the through-focus frames of
+    each (from --through-focus for one raw, from the manifest for a scan folder's), and whether they are
+    a batch (several raws, or any scan folder: one report folder each plus batch.csv)."""
+    jobs: list[tuple[str, tuple[str, ...]]] = []
     for raw in args_raw:
-        raws += scan_raws(Path(raw)) if Path(raw).is_dir() else [raw]
-    return raws, len(raws) > 1 or any(Path(r).is_dir() for r in args_raw)
+        jobs += scan_raws(Path(raw)) if Path(raw).is_dir() else [(raw, ())]
+    batch = len(jobs) > 1 or any(Path(r).is_dir() for r in args_raw)
+    if through_focus:
+        if batch:
+            raise InputError("--through-focus goes with one raw: a batch has no single array to pair them with "
+                             "(a scan folder pairs the frames of each position itself)")
+        jobs = [(jobs[0][0], tuple(through_focus))]
+    return [r for r, _ in jobs], {r: tf for r, tf in jobs if tf}, batch
 
 
-def inspect_raw(raw: str, cfg: CameraConfig, grid, levels: Levels | None = None, *, path: str | None = None):
-    """Load and inspect one raw (read from `path` if given; the report names `raw`); InputError propagates."""
-    from mlaqc.inspection.pipeline import inspect_image, load_frame
+def inspect_raw(raw: str, cfg: CameraConfig, grid, levels: Levels | None = None, *, path: str | None = None,
+                through_focus: tuple[str, ...] = ()):
+    """Load and inspect one raw (read from `path` if given; the report names `raw`), with its through-focus
+    frames if any; InputError propagates."""
+    from mlaqc.inspection.pipeline import inspect_image, load_frame, with_through_focus
 
     t0 = time.perf_counter()
     notes: list[str] = []
@@ -166,7 +195,7 @@ def inspect_raw(raw: str, cfg: CameraConfig, grid, levels: Levels | None = None,
     load_s = time.perf_counter() - t0
     result = inspect_image(img, cfg, grid=grid, source=str(raw), notes=tuple(notes))
     result.timings_s["load"] = round(load_s, 4)  # the dict is mutable; the result is frozen
-    return result
+    return with_through_focus(result, through_focus, cfg, levels) if through_focus else result
 
 
 def frame_row(result, folder: Path, seconds: float) -> dict:
@@ -177,12 +206,13 @@ def frame_row(result, folder: Path, seconds: float) -> dict:
             "seconds": round(seconds, 3), "report": str(folder), "error": "", "summary": summary(result)}
 
 
-def inspect_one(raw: str, cfg: CameraConfig, grid, folder: Path, levels: Levels | None = None) -> dict:
+def inspect_one(raw: str, cfg: CameraConfig, grid, folder: Path, levels: Levels | None = None,
+                through_focus: tuple[str, ...] = ()) -> dict:
     """Load, inspect and report one raw; a row of batch.csv (InputError propagates)."""
     from mlaqc.report import write_report
 
     t0 = time.perf_counter()
-    result = inspect_raw(raw, cfg, grid, levels)
+    result = inspect_raw(raw, cfg, grid, levels, through_focus=through_focus)
     write_report(result, folder, config_dict=cfg.to_dict())
     return {"result": result, **frame_row(result, folder, time.perf_counter() - t0)}
 
@@ -208,7 +238,7 @@ class BatchSpec:
     config_dict: dict  # for report.json
 
 
-def inspect_remote(spec: BatchSpec, raw: str, path: str, client_sees_it: bool) -> dict:
+def inspect_remote(spec: BatchSpec, raw: str, path: str, client_sees_it: bool, through_focus: tuple[str, ...] = ()) -> dict:
     """Run on a Dask worker: load the raw at `path` (absolute), inspect it and render its report set in
     memory; nothing is written. Returns {"row": batch.csv row, "contents": {file key: bytes}}, or
     {"error": sentence} for a frame that is bad input (a value, not an exception: Dask must not retry
@@ -219,7 +249,7 @@ def inspect_remote(spec: BatchSpec, raw: str, path: str, client_sees_it: bool) -
         return {"unseen": socket.gethostname()}
     t0 = time.perf_counter()
     try:
-        result = inspect_raw(raw, spec.cfg, spec.grid, spec.levels, path=path)
+        result = inspect_raw(raw, spec.cfg, spec.grid, spec.levels, path=path, through_focus=through_focus)
         contents = render_report(result, spec.config_dict)
     except InputError as exc:
         return {"error": str(exc)}
@@ -227,7 +257,7 @@ def inspect_remote(spec: BatchSpec, raw: str, path: str, client_sees_it: bool) -
 
 
 def rows_on_cluster(client: Any, raws: list[str], folders: list[Path], spec: BatchSpec,
-                    quiet: bool) -> Iterator[tuple[int, dict]]:
+                    quiet: bool, pinholes: dict[str, tuple[str, ...]] | None = None) -> Iterator[tuple[int, dict]]:
     """(index, row) of every frame inspected on the cluster of `client`, in the order they complete;
     each frame's report set is written here, once, before its row is yielded."""
     from mlaqc.inspection.pipeline import _models
@@ -239,7 +269,8 @@ def rows_on_cluster(client: Any, raws: list[str], folders: list[Path], spec: Bat
     futures = {}
     for i, raw in enumerate(raws):
         path = os.path.abspath(raw)  # workers have another working directory
-        fut = client.submit(inspect_remote, shared, raw, path, os.path.exists(path), pure=False,
+        tf = tuple(os.path.abspath(f) for f in (pinholes or {}).get(raw, ()))
+        fut = client.submit(inspect_remote, shared, raw, path, os.path.exists(path), tf, pure=False,
                             retries=cluster.TASK_RETRIES, key=f"inspect-{i + 1:05d}-{Path(raw).name}-{run_id}")
         futures[fut] = i
     label = f"inspecting {len(raws)} frames on Dask"
@@ -263,11 +294,11 @@ def rows_on_cluster(client: Any, raws: list[str], folders: list[Path], spec: Bat
 
 
 def rows_here(raws: list[str], folders: list[Path], cfg: CameraConfig, grid,
-              levels: Levels | None) -> Iterator[tuple[int, dict]]:
+              levels: Levels | None, pinholes: dict[str, tuple[str, ...]] | None = None) -> Iterator[tuple[int, dict]]:
     """(index, row) of every frame inspected in this process, in order."""
     for i, (raw, folder) in enumerate(zip(raws, folders)):
         try:
-            row = inspect_one(raw, cfg, grid, folder, levels)
+            row = inspect_one(raw, cfg, grid, folder, levels, (pinholes or {}).get(raw, ()))
         except InputError as exc:
             yield i, error_row(raw, str(exc))
             continue
@@ -284,7 +315,7 @@ def run(args: argparse.Namespace) -> int:
     """Inspect and report; 0 all PASS, 1 some FAIL, 2 some frame was bad input (batch) or bad input,
     3 the Dask cluster failed."""
     out = check_out_dir(args.out)
-    raws, batch = batch_raws(args.raw)
+    raws, pinholes, batch = batch_raws(args.raw, args.through_focus)
     cfg = load_config(args.config)
     address = cluster.scheduler_address(args.scheduler)
     if address is not None:
@@ -294,10 +325,11 @@ def run(args: argparse.Namespace) -> int:
     folders = report_folders(out, raws) if batch else [out]
     with contextlib.ExitStack() as stack:
         if address is None:
-            frames = rows_here(raws, folders, cfg, grid, levels)
+            frames = rows_here(raws, folders, cfg, grid, levels, pinholes)
         else:  # connected before anything is written: an unreachable cluster leaves no output
             client = stack.enter_context(cluster.connect(address, quiet=args.quiet))
-            frames = rows_on_cluster(client, raws, folders, BatchSpec(cfg, grid, levels, cfg.to_dict()), args.quiet)
+            frames = rows_on_cluster(client, raws, folders, BatchSpec(cfg, grid, levels, cfg.to_dict()), args.quiet,
+                                     pinholes)
         if not batch:
             return _single(frames, out, args.quiet)
         out.mkdir(exist_ok=True)

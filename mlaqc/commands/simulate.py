@@ -12,6 +12,9 @@ from mlaqc.optics.config import load_config
 from mlaqc.optics.errormap import ERROR_TYPES, ErrorMap, load_error_map, random_defects
 from mlaqc.optics.scene import PointScene, Scene, TextureScene, WhiteScene
 from mlaqc.optics.simulate import RAW_SUFFIXES, check_output, simulate, write_simulation
+from mlaqc.optics.throughfocus import PHOTONS_PER_PINHOLE, ThroughFocus
+from mlaqc.optics.throughfocus import frame_config as tf_frame_config
+from mlaqc.optics.throughfocus import scene as tf_scene
 from mlaqc.progress import ProgressBar
 
 
@@ -22,11 +25,23 @@ def register(sub: argparse._SubParsersAction) -> None:
                                    "and write it (TIFF 16-bit, DNG, NPY or PNG) with a .sim.json ground-truth record.")
     p.add_argument("--out", "-o", required=True, help=f"output raw file ({', '.join(RAW_SUFFIXES)})")
     p.add_argument("--config", "-c", help="camera config TOML (default: the paper's Table 1 camera)")
-    p.add_argument("--scene", choices=("white", "points", "texture"), default="white",
-                   help="white: uniform Lambertian plane (calibration image); points: point sources; texture: an image")
+    p.add_argument("--scene", choices=("white", "points", "texture", "through-focus"), default="white",
+                   help="white: uniform Lambertian plane (calibration image); points: point sources; texture: an image; "
+                        "through-focus: the pinhole lattice of the second measurement (main lens stopped down, "
+                        "pinholes imaged --focus-offset-mm behind the MLA)")
     p.add_argument("--points", help="point sources on the object plane, 'x,y;x,y' in mm (scene 'points')")
     p.add_argument("--point-photons", type=float, default=1e6, help="photons each point sends into the pupil")
     p.add_argument("--texture", help="image file whose grey levels are the object radiance (scene 'texture')")
+    tf = p.add_argument_group("through-focus scene")
+    tf.add_argument("--focus-offset-mm", type=float, metavar="U",
+                    help="pinholes imaged U mm behind (+) or in front of (-) the MLA (default 10)")
+    tf.add_argument("--f-number", type=float, metavar="N", help="main lens stopped to f/N (default 8)")
+    tf.add_argument("--pinhole-spacing", type=int, metavar="S", help="pinhole images S lens pitches apart (default 9)")
+    tf.add_argument("--pinhole-offset", metavar="X,Y",
+                    help="shift of the pinhole lattice in whole lens pitches (default 0,0)")
+    tf.add_argument("--pinhole-photons", type=float, metavar="P",
+                    help=f"photons each pinhole sends into the pupil (default {PHOTONS_PER_PINHOLE:.3g}: "
+                         "spot peaks near 80 %% of full well on the Table 1 sensor)")
     grp = p.add_mutually_exclusive_group()
     grp.add_argument("--errors", "-e", help="JSON error map (keyed by U(m,n))")
     grp.add_argument("--random-defects", type=int, metavar="N", help="seed N random defective lenses")
@@ -62,6 +77,41 @@ def parse_points(text: str | None) -> tuple[tuple[float, float], ...]:
     return tuple(pts)
 
 
+TF_OPTIONS = ("focus_offset_mm", "f_number", "pinhole_spacing", "pinhole_offset", "pinhole_photons")
+
+
+def build_protocol(args: argparse.Namespace) -> ThroughFocus | None:
+    """The through-focus frame the options describe (scene 'through-focus'), else None; InputError for
+    through-focus options given with another scene or out of range."""
+    given = [name for name in TF_OPTIONS if getattr(args, name, None) is not None]
+    if args.scene != "through-focus":
+        if given:
+            raise InputError(f"--{given[0].replace('_', '-')} applies only to --scene through-focus")
+        return None
+    kw: dict = {}
+    if args.focus_offset_mm is not None:
+        kw["focus_offset_mm"] = args.focus_offset_mm
+    if args.f_number is not None:
+        kw["f_number"] = args.f_number
+    if args.pinhole_spacing is not None:
+        kw["spacing_lenses"] = args.pinhole_spacing
+    if args.pinhole_photons is not None:
+        kw["photons_per_pinhole"] = args.pinhole_photons
+    if args.pinhole_offset is not None:
+        try:
+            ox, oy = (int(v) for v in args.pinhole_offset.split(","))
+        except ValueError:
+            raise InputError(f"--pinhole-offset {args.pinhole_offset!r} must be two whole numbers of lens pitches 'X,Y'") from None
+        if ox < 0 or oy < 0:
+            raise InputError(f"--pinhole-offset {args.pinhole_offset!r} must not be negative (0 to spacing - 1)")
+        kw["offset_lenses"] = (ox, oy)
+    tf = ThroughFocus(**kw)
+    if max(tf.offset_lenses) >= tf.spacing_lenses:
+        raise InputError(f"--pinhole-offset {tf.offset_lenses[0]},{tf.offset_lenses[1]} must be below the pinhole spacing "
+                         f"({tf.spacing_lenses})")
+    return tf
+
+
 def build_scene(args: argparse.Namespace) -> Scene:
     """The scene the options describe."""
     if args.scene == "points":
@@ -93,24 +143,30 @@ def run(args: argparse.Namespace) -> int:
     cfg = load_config(args.config)
     if args.threads is not None and not 1 <= args.threads <= 256:
         raise InputError("--threads must be between 1 and 256")
-    scene = build_scene(args)
+    protocol = build_protocol(args)
+    if protocol is not None:
+        render_cfg, scene = tf_frame_config(cfg, protocol), tf_scene(cfg, protocol)
+        if not scene.points_mm:
+            raise InputError("the through-focus lattice puts no pinhole on the array; choose a smaller --pinhole-offset")
+    else:
+        render_cfg, scene = cfg, build_scene(args)
     errors = build_errors(args, cfg.mla.count_h, cfg.mla.count_w)
     from mlaqc.optics.render import Renderer
 
-    renderer = Renderer(cfg, errors, engine=args.engine, sampler=args.sampler)
+    renderer = Renderer(render_cfg, errors, engine=args.engine, sampler=args.sampler)
     address = scheduler_address(args.scheduler)
     bar = ProgressBar("rendering", enabled=False if args.quiet else None)
     kw = dict(rays=args.rays, rays_per_pixel=args.rays_per_pixel, seed=args.seed, noise=not args.no_noise,
               threads=args.threads, progress=bar, renderer=renderer)
     try:
         if address is None:
-            sim = simulate(cfg, scene, errors, **kw)
+            sim = simulate(render_cfg, scene, errors, **kw)
         else:
             with connect(check_address(address), quiet=args.quiet) as client:
-                sim = simulate(cfg, scene, errors, client=client, **kw)
+                sim = simulate(render_cfg, scene, errors, client=client, **kw)
     finally:
         bar.close()
-    sidecar = write_simulation(args.out, sim, cfg)
+    sidecar = write_simulation(args.out, sim, cfg, protocol=protocol)
     if not args.quiet:
         r = sim.render
         print(f"wrote {args.out} and {sidecar.name}: {r.rays_traced:,} rays in {r.seconds:.1f} s "

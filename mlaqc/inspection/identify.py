@@ -17,13 +17,15 @@ and direction; a deviation no kind explains is 'unknown', and a reading below th
 size is counted, not flagged.
 
 Two limits are physical, not the method's (bench/type_separation.py: the best possible matched filter
-against a frame's noise). In a white image a pitch error and a surface decenter below about 10 µm change
-the sub-images identically to within the noise (both redirect the chief ray of a lens whose cell stays
-on the grid), so such a lens is reported as 'position' with both readings, never as a guess between
-them. And the default camera's best focus lies at about +5 % radius (spherical aberration puts it in
-front of the paraxial focus the sensor sits at): a radius error of +5 to +10 % hardly defocuses the
-sub-image (at 50 rays/pixel the ideal z is 2.5 to 5), while -5 % or +15 % clearly does. A radius or
-thickness error whose opposite sign fits about as well carries the other reading in `alternatives`.
+against a frame's noise). With grid lens apertures (`mla.boundaries = "grid"`) a pitch error and a surface
+decenter below about 10 µm change the sub-images identically to within the noise (both redirect the chief
+ray of a lens whose cell stays on the grid), so such a lens is reported as 'position' with both readings,
+never as a guess between them. With sag-intersection boundaries a decenter moves only the rear boundary
+and tilts the neighbours' sub-images towards the lens, a pitch error moves both and does not: the
+neighbours' tilt contrast against the lens' own shift types it (mlaqc.models.position_split) wherever
+the frame's noise separates the two, and the frame reports from what size on it does. And a radius error
+whose opposite sign fits about as well carries the other reading in `alternatives` (the microlens'
+spherical aberration puts best focus in front of the paraxial focus the sensor sits at).
 """
 
 from __future__ import annotations
@@ -40,6 +42,7 @@ from scipy.ndimage import maximum_filter, median_filter
 
 from mlaqc.inspection.metrics_kernels import median_baselines
 from mlaqc.inspection.results import Defect, LensMetrics
+from mlaqc.models.position_split import PositionSplit, contrast_sigma, neighbour_contrast, split_limits, type_position
 from mlaqc.models.signatures import FEATURES, KIND_BY_NAME, RINGS, SignatureTable, lens_features
 from mlaqc.optics.config import QC
 
@@ -786,6 +789,21 @@ def class_centred(planes: list[np.ndarray]) -> list[np.ndarray]:
     return out
 
 
+def _split_reading(split: PositionSplit, dev: dict[str, np.ndarray], m: int, n: int, shift_px: float,
+                   sigma: float, readings: tuple):
+    """A 'position' lens typed by its neighbours' tilt contrast (`type_position`): (kind, magnitude,
+    direction, alternatives), the chosen kind's reading from `readings` (pitch, decenter), or unchanged
+    'position' with both readings where this frame cannot tell."""
+    c = neighbour_contrast(dev["asym_x"][max(m - 1, 0):m + 2, max(n - 1, 0):n + 2],
+                           dev["asym_y"][max(m - 1, 0):m + 2, max(n - 1, 0):n + 2])
+    contrast = float(c[min(m, 1), min(n, 1)]) if c.shape == (3, 3) else float("nan")
+    kind, _ = type_position(split, contrast, shift_px, sigma)
+    if kind == "position":
+        return "position", readings[0][1], readings[0][3], readings
+    chosen = readings[0] if kind == "pitch" else readings[1]
+    return kind, chosen[1], chosen[3], ()
+
+
 def _readings(detect_dev: dict[str, np.ndarray], rings: RingNoise, trend: dict[str, np.ndarray]) -> dict:
     """Per-lens values against the array's typical lens: local deviation (phase pattern removed) plus its
     neighbourhood's trend; what `measure.measure_lenses` reads centres and focus from."""
@@ -795,7 +813,7 @@ def _readings(detect_dev: dict[str, np.ndarray], rings: RingNoise, trend: dict[s
 
 
 def identify(metrics: LensMetrics, missing: np.ndarray, qc: QC, table: SignatureTable, position=None,
-             phase=None, outside: np.ndarray | None = None) -> Identification:
+             phase=None, outside: np.ndarray | None = None, split: PositionSplit | None = None) -> Identification:
     """Flag, classify and size the defective lenses of one frame, and say what it could detect.
 
     `position`: optional (dx, dy) per-lens position residuals measured on this frame (the calibration's
@@ -805,7 +823,9 @@ def identify(metrics: LensMetrics, missing: np.ndarray, qc: QC, table: Signature
     flagged, never missing) and left out of every statistic.
     A lens is flagged when its deviation is significant (z above `qc.detect_sigma`, against the frame's
     own noise, floored) and its best reading is at least the minimum reportable error of its kind;
-    classification always uses the registration features the table was built with."""
+    classification always uses the registration features the table was built with. `split`: the optics'
+    pitch/decenter split (mlaqc.models.position_split; None with grid boundaries), which types a
+    'position' lens as pitch or decenter where this frame's noise allows."""
     det_floor, ring_floor = noise_floors(table, qc)
     phase = phase_model(phase) if phase is not None else None
     outside = np.zeros(missing.shape, bool) if outside is None else outside
@@ -830,6 +850,7 @@ def identify(metrics: LensMetrics, missing: np.ndarray, qc: QC, table: Signature
     fits = dict(zip(lenses, fit_all(table, vecs, sigmas, rings.whiten)))
     shifts = dict(zip(lenses, features))
     mins = min_reportable(qc)
+    split_sigma = contrast_sigma(dev["asym_x"], dev["asym_y"]) if split is not None else float("nan")
     below = 0
     for m, n in zip(*np.nonzero(flagged)):
         indexes = metrics.at(m + 1, n + 1)
@@ -839,6 +860,8 @@ def identify(metrics: LensMetrics, missing: np.ndarray, qc: QC, table: Signature
             continue
         vec, shift_dir = shifts[(m, n)]
         kind, mag, unit, direction, alts = classify(table, vec, shift_dir, sigmas, fits[(m, n)], rings.whiten)
+        if kind == "position" and split is not None:
+            kind, mag, direction, alts = _split_reading(split, dev, m, n, vec[0], split_sigma, alts)
         uv = _unit_noise(vec, sigmas, rings.whiten)
         dof = len(uv) - 1  # what noise alone leaves in the best fit's chi-square, on average
         misfit = min(c for _, c in fits[(m, n)].values()) - dof
@@ -853,7 +876,8 @@ def identify(metrics: LensMetrics, missing: np.ndarray, qc: QC, table: Signature
         defects.append(Defect(int(m) + 1, int(n) + 1, kind, mag, unit, direction, float(score[m, n]),
                               abs(mag) <= limit, indexes, alternatives=alts))
         error_type[m, n] = kind
-    return Identification(tuple(defects), flagged, error_type, score, detection_limits(table, qc, noise), below,
+    limits = detection_limits(table, qc, noise) | {"pitch_vs_decenter": split_limits(split, split_sigma)}
+    return Identification(tuple(defects), flagged, error_type, score, limits, below,
                           int(outside.sum()), noise, tuple(float(x) for x in sigmas), _readings(detect_dev, rings, trend))
 
 

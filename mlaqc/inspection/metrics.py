@@ -21,13 +21,12 @@ generator's frames). Now every index is a continuous function of the lens' posit
 from __future__ import annotations
 
 import os
-from concurrent.futures import ThreadPoolExecutor
 from functools import partial
 from itertools import pairwise
 
 import numpy as np
 
-from mlaqc.inspection.metrics_kernels import INDEX_NAMES, N_INDEX, gather_tables_at, lens_indexes
+from mlaqc.inspection.metrics_kernels import INDEX_NAMES, N_INDEX, gather_tables_at, lens_indexes, run_parts
 from mlaqc.inspection.results import LensMetrics
 from mlaqc.models.reference import ReferenceModel
 
@@ -57,8 +56,7 @@ def _gather(model: ReferenceModel, cx: np.ndarray, cy: np.ndarray, h: int, w: in
     if len(parts) <= 1:
         run(fx, fy, h, w, ntab, out)
     else:
-        with ThreadPoolExecutor(len(parts)) as pool:
-            list(pool.map(lambda ab: run(fx[ab[0]:ab[1]], fy[ab[0]:ab[1]], h, w, ntab, out[ab[0]:ab[1]]), parts))
+        run_parts(lambda ab: run(fx[ab[0]:ab[1]], fy[ab[0]:ab[1]], h, w, ntab, out[ab[0]:ab[1]]), parts, len(parts))
     return out
 
 
@@ -133,9 +131,9 @@ def compute_metrics(img: np.ndarray, cx: np.ndarray, cy: np.ndarray, model: Refe
         for a, b in chunks:
             run(a, b, out)
     else:
-        with ThreadPoolExecutor(workers) as pool:
-            list(pool.map(lambda ab: run(ab[0], ab[1], out), chunks))
-    values = {name: out[:, q].reshape(rows, cols) for q, name in enumerate(INDEX_NAMES)}
+        run_parts(lambda ab: run(ab[0], ab[1], out), chunks, workers)
+    by_index = np.ascontiguousarray(out.T)  # each index map contiguous: identification reads every one often
+    values = {name: by_index[q].reshape(rows, cols) for q, name in enumerate(INDEX_NAMES)}
     flux = values["flux"]
     rel = flux / model.flux if model.flux.shape == flux.shape else flux
     with np.errstate(invalid="ignore", divide="ignore"):

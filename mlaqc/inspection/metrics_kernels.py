@@ -11,6 +11,8 @@ float64, the reference is interpolated in float64; the entropy bins follow the N
 from __future__ import annotations
 
 import math
+import os
+from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 from numba import njit
@@ -35,6 +37,23 @@ _RING0 = INDEX_NAMES.index("ring0")
 ENTROPY_BINS = 32
 # The outermost TAPER_PX of a window fade out of every index computed against the reference (`_taper`).
 TAPER_PX = 1.0
+
+
+_POOLS: dict[int, ThreadPoolExecutor] = {}
+
+
+def run_parts(fn, parts: list, workers: int) -> None:
+    """fn(part) for every part, `workers` at a time on threads (the kernels release the GIL). With one
+    thread per core that is a pool kept for the process (per process id: a forked child starts its
+    own): starting the threads anew for every frame cost a few milliseconds."""
+    if workers != (os.cpu_count() or 1):
+        with ThreadPoolExecutor(workers) as pool:
+            list(pool.map(fn, parts))
+        return
+    pool = _POOLS.get(os.getpid())
+    if pool is None:
+        pool = _POOLS[os.getpid()] = ThreadPoolExecutor(workers, thread_name_prefix="mlaqc-kernels")
+    list(pool.map(fn, parts))
 
 
 @_jit
@@ -189,6 +208,9 @@ def lens_indexes(data, cx, cy, stack, size, c, os_, phases, pad, um_per_px, step
     counts = np.empty((4, ENTROPY_BINS + 1), np.int64)
     bins = np.empty(npx, np.int32)
     ring = np.empty(N_RING + 1)  # the last one collects the corners, unused
+    ring_k = np.empty(npx, np.int64)  # per pixel: its ring, distance to the lens centre and residual
+    ring_d = np.empty(npx)
+    ring_res = np.empty(npx)
     edges = RING_EDGES * (0.5 * h)
     inv_half = 1.0 / (0.5 * h)
     rdisc2 = (0.35 * h) ** 2
@@ -377,18 +399,25 @@ def lens_indexes(data, cx, cy, stack, size, c, os_, phases, pad, um_per_px, step
                 for e in range(N_RING):
                     kk += 1 if d >= edges[e] else 0
                 p = i * w + j
-                res = om[p] * (x[p] - a_reg * ref[p])
-                # soft membership: within half a pixel of an edge a pixel is shared linearly between the two
-                # rings, so a ring's light is continuous in the lens' sub-pixel position
-                lo = 0.5 - (d - edges[kk - 1]) if kk > 0 else 0.0
-                hi = 0.5 - (edges[kk] - d) if kk < N_RING else 0.0
-                lo = min(max(lo, 0.0), 1.0)
-                hi = min(max(hi, 0.0), 1.0)
-                ring[kk] += res * (1.0 - lo - hi)
-                if kk > 0:
-                    ring[kk - 1] += res * lo
-                if kk < N_RING:
-                    ring[kk + 1] += res * hi
+                ring_k[p] = kk
+                ring_d[p] = d
+                ring_res[p] = om[p] * (x[p] - a_reg * ref[p])
+        # (apart: the loop above vectorizes; each ring's sum below takes its pixels in the same order)
+        for p in range(npx):
+            kk = ring_k[p]
+            d = ring_d[p]
+            res = ring_res[p]
+            # soft membership: within half a pixel of an edge a pixel is shared linearly between the two
+            # rings, so a ring's light is continuous in the lens' sub-pixel position
+            lo = 0.5 - (d - edges[kk - 1]) if kk > 0 else 0.0
+            hi = 0.5 - (edges[kk] - d) if kk < N_RING else 0.0
+            lo = min(max(lo, 0.0), 1.0)
+            hi = min(max(hi, 0.0), 1.0)
+            ring[kk] += res * (1.0 - lo - hi)
+            if kk > 0:
+                ring[kk - 1] += res * lo
+            if kk < N_RING:
+                ring[kk + 1] += res * hi
         o = out[k]
         if not (flux > 0) or nv < 0.5 * npx:
             for q in range(N_INDEX):

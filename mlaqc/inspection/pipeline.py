@@ -5,19 +5,22 @@
 from __future__ import annotations
 
 import time
+from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
 
 from mlaqc.errors import InputError
 from mlaqc.inspection.calibrate import Grid, calibrate
+from mlaqc.inspection.combine import verdict as overall_verdict
 from mlaqc.inspection.identify import identify
 from mlaqc.inspection.measure import measure_lenses
 from mlaqc.inspection.metrics import compute_metrics, reference_images
 from mlaqc.inspection.rawio import (Levels, RawFrame, check_exposure, levels_note, load_raw, normalized,
                                     resolve_levels, suppress_hot_pixels)
-from mlaqc.inspection.results import InspectionResult
+from mlaqc.inspection.results import InspectionResult, LazyReferences
 from mlaqc.inspection.subimages import divide
+from mlaqc.models.position_split import position_split
 from mlaqc.models.reference import ReferenceModel, config_key, reference_model
 from mlaqc.models.signatures import SignatureSet, SignatureTable, signature_key, signature_table, um_per_px_at_mla
 from mlaqc.optics.config import CameraConfig
@@ -86,16 +89,16 @@ def inspect_image(img: np.ndarray, cfg: CameraConfig, *, grid: Grid | None = Non
         table = table.matched(float(getattr(grid, "edge_width_px", np.nan)))
     phase = (np.mod(grid.grid_x_px, 1.0), np.mod(grid.grid_y_px, 1.0))
     found = identify(metrics, grid.missing | ~np.isfinite(metrics["flux"]), cfg.qc, table, position, phase,
-                     outside=grid.clipped)
+                     outside=grid.clipped, split=position_split(cfg))
     defects, flagged, error_type = found.defects, found.flagged, found.error_type
     lap("identify")
     measured = measure_lenses(found, table, cfg, (grid.residual_x_px, grid.residual_y_px) if own_grid else None)
     lap("measure")
     qc = cfg.qc
-    out_of_tol = sum(1 for d in defects if d.error_type != "missing" and not d.within_tolerance)
-    n_missing = sum(1 for d in defects if d.error_type == "missing")
-    verdict = "FAIL" if (out_of_tol > qc.max_out_of_tolerance or n_missing > qc.max_missing) else "PASS"
-    ref = reference_images(model, cx, cy, 2 * half + 1, 2 * half + 1)
+    verdict = overall_verdict(defects, qc)
+    # every lens' reference is for the report, which shows a few: computed when (and as far as) it is read
+    side = 2 * half + 1
+    ref = LazyReferences(lambda x, y: reference_images(model, x, y, side, side), cx, cy, (side, side))
     # the frame is kept as given when already float32 (no 16 MB copy): callers hand over a prepared frame
     return InspectionResult(verdict, grid, metrics, defects, flagged, error_type, np.asarray(img, dtype=np.float32),
                             sub, ref, source, _tolerance_dict(cfg), t,
@@ -129,8 +132,10 @@ def _tolerance_dict(cfg: CameraConfig) -> dict[str, float]:
 
 
 def inspect_file(raw: str | Path, cfg: CameraConfig, *, white: str | Path | None = None,
-                 levels: Levels | None = None) -> InspectionResult:
-    """Load, calibrate (on `white` if given) and inspect a raw file; `levels` as in `load_frame`."""
+                 levels: Levels | None = None, through_focus: Sequence[str | Path] = ()) -> InspectionResult:
+    """Load, calibrate (on `white` if given) and inspect a raw file; `levels` as in `load_frame`.
+    `through_focus`: pinhole frames of the same array (mlaqc.inspection.pinhole_frames), read on the
+    inspected frame's grid and combined with it (mlaqc.inspection.combine)."""
     t0 = time.perf_counter()
     notes: list[str] = []
     img = load_frame(raw, cfg, levels, notes)
@@ -142,7 +147,26 @@ def inspect_file(raw: str | Path, cfg: CameraConfig, *, white: str | Path | None
     load_s = time.perf_counter() - t0
     result = inspect_image(img, cfg, grid=grid, source=str(raw), notes=tuple(notes))
     result.timings_s["load"] = round(load_s, 4)
+    if through_focus:
+        result = with_through_focus(result, through_focus, cfg, levels)
     return result
+
+
+def with_through_focus(result: InspectionResult, paths: Sequence[str | Path], cfg: CameraConfig,
+                       levels: Levels | None = None) -> InspectionResult:
+    """`result` with the through-focus pinhole frames at `paths` read on its grid and combined into it."""
+    from mlaqc.inspection.combine import combine_through_focus
+    from mlaqc.inspection.pinhole_frames import load_pinhole_frames
+    from mlaqc.inspection.throughfocus import measure_through_focus
+
+    t0 = time.perf_counter()
+    frames = load_pinhole_frames(paths, cfg, levels)
+    t1 = time.perf_counter()
+    tf = measure_through_focus(frames, result.grid, cfg)
+    out = combine_through_focus(result, tf, cfg.qc)
+    out.timings_s["load_through_focus"] = round(t1 - t0, 4)
+    out.timings_s["through_focus"] = round(time.perf_counter() - t1, 4)
+    return out
 
 
 def scan_frame_hook(frame) -> dict:

@@ -474,14 +474,14 @@ def _merge_metadata(path: Path, embedded_meta: dict, sidecar: dict | None, tags:
 
 def _load_rawpy(path: Path, sidecar: dict | None) -> RawFrame:
     """DNG and vendor raws through rawpy/LibRaw: visible raw counts, black/white level, Bayer pattern."""
-    import rawpy
-
     tags = _vendor_tags(path, path.suffix.lower())
     record, meta, interest = _description_record(tags, path)
     side_record, metadata = _merge_metadata(path, meta, sidecar, interest)
     own = _own_dng_data(path) if record is not None else None
     if own is not None:  # our own uncompressed DNG: the same counts LibRaw gives, 10x faster (tests check)
         return _frame_from_record(own, record["bits"], record, metadata, path)
+    import rawpy  # (only here: our own DNGs need no LibRaw, nor its import)
+
     try:
         with rawpy.imread(str(path)) as raw:
             data = np.array(raw.raw_image_visible, dtype=np.uint16, copy=True)
@@ -903,30 +903,44 @@ def suppress_hot_pixels(
     med = np.empty(img.shape, dtype=np.float32)  # written only at outliers
     step = 1 if cfa is None else 2
     integer = img.dtype.kind in "ui"
-    bad_rows: list[np.ndarray] = []
-    for r0, c0 in ((0, 0),) if cfa is None else ((0, 0), (0, 1), (1, 0), (1, 1)):
-        ph, pw = len(range(r0, img.shape[0], step)), len(range(c0, img.shape[1], step))
-        if min(ph, pw) < 3:
-            continue
-        noise = _plane_noise(x, r0, c0, step, ph, pw, integer)
+    planes = [(r0, c0, len(range(r0, img.shape[0], step)), len(range(c0, img.shape[1], step)))
+              for r0, c0 in (((0, 0),) if cfa is None else ((0, 0), (0, 1), (1, 0), (1, 1)))]
+    planes = [pl for pl in planes if min(pl[2], pl[3]) >= 3]
+    # the planes' noise, then every plane's row ranges, each on the thread pool at once (the kernels
+    # release the GIL; each plane writes only its own pixels of `mask` and `med`)
+    noises = _thread_map(lambda pl: _plane_noise(x, pl[0], pl[1], step, pl[2], pl[3], integer), planes)
+    jobs, row_bads = [], []
+    for (r0, c0, ph, _pw), noise in zip(planes, noises):
         if not np.isfinite(noise):
             continue  # NaN pixels: no threshold can be judged (as the filter formulation)
         row_bad = np.zeros(ph, dtype=np.int64)
         run = partial(hot_pixel_rows, x, r0, c0, step, float(noise), float(nsigma))
         edges = np.linspace(0, ph, 2 * (os.cpu_count() or 1) + 1).astype(int) if ph >= 64 else np.array([0, ph])
-        jobs = [(int(a), int(b)) for a, b in pairwise(edges) if b > a]
-        if len(jobs) == 1:
-            run(0, ph, mask, med, row_bad)
-        else:
-            with ThreadPoolExecutor(min(len(jobs), os.cpu_count() or 1)) as pool:
-                list(pool.map(lambda ab, run=run, row_bad=row_bad: run(ab[0], ab[1], mask, med, row_bad), jobs))
-        bad_rows.append(r0 + step * np.flatnonzero(row_bad))
+        jobs += [(run, int(a), int(b), row_bad) for a, b in pairwise(edges) if b > a]
+        row_bads.append((r0, row_bad))
+    _thread_map(lambda job: job[0](job[1], job[2], mask, med, job[3]), jobs)
+    bad_rows = [r0 + step * np.flatnonzero(row_bad) for r0, row_bad in row_bads]
     cleaned = img if inplace else img.copy()
     rows = np.unique(np.concatenate(bad_rows)) if bad_rows else np.zeros(0, np.int64)
     if rows.size:  # replace after detection, so every median saw the original neighbours
         i, j = np.nonzero(mask[rows])
         cleaned[rows[i], j] = med[rows[i], j].astype(img.dtype)
     return cleaned, mask
+
+
+_POOLS: dict[int, ThreadPoolExecutor] = {}
+
+
+def _thread_map(fn, items: list) -> list:
+    """[fn(item) for item in items], on a thread pool of one thread per core kept for the process (per
+    process id: a forked child starts its own) when there are several: starting threads anew for every
+    frame cost a few milliseconds."""
+    if len(items) <= 1 or (os.cpu_count() or 1) == 1:
+        return [fn(item) for item in items]
+    pool = _POOLS.get(os.getpid())
+    if pool is None:
+        pool = _POOLS[os.getpid()] = ThreadPoolExecutor(os.cpu_count() or 1, thread_name_prefix="mlaqc-rawio")
+    return list(pool.map(fn, items))
 
 
 def _median(a: np.ndarray) -> np.floating:

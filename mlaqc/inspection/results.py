@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import threading
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -81,6 +83,56 @@ def _finite(v: float) -> float | None:
     return float(v) if np.isfinite(v) else None
 
 
+class LazyReferences:
+    """The reference sub-image of every lens, (rows, cols, h, w) float32, computed when first needed.
+
+    `compute(cx, cy)` returns the references of lenses centred at (cx, cy) (arrays of one shape) with
+    shape cx.shape + (h, w); each lens' reference depends on its own centre only. The inspection itself
+    never reads them: a report shows a few lenses (`self[m, n]` computes that lens alone), while
+    `np.asarray(refs)` computes all of them once and keeps them. Pickles as the plain array."""
+
+    def __init__(self, compute: Callable[[np.ndarray, np.ndarray], np.ndarray], cx: np.ndarray, cy: np.ndarray,
+                 window: tuple[int, int]) -> None:
+        self._compute = compute
+        self._cx, self._cy = np.asarray(cx, dtype=np.float64), np.asarray(cy, dtype=np.float64)
+        self.shape = self._cx.shape + tuple(window)
+        self._full: np.ndarray | None = None
+        self._lock = threading.Lock()
+
+    dtype = np.dtype(np.float32)
+
+    @property
+    def ndim(self) -> int:
+        return len(self.shape)
+
+    def full(self) -> np.ndarray:
+        """Every lens' reference (computed once, then kept)."""
+        with self._lock:
+            if self._full is None:
+                self._full = np.asarray(self._compute(self._cx, self._cy), dtype=np.float32).reshape(self.shape)
+            return self._full
+
+    def __array__(self, dtype=None, copy=None) -> np.ndarray:
+        full = self.full()
+        return full if dtype is None else full.astype(dtype, copy=False)
+
+    def __getitem__(self, key):
+        if self._full is None and isinstance(key, tuple) and len(key) == 2 and all(
+                isinstance(k, (int, np.integer)) for k in key):
+            m, n = (int(k) + s if k < 0 else int(k) for k, s in zip(key, self.shape[:2]))
+            if not (0 <= m < self.shape[0] and 0 <= n < self.shape[1]):
+                raise IndexError(f"lens index {key} is outside the {self.shape[0]} x {self.shape[1]} array")
+            one = self._compute(self._cx[m:m + 1, n:n + 1], self._cy[m:m + 1, n:n + 1])
+            return np.asarray(one, dtype=np.float32).reshape(self.shape[2:])
+        return self.full()[key]
+
+    def __len__(self) -> int:
+        return self.shape[0]
+
+    def __reduce__(self):
+        return (np.asarray, (self.full(),))
+
+
 @dataclass(frozen=True)
 class InspectionResult:
     """Everything `mlaqc inspect` reports; written out by mlaqc.report."""
@@ -93,7 +145,7 @@ class InspectionResult:
     error_type: np.ndarray  # (rows, cols) str ('' where not flagged)
     image: np.ndarray  # the normalized frame that was inspected, float32 (H, W)
     subimages: np.ndarray  # (rows, cols, h, w) float32
-    reference: np.ndarray  # (rows, cols, h, w) or (h, w) float32 reference sub-image(s)
+    reference: np.ndarray | LazyReferences  # (rows, cols, h, w) or (h, w) float32 reference sub-image(s)
     source: str  # the raw file inspected
     tolerances: dict[str, float]
     timings_s: dict[str, float]
@@ -104,6 +156,7 @@ class InspectionResult:
     below_reportable: int = 0  # significant deviations smaller than the minimum reportable error
     not_inspected: int = 0  # lenses whose sub-image leaves the sensor
     measurements: Any = None  # mlaqc.inspection.measure.LensMeasurements: every lens' centre and focal error
+    through_focus: Any = None  # mlaqc.inspection.throughfocus.ThroughFocusResult when pinhole frames were given
 
     @property
     def failed(self) -> bool:
@@ -121,4 +174,10 @@ def detection_limit_text(limit: dict[str, Any]) -> str:
 
     parts = [f"pitch {fmt('pitch_um', 1, 'µm')}", f"decenter {fmt('decenter_um', 1, 'µm')}",
              f"radius −{fmt('radius_rel_neg', 100, '%')} / +{fmt('radius_rel_pos', 100, '%')}"]
-    return "detects at least: " + ", ".join(parts).replace("−not", "not").replace("+not", "not")
+    text = "detects at least: " + ", ".join(parts).replace("−not", "not").replace("+not", "not")
+    if "pitch_vs_decenter" not in limit:
+        return text
+    split = limit["pitch_vs_decenter"]
+    if split is None:
+        return text + "; pitch vs decenter: not told apart (grid lens boundaries: reported as 'position')"
+    return text + f"; tells pitch from decenter from {split['pitch_um']:.3g} µm pitch / {split['decenter_um']:.3g} µm decenter"

@@ -10,7 +10,6 @@ with offsets in [-0.5, 0.5]. Pixels outside the frame are NaN and False in `vali
 from __future__ import annotations
 
 import os
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from itertools import pairwise
 
@@ -18,7 +17,7 @@ import numpy as np
 
 from mlaqc.errors import InputError
 from mlaqc.inspection.calibrate import Grid
-from mlaqc.inspection.metrics_kernels import cut_windows_kernel
+from mlaqc.inspection.metrics_kernels import cut_windows_kernel, run_parts
 
 
 @dataclass(frozen=True, eq=False)
@@ -111,7 +110,6 @@ def cut_windows(img: np.ndarray, x_px: np.ndarray, y_px: np.ndarray, h: int, w: 
     if workers == 1:
         cut_windows_kernel(src, fx, fy, int(h), int(w), flat_data, flat_valid)
     else:
-        with ThreadPoolExecutor(workers) as pool:
-            list(pool.map(lambda sl: cut_windows_kernel(src, fx[sl], fy[sl], int(h), int(w), flat_data[sl],
-                                                        flat_valid[sl]), parts))
+        run_parts(lambda sl: cut_windows_kernel(src, fx[sl], fy[sl], int(h), int(w), flat_data[sl], flat_valid[sl]),
+                  parts, workers)
     return data, valid, ox, oy

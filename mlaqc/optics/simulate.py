@@ -1,7 +1,10 @@
 """Simulated raw frames with their ground truth: render -> sensor model -> raw file + `<name>.sim.json`.
 
 The sidecar holds everything needed to reproduce or judge the frame: config, derived layout, scene,
-the ground-truth error map, seed, ray counts, engine and versions, and the raw file's checksum.
+the ground-truth error map, seed, ray counts, engine and versions, and the raw file's checksum. A
+through-focus frame (mlaqc.optics.throughfocus) also has ``protocol``: its `ThroughFocus` record
+(`ThroughFocus.from_dict` reads it back) plus the frame's derived facts under ``frame``; its ``config``
+is the camera as given (before stopping down and moving the target), its ``layout`` the frame's own.
 """
 
 from __future__ import annotations
@@ -25,6 +28,7 @@ from mlaqc.optics.formation import apply_formation
 from mlaqc.optics.render import Progress, Renderer, RenderResult
 from mlaqc.optics.scene import PointScene, Scene, TextureScene, WhiteScene
 from mlaqc.optics.sensor import expose, white_level
+from mlaqc.optics.throughfocus import ThroughFocus, blur_radius_mm, frame_config, magnification, pinhole_lenses, stage_z_mm
 
 RAW_SUFFIXES = (".tif", ".tiff", ".dng", ".npy", ".png")
 SIDECAR_FORMAT = "mlaqc-simulation"
@@ -89,12 +93,17 @@ def check_output(out: str | Path) -> Path:
     return out
 
 
-def write_simulation(out: str | Path, sim: SimulatedRaw, cfg: CameraConfig) -> Path:
-    """Write the raw file and its `.sim.json` record; neither appears unless both were written."""
+def write_simulation(out: str | Path, sim: SimulatedRaw, cfg: CameraConfig, *,
+                     protocol: ThroughFocus | None = None) -> Path:
+    """Write the raw file and its `.sim.json` record; neither appears unless both were written.
+    `protocol`: the through-focus frame `sim` was rendered as (with `frame_config(cfg, protocol)`)."""
     out = check_output(out)
     s = cfg.sensor
     cfa = None if s.cfa == "none" else s.cfa
     record = _record(sim, cfg, out)
+    if protocol is not None:
+        record["layout"] = _layout(frame_config(cfg, protocol))
+        record["protocol"] = protocol_record(cfg, protocol)
     with atomic_path(sidecar_path(out)) as tmp_json:
         write_raw(out, sim.raw, bits=s.bit_depth, cfa=cfa, black_level=s.black_level_dn, white_level=white_level(s),
                   metadata={"mlaqc_simulation": {"seed": sim.render.seed, "rays": sim.render.rays_traced,
@@ -104,8 +113,32 @@ def write_simulation(out: str | Path, sim: SimulatedRaw, cfg: CameraConfig) -> P
     return sidecar_path(out)
 
 
-def _record(sim: SimulatedRaw, cfg: CameraConfig, out: Path) -> dict[str, Any]:
+def protocol_record(cfg: CameraConfig, tf: ThroughFocus) -> dict[str, Any]:
+    """`tf.to_dict()` plus the frame's derived facts (for sidecars and scan records)."""
+    fc = frame_config(cfg, tf)
+    return tf.to_dict() | {"frame": {
+        "main_lens_diameter_mm": fc.main_lens.diameter_mm,
+        "object_distance_mm": fc.layout.object_distance_mm,
+        "stage_z_mm": stage_z_mm(cfg, tf),
+        "magnification": magnification(fc),
+        "blur_radius_mm": blur_radius_mm(cfg, tf),
+        "pinholes": int(len(pinhole_lenses(cfg, tf))),
+    }}
+
+
+def _layout(cfg: CameraConfig) -> dict[str, Any]:
     lay = cfg.layout
+    return {
+        "object_distance_mm": lay.object_distance_mm,
+        "mla_distance_mm": lay.mla_distance_mm,
+        "sensor_gap_mm": lay.sensor_gap_mm,
+        "main_efl_mm": lay.main.efl,
+        "microlens_efl_um": lay.micro.efl * 1e3,
+        "subimage_pitch_px": lay.subimage_pitch_px,
+    }
+
+
+def _record(sim: SimulatedRaw, cfg: CameraConfig, out: Path) -> dict[str, Any]:
     s = cfg.sensor
     return {
         "format": SIDECAR_FORMAT,
@@ -114,14 +147,7 @@ def _record(sim: SimulatedRaw, cfg: CameraConfig, out: Path) -> dict[str, Any]:
         "numpy_version": np.__version__,
         "python": platform.python_version(),
         "config": cfg.to_dict(),
-        "layout": {
-            "object_distance_mm": lay.object_distance_mm,
-            "mla_distance_mm": lay.mla_distance_mm,
-            "sensor_gap_mm": lay.sensor_gap_mm,
-            "main_efl_mm": lay.main.efl,
-            "microlens_efl_um": lay.micro.efl * 1e3,
-            "subimage_pitch_px": lay.subimage_pitch_px,
-        },
+        "layout": _layout(cfg),
         "scene": scene_record(sim.scene),
         "error_map": sim.errors.to_json_dict(),
         "seed": sim.render.seed,

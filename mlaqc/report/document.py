@@ -24,6 +24,7 @@ import numpy as np
 from mlaqc import __version__
 from mlaqc.errors import InputError
 from mlaqc.inspection.measure import MEASUREMENTS
+from mlaqc.inspection.throughfocus import TF_MEASUREMENTS
 from mlaqc.inspection.results import METRICS, InspectionResult
 from mlaqc.report.maps import _type_order
 from mlaqc.report.view import View
@@ -44,7 +45,8 @@ REPORT_FILES: dict[str, str] = {
 
 GALLERY_MAX = 200
 CSV_COLUMNS: tuple[str, ...] = (
-    "row", "col", "x_px", "y_px", "grid_x_px", "grid_y_px", "flagged", "error_type", *METRICS, *MEASUREMENTS)
+    "row", "col", "x_px", "y_px", "grid_x_px", "grid_y_px", "flagged", "error_type", *METRICS, *MEASUREMENTS,
+    *TF_MEASUREMENTS)
 
 
 def build_report_dict(result: InspectionResult, *, config_dict: dict | None = None,
@@ -107,6 +109,8 @@ def build_report_dict(result: InspectionResult, *, config_dict: dict | None = No
         "defects": [d.to_json_dict() for d in result.defects],
         # every lens' optical-centre displacement and focal-length error with 1-sigma (mlaqc.inspection.measure)
         "measurements": _measurements_json(v),
+        # the through-focus pinhole pairs' per-lens readings (mlaqc.inspection.throughfocus), null without them
+        "through_focus": _through_focus_json(v),
     }
     return _jsonable(report)
 
@@ -120,6 +124,7 @@ def _float_attr(obj: Any, name: str, default: float | None) -> float | None:
 
 
 _PLAIN = frozenset({str, int, bool, type(None)})
+_INF, _NINF = math.inf, -math.inf
 
 
 def _jsonable(obj: Any) -> Any:
@@ -129,10 +134,14 @@ def _jsonable(obj: Any) -> Any:
         return obj
     if t is float:
         return obj if math.isfinite(obj) else None
+    # (a finite float is kept inline too: a grid's lenses and the measurement maps are ~10^5 of them)
     if t is dict:
-        return {k if type(k) is str else str(k): v if type(v) in _PLAIN else _jsonable(v) for k, v in obj.items()}
+        return {k if type(k) is str else str(k): v if (tv := type(v)) in _PLAIN or (tv is float and _INF > v > _NINF)
+                else _jsonable(v) for k, v in obj.items()}
     if t is list:
-        return [v if type(v) in _PLAIN else _jsonable(v) for v in obj]
+        if _record_columns(obj, finite=True) is not None:
+            return list(obj)  # records of plain JSON values already (a grid's lenses): nothing to convert
+        return [v if (tv := type(v)) in _PLAIN or (tv is float and _INF > v > _NINF) else _jsonable(v) for v in obj]
     if isinstance(obj, dict):
         return {str(k): _jsonable(v) for k, v in obj.items()}
     if isinstance(obj, (list, tuple)):
@@ -173,10 +182,20 @@ def _dumps(obj: Any, level: int = 0) -> str:
                            for k, v in obj.items())
         return "{\n" + items + "\n" + "  " * level + "}" + ("\n" if level == 0 else "")
     if isinstance(obj, list):
-        if all(not isinstance(x, (dict, list)) for x in obj):
+        types = set(map(type, obj))  # (a type at a time: the measurement maps hold ~10^5 values)
+        if not any(issubclass(t, (dict, list)) for t in types):
             return _ENCODER.encode(obj)
-        if all(isinstance(x, dict) and all(not isinstance(y, (dict, list)) for y in x.values()) for x in obj):
-            one_line = [_ENCODER.encode(x) for x in obj]  # e.g. the grid's lenses
+        if types == {list} and all(set(map(type, x)) <= _SCALAR_TYPES for x in obj):
+            # rows of numbers (a measurement map): one row per line, the whole map encoded at once and cut
+            # between its rows (no number's encoding holds a bracket)
+            rows = ["[" + r + "]" for r in _ENCODER.encode(obj)[2:-2].split("], [")]
+            pad = "  " * (level + 1)
+            return "[\n" + ",\n".join(pad + r for r in rows) + "\n" + "  " * level + "]"
+        one_line = _flat_records(obj)  # e.g. the grid's lenses
+        if one_line is None and all(isinstance(x, dict) and all(not isinstance(y, (dict, list)) for y in x.values())
+                                    for x in obj):
+            one_line = [_ENCODER.encode(x) for x in obj]
+        if one_line is not None:
             if max(map(len, one_line)) <= 400:
                 pad = "  " * (level + 1)
                 return "[\n" + ",\n".join(pad + x for x in one_line) + "\n" + "  " * level + "]"
@@ -185,6 +204,47 @@ def _dumps(obj: Any, level: int = 0) -> str:
     return _ENCODER.encode(obj)
 
 
+
+
+_SCALAR_TYPES = frozenset({int, float, bool, type(None)})
+
+
+def _record_columns(obj: list, finite: bool = False) -> tuple[tuple[str, ...], list[list]] | None:
+    """(keys, one list of values per key) of a list of dicts that share their string keys (in order) and
+    hold numbers, booleans and nulls only (and with `finite`, no NaN or infinity); None otherwise."""
+    if not obj or type(obj[0]) is not dict:
+        return None
+    keys = tuple(obj[0])
+    if not keys or not all(type(k) is str for k in keys) or not all(
+            type(x) is dict and len(x) == len(keys) and tuple(x) == keys for x in obj):
+        return None
+    columns = []
+    for k in keys:
+        column = [x[k] for x in obj]
+        types = set(map(type, column))
+        if not types <= _SCALAR_TYPES:
+            return None
+        if finite and float in types and not all(map(math.isfinite, (v for v in column if type(v) is float))):
+            return None
+        columns.append(column)
+    return keys, columns
+
+
+def _flat_records(obj: list) -> list[str] | None:
+    """`_ENCODER.encode(x)` of every record of a list of dicts that share their keys (in order) and hold
+    numbers, booleans and nulls only, one field at a time (a record at a time cost 0.1 s for a grid's
+    10,404 lenses); None for any other list (and the records are then encoded one by one)."""
+    found = _record_columns(obj)
+    if found is None:
+        return None
+    keys, columns = found
+    # a list's encoding is its values' encodings joined by ", " (no scalar's encoding holds one)
+    tokens = [_ENCODER.encode(column)[1:-1].split(", ") for column in columns]
+    head = ["{" + json.dumps(keys[0], ensure_ascii=False) + ": "]
+    head += [", " + json.dumps(k, ensure_ascii=False) + ": " for k in keys[1:]]
+    template = "".join(h.replace("%", "%%") + "%s" for h in head) + "}\0"
+    flat = [t for row in zip(*tokens) for t in row]
+    return (template * len(obj) % tuple(flat)).split("\0")[:-1]
 
 
 def lenses_csv(view: View | InspectionResult) -> str:
@@ -198,19 +258,42 @@ def lenses_csv(view: View | InspectionResult) -> str:
         ["1" if f else "0" for f in v.flagged.ravel().tolist()],
         [t if f else "" for t, f in zip(v.error_type.ravel().tolist(), v.flagged.ravel().tolist())],
         *(_fmt_column(np.asarray(v.result.metrics[k], dtype=float), "%.6g") for k in METRICS),
-        *(_fmt_column(_measured(v, k), "%.5g") for k in MEASUREMENTS),
+        *(_measurement_text(v, k) for k in MEASUREMENTS),
+        *(_measurement_text(v, k) for k in TF_MEASUREMENTS),
     ]
-    buf = io.StringIO()
-    writer = csv.writer(buf, lineterminator="\n")
-    writer.writerow(CSV_COLUMNS)
-    writer.writerows(zip(*columns))
-    return buf.getvalue()
+    text_columns = columns[7:8]  # the error types: the only column that is not numbers
+    if any(c in t for col in text_columns for t in set(col) for c in ',"\r\n') or any(
+            c in name for name in CSV_COLUMNS for c in ',"\r\n'):
+        buf = io.StringIO()
+        writer = csv.writer(buf, lineterminator="\n")
+        writer.writerow(CSV_COLUMNS)
+        writer.writerows(zip(*columns))
+        return buf.getvalue()
+    # nothing to quote: the csv module's output is the fields joined by commas (5x faster)
+    return ",".join(CSV_COLUMNS) + "\n" + "\n".join(map(",".join, zip(*columns))) + "\n"
 
 
 def _measured(v: View, name: str) -> np.ndarray:
-    """A per-lens measurement map, NaN everywhere when the result carries none."""
+    """A per-lens measurement map (white frame, or `tf_` through-focus), NaN everywhere when the result
+    carries none."""
+    if name in TF_MEASUREMENTS:
+        tf = getattr(v.result, "through_focus", None)
+        return (np.asarray(getattr(tf, TF_MEASUREMENTS[name][0]), dtype=float) if tf is not None
+                else np.full((v.rows, v.cols), np.nan))
     m = getattr(v.result, "measurements", None)
     return np.asarray(m[name], dtype=float) if m is not None else np.full((v.rows, v.cols), np.nan)
+
+
+def _through_focus_json(v: View) -> dict[str, Any] | None:
+    """report.json's through-focus readings: meanings, the pairs' summary, and each map as rows."""
+    tf = getattr(v.result, "through_focus", None)
+    if tf is None:
+        return None
+    from mlaqc.inspection.combine import SOURCE_KEY
+
+    return {"meaning": {k: {"unit": u, "meaning": t} for k, (_, u, t) in TF_MEASUREMENTS.items()},
+            "summary": tf.summary() | {"flags_read_by_pairs": sum(1 for d in v.result.defects if SOURCE_KEY in d.indexes)},
+            "lenses": {k: _rows_5g(_measured(v, k), _measurement_text(v, k)) for k in TF_MEASUREMENTS}}
 
 
 def _measurements_json(v: View) -> dict[str, Any] | None:
@@ -219,10 +302,30 @@ def _measurements_json(v: View) -> dict[str, Any] | None:
     m = getattr(v.result, "measurements", None)
     if m is None:
         return None
-    maps = {k: [[float(f"{x:.5g}") if math.isfinite(x) else None for x in row] for row in np.asarray(m[k], float).tolist()]
-            for k in MEASUREMENTS}
+    maps = {k: _rows_5g(np.asarray(m[k], float), _measurement_text(v, k)) for k in MEASUREMENTS}
     return {"meaning": {k: {"unit": u, "meaning": t} for k, (u, t) in MEASUREMENTS.items()},
             "summary": m.summary(), "lenses": maps}
+
+
+def _measurement_text(v: View, name: str) -> list[str]:
+    """`_fmt_column` of measurement map `name` at "%.5g", formatted once per report (lenses.csv writes
+    it, report.json reads its numbers back from it)."""
+    cache = v.__dict__.setdefault("_measurement_text", {})
+    if name not in cache:
+        cache[name] = _fmt_column(_measured(v, name), "%.5g")
+    return cache[name]
+
+
+def _rows_5g(a: np.ndarray, text: list[str] | None = None) -> list:
+    """`a` as nested lists (rows) of its values at 5 significant digits, float(f"{x:.5g}"), None where
+    not finite: the formatting one %-operation over the whole map (or `text`, that formatting done
+    already), the parsing one map()."""
+    if a.ndim != 2:
+        return [[float(f"{x:.5g}") if math.isfinite(x) else None for x in row] for row in a.tolist()]
+    text = _fmt_column(a, "%.5g") if text is None or len(text) != a.size else text
+    values = list(map(float, text)) if all(text) else [float(t) if t else None for t in text]
+    cols = a.shape[1]
+    return [values[i:i + cols] for i in range(0, len(values), cols)]
 
 
 def _fmt_column(arr: np.ndarray, fmt: str) -> list[str]:

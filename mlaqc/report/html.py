@@ -169,6 +169,7 @@ def _html(v: View, report: dict[str, Any], small_png: bytes, lens_png: bytes | N
       f"{_E(REPORT_FILES['csv'])}</a>.</p>\n")
 
     _measurement_section(w, report.get("measurements"), lens_png)
+    _through_focus_section(w, report.get("through_focus"))
 
     w(f"<h2>Flagged lenses ({len(defects)})</h2>\n")
     if defects:
@@ -246,6 +247,27 @@ def _measurement_section(w, measured: dict[str, Any] | None, lens_png: bytes | N
       f"plane against the array's typical lens (a white image alone cannot say whether pitch or a surface "
       f"decenter moved it); focal: Δf/f read from the lens' focus, f = {s['focal_length_um']:.1f} µm. Grey: not "
       f"measured (off the sensor, missing, or flagged as shifted/tilted for focal). Every value with its 1σ: "
+      f"<a href=\"{_E(REPORT_FILES['csv'])}\">{_E(REPORT_FILES['csv'])}</a>.</p>\n")
+
+
+def _through_focus_section(w, tf: dict[str, Any] | None) -> None:
+    """The through-focus pinhole pairs, when the inspection had them: coverage, precision, pairs."""
+    if not tf:
+        return
+    s = tf["summary"]
+    sig = s.get("focal_sigma_rel_median")
+    cards = [("lenses read", f"{s['lenses_covered']} ({100 * s['coverage']:.1f} %)"),
+             ("pairs", f"{len(s['pairs'])}"),
+             ("focal 1σ per lens", "–" if sig is None else f"{100 * sig:.2g} %"),
+             ("flags read by the pairs", f"{s.get('flags_read_by_pairs', 0)}")]
+    w("<h2>Through-focus pinhole frames</h2>\n<div class=\"cards\" id=\"through-focus\">\n")
+    for label, value in cards:
+        w(f"<div class=\"card\"><b>{_E(value)}</b>{_E(label)}</div>\n")
+    w("</div>\n")
+    w(f"<p class=\"note\">Each +u / −u pair of pinhole frames reads the focal-length error, with its sign, of every "
+      f"lens fully lit by a pinhole (the spot grows in one frame and shrinks in the other), against the array's "
+      f"typical lens. A radius defect takes the pairs' sign and the more precise of the two readings; a lens the "
+      f"white frame did not flag is flagged when its reading is significant. Per lens: the tf_ columns of "
       f"<a href=\"{_E(REPORT_FILES['csv'])}\">{_E(REPORT_FILES['csv'])}</a>.</p>\n")
 
 

@@ -8,7 +8,7 @@ from typing import Any
 import numpy as np
 
 from mlaqc.errors import InputError
-from mlaqc.inspection.results import METRICS, InspectionResult
+from mlaqc.inspection.results import METRICS, InspectionResult, LazyReferences
 
 
 class View:
@@ -41,7 +41,8 @@ class View:
         self.subimages = np.asarray(result.subimages)
         _check(self.subimages.ndim == 4 and self.subimages.shape[:2] == shape,
                f"its sub-images are {self.subimages.shape}, not {shape} + (h, w)")
-        self.reference = np.asarray(result.reference)
+        ref = result.reference  # LazyReferences: kept lazy, the report reads the gallery's lenses only
+        self.reference = ref if isinstance(ref, LazyReferences) else np.asarray(ref)
         _check(self.reference.ndim == 2 or (self.reference.ndim == 4 and self.reference.shape[:2] == shape),
                f"its reference is {self.reference.shape}, not (h, w) or {shape} + (h, w)")
         _check(result.verdict in ("PASS", "FAIL"), f"its verdict is {result.verdict!r}")
@@ -84,9 +85,13 @@ class View:
         lo, hi = (np.percentile(sample, [0.5, 99.5]) if sample.size else (0.0, 1.0))
         if not hi > lo:
             hi = lo + 1.0
-        out = (img - np.float32(lo)) * np.float32(255.0 / (hi - lo))
-        out = np.nan_to_num(out, nan=0.0, posinf=255.0, neginf=0.0)
-        return np.clip(out + 0.5, 0, 255).astype(np.uint8)
+        out = img - np.float32(lo)
+        out *= np.float32(255.0 / (hi - lo))
+        out += np.float32(0.5)
+        # fmax/fmin clip as np.clip does and send NaN to 0 (the NaN-ignoring pair): NaN black, ±inf clipped
+        np.fmax(out, np.float32(0), out=out)
+        np.fmin(out, np.float32(255), out=out)
+        return out.astype(np.uint8)
 
 
 def _check(ok: bool, what: str) -> None:

@@ -94,17 +94,24 @@ def _render_all(view: View, config_dict: dict | None) -> dict[str, bytes]:
     base = view.tone_mapped()
     full = render_defect_map(view, base=base)
     small = render_defect_map(view, base=base, max_side=SMALL_MAP_MAX_PX)
-    # OpenCV releases the GIL: encode the big map while the text files are built.
-    with ThreadPoolExecutor(max_workers=1) as pool:
-        full_job = pool.submit(_encode_png, full)
+    # OpenCV releases the GIL: the images are encoded on two threads while the text files are built here
+    with ThreadPoolExecutor(max_workers=2) as pool:
+        jobs = [pool.submit(_encode_png, full)]
+        if small.shape != full.shape:
+            jobs.append(pool.submit(_encode_png, small, level=3))
+        jobs.append(pool.submit(_lens_maps_png, view))
         try:
-            small_png = _encode_png(small, level=3) if small.shape != full.shape else None
             report = build_report_dict(view.result, config_dict=config_dict, _view=view)
             text = {"json": _dumps(report), "csv": lenses_csv(view)}
         finally:
-            full_png = full_job.result()  # waits; re-raises an encoder error
-        small_png = full_png if small_png is None else small_png
-        lens_png = _encode_png(render_lens_maps(getattr(view.result, "measurements", None), (view.rows, view.cols)), level=6)
+            pngs = [job.result() for job in jobs]  # waits; re-raises an encoder error
+        full_png, lens_png = pngs[0], pngs[-1]
+        small_png = pngs[1] if len(pngs) == 3 else full_png
         text["html"] = _html(view, report, small_png, lens_png)
     return {**{k: t.encode("utf-8") for k, t in text.items()},
             "defect_map": full_png, "defect_map_small": small_png, "lens_maps": lens_png}
+
+
+def _lens_maps_png(view: View) -> bytes:
+    """lens_maps.png: the per-lens measurement maps."""
+    return _encode_png(render_lens_maps(getattr(view.result, "measurements", None), (view.rows, view.cols)), level=6)

@@ -1,0 +1,164 @@
+"""Pitch or decenter: what tells them apart in a white image when lens boundaries are physical.
+
+With `mla.boundaries = "sag-intersection"` a lens ends where its sags meet its neighbours'. A pitch error
+moves the whole lens, both boundaries with it: each neighbour along the shift gains or loses a strip of
+aperture, which changes its whole sub-image alike (a flux change, no tilt). A surface decenter moves only
+the rear surface, so only the rear boundary moves (by about half the decenter): in each neighbour only
+the rays that leave the lens through that strip change, which lights one half of its sub-image — an
+intensity tilt. Both move the lens' own sub-image alike (decenter by about half as much per µm), so the
+neighbours' tilts, taken against the lens' own shift, separate them:
+
+    contrast C = the four neighbours' tilts towards the lens (`neighbour_contrast`)
+
+is small for a pitch error and about four times larger for a decenter of the same shift. With `grid` boundaries no boundary
+moves and no neighbour changes at all: a white image cannot separate them (bench/type_separation.py:
+1.5 sigma at best), and `position_split` returns None, so the lens stays 'position'.
+
+`PositionSplit` holds C per pixel of the lens' own sub-image shift for each kind, measured on the
+tracer's 9 x 9-lens patch (mlaqc.models.signatures) with the sensor formation applied; cached on disk by
+the optics' signature key.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import asdict, dataclass
+
+import numpy as np
+
+from mlaqc.atomic import write_json_atomic
+from mlaqc.models.reference import PACKAGE_DATA, build_reference, cache_dir
+from mlaqc.optics.config import CameraConfig
+from mlaqc.optics.errormap import ErrorMap
+
+FORMAT_VERSION = 1
+SPLIT_KINDS = {"pitch": 2.0, "decenter": 4.0}  # rendered magnitudes, µm: the same sub-image shift for both
+SPLIT_DIRECTIONS_DEG = (0.0, 45.0)  # along an axis and diagonal: C varies by about 15 % between them
+
+
+@dataclass(frozen=True)
+class PositionSplit:
+    """Neighbour tilt contrast per px of own shift, and own shift per µm, of a pitch error and a decenter."""
+
+    contrast_per_px: dict[str, float]
+    shift_px_per_um: dict[str, float]
+    key: str
+
+    def separation_per_px(self) -> float:
+        """How far apart (contrast units) the two kinds' predictions lie per px of shift."""
+        return abs(self.contrast_per_px["decenter"] - self.contrast_per_px["pitch"])
+
+    def to_json_dict(self) -> dict:
+        return {"format": "mlaqc-position-split", "version": FORMAT_VERSION} | asdict(self)
+
+    @classmethod
+    def from_json_dict(cls, d: dict) -> PositionSplit:
+        return cls({k: float(v) for k, v in d["contrast_per_px"].items()},
+                   {k: float(v) for k, v in d["shift_px_per_um"].items()}, str(d["key"]))
+
+
+def neighbour_contrast(asym_x: np.ndarray, asym_y: np.ndarray) -> np.ndarray:
+    """C of every lens: its left and upper neighbours' tilts towards it minus its right and lower ones'
+    (image axes, y down); NaN where a neighbour is off the array. Measured on the tracer, a decenter makes
+    both neighbours along its axis brighter on the side facing the lens whichever way it points, so C
+    does not depend on the direction (a pitch error leaves the neighbours untilted)."""
+    c = np.full(asym_x.shape, np.nan)
+    c[1:-1, 1:-1] = (asym_x[1:-1, :-2] - asym_x[1:-1, 2:]) + (asym_y[:-2, 1:-1] - asym_y[2:, 1:-1])
+    return c
+
+
+def _patch_metrics(cfg: CameraConfig, fields: dict[str, float], rays_per_pixel: float, seed: int, model):
+    from mlaqc.inspection.metrics import compute_metrics
+    from mlaqc.models.signatures import PATCH, _blurred, nominal_windows, patch_config, um_per_px_at_mla
+    from mlaqc.optics.render import Renderer
+    from mlaqc.optics.scene import WhiteScene
+
+    patch = patch_config(cfg)
+    c = PATCH // 2
+    errors = ErrorMap.zeros(PATCH, PATCH).with_lens(c + 1, c + 1, **fields) if fields else ErrorMap.zeros(PATCH, PATCH)
+    img = _blurred(Renderer(patch, errors).render(WhiteScene(), rays_per_pixel=rays_per_pixel, seed=seed).photons, patch, 0.0)
+    win, cx, cy = nominal_windows(img / img.max(), patch)
+    return compute_metrics(win, cx, cy, model, um_per_px_at_mla=um_per_px_at_mla(patch))
+
+
+def build_position_split(cfg: CameraConfig, *, rays_per_pixel: float = 1500.0, seed: int = 5) -> PositionSplit:
+    """Render the patch healthy, with a pitch error and with a decenter along +x (common random numbers)
+    and read each kind's contrast and own shift."""
+    from mlaqc.models.signatures import PATCH, patch_config, signature_key
+
+    model = build_reference(patch_config(cfg), rays_per_lens=2_000_000)  # as the signature tables are
+    c = PATCH // 2
+    base = _patch_metrics(cfg, {}, rays_per_pixel, seed, model)
+    contrast, shift = {}, {}
+    for kind, mag in SPLIT_KINDS.items():
+        ks, kc = [], []
+        for direction in SPLIT_DIRECTIONS_DEG:
+            m = _patch_metrics(cfg, {f"{kind}_um": mag, f"{kind}_dir_deg": direction}, rays_per_pixel, seed, model)
+            ds = float(np.hypot(m["offset_x_px"][c, c] - base["offset_x_px"][c, c], m["offset_y_px"][c, c] - base["offset_y_px"][c, c]))
+            dc = float(neighbour_contrast(m["asym_x"] - base["asym_x"], m["asym_y"] - base["asym_y"])[c, c])
+            ks.append(ds / mag)
+            kc.append(dc / ds if ds else 0.0)
+        shift[kind], contrast[kind] = float(np.mean(ks)), float(np.mean(kc))
+    return PositionSplit(contrast, shift, signature_key(cfg))
+
+
+_SPLITS: dict[str, PositionSplit] = {}
+
+
+def position_split(cfg: CameraConfig) -> PositionSplit | None:
+    """The split of `cfg`'s optics (the package's for Table 1 optics, else the disk cache, else rendered,
+    about 10 s, and cached), or None with grid boundaries,
+    where no neighbour sees either error."""
+    if cfg.mla.boundaries != "sag-intersection":
+        return None
+    from mlaqc.models.signatures import signature_key
+
+    key = signature_key(cfg)
+    if key in _SPLITS:
+        return _SPLITS[key]
+    for folder in (PACKAGE_DATA, cache_dir()):
+        path = folder / f"position_split_{key}.json"
+        if path.is_file():
+            try:
+                return _SPLITS.setdefault(key, PositionSplit.from_json_dict(json.loads(path.read_text())))
+            except (OSError, ValueError, KeyError, TypeError):
+                pass  # a damaged cache entry is rebuilt
+    split = _SPLITS.setdefault(key, build_position_split(cfg))
+    try:
+        cache_dir().mkdir(parents=True, exist_ok=True)
+        write_json_atomic(cache_dir() / f"position_split_{key}.json", split.to_json_dict())
+    except OSError:
+        pass
+    return split
+
+
+SPLIT_Z = 4.0  # the two kinds' predictions must lie this many sigma apart before a lens is typed (2 sigma each side: 2.3 % wrong)
+
+
+def contrast_sigma(asym_x_dev: np.ndarray, asym_y_dev: np.ndarray) -> float:
+    """The frame's spread of C (robust, over every lens) from the asymmetry deviations; a
+    tiny floor keeps a noise-free frame's z finite."""
+    c = neighbour_contrast(asym_x_dev, asym_y_dev)
+    c = c[np.isfinite(c)]
+    if c.size == 0:
+        return float("inf")
+    return max(1.4826 * float(np.median(np.abs(c - np.median(c)))), 1e-9)
+
+
+def type_position(split: PositionSplit, contrast: float, shift_px: float, sigma: float) -> tuple[str, float]:
+    """'pitch', 'decenter' or (when this frame cannot tell them apart at this shift) 'position', and the
+    separation in sigma of the two kinds' predicted contrasts for this shift."""
+    z_sep = split.separation_per_px() * abs(shift_px) / sigma
+    if not (np.isfinite(contrast) and z_sep >= SPLIT_Z):
+        return "position", float(z_sep)
+    err = {k: abs(contrast - split.contrast_per_px[k] * abs(shift_px)) for k in ("pitch", "decenter")}
+    return min(err, key=err.get), float(z_sep)
+
+
+def split_limits(split: PositionSplit | None, sigma: float) -> dict | None:
+    """The smallest pitch and decenter (µm) this frame types as such rather than 'position'; None when
+    it cannot at any size (grid boundaries)."""
+    if split is None or not np.isfinite(sigma) or split.separation_per_px() <= 0:
+        return None
+    shift = SPLIT_Z * sigma / split.separation_per_px()
+    return {f"{k}_um": float(f"{shift / max(split.shift_px_per_um[k], 1e-12):.3g}") for k in ("pitch", "decenter")}

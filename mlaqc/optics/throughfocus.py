@@ -1,0 +1,378 @@
+"""The through-focus pinhole protocol: the second measurement that reads each microlens' focal length
+with its sign (bench/type_separation.py chose it; README "What a frame can carry").
+
+A plate of pinholes sits where the white target was, the main lens is stopped to f/N, and the plate is
+moved along the optical axis (stage Z) so the main lens images the pinholes `focus_offset_mm` (u) behind
+(+) or in front of (-) the MLA. Each pinhole then lights a disc on the MLA (`blur_radius_mm`, traced:
+0.310 mm at u = +10 mm and 0.450 mm at u = -10 mm for Table 1 at f/8, so the -10 mm discs of
+pinholes 9 lenses apart touch; paraxially (D_N / 2) |u| / (b + u), 0.35 / 0.39 mm, but the main lens'
+spherical aberration moves the marginal focus), and every lenslet fully inside it sees a nearly
+spherical wave of vergence 1/u and focuses it to a spot on the sensor (a Shack-Hartmann sensor). A
+lens' own focus error grows the spot in one frame of the +u / -u pair and shrinks it in the other, so
+the pair carries the sign at first order.
+
+The pinholes' images form a square lattice `spacing_lenses` lens pitches apart, shifted by
+`offset_lenses` (x, y) lens pitches; `coverage_offsets` lists the lattice shifts that put every lens
+fully inside some disc. Lens (row r, col c) has its design centre at x = (c - (cols - 1) / 2) p,
+y = (r - (rows - 1) / 2) p on the MLA (camera frame: x right, y down); the main lens inverts, so an
+object point at -x / m images at x.
+
+`photons_per_pinhole` defaults to 2.2e6: with the Table 1 sensor (QE 0.6, full well 20,000 e-) the
+brightest spot pixel of a u = +10 mm, f/8 frame then reads about 80 % of full well after the image
+formation model (diffraction, crosstalk; `mlaqc simulate --no-noise`: 80.4 %), and 76.4 % at
+u = -10 mm (measured on the whole Table 1 frame at the default 50 rays per pixel; the brightest pixel
+is the best-phased spot of the 144; tests/test_throughfocus_acquire.py checks 68-90 % on the small
+camera, 78 % / 76 % there). The photons scale linearly: 2.2e6 into the f/8 pupil per 10 ms is about
+70 pW per pinhole at 633 nm.
+
+The bench (`Carrier`): the pinholes are a backlit chrome-on-glass mask on the stage's auxiliary axes Z
+(along the optical axis, +Z away from the camera) and A, B (across it, +A along the camera's +x, +B
+along +y). Along B the mask holds a clear window (field 0: the backlight's diffuser fills the view, the
+white frame) and one pinhole lattice per focus offset (field k), each drawn at the object pitch that
+images to `spacing_lenses` lens pitches at its own u (the magnification differs by 18 % between
+u = +10 and -10 mm, so one lattice cannot serve both). `carrier_axes` gives the Z, A, B of a frame;
+`carrier_view` turns stage readings back into what the camera sees (the mock camera renders that).
+"""
+
+from __future__ import annotations
+
+import functools
+import math
+from dataclasses import asdict, dataclass, replace
+from typing import Any
+
+import numpy as np
+
+from mlaqc.errors import InputError
+from mlaqc.optics.config import CameraConfig
+from mlaqc.optics.paraxial import image_distance
+from mlaqc.optics.scene import PointScene, Scene, WhiteScene
+
+PROTOCOL = "through-focus"
+PHOTONS_PER_PINHOLE = 2.2e6  # brightest spot pixel near 80 % of full well, Table 1 sensor, u = +10 mm, f/8
+
+
+@dataclass(frozen=True)
+class ThroughFocus:
+    """One frame of the protocol: where the pinholes' image lies and how the lattice sits."""
+
+    focus_offset_mm: float = 10.0  # u: paraxial image of the pinholes this far behind (+) / in front of (-) the MLA
+    f_number: float = 8.0  # main lens stopped to efl / N
+    spacing_lenses: int = 9  # pinhole images this many lens pitches apart on the MLA
+    offset_lenses: tuple[int, int] = (0, 0)  # (x, y) shift of the lattice, in lens pitches
+    photons_per_pinhole: float = PHOTONS_PER_PINHOLE  # photons each pinhole sends into the entrance pupil
+
+    def __post_init__(self) -> None:
+        if not (math.isfinite(self.focus_offset_mm) and abs(self.focus_offset_mm) >= 0.5):
+            raise InputError(f"through-focus offset must be a finite distance of at least 0.5 mm, not {self.focus_offset_mm!r}")
+        if not (math.isfinite(self.f_number) and self.f_number >= 1.0):
+            raise InputError(f"through-focus f-number must be at least 1, not {self.f_number!r}")
+        if int(self.spacing_lenses) != self.spacing_lenses or self.spacing_lenses < 2:
+            raise InputError(f"pinhole spacing must be a whole number of lenses >= 2, not {self.spacing_lenses!r}")
+        if not (math.isfinite(self.photons_per_pinhole) and self.photons_per_pinhole > 0):
+            raise InputError(f"photons per pinhole must be positive, not {self.photons_per_pinhole!r}")
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-ready record (sidecars, scan manifests, report.json)."""
+        return {"protocol": PROTOCOL} | asdict(self) | {"offset_lenses": list(self.offset_lenses)}
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any], source: str = "record") -> ThroughFocus:
+        """Inverse of `to_dict`; a malformed record is one InputError naming `source`."""
+        try:
+            kw = {k: d[k] for k in ("focus_offset_mm", "f_number", "spacing_lenses") if k in d}
+            kw["offset_lenses"] = tuple(int(v) for v in d.get("offset_lenses", (0, 0)))
+            if len(kw["offset_lenses"]) != 2:
+                raise ValueError("offset_lenses needs two values")
+            if "photons_per_pinhole" in d:
+                kw["photons_per_pinhole"] = float(d["photons_per_pinhole"])
+            return cls(**kw)
+        except (TypeError, ValueError, KeyError) as exc:
+            raise InputError(f"{source} is not a through-focus frame record ({exc})") from None
+
+
+def stopped(cfg: CameraConfig, f_number: float) -> CameraConfig:
+    """The config with its distances frozen and the main lens' rim cut to f/N (N = efl / D)."""
+    c = frozen(cfg)
+    return replace(c, main_lens=replace(c.main_lens, diameter_mm=c.layout.main.efl / f_number))
+
+
+def frozen(cfg: CameraConfig) -> CameraConfig:
+    """The config with its f-number-matched distances written into cfg.geometry, so that stopping down
+    (or moving the object) does not move the MLA."""
+    lay = cfg.layout
+    return replace(cfg, geometry=replace(cfg.geometry, object_distance_mm=lay.object_distance_mm,
+                                         mla_distance_mm=lay.mla_distance_mm))
+
+
+def object_for_image_offset(cfg: CameraConfig, u_mm: float) -> CameraConfig:
+    """Move the object (MLA fixed) so the main lens' paraxial image lies u_mm behind (+) the MLA."""
+    lay = cfg.layout
+    b = lay.mla_distance_mm + lay.main.rear_principal + u_mm
+    a = image_distance(lay.main.efl, b)
+    return replace(cfg, geometry=replace(cfg.geometry, object_distance_mm=a - lay.main.front_principal))
+
+
+def magnification(cfg: CameraConfig) -> float:
+    """|image / object| from the object plane to the MLA (paraxial, b / a)."""
+    lay = cfg.layout
+    return lay.pupil_to_mla_mm / (lay.object_distance_mm + lay.main.front_principal)
+
+
+def frame_config(cfg: CameraConfig, tf: ThroughFocus) -> CameraConfig:
+    """The camera of a through-focus frame: `cfg` stopped to f/N with the object moved to give offset u."""
+    return object_for_image_offset(stopped(cfg, tf.f_number), tf.focus_offset_mm)
+
+
+def stage_z_mm(cfg: CameraConfig, tf: ThroughFocus) -> float:
+    """How far the pinhole plate sits from the white target's plane (+ = away from the camera)."""
+    return frame_config(cfg, tf).layout.object_distance_mm - cfg.layout.object_distance_mm
+
+
+def focus_offset_at_stage_z(cfg: CameraConfig, stage_z: float) -> float:
+    """Inverse of `stage_z_mm`: the focus offset u (mm) of a target `stage_z` mm from the white target's
+    plane (+ = away from the camera); independent of the f-number (stopping down keeps the distances)."""
+    lay = frozen(cfg).layout
+    a = lay.object_distance_mm + stage_z + lay.main.front_principal
+    if not (math.isfinite(a) and a > lay.main.efl):
+        raise InputError(f"a target {stage_z:+.3f} mm from the white target's plane is at or inside the main lens' "
+                         "focal length: the camera forms no real image of it")
+    return image_distance(lay.main.efl, a) - lay.mla_distance_mm - lay.main.rear_principal
+
+
+def blur_radius_mm(cfg: CameraConfig, tf: ThroughFocus) -> float:
+    """Radius (mm) of the disc one pinhole lights on the MLA: the height there of the on-axis pinhole's
+    marginal ray, traced through the stopped main lens (its edge: no light falls beyond it).
+
+    The paraxial estimate `paraxial_blur_radius_mm` misses two things the real lens does: the stop is
+    the rim at the front vertex, not a disc at the principal plane (+2 %), and spherical aberration
+    brings the marginal rays to focus about 0.8 mm short of the paraxial image at f/8, so the disc is
+    12 % smaller at u = +10 mm (0.310 mm) and 14 % larger at u = -10 mm (0.450 mm) for Table 1. It is
+    not uniformly lit either (a bright rim at +u, a dim one at -u). tests/test_throughfocus_acquire.py
+    recovers this edge within 1 % from rendered frames."""
+    from mlaqc.optics.raytrace import MainLens, Rays
+
+    c = frame_config(cfg, tf)
+    lens, lay = MainLens(c), c.layout
+    z0 = lay.z_object_mm
+
+    def trace(rho: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Heights at the MLA plane of rays from the on-axis pinhole aimed at height rho on the front vertex
+        plane, and whether they pass."""
+        n = len(rho)
+        norm = np.sqrt(rho * rho + z0 * z0)
+        r = Rays(np.zeros(n), np.zeros(n), np.full(n, z0), rho / norm, np.zeros(n), -z0 / norm, np.ones(n))
+        lens.trace(r)
+        t = (lay.z_mla_mm - r.z) / r.N
+        return np.abs(r.x + t * r.L), r.w > 0
+
+    lo, hi = 0.0, 0.75 * c.main_lens.diameter_mm  # aim heights: lo passes, hi (beyond the rim) does not
+    for _ in range(50):
+        mid = 0.5 * (lo + hi)
+        lo, hi = (mid, hi) if trace(np.array([mid]))[1][0] else (lo, mid)
+    h, ok = trace(np.linspace(0.0, lo, 65))
+    return float(np.max(h[ok]))
+
+
+def paraxial_blur_radius_mm(cfg: CameraConfig, tf: ThroughFocus) -> float:
+    """The paraxial disc radius (D_N / 2) |u| / (b + u): the stopped aperture D_N = efl / N taken at the
+    rear principal plane, b from there to the MLA (0.352 / 0.394 mm at u = +10 / -10 mm, Table 1 f/8)."""
+    c = frame_config(cfg, tf)
+    b = c.layout.pupil_to_mla_mm + tf.focus_offset_mm
+    return 0.5 * c.main_lens.diameter_mm * abs(tf.focus_offset_mm) / b
+
+
+def inner_radius_lenses(cfg: CameraConfig, tf: ThroughFocus) -> float:
+    """Distance (lens pitches) from a disc's centre within which a whole lens aperture is lit."""
+    return blur_radius_mm(cfg, tf) / (cfg.mla.pitch_um * 1e-3) - math.sqrt(0.5)
+
+
+RIM_MARGIN_LENSES = 0.15  # a lens counts as fully lit this far inside the disc's traced rim
+
+
+def pair_radius_lenses(cfg: CameraConfig, tf: ThroughFocus) -> float:
+    """How far (lens pitches) from its pinhole a lens is read: fully lit, with RIM_MARGIN_LENSES to spare,
+    in both frames of the +u / -u pair (the smaller disc decides)."""
+    return _pair_radius(cfg, abs(tf.focus_offset_mm), tf.f_number)
+
+
+@functools.lru_cache(maxsize=32)
+def _pair_radius(cfg: CameraConfig, u_mm: float, f_number: float) -> float:
+    tf = ThroughFocus(focus_offset_mm=u_mm, f_number=f_number)
+    return min(inner_radius_lenses(cfg, replace(tf, focus_offset_mm=u)) for u in (u_mm, -u_mm)) - RIM_MARGIN_LENSES
+
+
+def pinhole_lenses(cfg: CameraConfig, tf: ThroughFocus) -> np.ndarray:
+    """(n, 2) int array of (row, col): the lenses at the centres of the lit discs, inside the array."""
+    s, (ox, oy) = tf.spacing_lenses, tf.offset_lenses
+    rows = np.arange(oy % s, cfg.mla.count_h, s)
+    cols = np.arange(ox % s, cfg.mla.count_w, s)
+    r, c = np.meshgrid(rows, cols, indexing="ij")
+    return np.stack([r.ravel(), c.ravel()], axis=1)
+
+
+def lens_centres_mm(cfg: CameraConfig, rc: np.ndarray) -> np.ndarray:
+    """Design centres (x, y) mm on the MLA of lenses given as (row, col) rows."""
+    p = cfg.mla.pitch_um * 1e-3
+    x = (rc[:, 1] - 0.5 * (cfg.mla.count_w - 1)) * p
+    y = (rc[:, 0] - 0.5 * (cfg.mla.count_h - 1)) * p
+    return np.stack([x, y], axis=1)
+
+
+def scene(cfg: CameraConfig, tf: ThroughFocus) -> PointScene:
+    """The pinhole plate of this frame: object points whose paraxial images land on the lattice lenses."""
+    m = magnification(frame_config(cfg, tf))
+    img = lens_centres_mm(cfg, pinhole_lenses(cfg, tf))
+    return PointScene(points_mm=tuple((-float(x) / m, -float(y) / m) for x, y in img), photons=tf.photons_per_pinhole)
+
+
+def coverage_offsets(cfg: CameraConfig, tf: ThroughFocus) -> list[tuple[int, int]]:
+    """Lattice shifts (x, y lens pitches) that put every lens fully inside some lit disc: a square
+    sub-lattice of step t with t / sqrt(2) <= the inner radius (the farthest a lens can be from its
+    nearest pinhole), within `pair_radius_lenses` (what the analysis reads) of both frames of the +u / -u
+    pair. Empty when a disc cannot hold a whole lens (|u| too small for f/N)."""
+    r_in = pair_radius_lenses(cfg, tf)
+    if r_in < 0:
+        return []
+    s = tf.spacing_lenses
+    t = max(1, min(s, int(math.floor(r_in * math.sqrt(2.0)))))
+    n = math.ceil(s / t)
+    steps = sorted({min(k * t, s - 1) for k in range(n)})
+    return [(ox, oy) for oy in steps for ox in steps]
+
+
+# --------------------------------------------------------------------------------------------- the bench
+
+
+@dataclass(frozen=True)
+class Carrier:
+    """The pinhole mask on the stage's auxiliary axes (machine coordinates, mm); see the module docstring.
+
+    Field k along B is centred at B = b_window_mm + k * field_pitch_mm: k = 0 the clear window (white
+    frames), k >= 1 the lattice made for focus offset `focus_offsets_mm[k - 1]` and `spacing_lenses`.
+    Z = z_white_mm puts the mask in the white target's plane; A = a_centre_mm centres the lattices
+    (lattice offset 0, 0). The default field pitch leaves each field 25 mm of glass, more than the
+    Table 1 camera's object field (16.4 mm at u = -10 mm) plus the largest lattice offset (1.3 mm)."""
+
+    focus_offsets_mm: tuple[float, ...] = (10.0, -10.0)
+    spacing_lenses: int = 9
+    z_white_mm: float = 50.0
+    a_centre_mm: float = 10.0
+    b_window_mm: float = 0.0
+    field_pitch_mm: float = 25.0
+
+    def __post_init__(self) -> None:
+        offs = tuple(float(u) for u in self.focus_offsets_mm)
+        object.__setattr__(self, "focus_offsets_mm", offs)
+        if not offs or any(not (math.isfinite(u) and abs(u) >= 0.5) for u in offs) or len(set(offs)) != len(offs):
+            raise InputError(f"pinhole mask focus offsets {list(offs)} must be distinct finite distances of at least 0.5 mm")
+        if int(self.spacing_lenses) != self.spacing_lenses or self.spacing_lenses < 2:
+            raise InputError(f"pinhole mask spacing must be a whole number of lenses >= 2, not {self.spacing_lenses!r}")
+        for name in ("z_white_mm", "a_centre_mm", "b_window_mm", "field_pitch_mm"):
+            if not math.isfinite(getattr(self, name)):
+                raise InputError(f"pinhole mask {name} must be a finite number, not {getattr(self, name)!r}")
+        if self.field_pitch_mm <= 0:
+            raise InputError(f"pinhole mask field_pitch_mm must be positive, not {self.field_pitch_mm!r}")
+
+    def field_of(self, tf: ThroughFocus) -> int:
+        """The field (1-based, along B) holding the lattice of this frame; InputError if the mask has none."""
+        if tf.spacing_lenses != self.spacing_lenses:
+            raise InputError(f"the pinhole mask's lattices are {self.spacing_lenses} lenses apart, not {tf.spacing_lenses}")
+        for k, u in enumerate(self.focus_offsets_mm, start=1):
+            if abs(u - tf.focus_offset_mm) <= 1e-9:
+                return k
+        raise InputError(f"the pinhole mask has no lattice for a focus offset of {tf.focus_offset_mm:g} mm (its lattices: "
+                         f"{', '.join(f'{u:g}' for u in self.focus_offsets_mm)} mm)")
+
+    def to_dict(self) -> dict[str, Any]:
+        return asdict(self) | {"focus_offsets_mm": list(self.focus_offsets_mm)}
+
+
+def carrier_axes(cfg: CameraConfig, carrier: Carrier, tf: ThroughFocus) -> dict[str, float]:
+    """Stage Z, A, B (mm) that put the mask where frame `tf` needs it: Z from `stage_z_mm`, the lattice
+    field on B, and the lattice offset as an object-side shift of -offset * p / m (the image is inverted)."""
+    k = carrier.field_of(tf)
+    m = magnification(frame_config(cfg, tf))
+    p = cfg.mla.pitch_um * 1e-3
+    ox, oy = (o % tf.spacing_lenses for o in tf.offset_lenses)
+    return {"z": carrier.z_white_mm + stage_z_mm(cfg, tf),
+            "a": carrier.a_centre_mm - ox * p / m,
+            "b": carrier.b_window_mm + k * carrier.field_pitch_mm - oy * p / m}
+
+
+def white_axes(carrier: Carrier) -> dict[str, float]:
+    """Stage Z, A, B with the clear window centred in the white target's plane (the white frames)."""
+    return {"z": carrier.z_white_mm, "a": carrier.a_centre_mm, "b": carrier.b_window_mm}
+
+
+@dataclass(frozen=True)
+class CarrierView:
+    """What the camera sees with the mask at given stage readings and the main lens at f/N."""
+
+    kind: str  # "white" (the window), "pinholes" (a lattice field) or "opaque" (off the fields: no light)
+    cfg: CameraConfig  # the camera imaging it: iris and (pinholes) object distance
+    scene: Scene | None  # None when opaque
+    field: int  # 0 window, k lattice, else off the mask's fields
+    frame: ThroughFocus | None = None  # pinholes: u from the actual Z, the nearest lattice offset
+    residual_mm: tuple[float, float] = (0.0, 0.0)  # the mask's object-side shift off that lattice offset
+    flux_scale: float = 1.0  # multiply the render by this (see `white_flux_scale`)
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"kind": self.kind, "field": self.field, "flux_scale": self.flux_scale,
+                "through_focus": None if self.frame is None else self.frame.to_dict(),
+                "residual_um": [round(1e3 * v, 4) for v in self.residual_mm]}
+
+
+def iris_config(cfg: CameraConfig, f_number: float) -> CameraConfig:
+    """`cfg` itself at (or below) its own f-number efl / D, else stopped to f/N with its distances frozen."""
+    if not (math.isfinite(f_number) and f_number >= 1.0):
+        raise InputError(f"f-number must be at least 1, not {f_number!r}")
+    if f_number <= native_f_number(cfg) + 1e-3:  # an iris cannot open beyond the lens' own rim
+        return cfg
+    return stopped(cfg, f_number)
+
+
+def white_flux_scale(cfg: CameraConfig, f_number: float) -> float:
+    """What an iris at f/N passes of the white image the renderer makes: (D_N / D)^2. The renderer
+    normalizes a white image to the config's `exposure_photons` whatever the aperture (its ray weights
+    do not shrink with the rim), so a stopped-down white render must be scaled by the aperture area."""
+    return (iris_config(cfg, f_number).main_lens.diameter_mm / cfg.main_lens.diameter_mm) ** 2
+
+
+def native_f_number(cfg: CameraConfig) -> float:
+    """The main lens' full-aperture f-number, efl / D."""
+    return cfg.layout.main.efl / cfg.main_lens.diameter_mm
+
+
+def carrier_view(cfg: CameraConfig, carrier: Carrier, axes: dict[str, float], f_number: float,
+                 photons_per_pinhole: float = PHOTONS_PER_PINHOLE) -> CarrierView:
+    """The view at stage readings `axes` (z, a, b in mm): a physical forward model. The pinholes stay where
+    the mask holds them: the lattice field's design points (the images on lens centres at its own u and
+    the nearest lattice offset), moved by the mask's residual lateral shift, imaged from the object
+    distance the actual Z gives. At the nominal axes of a frame this is exactly `frame_config` and
+    `scene`. The white window ignores Z: a uniform Lambertian plane that fills the field gives the same
+    image at any distance."""
+    z, a, b = (float(axes[k]) for k in ("z", "a", "b"))
+    k = round((b - carrier.b_window_mm) / carrier.field_pitch_mm)
+    cam = iris_config(cfg, f_number)
+    if k == 0:
+        return CarrierView("white", cam, WhiteScene(), 0, flux_scale=white_flux_scale(cfg, f_number))
+    if not 1 <= k <= len(carrier.focus_offsets_mm):
+        return CarrierView("opaque", cam, None, k)
+    s = carrier.spacing_lenses
+    design = ThroughFocus(carrier.focus_offsets_mm[k - 1], f_number, s, (0, 0), photons_per_pinhole)
+    m = magnification(frame_config(cfg, design))
+    p = cfg.mla.pitch_um * 1e-3
+    dx, dy = a - carrier.a_centre_mm, b - (carrier.b_window_mm + k * carrier.field_pitch_mm)
+    kx, ky = round(-dx * m / p), round(-dy * m / p)
+    residual = (dx + kx * p / m, dy + ky * p / m)
+    nominal = replace(design, offset_lenses=(kx % s, ky % s))
+    pts = tuple((x + residual[0], y + residual[1]) for x, y in scene(cfg, nominal).points_mm)
+    base = frozen(cfg) if cam is cfg else cam
+    dz = z - carrier.z_white_mm
+    cam = replace(base, geometry=replace(base.geometry, object_distance_mm=frozen(cfg).layout.object_distance_mm + dz))
+    try:
+        frame = replace(nominal, focus_offset_mm=round(focus_offset_at_stage_z(cfg, dz), 6))
+    except InputError:
+        frame = None  # the pinholes are (nearly) imaged onto the MLA: not a through-focus frame
+    return CarrierView("pinholes", cam, PointScene(points_mm=pts, photons=photons_per_pinhole), k, frame, residual)
