@@ -1,7 +1,13 @@
-"""Test-wide settings: Qt offscreen, helpers shared across test modules, and a parallel Numba warm-up."""
+"""Test-wide settings: Qt offscreen, a parallel Numba warm-up, and (under pytest-xdist) the GUI tests
+run while no other test does."""
 
+import contextlib
 import os
+import shutil
+import tempfile
 import time
+
+import pytest
 
 os.environ.setdefault("QT_QPA_PLATFORM", "offscreen")
 os.environ.pop("MLAQC_SCHEDULER", None)  # a developer's cluster must not take over the tests that inspect locally
@@ -123,3 +129,53 @@ def _warm_numba(config) -> None:
 
 def pytest_sessionstart(session):
     _warm_numba(session.config)
+
+
+# ------------------------------------------------------------------------------ pytest-xdist
+# Under `-n N` the GUI tests (modules test_gui*) hold their wall-clock bounds (a stage stopped
+# mid-move by closing the window, live-view rates) only with the cores to themselves, as in a serial
+# run: each runs under an exclusive lock, every other test under a shared one, so that a GUI test
+# waits for the other workers' current tests and they wait for it. A turnstile lock keeps a waiting
+# GUI test from being overtaken by the next shared test. The lock files live in a folder the xdist
+# controller makes for the run (before it starts the workers, which inherit its path).
+EXCLUSIVE_MODULES = ("test_gui",)
+LOCK_DIR_ENV = "MLAQC_TEST_LOCK_DIR"
+
+
+def pytest_configure(config):
+    if not hasattr(config, "workerinput") and getattr(config.option, "numprocesses", None):
+        config._mlaqc_lock_dir = tempfile.mkdtemp(prefix="mlaqc-xdist-locks-")
+        os.environ[LOCK_DIR_ENV] = config._mlaqc_lock_dir
+
+
+def pytest_unconfigure(config):
+    folder = getattr(config, "_mlaqc_lock_dir", None)
+    if folder:
+        os.environ.pop(LOCK_DIR_ENV, None)
+        shutil.rmtree(folder, ignore_errors=True)
+
+
+@contextlib.contextmanager
+def _run_lock(folder: str, exclusive: bool):
+    import fcntl
+
+    with open(os.path.join(folder, "turnstile"), "a") as gate, open(os.path.join(folder, "run"), "a") as run:
+        fcntl.flock(gate, fcntl.LOCK_EX)
+        try:
+            fcntl.flock(run, fcntl.LOCK_EX if exclusive else fcntl.LOCK_SH)
+        finally:
+            fcntl.flock(gate, fcntl.LOCK_UN)
+        try:
+            yield
+        finally:
+            fcntl.flock(run, fcntl.LOCK_UN)
+
+
+@pytest.hookimpl(hookwrapper=True)
+def pytest_runtest_protocol(item, nextitem):
+    folder = os.environ.get(LOCK_DIR_ENV) if hasattr(item.config, "workerinput") else None
+    if not folder or not os.path.isdir(folder):
+        yield
+        return
+    with _run_lock(folder, item.path.name.startswith(EXCLUSIVE_MODULES)):
+        yield
