@@ -1078,6 +1078,16 @@ class ScanRunner:
         self._writer.append(record)
         return record
 
+    def _move_carrier(self, axes: dict[str, float]) -> None:
+        """Move the pinhole carrier's axes and settle (the through-focus settle time if the plan sets one)."""
+        tf = self.plan.through_focus
+        t0 = time.monotonic()
+        self.stage.move_aux(axes, timeout_s=self.plan.move_timeout_s)
+        settle = self.plan.settle_s if tf.settle_s is None else tf.settle_s
+        if settle:
+            time.sleep(settle)
+        self.result.motion_s += time.monotonic() - t0
+
     def _white_state(self, phase: list[str]) -> None:
         """Carrier window on the axis, iris open, white exposure: what the white frames need."""
         tf = self.plan.through_focus
@@ -1085,12 +1095,7 @@ class ScanRunner:
         target = white_axes(tf.carrier)
         last = self.stage.last_aux or {}
         if any(abs(last.get(k, math.inf) - v) > 0.001 for k, v in target.items()):
-            t0 = time.monotonic()
-            self.stage.move_aux(target, timeout_s=self.plan.move_timeout_s)
-            settle = self.plan.settle_s if tf.settle_s is None else tf.settle_s
-            if settle:
-                time.sleep(settle)
-            self.result.motion_s += time.monotonic() - t0
+            self._move_carrier(target)
         phase[0] = "camera"
         if tf.iris == "camera":
             self.camera.set_f_number(self._white_f_number)  # type: ignore[attr-defined]
@@ -1108,12 +1113,7 @@ class ScanRunner:
         if tf.exposure_us is not None:
             self.camera.set_exposure_us(tf.exposure_us)
         phase[0] = "stage"
-        t0 = time.monotonic()
-        self.stage.move_aux(axes, timeout_s=self.plan.move_timeout_s)
-        settle = self.plan.settle_s if tf.settle_s is None else tf.settle_s
-        if settle:
-            time.sleep(settle)
-        self.result.motion_s += time.monotonic() - t0
+        self._move_carrier(axes)
         read_aux = self.stage.aux_position(timeout_s=READBACK_TIMEOUT_S)
         phase[0] = "camera"
         g = grab(self.camera, self.plan.average if tf.average is None else tf.average, self.plan.capture_timeout_s)
