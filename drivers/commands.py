@@ -52,7 +52,10 @@ def register(sub: argparse._SubParsersAction) -> None:
     s.add_argument("--out", "-o", required=True, metavar="DIR", help="output folder (new or empty, or an earlier scan with --resume)")
     s.add_argument("--resume", action="store_true", help="continue the scan recorded in DIR/manifest.jsonl")
     s.add_argument("--inspect", action="store_true",
-                   help="inspect each frame as it is recorded (needs the inspection pipeline, mlaqc.inspection.pipeline)")
+                   help="inspect each white frame once its position is recorded, with that position's through-focus "
+                        "pinhole frames if the plan takes them (one combined verdict, as `mlaqc inspect RAW "
+                        "--through-focus FRAME ...`), into <frame>.inspect.json; a failed inspection is reported and "
+                        "the scan goes on (--resume tries it again)")
     s.add_argument("--quiet", "-q", action="store_true", help="no progress bar or summary")
     s.set_defaults(func=run_scan_command)
 
@@ -127,6 +130,8 @@ def run_scan_command(args: argparse.Namespace) -> int:
             _note(bar, f"{event['file']}: {event['warning']}")
         elif kind == "invalid_record":
             _note(bar, f"position {event['index'] + 1} will be captured again: {event['reason']}")
+        elif kind == "inspect_failed":
+            _note(bar, f"{event['file']} was recorded but not inspected: {event['error']}")
 
     runner = ScanRunner(plan, args.out, camera=args.camera, stage=args.stage, resume=args.resume, inspect=inspect,
                         progress=progress, on_event=on_event)

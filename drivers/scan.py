@@ -28,9 +28,9 @@ Plan (TOML; see fixtures/scan_plan_raster.toml and fixtures/scan_plan_list.toml)
     label = "W(1,1)"            # optional; default p00001, p00002, ...
 
     [through_focus]             # optional: the second measurement's frames at every position
-    focus_offsets_mm = [10.0, -10.0]  # u of each lattice (mlaqc.optics.throughfocus), |u| >= 0.5, distinct
-    f_number = 8.0              # main lens stopped to f/N for these frames
-    spacing_lenses = 9          # pinhole images this many lens pitches apart
+    focus_offsets_mm = [5.0, -5.0]  # u of each lattice (mlaqc.optics.throughfocus), |u| >= 0.5, distinct
+    f_number = 11.0             # main lens stopped to f/N for these frames
+    spacing_lenses = 4          # pinhole images this many lens pitches apart
     offsets = "cover"           # lattice shifts: "cover" (every lens inside some disc) or [[0, 0], [3, 0], ...]
     exposure_us = 10000.0       # optional: exposure of these frames (default: the white frames')
     settle_s = 0.05             # optional: wait after each carrier move (default: scan.settle_s)
@@ -57,7 +57,8 @@ target within their soft limits, checked before the first move. Files ``pos_NNNN
 ``through_focus`` (the frame's `ThroughFocus` record with its derived facts, the carrier targets and
 the axes read back) and the manifest lists each file's ``through_focus`` record (null for white
 frames). The header gets ``through_focus``: the expanded frames, the carrier, and where the camera
-config came from; a resume with other frames is refused. The inspection hook runs on white frames only.
+config came from; a resume with other frames is refused. The inspection hook runs on white frames only,
+each with its position's pinhole frames (`ScanFrame.through_focus`; see Inspection below).
 
 Output folder: ``pos_NNNNN.tiff`` (``pos_NNNNN_fK.tiff`` with several frames per position; N is the
 1-based index in plan order) with ``.meta.json`` sidecars (see drivers.capture), ``manifest.jsonl``
@@ -87,12 +88,17 @@ each retry the failed device is reconnected (stage: closed and reopened from its
 stopped, the manifest is left consistent and ScanFailed (DeviceError, exit 3) or ScanInterrupted (exit
 130) says in one sentence where the scan stopped and that --resume continues it.
 
-Inspection: `inspect` is a callable ``(frame: ScanFrame) -> dict | None`` run for each raw file right
-after its position is recorded (a ScanFrame carries the raw and sidecar paths, the manifest record and
-the manifest header with the camera's settings and ground truth); a returned dict is written to
-``<raw name>.inspect.json``. An exception in it is logged as an ``inspect_failed`` event and the scan goes
-on (the frame is already safe). `default_inspect_hook()` finds ``mlaqc.inspection.pipeline.scan_frame_hook`` once the
-inspection pipeline provides it, else returns None (``mlaqc scan --inspect`` then says so and scans).
+Inspection: `inspect` is a callable ``(frame: ScanFrame) -> dict | None`` run for each white raw file right
+after its position is recorded (a ScanFrame carries the raw and sidecar paths, the manifest record, the
+manifest header with the camera's settings and ground truth, and `through_focus`: the pinhole frames of
+the same position, all on disk by then, since a position is recorded only once every frame of it is); a
+returned dict is written to ``<raw name>.inspect.json``. Pinhole frames are not inspected on their own:
+the default hook reads them with their white frame into one combined verdict. An exception in it is logged
+as an ``inspect_failed`` event and the scan goes on (the frame is already safe). A resumed scan first
+inspects the recorded positions whose white frames have no ``.inspect.json`` yet (a kill while the hook
+ran, or a failed inspection: tried again), then goes on. `default_inspect_hook()` finds
+``mlaqc.inspection.pipeline.scan_frame_hook`` once the inspection pipeline provides it, else returns None
+(``mlaqc scan --inspect`` then says so and scans).
 """
 
 from __future__ import annotations
@@ -152,6 +158,7 @@ class ScanFrame:
     record: dict[str, Any]  # the position's manifest record
     header: dict[str, Any]  # the manifest header: plan, camera URL and settings, ground truth (mock)
     out_dir: Path
+    through_focus: tuple[Path, ...] = ()  # the pinhole frames recorded at the same position, in plan order
 
 
 InspectHook = Callable[[ScanFrame], "dict | None"]
@@ -191,9 +198,9 @@ class PlanPosition:
 class ThroughFocusPlan:
     """The plan's [through_focus] table, validated; `frames(cfg)` expands it for a camera."""
 
-    focus_offsets_mm: tuple[float, ...] = (10.0, -10.0)
-    f_number: float = 8.0
-    spacing_lenses: int = 9
+    focus_offsets_mm: tuple[float, ...] = (5.0, -5.0)  # the shipped protocol (mlaqc.optics.throughfocus:
+    f_number: float = 11.0  # FOCUS_OFFSET_MM, F_NUMBER, SPACING_LENSES; the Carrier's defaults match)
+    spacing_lenses: int = 4
     offsets: str | tuple[tuple[int, int], ...] = "cover"
     exposure_us: float | None = None
     settle_s: float | None = None
@@ -893,6 +900,11 @@ class ScanRunner:
                         raise InputError(f"scan plan {self.plan.source!r}: through-focus frame {k} (u {frame.focus_offset_mm:+g} mm, "
                                          f"offset {frame.offset_lenses}) needs {name.upper()}={value:.3f} mm, outside the "
                                          f"stage's soft limits ({name} {lo:g}..{hi:g} mm); check the carrier keys")
+            shown = getattr(self.camera, "carrier", None)  # a camera that models the mask itself (the mock)
+            if isinstance(shown, Carrier) and shown != tf.carrier:
+                raise InputError(f"scan plan {self.plan.source!r} describes a pinhole mask ({_mask_text(tf.carrier)}) other "
+                                 f"than the one camera {self._camera_label()} shows ({_mask_text(shown)}); make the "
+                                 "plan's [through_focus] and the camera's mask agree")
             if tf.iris == "camera" and not callable(getattr(self.camera, "set_f_number", None)):
                 raise InputError(f"camera {self._camera_label()} cannot set its iris, which through_focus.iris = 'camera' "
                                  "needs; set the lens to f/N by hand with iris = 'manual' and white_frames = false")
@@ -950,6 +962,7 @@ class ScanRunner:
                 self.progress(self.result.done, total)
             for pos in self.plan.positions:
                 if pos.index in self._done:
+                    self._inspect_missed(pos)
                     continue
                 self._current = pos
                 if self.before_position is not None:
@@ -1152,14 +1165,23 @@ class ScanRunner:
             self._apply_camera_settings()
             self._camera_bad = False
 
-    def _run_inspect(self, pos: PlanPosition, record: dict[str, Any]) -> None:
+    def _inspect_missed(self, pos: PlanPosition) -> None:
+        """A resumed scan: inspect a recorded position whose white frames have no .inspect.json yet."""
+        if self.inspect is not None:
+            self._run_inspect(pos, self._done[pos.index], missing_only=True)
+
+    def _run_inspect(self, pos: PlanPosition, record: dict[str, Any], missing_only: bool = False) -> None:
+        """Run the hook on each white frame of a recorded position, with the position's pinhole frames."""
         if self.inspect is None:
             return
+        pinholes = tuple(self.out / item["file"] for item in record["files"] if item.get("through_focus"))
         for item in record["files"]:
             if item.get("through_focus"):
-                continue  # the second measurement's frames are not white images
+                continue  # the second measurement's frames are not white images: they go with each white frame
             path = self.out / item["file"]
-            frame = ScanFrame(path, self.out / item["sidecar"], record, self._header or {}, self.out)
+            if missing_only and (self.out / (item["file"] + ".inspect.json")).exists():
+                continue
+            frame = ScanFrame(path, self.out / item["sidecar"], record, self._header or {}, self.out, pinholes)
             try:
                 result = self.inspect(frame)
             except (KeyboardInterrupt, MemoryError):
@@ -1249,6 +1271,11 @@ def run_scan(camera: Camera | str, stage: Any, plan: ScanPlan | str | os.PathLik
     runner = ScanRunner(plan, out_dir, camera=camera, stage=stage, resume=resume, inspect=inspect, progress=progress,
                         before_position=before_position, on_event=on_event)
     return runner.run()
+
+
+def _mask_text(c: Carrier) -> str:
+    """A pinhole mask in a few words: its lattices' focus offsets and spacing."""
+    return f"lattices for u = {', '.join(f'{u:+g}' for u in c.focus_offsets_mm)} mm, {c.spacing_lenses} lenses apart"
 
 
 def default_inspect_hook() -> InspectHook | None:

@@ -587,7 +587,7 @@ def describe_through_focus(paths: Any, cfg: Any, *, check_size: bool = True) -> 
 
 
 def through_focus_label(frames: tuple[TfFrame, ...]) -> str:
-    """'18 frames: 9 +u / −u pairs at u = ±10 mm' (the inspection panel's line)."""
+    """'32 frames: 16 +u / −u pairs at u = ±5 mm' (the inspection panel's line; the shipped protocol's set)."""
     if not frames:
         return "none"
     us = ", ".join(f"±{u:g}" for u in sorted({abs(f.u_mm) for f in frames}))

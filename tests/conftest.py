@@ -94,7 +94,6 @@ def _wants_warmup(config) -> bool:
     switch = os.environ.get("MLAQC_TEST_WARMUP", "")
     if switch in ("0", "1"):
         return switch == "1"
-    from pathlib import Path
 
     return all((config.invocation_params.dir / arg.split("::")[0]).is_dir() for arg in config.args)
 

@@ -13,7 +13,14 @@ import numpy as np
 import pytest
 
 from drivers.camera import open_camera
-from drivers.camera.fake_v4l2 import FakeV4L2Bus, FakeV4L2Device, PlantedFrame
+from drivers.camera.fake_v4l2 import (
+    FakeV4L2Bus,
+    FakeV4L2Device,
+    PlantedFrame,
+    default_controls,
+    relative_iris_control,
+    uvc_iris_control,
+)
 from drivers.camera.formats import FORMATS, lookup_format
 from drivers.camera.v4l2 import (
     BUF_FLAG_ERROR,
@@ -22,7 +29,10 @@ from drivers.camera.v4l2 import (
     CID_EXPOSURE_ABSOLUTE,
     CID_EXPOSURE_AUTO,
     CID_GAIN,
+    CID_IRIS_ABSOLUTE,
+    CID_IRIS_RELATIVE,
     ControlInfo,
+    IrisMap,
     V4L2Camera,
 )
 from mlaqc.errors import DeviceError, InputError
@@ -440,3 +450,113 @@ def test_real_linuxpy_adapter_refuses_a_non_v4l2_node():
     pytest.importorskip("linuxpy.video.device")
     with pytest.raises(DeviceError, match="/dev/null is not a V4L2 video device"):
         open_camera("v4l2:///dev/null")
+
+
+# --------------------------------------------------------------------------- iris (main lens f-number)
+
+
+def iris_camera(tmp_path, query: str = "", controls=None, **device):
+    """An opened camera on a fake with an iris control (default: a UVC lens, f/2..f/16 as f-number x 100)."""
+    tmp_path.mkdir(parents=True, exist_ok=True)
+    dev = FakeV4L2Device(tmp_path / "video3", controls=default_controls() | (controls or uvc_iris_control()), **device)
+    url = f"v4l2://{dev.node}?settle_frames=0" + (f"&{query}" if query else "")
+    return dev, open_camera(url, adapter_factory=FakeV4L2Bus(dev), by_id_dir=tmp_path)
+
+
+def test_iris_control_ids_match_the_kernel_header_via_linuxpy():
+    device = pytest.importorskip("linuxpy.video.device")
+    assert (device.ControlID.IRIS_ABSOLUTE, device.ControlID.IRIS_RELATIVE) == (CID_IRIS_ABSOLUTE, CID_IRIS_RELATIVE)
+
+
+def test_uvc_iris_is_f_number_times_100_read_back_and_checked(tmp_path):
+    dev, cam = iris_camera(tmp_path)
+    dev.values[CID_EXPOSURE_AUTO] = 0  # Auto: UVC refuses iris writes, so the driver switches to manual
+    assert cam.set_f_number(8) == 8.0
+    assert dev.values[CID_IRIS_ABSOLUTE] == 800 and dev.values[CID_EXPOSURE_AUTO] == 1
+    assert cam.set_f_number(11.04) == pytest.approx(11.0)  # snapped to the 0.1 step: 1100
+    assert cam.f_number == pytest.approx(11.0)
+    s = cam.settings()
+    assert s["f_number"] == pytest.approx(11.0) and s["iris"]["control"] == "absolute"
+    assert s["iris"]["f_number_range"] == [2.0, 16.0] and "UVC" in s["iris"]["mapping"]
+    dev.plant(y16(np.zeros((6, 8))), sequence=0)
+    assert cam.capture(timeout_s=2).extra["f_number"] == pytest.approx(11.0)
+    with pytest.raises(InputError, match=r"f/22 is outside camera 'Fake Camera' at .*video3's iris range "
+                                         r"f/2\.\.f/16 \(control 'Iris, Absolute' 200\.\.1600, f-number x 100"):
+        cam.set_f_number(22)
+    with pytest.raises(InputError, match="f/1.4 is outside"):
+        cam.set_f_number(1.4)
+    with pytest.raises(InputError, match="f_number must be a positive"):
+        cam.set_f_number(-8)
+    assert dev.values[CID_IRIS_ABSOLUTE] == 1100  # nothing written by the refusals
+    _, cam2 = iris_camera(tmp_path / "coarse", controls=uvc_iris_control(step=100), card="Coarse")
+    with pytest.raises(InputError, match=r"iris cannot be set to f/8\.5: its nearest settings are f/8 and f/9"):
+        cam2.set_f_number(8.5)
+
+
+def test_iris_mapping_is_configurable_by_unit_or_table(tmp_path):
+    dev, cam = iris_camera(tmp_path / "a", "iris_unit=0.1", controls=uvc_iris_control(20, 160, 1, 20))
+    assert cam.set_f_number(8) == pytest.approx(8.0) and dev.values[CID_IRIS_ABSOLUTE] == 80
+    # a driver that follows the V4L2 wording (larger values open wider): a table, read in stops between points
+    dev, cam = iris_camera(tmp_path / "b", "iris_table=0:16,100:2", controls=uvc_iris_control(0, 100, 1, 100))
+    assert cam.set_f_number(4) == pytest.approx(4.0, rel=0.01) and dev.values[CID_IRIS_ABSOLUTE] == 67
+    assert cam.set_f_number(16) == 16.0 and dev.values[CID_IRIS_ABSOLUTE] == 0
+    assert IrisMap(table=((0, 16.0), (100, 2.0))).value(5.656854) == pytest.approx(50.0)  # half-way in stops
+    for query, message in [("iris_unit=0.1&iris_table=0:16,100:2", "both iris_unit and iris_table"),
+                           ("iris_table=0:16", "iris_table='0:16'"),
+                           ("iris_table=0:2,50:4,100:2", "all rise or all fall"),
+                           ("iris_unit=-1", "iris_unit"), ("iris=uvc", "unknown parameter 'iris'")]:
+        with pytest.raises(InputError, match=message):
+            V4L2Camera.from_url(f"v4l2://{dev.node}?{query}")
+
+
+def test_camera_without_iris_says_so_in_one_sentence(world):
+    cam = make_camera(world)
+    with pytest.raises(InputError, match=r"has no iris control \(V4L2_CID_IRIS_ABSOLUTE or _RELATIVE\), so it cannot "
+                                         r"set f/8; set the lens by hand \(through_focus.iris = 'manual'\)"):
+        cam.set_f_number(8)
+    assert cam.settings()["iris"] is None and np.isnan(cam.f_number) and np.isnan(cam.settings()["f_number"])
+
+
+def test_motorized_iris_is_polled_and_a_jammed_one_times_out(tmp_path):
+    dev, cam = iris_camera(tmp_path / "slow", iris_lag_reads=3)
+    assert cam.set_f_number(5.6) == pytest.approx(5.6) and dev.values[CID_IRIS_ABSOLUTE] == 560
+    dev, cam = iris_camera(tmp_path / "jammed", "iris_timeout_s=0.1", iris_lag_reads=None)
+    start = time.monotonic()
+    with pytest.raises(DeviceError, match=r"iris did not reach f/8 within 0\.1 s \(it reads f/2\)"):
+        cam.set_f_number(8)
+    assert time.monotonic() - start < 1.0
+
+
+def test_f_number_from_the_url_is_applied_at_open_and_after_a_replug(tmp_path):
+    dev, cam = iris_camera(tmp_path, "f_number=8")
+    assert dev.values[CID_IRIS_ABSOLUTE] == 800
+    dev.unplug()
+    dev.replug(dev.node)  # power-on values: the iris is wide open again
+    assert dev.values[CID_IRIS_ABSOLUTE] == 200
+    cam.reopen(timeout_s=2)
+    assert dev.values[CID_IRIS_ABSOLUTE] == 800 and cam.f_number == 8.0
+
+
+def test_relative_only_iris_is_driven_by_counted_steps(tmp_path):
+    stops = "iris_table=0:2,1:2.8,2:4,3:5.6,4:8,5:11,6:16"
+    dev, cam = iris_camera(tmp_path / "a", controls=relative_iris_control())
+    with pytest.raises(InputError, match="has only a relative iris control.*iris_table=0:2.8,1:4"):
+        cam.set_f_number(8)
+    dev, cam = iris_camera(tmp_path / "b", stops, controls=relative_iris_control(), iris_travel=8, iris_default_step=7)
+    assert np.isnan(cam.f_number)  # a write-only control: unknown until the driver has moved it
+    assert cam.set_f_number(8) == 8.0 and dev.iris_step == 4  # opened to the stop, then closed 4 steps
+    writes = [c[2] for c in dev.calls if c[:2] == ("s_ctrl", CID_IRIS_RELATIVE)]
+    assert writes == [1] * 8 + [-1] * 4
+    assert cam.set_f_number(4) == 4.0 and dev.iris_step == 2 and cam.f_number == 4.0
+    assert cam.settings()["iris"]["read_back"] == "counted steps"
+    with pytest.raises(InputError, match="cannot be set to f/9: it is between its steps f/8 and f/11"):
+        cam.set_f_number(9)
+    with pytest.raises(InputError, match="cannot be set to f/22: it is outside its iris table f/2..f/16"):
+        cam.set_f_number(22)
+    cam.close()
+    dev.iris_step = 6  # moved by hand while closed: the driver finds the stop again
+    cam.open()
+    assert dev.iris_step == 2 and cam.f_number == 4.0
+    dev, cam = iris_camera(tmp_path / "c", stops, controls=relative_iris_control(0, 0))  # as uvcvideo reports it
+    with pytest.raises(InputError, match=r"accepts only 0\.\.0, not the \+1/-1 steps that move it"):
+        cam.set_f_number(8)

@@ -200,3 +200,37 @@ def test_command_line_imports_the_named_command_alone():
     for argv in ([], ["--version"], ["no-such-command"]):
         full = _parser_for(argv)._subparsers._group_actions[0].choices
         assert {"simulate", "inspect", "calibrate", "errormap", "models", "demo"} <= set(full)
+
+
+def test_focus_fit_split_over_lens_ranges_is_the_whole_array_call():
+    """measure's compiled chi-square and scan run on lens ranges on the cores: each lens alone, so the
+    split gives bit for bit what one call over all lenses gives."""
+    from mlaqc.inspection import measure as ms
+
+    rng = np.random.default_rng(4)
+    n, gd, f = 5000, 8 * 20 + 1, 7
+    dense_m = np.linspace(-0.1, 0.1, gd)
+    ug = np.outer(dense_m, rng.normal(size=f)) + 0.3 * np.outer(dense_m ** 2, rng.normal(size=f))
+    uv = ug[rng.integers(0, gd, n)] + rng.normal(scale=0.2, size=(n, f))
+    chi2 = np.empty((n, (gd - 1) // ms.COARSE + 1))
+    ms._coarse_chi2(uv, ug, ms.COARSE, chi2)
+    whole = [np.empty(n), np.empty(n), np.empty(n), np.empty(n, np.bool_)]
+    step = float(np.median(np.diff(dense_m[:: ms.COARSE])))
+    ms._focal_scan(chi2, dense_m, ug, uv, ms.COARSE, 1.0 / 1.5 ** 2, ms.SIGN_RESOLVED_CHI2, 3.0 * step, *whole)
+    split_chi2 = np.empty_like(chi2)
+    ms._on_cores(lambda a, b: ms._coarse_chi2(uv[a:b], ug, ms.COARSE, split_chi2[a:b]), n)
+    assert np.array_equal(split_chi2, chi2)
+    for got, want in zip(ms._focal((dense_m, ug, uv, chi2), 1.5), whole):
+        assert np.array_equal(got, want, equal_nan=True)
+
+
+@pytest.mark.parametrize("side", [1000, 2048])
+def test_hot_pixel_plane_noise_reads_a_known_noise_on_either_sample(side):
+    """The plane noise comes from a 1-in-9 sample, 1-in-16 from 4 Mpx on: both read a Gaussian noise of
+    known sigma on a smooth scene (the ring mean of a plane cancels it) within 2 %."""
+    from mlaqc.inspection.rawio import _plane_noise
+
+    rng = np.random.default_rng(side)
+    yy, xx = np.mgrid[:side, :side]
+    x = (0.5 + 0.2 * np.sin(xx / 300.0) * np.cos(yy / 250.0) + rng.normal(scale=0.01, size=(side, side)))
+    assert _plane_noise(x.astype(np.float32), 0, 0, 1, side, side, False) == pytest.approx(0.01, rel=0.02)

@@ -363,7 +363,9 @@ def test_live_view_frame_rate(qtbot, window):
 
 
 def test_close_while_moving_and_live_stops_the_stage_and_joins(qtbot):
-    w = open_window(qtbot, stage="sim+grbl://?speed_mm_s=400")
+    # 100 mm/s: the 180 mm move takes 1.8 s, so a close that stops the stage is told apart from a slow
+    # one that lets it arrive even on a loaded machine (at 400 mm/s the margin was about 350 ms)
+    w = open_window(qtbot, stage="sim+grbl://?speed_mm_s=100")
     wait_homed_at(qtbot, w, 10.0, 10.0)
     stage = w.stage_obj
     sim = stage.sim

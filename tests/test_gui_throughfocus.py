@@ -48,7 +48,8 @@ def frames(tmp_path_factory):
     write_simulation(white, simulate(cfg, None, em, rays_per_pixel=100, seed=11), cfg)
     pair = []
     for k, u in enumerate((10.0, -10.0)):
-        tf = ThroughFocus(focus_offset_mm=u, offset_lenses=(0, 0))
+        # the first protocol on purpose (f/8, 9 lenses apart: SEEDED sit at its pinholes), not the shipped one
+        tf = ThroughFocus(focus_offset_mm=u, f_number=8.0, spacing_lenses=9, offset_lenses=(0, 0))
         path = d / f"tf_{u:+g}_0_0.tiff"
         write_simulation(path, simulate(frame_config(cfg, tf), scene(cfg, tf), em, seed=21 + k), cfg, protocol=tf)
         pair.append(path)

@@ -124,3 +124,4 @@ def test_models_command_builds_into_the_cache_on_the_cluster(dask_cluster, tmp_p
     assert "Dask: 2 workers" in err and str(tmp_path) in err
     assert (tmp_path / f"reference_{config_key(SMALL)}.npz").is_file()
     assert (tmp_path / f"signatures_{signature_key(SMALL)}.json").is_file()
+    assert len(list(tmp_path.glob("throughfocus_*.npz"))) == 1  # the shipped protocol's model

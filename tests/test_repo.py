@@ -9,7 +9,10 @@ ROOT = Path(__file__).resolve().parent.parent
 def test_ci_runs_the_readme_test_command():
     readme = (ROOT / "README.md").read_text()
     ci = (ROOT / ".ci" / "run").read_text()
-    cmd = "python3 -m pip install -e '.[test]' && python3 -m pytest -q"
+    cmd = "python3 -m pip install -e '.[test]' && python3 -m pytest -q -n auto --dist loadfile"
+    lines = [line.strip() for text in (readme, ci) for line in text.splitlines() if "pytest -q" in line
+             and "pip install" in line]
+    assert lines and all(line == cmd for line in lines), lines  # the whole command, the same in both
     assert cmd in readme and cmd in ci
 
 

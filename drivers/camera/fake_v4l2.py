@@ -5,6 +5,13 @@ and vanishing nodes work) to `FakeV4L2Device`s. Readiness is signalled through a
 select() deadlines run exactly as on a device fd. Frames in `pending` are "exposed" one at a time when the
 driver finds no buffer ready (like a sensor finishing the next frame); `plant_ready` puts a frame in a
 filled buffer at once (a stale frame, or one arriving late from another thread).
+
+Iris controls (none by default; add `uvc_iris_control()` or `relative_iris_control()` to `controls`) behave
+as uvcvideo exposes a UVC camera's: the absolute value is the f-number x 100, writes are ignored while auto
+exposure is Auto or Shutter Priority (UVC refuses them), and `iris_lag_reads` makes a motorized iris read
+its old value back that many times after a write (None: it never gets there, a jammed iris). The relative
+control is write-only (G_CTRL fails with EACCES): +k opens k steps, -k closes k, 0 goes to the power-on
+position; `iris_step` is where the blades are, in steps closed from fully open (0 .. `iris_travel`).
 """
 
 from __future__ import annotations
@@ -27,6 +34,8 @@ from drivers.camera.v4l2 import (
     CID_EXPOSURE_ABSOLUTE,
     CID_EXPOSURE_AUTO,
     CID_GAIN,
+    CID_IRIS_ABSOLUTE,
+    CID_IRIS_RELATIVE,
     EXPOSURE_MANUAL,
     ControlInfo,
     RawBuffer,
@@ -34,7 +43,11 @@ from drivers.camera.v4l2 import (
 )
 
 DISCONNECT = "disconnect"
-AUTO_CONTROLS = {CID_EXPOSURE_ABSOLUTE: (CID_EXPOSURE_AUTO, EXPOSURE_MANUAL), CID_GAIN: (CID_AUTOGAIN, 0)}
+EXPOSURE_APERTURE_PRIORITY = 3
+# control -> (its auto-mode control, the auto-mode values in which writes to it take effect)
+AUTO_CONTROLS = {CID_EXPOSURE_ABSOLUTE: (CID_EXPOSURE_AUTO, {EXPOSURE_MANUAL}), CID_GAIN: (CID_AUTOGAIN, {0}),
+                 CID_IRIS_ABSOLUTE: (CID_EXPOSURE_AUTO, {EXPOSURE_MANUAL, EXPOSURE_APERTURE_PRIORITY}),
+                 CID_IRIS_RELATIVE: (CID_EXPOSURE_AUTO, {EXPOSURE_MANUAL, EXPOSURE_APERTURE_PRIORITY})}
 
 
 @dataclass(frozen=True)
@@ -58,19 +71,35 @@ def default_controls() -> dict[int, ControlInfo]:
     }
 
 
+def uvc_iris_control(minimum: int = 200, maximum: int = 1600, step: int = 10,
+                     default: int = 200) -> dict[int, ControlInfo]:
+    """A UVC lens' absolute iris as uvcvideo reports it: f/2 .. f/16 as f-number x 100, in steps of 0.1."""
+    return {CID_IRIS_ABSOLUTE: ControlInfo(CID_IRIS_ABSOLUTE, "Iris, Absolute", minimum, maximum, step, default)}
+
+
+def relative_iris_control(minimum: int = -1, maximum: int = 1) -> dict[int, ControlInfo]:
+    """A relative (step) iris control; uvcvideo reports its range as 0..0 (no GET_MIN/GET_MAX)."""
+    return {CID_IRIS_RELATIVE: ControlInfo(CID_IRIS_RELATIVE, "Iris, Relative", minimum, maximum, 1, 0)}
+
+
 class FakeV4L2Device:
     """What the kernel knows about one camera: formats, controls, crop, and frames the sensor will produce."""
 
     def __init__(self, node: str | os.PathLike[str], *, formats: Iterable[str] = ("Y16",), width: int = 8,
                  height: int = 6, stride_pad: int = 0, controls: dict[int, ControlInfo] | None = None,
                  crop_supported: bool = True, crop_align: int = 2, max_buffers: int = 4,
-                 card: str = "Fake Camera", extra_codes: Iterable[int] = ()) -> None:
+                 card: str = "Fake Camera", extra_codes: Iterable[int] = (), iris_lag_reads: int | None = 0,
+                 iris_travel: int = 8, iris_default_step: int = 3) -> None:
         self.node = str(node)
         self.offered = [lookup_format(name).code for name in formats] + list(extra_codes)
         self.sensor_size = (width, height)
         self.stride_pad = stride_pad
         self.controls = dict(default_controls() if controls is None else controls)
         self.values = {cid: info.default for cid, info in self.controls.items()}
+        self.iris_lag_reads = iris_lag_reads
+        self.iris_target: tuple[int, int | None] | None = None  # (value written, reads before it shows): moving
+        self.iris_travel, self.iris_default_step = iris_travel, iris_default_step
+        self.iris_step = iris_default_step
         self.crop_supported, self.crop_align = crop_supported, crop_align
         self.crop = (0, 0, width, height)
         self.max_buffers = max_buffers
@@ -128,6 +157,7 @@ class FakeV4L2Device:
         """The camera comes back, possibly at another node, with its power-on state."""
         self.node, self.gone = str(node), False
         self.values = {cid: info.default for cid, info in self.controls.items()}
+        self.iris_target, self.iris_step = None, self.iris_default_step
         self.ready.clear()
         Path(self.node).touch()
 
@@ -258,6 +288,14 @@ class FakeV4L2Adapter:
         dev = self._alive("g_ctrl", cid)
         if cid not in dev.controls:
             raise OSError(errno.EINVAL, os.strerror(errno.EINVAL))
+        if cid == CID_IRIS_RELATIVE:  # write-only
+            raise OSError(errno.EACCES, os.strerror(errno.EACCES))
+        if cid == CID_IRIS_ABSOLUTE and dev.iris_target is not None:
+            target, left = dev.iris_target
+            if left == 0:
+                dev.values[cid], dev.iris_target = target, None
+            elif left is not None:
+                dev.iris_target = (target, left - 1)
         return dev.values[cid]
 
     def set_control(self, cid: int, value: int) -> None:
@@ -269,9 +307,15 @@ class FakeV4L2Adapter:
         if not info.minimum <= value <= info.maximum:
             raise OSError(errno.ERANGE, os.strerror(errno.ERANGE))
         auto = AUTO_CONTROLS.get(cid)
-        if auto and auto[0] in dev.values and dev.values[auto[0]] != auto[1]:
+        if auto and auto[0] in dev.values and dev.values[auto[0]] not in auto[1]:
             return
-        dev.values[cid] = int(value)
+        if cid == CID_IRIS_RELATIVE:
+            step = dev.iris_default_step if value == 0 else dev.iris_step - int(value)  # + opens
+            dev.iris_step = min(max(step, 0), dev.iris_travel)
+        elif cid == CID_IRIS_ABSOLUTE and dev.iris_lag_reads != 0:
+            dev.iris_target = (int(value), dev.iris_lag_reads)
+        else:
+            dev.values[cid] = int(value)
 
     def set_crop(self, left: int, top: int, width: int, height: int) -> None:
         dev = self._alive("s_selection", left, top, width, height)
@@ -316,4 +360,5 @@ class FakeV4L2Adapter:
         return None
 
 
-__all__ = ["DISCONNECT", "FakeV4L2Adapter", "FakeV4L2Bus", "FakeV4L2Device", "PlantedFrame", "default_controls"]
+__all__ = ["DISCONNECT", "FakeV4L2Adapter", "FakeV4L2Bus", "FakeV4L2Device", "PlantedFrame", "default_controls",
+           "relative_iris_control", "uvc_iris_control"]

@@ -4,8 +4,8 @@ URL (every parameter optional)::
 
     mock://?config=small&wafer=3x3&pitch_mm=5&origin_mm=10,10&defects=5&seed=1&rpp=4
            &exposure_us=5000&gain=1&pos_mm=10,10&stage=NAME&quantum_um=1&cache_mb=256
-           &light=1&faults=timeout@5,black@9x2&threads=0&f_number=8&mask=10,-10&mask_spacing=9
-           &z_white_mm=50&a_centre_mm=10&b_window_mm=0&field_pitch_mm=25&pinhole_photons=2.2e6
+           &light=1&faults=timeout@5,black@9x2&threads=0&f_number=11&mask=5,-5&mask_spacing=4
+           &z_white_mm=50&a_centre_mm=10&b_window_mm=0&field_pitch_mm=25&pinhole_photons=4.2e5
 
 - ``config``: camera config — ``small`` (default: the 24x24-lens, 496x496-px test camera, the same as
   fixtures/small_camera.toml), ``table1`` (the paper's full camera) or a TOML path.
@@ -36,11 +36,15 @@ URL (every parameter optional)::
   frame), a pinhole lattice field (the pinholes at the object distance Z gives, moved by A and B) or
   opaque chrome (dark). ``mask`` (the lattices' focus offsets, mm, in field order along B),
   ``mask_spacing`` (lenses), ``z_white_mm``, ``a_centre_mm``, ``b_window_mm``, ``field_pitch_mm``
-  describe the mask and where it sits (defaults: `Carrier()`), ``pinhole_photons`` the photons each
-  pinhole sends into the pupil at the reference exposure (default 2.2e6: spot peaks near 80 % of full
-  well at 10 ms on the Table 1 sensor). Pinhole views go through the config's image formation model
-  (diffraction, crosstalk, PRNU; mlaqc.optics.formation) as `mlaqc simulate` does: their spots are
-  about a pixel wide. Without auxiliary readings every frame shows the white target.
+  describe the mask and where it sits (defaults: `Carrier()`, the shipped protocol's: lattices for
+  u = 5 and -5 mm, 4 lenses apart; stop the iris to f/11 for them), ``pinhole_photons`` the photons each
+  pinhole sends into the pupil at the reference exposure (default: the protocol's exposure,
+  `mlaqc.optics.throughfocus.pinhole_photons` for the field's |u| at the current f-number and the mask's
+  spacing, so that the brighter frame of each +u / -u pair peaks near 80 % of full well at 10 ms; about
+  4.2e5 at ±5 mm, f/11; settings() reports None). Pinhole views go through the config's image formation
+  model (diffraction, crosstalk, PRNU; mlaqc.optics.formation) as `mlaqc simulate` does: their spots are
+  1-2.5 px wide at ±5 mm, about a pixel at ±10 mm. Without auxiliary readings every frame shows the
+  white target.
 
 Frames: each capture takes the stage position, finds the wafer array nearest to it, renders (or takes
 from the cache) the expected photons with the tracer, the array's ErrorMap given
@@ -87,8 +91,8 @@ from drivers.wafer import Wafer, WaferArray
 from mlaqc.errors import DeviceError, InputError
 from mlaqc.optics.config import CameraConfig, config_from_dict, default_config, load_config
 from mlaqc.optics.sensor import expose, white_level
-from mlaqc.optics.throughfocus import (PHOTONS_PER_PINHOLE, Carrier, CarrierView, carrier_view, iris_config,
-                                      native_f_number, white_flux_scale)
+from mlaqc.optics.throughfocus import (Carrier, CarrierView, carrier_view, iris_config, native_f_number,
+                                      white_flux_scale)
 
 log = logging.getLogger(__name__)
 
@@ -158,7 +162,7 @@ class MockCamera(Camera):
                  quantum_um: float = 1.0, cache_mb: float = 256.0, light: bool = True, seed: int = 0,
                  faults: list[tuple[str, int | None, int]] = (), threads: int | None = None,
                  f_number: float | None = None, carrier: Carrier | None = None,
-                 pinhole_photons: float = PHOTONS_PER_PINHOLE) -> None:
+                 pinhole_photons: float | None = None) -> None:
         super().__init__(url)
         self.cfg = cfg or (wafer.cfg if wafer is not None else config_from_dict(SMALL_CAMERA, "small camera"))
         self.wafer = wafer or Wafer(self.cfg, seed=seed)
@@ -184,8 +188,9 @@ class MockCamera(Camera):
         self._exposure_us = self._snap_exposure(exposure_us)
         self._gain = self._snap_gain(gain)
         self.carrier = carrier or Carrier()
-        _check_positive("pinhole_photons", pinhole_photons)
-        self.pinhole_photons = float(pinhole_photons)
+        if pinhole_photons is not None:
+            _check_positive("pinhole_photons", pinhole_photons)
+        self.pinhole_photons = None if pinhole_photons is None else float(pinhole_photons)  # None: the protocol's
         self._f_number = self._snap_f_number(native_f_number(self.cfg) if f_number is None else f_number)
         self._format = _format_for(self.cfg)
         self._sequence = 0
@@ -251,7 +256,7 @@ class MockCamera(Camera):
             threads=threads or None,
             f_number=p.number("f_number", None, positive=True),
             carrier=carrier,
-            pinhole_photons=p.number("pinhole_photons", PHOTONS_PER_PINHOLE, positive=True),
+            pinhole_photons=p.number("pinhole_photons", None, positive=True),
         )
         kwargs.update(options)
         try:
@@ -587,7 +592,7 @@ class MockCamera(Camera):
         result = Renderer(view.cfg, errors).render(view.scene, rays_per_pixel=self.rays_per_pixel,
                                                    seed=render_seed, threads=self.threads)
         photons = result.photons * view.flux_scale if view.flux_scale != 1.0 else result.photons
-        if view.kind == "pinholes":  # spots about a pixel wide: diffraction and crosstalk shape their peaks
+        if view.kind == "pinholes":  # spots 1-2.5 px wide: diffraction and crosstalk shape their peaks
             from mlaqc.optics.formation import apply_formation
 
             photons = apply_formation(photons, view.cfg)

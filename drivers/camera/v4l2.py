@@ -7,17 +7,48 @@ short buffers discarded, sequence gaps counted, disconnects turned into DeviceEr
 that finds a re-plugged camera again through its stable /dev/v4l/by-id link.
 
 URL: ``v4l2:///dev/video0?format=Y16&width=2048&height=2048&exposure_us=5000&gain=1``; see `URL_PARAMS`
-(format, width, height, exposure_us, gain, roi=x,y,w,h, buffers, settle_frames, exposure_unit_us).
+(format, width, height, exposure_us, gain, roi=x,y,w,h, buffers, settle_frames, exposure_unit_us, and the
+iris: f_number, iris_unit, iris_table, iris_timeout_s).
 
 Frame stamps: `device_timestamp_s` is the driver's buffer timestamp (CLOCK_MONOTONIC on most drivers,
 comparable with time.monotonic()); `host_timestamp_s` is time.time() at dequeue; exposure (µs) and gain
 (device units) are read back from the device for every frame. Y16 frames report 16 bits even when the
 sensor fills fewer (the kernel format does not say).
+
+Iris (`set_f_number(N)`, `f_number`: the main lens' f-number, as the scan runner's through-focus frames
+with ``[through_focus] iris = "camera"`` need it). What was relied on:
+- The V4L2 spec (Documentation/userspace-api/media/v4l/ext-ctrls-camera.rst) defines
+  V4L2_CID_IRIS_ABSOLUTE with "the unit is undefined. Larger values open the iris wider" and
+  V4L2_CID_IRIS_RELATIVE as write-only, "positive values open the iris one step further, negative values
+  close it"; include/uapi/linux/v4l2-controls.h gives their ids, V4L2_CID_CAMERA_CLASS_BASE + 17 and + 18
+  (0x009A0911, 0x009A0912; linuxpy's ControlID.IRIS_ABSOLUTE / IRIS_RELATIVE agree).
+- UVC 1.5, 4.2.2.1.9 Iris (Absolute) Control: wIris "in units of fstop * 100", and no SET while the
+  auto-exposure mode is Auto or Shutter Priority; 4.2.2.1.10 Iris (Relative): 1 opens one step, 0xFF
+  closes one, 0 goes to the default, the step size is the device's own.
+- uvcvideo (drivers/media/usb/uvc/uvc_ctrl.c, `uvc_ctrl_mappings`) maps CT_IRIS_ABSOLUTE_CONTROL to
+  V4L2_CID_IRIS_ABSOLUTE as an unsigned 16-bit value with no conversion, so on a UVC camera the V4L2
+  value is the f-number × 100 and larger values *close* the iris, against the V4L2 wording; it clamps a
+  written value to the control's GET_MIN/GET_MAX range snapped to GET_RES. Its CT_IRIS_RELATIVE_CONTROL
+  has only SET_CUR, so V4L2 reports it write-only with the range 0..0, and `uvc_ctrl_set` clamps every
+  step written to it to 0 ("default"): a UVC iris can be driven only through the absolute control.
+
+The mapping is therefore explicit (`IrisMap`): by default the UVC unit (N = value × 0.01); ``iris_unit=U``
+in the URL for another linear unit (N = value × U, e.g. 0.1 for f-number × 10); or ``iris_table=V:N,V:N,...``
+for any other driver: measured (value, f-number) points, interpolated in stops (log N) between them, no
+request outside the table. A request is checked against the control's min/max and snapped to its step;
+one that lands more than 1 % from the f-number asked for is refused naming the nearest settings. The
+value is then read back (polled up to ``iris_timeout_s``, default 2 s, for a motorized iris) and the
+f-number it maps to returned; auto exposure (Auto or Shutter Priority, where UVC refuses iris writes) is
+switched to manual first. A camera with only V4L2_CID_IRIS_RELATIVE needs ``iris_table`` with values that
+count steps closed from fully open: the driver first opens fully (+1 written as many times as the table's
+largest count plus two, assuming steps past the stop do nothing), then closes step by step and counts;
+the control cannot be read, so the f-number returned is the counted one (`settings()["iris"]` says so).
 """
 
 from __future__ import annotations
 
 import errno
+import itertools
 import logging
 import math
 import numbers
@@ -26,7 +57,7 @@ import os
 import select
 import threading
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
@@ -48,13 +79,23 @@ CID_GAIN = 0x00980913  # user class, driver units
 CID_EXPOSURE_AUTO = 0x009A0901  # menu: 0 auto, 1 manual, 2 shutter priority, 3 aperture priority
 CID_EXPOSURE_ABSOLUTE = 0x009A0902  # units of 100 µs
 CID_ANALOGUE_GAIN = 0x009E0903  # image-source class, driver units
+CID_IRIS_ABSOLUTE = 0x009A0911  # camera class, driver units (uvcvideo: f-number x 100)
+CID_IRIS_RELATIVE = 0x009A0912  # camera class, write-only: +1 opens, -1 closes one step
+EXPOSURE_AUTO = 0
 EXPOSURE_MANUAL = 1
+EXPOSURE_SHUTTER_PRIORITY = 2
 EXPOSURE_ABSOLUTE_UNIT_US = 100.0
+UVC_IRIS_UNIT = 0.01  # f-number per unit of UVC's CT_IRIS_ABSOLUTE_CONTROL ("fstop * 100")
+IRIS_TOLERANCE_REL = 0.01  # a setting further than this from the f-number asked for is refused
+IRIS_TIMEOUT_S = 2.0  # default wait for the iris to read back what was written
+IRIS_POLL_S = 0.02
+IRIS_HOME_EXTRA_STEPS = 2  # opening steps beyond the table's largest count when finding the open stop
 
 BY_ID_DIR = Path("/dev/v4l/by-id")
 DISCONNECT_ERRNOS = frozenset({errno.ENODEV, errno.EIO, errno.ENXIO, errno.ESHUTDOWN})
 UNSUPPORTED_ERRNOS = frozenset({errno.EINVAL, errno.ENOTTY, errno.ENODATA, errno.EOPNOTSUPP})
-URL_PARAMS = ("format", "width", "height", "exposure_us", "gain", "roi", "buffers", "settle_frames", "exposure_unit_us")
+URL_PARAMS = ("format", "width", "height", "exposure_us", "gain", "roi", "buffers", "settle_frames", "exposure_unit_us",
+              "f_number", "iris_unit", "iris_table", "iris_timeout_s")
 REOPEN_POLL_S = 0.05
 SPURIOUS_WAKE_S = 0.001
 
@@ -79,6 +120,71 @@ class RawBuffer:
     timestamp_s: float
     flags: int
     bytes_used: int
+
+
+@dataclass(frozen=True)
+class IrisMap:
+    """How an iris control's value maps to the main lens' f-number N (module docstring: why UVC is the default).
+
+    `unit`: N = value x unit. `table`: measured (value, N) points, N strictly monotonic in the value,
+    interpolated linearly in stops (log N) between them; nothing outside the table is mapped. For a
+    relative iris control the value counts the steps closed from fully open. InputError if malformed."""
+
+    unit: float = UVC_IRIS_UNIT
+    table: tuple[tuple[int, float], ...] = ()
+
+    def __post_init__(self) -> None:
+        if isinstance(self.unit, bool) or not isinstance(self.unit, numbers.Real) or not math.isfinite(self.unit) \
+                or self.unit <= 0:
+            raise InputError(f"iris_unit must be a positive number (f-number per control unit), got {self.unit!r}")
+        if not self.table:
+            return
+        try:
+            points = tuple(sorted((operator.index(v), float(n)) for v, n in self.table))
+        except (TypeError, ValueError):
+            points = ()
+        values = [v for v, _ in points]
+        stops = [n for _, n in points]
+        steps = [b - a for a, b in itertools.pairwise(stops)]
+        if (len(points) < 2 or len(set(values)) != len(values) or not all(math.isfinite(n) and n > 0 for n in stops)
+                or not (all(d > 0 for d in steps) or all(d < 0 for d in steps))):
+            raise InputError(f"iris_table must be at least two value:f-number points with distinct whole values and "
+                             f"positive f-numbers that all rise or all fall with the value, got {self.table!r}")
+        object.__setattr__(self, "table", points)
+
+    def f_number(self, value: float) -> float:
+        """The f-number at a control value; NaN outside the table."""
+        if not self.table:
+            return float(value) * self.unit
+        for (v0, n0), (v1, n1) in itertools.pairwise(self.table):
+            if v0 <= value <= v1:
+                return n0 * (n1 / n0) ** ((value - v0) / (v1 - v0))
+        return math.nan
+
+    def value(self, f_number: float) -> float | None:
+        """The (fractional) control value giving f/N; None outside the table."""
+        if not self.table:
+            return f_number / self.unit
+        for (v0, n0), (v1, n1) in itertools.pairwise(self.table):
+            if min(n0, n1) <= f_number <= max(n0, n1):
+                return v0 + (v1 - v0) * math.log(f_number / n0) / math.log(n1 / n0)
+        return None
+
+    def f_range(self, lo: int, hi: int) -> tuple[float, float] | None:
+        """The smallest and largest f-number among control values lo..hi (within the table); None if none."""
+        if self.table:
+            lo, hi = max(lo, self.table[0][0]), min(hi, self.table[-1][0])
+        if lo > hi:
+            return None
+        ends = (self.f_number(lo), self.f_number(hi))
+        return min(ends), max(ends)
+
+    def describe(self) -> str:
+        if self.table:
+            return "iris_table " + ",".join(f"{v}:{n:g}" for v, n in self.table)
+        if self.unit == UVC_IRIS_UNIT:
+            return "f-number x 100, UVC's unit"
+        return f"f-number = value x {self.unit:g}, iris_unit"
 
 
 @dataclass(frozen=True)
@@ -233,6 +339,7 @@ class _Desired:
     roi: tuple[int, int, int, int] | None = None
     exposure_us: float | None = None
     gain: float | None = None
+    f_number: float | None = None
 
 
 class V4L2Camera(Camera):
@@ -241,13 +348,22 @@ class V4L2Camera(Camera):
     def __init__(self, path: str, *, url: str | None = None, pixel_format: str | None = None,
                  width: int | None = None, height: int | None = None, exposure_us: float | None = None,
                  gain: float | None = None, roi: tuple[int, int, int, int] | None = None, buffers: int = 4,
-                 settle_frames: int = 1, exposure_unit_us: float | None = None,
+                 settle_frames: int = 1, exposure_unit_us: float | None = None, f_number: float | None = None,
+                 iris_unit: float | None = None, iris_table: Sequence[tuple[int, float]] | None = None,
+                 iris_timeout_s: float | None = None,
                  adapter_factory: Callable[[str], V4L2Adapter] = LinuxpyAdapter,
                  by_id_dir: str | os.PathLike[str] = BY_ID_DIR) -> None:
         super().__init__(url or f"v4l2://{path}")
         self._path = path
+        if f_number is not None:
+            _check_number("f_number", f_number, positive=True)
+        if iris_unit is not None and iris_table:
+            raise InputError("give the iris mapping as iris_unit or as iris_table, not both")
+        self._iris = IrisMap(UVC_IRIS_UNIT if iris_unit is None else iris_unit, tuple(iris_table or ()))
+        self._iris_timeout_s = IRIS_TIMEOUT_S if iris_timeout_s is None else check_timeout_s(iris_timeout_s)
+        self._iris_steps: int | None = None  # relative iris: steps closed from fully open, None = not known
         self._desired = _Desired(lookup_format(pixel_format) if pixel_format else None, width, height, roi,
-                                 exposure_us, gain)
+                                 exposure_us, gain, f_number)
         self._buffers_wanted = buffers
         self._settle_frames = settle_frames
         self._exposure_unit_override_us = exposure_unit_us
@@ -296,7 +412,14 @@ class V4L2Camera(Camera):
             buffers=_int_param(text, "buffers", p("buffers"), 2, 32) or 4,
             settle_frames=_int_param(text, "settle_frames", p("settle_frames"), 0, 100),
             exposure_unit_us=_float_param(text, "exposure_unit_us", p("exposure_unit_us"), positive=True),
+            f_number=_float_param(text, "f_number", p("f_number"), positive=True),
+            iris_unit=_float_param(text, "iris_unit", p("iris_unit"), positive=True),
+            iris_table=_iris_table_param(text, p("iris_table")),
+            iris_timeout_s=_float_param(text, "iris_timeout_s", p("iris_timeout_s"), positive=True),
         )
+        if kwargs["iris_unit"] is not None and kwargs["iris_table"] is not None:
+            raise InputError(f"camera URL {text!r} gives both iris_unit and iris_table; the iris mapping is one or "
+                             "the other")
         if kwargs["settle_frames"] is None:
             kwargs["settle_frames"] = 1
         return cls(parsed.path, url=text, **{**kwargs, **options})
@@ -381,6 +504,8 @@ class V4L2Camera(Camera):
             self.set_exposure_us(self._desired.exposure_us)
         if self._desired.gain is not None:
             self.set_gain(self._desired.gain)
+        if self._desired.f_number is not None:
+            self.set_f_number(self._desired.f_number)
         self._sequence.reset()
 
     def _release(self) -> None:
@@ -388,6 +513,7 @@ class V4L2Camera(Camera):
         adapter, self._adapter = self._adapter, None
         self._streaming = False
         self._roi_active = False
+        self._iris_steps = None  # a relative iris is found again from its open stop
         if adapter is None:
             return
         try:
@@ -559,6 +685,149 @@ class V4L2Camera(Camera):
         raw = min(info.maximum, info.minimum + round((raw - info.minimum) / step) * step)
         self._adapter.set_control(cid, raw)
 
+    # ----------------------------------------------------------------- iris
+
+    @property
+    def f_number(self) -> float:
+        """The main lens' f-number read back from the iris control (a relative one: as counted); NaN when the
+        camera is closed, has no iris control, or its value is outside the iris table."""
+        with self._lock:
+            if self._adapter is None:
+                return math.nan
+            with self._device_op("reading the iris"):
+                return self._read_f_number()
+
+    def set_f_number(self, f_number: float) -> float:
+        """Set the main lens' iris to f/N through the camera's iris control; return the f-number read back.
+
+        InputError (one sentence) when the camera has no iris control or f/N is outside what it can set;
+        DeviceError when the iris does not read back f/N within `iris_timeout_s`. See the module docstring."""
+        _check_number("f_number", f_number, positive=True)
+        with self._lock:
+            self._require_open("setting the iris")
+            with self._device_op("setting the iris"):
+                back = self._apply_f_number(float(f_number))
+            self._desired.f_number = float(f_number)
+            self._start_settling()
+            return back
+
+    def _iris_cid(self) -> int | None:
+        """V4L2_CID_IRIS_ABSOLUTE if present, else V4L2_CID_IRIS_RELATIVE, else None."""
+        return next((cid for cid in (CID_IRIS_ABSOLUTE, CID_IRIS_RELATIVE) if cid in self._controls), None)
+
+    def _apply_f_number(self, f_number: float) -> float:
+        cid = self._iris_cid()
+        if cid is None:
+            raise InputError(f"camera {self.name} has no iris control (V4L2_CID_IRIS_ABSOLUTE or _RELATIVE), so it "
+                             f"cannot set f/{f_number:.4g}; set the lens by hand (through_focus.iris = 'manual')")
+        info = self._controls[cid]
+        if cid == CID_IRIS_RELATIVE:
+            return self._step_iris(f_number, info)
+        raw = self._iris_setting(f_number, info)
+        self._allow_iris()
+        self._adapter.set_control(cid, raw)
+        return self._await_iris(raw, f_number)
+
+    def _iris_setting(self, f_number: float, info: ControlInfo) -> int:
+        """The control value for f/N: in the control's range, on its step grid, within IRIS_TOLERANCE_REL."""
+        iris = self._iris
+        exact = iris.value(f_number)
+        span = iris.f_range(info.minimum, info.maximum)
+        if exact is None or span is None or not info.minimum - 0.5 <= exact <= info.maximum + 0.5:
+            where = f"f/{span[0]:.3g}..f/{span[1]:.3g}" if span else "nothing the mapping covers"
+            raise InputError(f"f/{f_number:.4g} is outside camera {self.name}'s iris range {where} (control "
+                             f"{info.name!r} {info.minimum}..{info.maximum}, {iris.describe()})")
+        step = max(info.step, 1)
+        below = info.minimum + math.floor((exact - info.minimum) / step) * step
+        candidates = [v for v in (below, below + step)
+                      if info.minimum <= v <= info.maximum and math.isfinite(iris.f_number(v))]
+        raw = min(candidates, key=lambda v: abs(iris.f_number(v) - f_number), default=round(exact))
+        if not abs(iris.f_number(raw) - f_number) <= IRIS_TOLERANCE_REL * f_number:
+            nearest = " and ".join(f"f/{iris.f_number(v):.3g}" for v in candidates)
+            raise InputError(f"camera {self.name}'s iris cannot be set to f/{f_number:.4g}: its nearest settings are "
+                             f"{nearest} (control {info.name!r} in steps of {step}, {iris.describe()})")
+        return int(raw)
+
+    def _allow_iris(self) -> None:
+        """UVC refuses iris writes in auto exposure modes Auto and Shutter Priority: switch those to manual."""
+        if CID_EXPOSURE_AUTO in self._controls and \
+                self._adapter.get_control(CID_EXPOSURE_AUTO) in (EXPOSURE_AUTO, EXPOSURE_SHUTTER_PRIORITY):
+            self._switch_off(CID_EXPOSURE_AUTO, EXPOSURE_MANUAL, "auto exposure")
+
+    def _await_iris(self, raw: int, f_number: float) -> float:
+        """Poll the absolute iris until it reads back f/N (a motorized iris takes time); its f-number."""
+        deadline = time.monotonic() + self._iris_timeout_s
+        while True:
+            back = self._adapter.get_control(CID_IRIS_ABSOLUTE)
+            got = self._iris.f_number(back)
+            if back == raw or abs(got - f_number) <= IRIS_TOLERANCE_REL * f_number:
+                return got
+            if time.monotonic() >= deadline:
+                reads = f"f/{got:.3g}" if math.isfinite(got) else f"{back}, outside the iris table"
+                raise DeviceError(f"camera {self.name}'s iris did not reach f/{f_number:.4g} within "
+                                  f"{self._iris_timeout_s:g} s (it reads {reads})")
+            time.sleep(min(IRIS_POLL_S, max(0.0, deadline - time.monotonic())))
+
+    def _step_iris(self, f_number: float, info: ControlInfo) -> float:
+        """A relative-only iris: open to the stop once, then close or open step by step, counting."""
+        iris = self._iris
+        if not iris.table:
+            raise InputError(f"camera {self.name} has only a relative iris control, whose step size the driver does "
+                             "not say; give the f-number after each step as iris_table=0:2.8,1:4,... (steps closed "
+                             "from fully open) in the camera URL")
+        if iris.table[0][0] < 0:
+            raise InputError(f"camera {self.name} has only a relative iris control, so iris_table's values count steps "
+                             f"closed from fully open and cannot be negative ({iris.describe()})")
+        if info.minimum > -1 or info.maximum < 1:
+            raise InputError(f"camera {self.name}'s relative iris control accepts only {info.minimum}..{info.maximum}, "
+                             "not the +1/-1 steps that move it (uvcvideo reports 0..0 and turns every step into 0), "
+                             "so its iris cannot be driven from here")
+        exact = iris.value(f_number)
+        steps = None if exact is None else round(exact)
+        if steps is None or steps < 0 or not abs(iris.f_number(steps) - f_number) <= IRIS_TOLERANCE_REL * f_number:
+            lo, hi = iris.f_range(0, iris.table[-1][0]) or (math.nan, math.nan)
+            lower, upper = (0, 0) if exact is None else (math.floor(exact), math.ceil(exact))
+            why = (f"outside its iris table f/{lo:.3g}..f/{hi:.3g}" if exact is None or steps < 0 else
+                   f"between its steps f/{iris.f_number(lower):.3g} and f/{iris.f_number(upper):.3g}")
+            raise InputError(f"camera {self.name}'s relative iris cannot be set to f/{f_number:.4g}: it is {why} "
+                             f"({iris.describe()})")
+        self._allow_iris()
+        at, self._iris_steps = self._iris_steps, None  # unknown until every step is written
+        if at is None:
+            for _ in range(iris.table[-1][0] + IRIS_HOME_EXTRA_STEPS):
+                self._adapter.set_control(CID_IRIS_RELATIVE, 1)
+            at = 0
+        while at != steps:
+            self._adapter.set_control(CID_IRIS_RELATIVE, -1 if steps > at else 1)
+            at += 1 if steps > at else -1
+        self._iris_steps = steps
+        return iris.f_number(steps)
+
+    def _read_f_number(self) -> float:
+        """The iris' f-number as read back (relative: as counted), NaN if there is none or it is unknown."""
+        cid = self._iris_cid()
+        if cid is None:
+            return math.nan
+        if cid == CID_IRIS_RELATIVE:
+            known = self._iris_steps is not None and self._iris.table
+            return self._iris.f_number(self._iris_steps) if known else math.nan
+        return self._iris.f_number(self._adapter.get_control(cid))
+
+    def _iris_settings(self) -> dict[str, Any] | None:
+        """What a sidecar should say about the iris control and its mapping; None without one."""
+        cid = self._iris_cid()
+        if cid is None:
+            return None
+        info = self._controls[cid]
+        if cid == CID_IRIS_ABSOLUTE:
+            span = self._iris.f_range(info.minimum, info.maximum)
+        else:  # steps closed from fully open, as far as the table goes
+            span = self._iris.f_range(0, self._iris.table[-1][0]) if self._iris.table else None
+        return {"control": "absolute" if cid == CID_IRIS_ABSOLUTE else "relative",
+                "control_range": [info.minimum, info.maximum, info.step], "mapping": self._iris.describe(),
+                "f_number_range": list(span) if span else None,
+                "read_back": "counted steps" if cid == CID_IRIS_RELATIVE else "control value"}
+
     def _read_exposure_us(self) -> float:
         """Exposure read back in µs, NaN if the camera has none or its unit is unknown."""
         try:
@@ -591,6 +860,7 @@ class V4L2Camera(Camera):
                     "exposure_us": self._read_exposure_us(),
                     "exposure_auto": self._read_auto(CID_EXPOSURE_AUTO, EXPOSURE_MANUAL),
                     "gain": self._read_gain(), "gain_auto": self._read_auto(CID_AUTOGAIN, 0),
+                    "f_number": self._read_f_number(), "iris": self._iris_settings(),
                     "buffers": self._buffer_count or self._buffers_wanted, "settle_frames": self._settle_frames,
                     "streaming": self._streaming, "dropped_frames": self.dropped_frames,
                     "error_frames": self.error_frames, "timeouts": self.timeouts,
@@ -680,6 +950,8 @@ class V4L2Camera(Camera):
                      "error_frames_discarded": errors, "settle_frames_discarded": settled,
                      "sequence_reset": lost is None, "buffer_flags": raw.flags,
                      "bytes_per_line": self._raw_fmt.bytes_per_line}
+            if self._iris_cid() is not None:
+                extra["f_number"] = self._read_f_number()
             return self._make_frame(raw, host_s, extra)
 
     def _needed_bytes(self) -> int:
@@ -820,6 +1092,20 @@ def _float_param(url: str, name: str, text: str | None, positive: bool = False) 
         kind = "a positive number" if positive else "a finite number"
         raise InputError(f"parameter {name}={text!r} in camera URL {url!r} must be {kind}")
     return value
+
+
+def _iris_table_param(url: str, text: str | None) -> tuple[tuple[int, float], ...] | None:
+    """The iris_table=V:N,V:N,... URL parameter (control value: f-number), or None if absent."""
+    if text is None:
+        return None
+    try:
+        points = tuple((int(v), float(n)) for v, n in (item.split(":") for item in text.split(",")))
+        IrisMap(table=points)
+    except (ValueError, InputError):
+        raise InputError(f"parameter iris_table={text!r} in camera URL {url!r} must be value:f-number points, e.g. "
+                         "280:2.8,400:4,560:5.6, at least two, with f-numbers that all rise or all fall with the "
+                         "value") from None
+    return points
 
 
 def _roi_param(url: str, text: str | None) -> tuple[int, int, int, int] | None:

@@ -1,4 +1,5 @@
-"""`mlaqc models`: render the reference model and signature tables of a camera before they are needed.
+"""`mlaqc models`: render the reference model and signature tables of a camera, and the through-focus
+model of the shipped protocol (mlaqc.inspection.throughfocus), before they are needed.
 
 `mlaqc inspect` renders them itself the first time it meets new optics (a minute or more), and keeps
 them in the cache ($MLAQC_CACHE or ~/.cache/mlaqc), keyed by the optics. A lab that changes its camera,
@@ -20,7 +21,8 @@ from mlaqc.progress import ProgressBar
 
 def register(sub: argparse._SubParsersAction) -> None:
     """Add the `models` subcommand."""
-    p = sub.add_parser("models", help="build (or rebuild) a camera's reference model and signature tables",
+    p = sub.add_parser("models", help="build (or rebuild) a camera's reference model, signature tables and "
+                                      "through-focus model",
                        description="Render the reference sub-image model and the signature tables that inspection "
                                    "compares every lens with, for the camera's optics, and store them in the cache "
                                    "($MLAQC_CACHE or ~/.cache/mlaqc). Tables already stored are kept unless --rebuild.")
@@ -47,7 +49,18 @@ def run(args: argparse.Namespace) -> int:
             signature_table(cfg, client=client, rebuild=args.rebuild, progress=bar)
         finally:
             bar.close()
+    tf_key = _through_focus_model(cfg, args.rebuild)
     if not args.quiet:
-        print(f"reference model {config_key(cfg)} and signature tables {signature_key(cfg)} ready "
-              f"({time.perf_counter() - t0:.1f} s); cache: {cache_dir()}", file=sys.stderr)
+        print(f"reference model {config_key(cfg)}, signature tables {signature_key(cfg)} and through-focus model "
+              f"{tf_key} ready ({time.perf_counter() - t0:.1f} s); cache: {cache_dir()}", file=sys.stderr)
     return 0
+
+
+def _through_focus_model(cfg, rebuild: bool) -> str:
+    """Build (if missing, or again with `rebuild`) the shipped through-focus protocol's model; its key."""
+    from mlaqc.inspection.throughfocus import model_curves, model_key
+    from mlaqc.optics.throughfocus import F_NUMBER, FOCUS_OFFSET_MM, SPACING_LENSES, ThroughFocus, pair_radius_lenses
+
+    r_in = round(pair_radius_lenses(cfg, ThroughFocus(FOCUS_OFFSET_MM, F_NUMBER, SPACING_LENSES)), 4)
+    model_curves(cfg, FOCUS_OFFSET_MM, F_NUMBER, r_in, rebuild=rebuild)
+    return model_key(cfg, FOCUS_OFFSET_MM, F_NUMBER, r_in)

@@ -12,7 +12,7 @@ from mlaqc.optics.config import load_config
 from mlaqc.optics.errormap import ERROR_TYPES, ErrorMap, load_error_map, random_defects
 from mlaqc.optics.scene import PointScene, Scene, TextureScene, WhiteScene
 from mlaqc.optics.simulate import RAW_SUFFIXES, check_output, simulate, write_simulation
-from mlaqc.optics.throughfocus import PHOTONS_PER_PINHOLE, ThroughFocus
+from mlaqc.optics.throughfocus import F_NUMBER, FOCUS_OFFSET_MM, SPACING_LENSES, ThroughFocus
 from mlaqc.optics.throughfocus import frame_config as tf_frame_config
 from mlaqc.optics.throughfocus import scene as tf_scene
 from mlaqc.progress import ProgressBar
@@ -34,14 +34,17 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--texture", help="image file whose grey levels are the object radiance (scene 'texture')")
     tf = p.add_argument_group("through-focus scene")
     tf.add_argument("--focus-offset-mm", type=float, metavar="U",
-                    help="pinholes imaged U mm behind (+) or in front of (-) the MLA (default 10)")
-    tf.add_argument("--f-number", type=float, metavar="N", help="main lens stopped to f/N (default 8)")
-    tf.add_argument("--pinhole-spacing", type=int, metavar="S", help="pinhole images S lens pitches apart (default 9)")
+                    help=f"pinholes imaged U mm behind (+) or in front of (-) the MLA (default {FOCUS_OFFSET_MM:g}; "
+                         f"the pair is {FOCUS_OFFSET_MM:g} and {-FOCUS_OFFSET_MM:g})")
+    tf.add_argument("--f-number", type=float, metavar="N", help=f"main lens stopped to f/N (default {F_NUMBER:g})")
+    tf.add_argument("--pinhole-spacing", type=int, metavar="S",
+                    help=f"pinhole images S lens pitches apart (default {SPACING_LENSES})")
     tf.add_argument("--pinhole-offset", metavar="X,Y",
                     help="shift of the pinhole lattice in whole lens pitches (default 0,0)")
     tf.add_argument("--pinhole-photons", type=float, metavar="P",
-                    help=f"photons each pinhole sends into the pupil (default {PHOTONS_PER_PINHOLE:.3g}: "
-                         "spot peaks near 80 %% of full well on the Table 1 sensor)")
+                    help="photons each pinhole sends into the pupil (default: the protocol's exposure, derived "
+                         "from the optics: the brighter frame of the +U / -U pair peaks near 80 %% of full well; "
+                         "4.2e5 for the Table 1 camera at ±5 mm, f/11)")
     grp = p.add_mutually_exclusive_group()
     grp.add_argument("--errors", "-e", help="JSON error map (keyed by U(m,n))")
     grp.add_argument("--random-defects", type=int, metavar="N", help="seed N random defective lenses")
@@ -88,7 +91,7 @@ def build_protocol(args: argparse.Namespace) -> ThroughFocus | None:
         if given:
             raise InputError(f"--{given[0].replace('_', '-')} applies only to --scene through-focus")
         return None
-    kw: dict = {}
+    kw: dict = {"focus_offset_mm": FOCUS_OFFSET_MM, "f_number": F_NUMBER, "spacing_lenses": SPACING_LENSES}
     if args.focus_offset_mm is not None:
         kw["focus_offset_mm"] = args.focus_offset_mm
     if args.f_number is not None:

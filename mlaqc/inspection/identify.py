@@ -148,10 +148,16 @@ def _nan_medians(vals: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return med, k > 0
 
 
-@functools.lru_cache(maxsize=1)
+_POOLS: dict[int, ThreadPoolExecutor] = {}
+
+
 def _pool() -> ThreadPoolExecutor:
-    """One thread per core, kept for the process: starting threads per frame cost 4 ms."""
-    return ThreadPoolExecutor(os.cpu_count() or 1, thread_name_prefix="mlaqc-identify")
+    """One thread per core, kept for the process (per process id: a forked child starts its own):
+    starting threads per frame cost 4 ms."""
+    pool = _POOLS.get(os.getpid())
+    if pool is None:
+        pool = _POOLS[os.getpid()] = ThreadPoolExecutor(os.cpu_count() or 1, thread_name_prefix="mlaqc-identify")
+    return pool
 
 
 def _scipy_baseline(fill: np.ndarray, size: int, axis: str) -> np.ndarray:

@@ -22,13 +22,16 @@ engineer looks for, and a local baseline would remove it.
 from __future__ import annotations
 
 import math
+import os
 from dataclasses import dataclass
+from itertools import pairwise
 
 import numpy as np
 from numba import njit
 
 from mlaqc.inspection.identify import (RINGS, Identification, _kind_curve, _unit_noise, class_centred, response,
                                        robust_sigma)
+from mlaqc.inspection.metrics_kernels import run_parts
 from mlaqc.models.signatures import FEATURES, SignatureTable
 from mlaqc.optics.config import CameraConfig
 from mlaqc.optics.paraxial import thick_lens
@@ -136,7 +139,8 @@ def _focal_chi2(feats: np.ndarray, found: Identification, table: SignatureTable)
     uv = np.ascontiguousarray(np.where(ok[:, None], uv, 0.0))
     dof = int(np.count_nonzero(np.any(ug != 0, axis=0))) - 1  # the focus indexes used, less the magnitude
     chi2 = np.empty((len(uv), (len(ug) - 1) // COARSE + 1))
-    _coarse_chi2(uv, ug, COARSE, chi2)  # compiled, not BLAS: the same bits on every machine and thread count
+    # compiled, not BLAS: the same bits on every machine and thread count; lens ranges on the cores
+    _on_cores(lambda a, b: _coarse_chi2(uv[a:b], ug, COARSE, chi2[a:b]), len(uv))
     return (dense_m, ug, uv, chi2), ok, dof
 
 
@@ -153,9 +157,22 @@ def _focal(fit, scale: float):
     n = len(chi2)
     value, sigma, alt, resolved = np.empty(n), np.empty(n), np.empty(n), np.empty(n, np.bool_)
     step = float(np.median(np.diff(dense_m[::COARSE])))
-    _focal_scan(chi2, dense_m, ug, uv, COARSE, 1.0 / (scale * scale), SIGN_RESOLVED_CHI2, 3.0 * step,
-                value, sigma, alt, resolved)
+    _on_cores(lambda a, b: _focal_scan(chi2[a:b], dense_m, ug, uv[a:b], COARSE, 1.0 / (scale * scale),
+                                       SIGN_RESOLVED_CHI2, 3.0 * step, value[a:b], sigma[a:b], alt[a:b],
+                                       resolved[a:b]), n)
     return value, sigma, alt, resolved
+
+
+def _on_cores(run, n: int) -> None:
+    """run(a, b) over lens ranges [a, b) covering n lenses, one per core (the kernels release the GIL;
+    each lens is computed alone, so the result does not depend on the split)."""
+    workers = max(1, min(os.cpu_count() or 1, n // 1024))
+    edges = np.linspace(0, n, workers + 1).astype(int)
+    parts = [(int(a), int(b)) for a, b in pairwise(edges) if b > a]
+    if len(parts) <= 1:
+        run(0, n)
+    else:
+        run_parts(lambda ab: run(*ab), parts, workers)
 
 
 @njit(cache=True, nogil=True)

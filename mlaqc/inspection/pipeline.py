@@ -12,6 +12,7 @@ import numpy as np
 
 from mlaqc.errors import InputError
 from mlaqc.inspection.calibrate import Grid, calibrate
+from mlaqc.inspection.combine import SOURCE_KEY
 from mlaqc.inspection.combine import verdict as overall_verdict
 from mlaqc.inspection.identify import identify
 from mlaqc.inspection.measure import measure_lenses
@@ -170,18 +171,50 @@ def with_through_focus(result: InspectionResult, paths: Sequence[str | Path], cf
 
 
 def scan_frame_hook(frame) -> dict:
-    """`mlaqc scan --inspect`: inspect a frame as soon as its position is recorded.
+    """`mlaqc scan --inspect`: inspect a white frame as soon as its position is recorded.
 
-    `frame` is a drivers.scan.ScanFrame (duck-typed here: the core never imports drivers). The camera
-    config comes from the manifest header when the camera reports one (the mock does), else the default.
-    Returns a summary the scan writes beside the raw as `<raw>.inspect.json`."""
+    `frame` is a drivers.scan.ScanFrame (duck-typed here: the core never imports drivers). Its
+    `through_focus` lists the pinhole frames recorded at the same position (a plan with a [through_focus]
+    step); they are read on this frame's grid and combined with it, as `mlaqc inspect RAW --through-focus
+    FRAME ...` does (`with_through_focus`), so the verdict is the combined one (each frame's record is in
+    its scan sidecar, `pinhole_frames.frame_record`). The camera config comes from the manifest header:
+    the camera's own when it reports one (the mock does), else the one the through-focus step used, else
+    the default. Returns a summary the scan writes beside the raw as `<raw>.inspect.json`; with pinhole
+    frames it has `through_focus`: their names and the pairs' summary (as report.json's)."""
     from mlaqc.optics.config import config_from_dict, default_config
 
-    cfg_dict = (frame.header.get("camera_settings") or {}).get("config")
+    header = frame.header
+    cfg_dict = (header.get("camera_settings") or {}).get("config") or (header.get("through_focus") or {}).get("config")
     cfg = config_from_dict(cfg_dict, source="scan manifest") if cfg_dict else default_config()
-    result = inspect_file(frame.path, cfg)
-    return {"verdict": result.verdict, "flagged": len(result.defects), "detection_limit": result.detection_limit,
-            "defects": [d.to_json_dict() | {"indexes": None} for d in result.defects],
-            "grid": {"pitch_px": list(result.grid.pitch_px), "rotation_deg": result.grid.rotation_deg,
-                     "rms_residual_px": result.grid.rms_residual_px},
-            "timings_s": result.timings_s}
+    pinholes = tuple(Path(p) for p in getattr(frame, "through_focus", ()) or ())
+    result = inspect_file(frame.path, cfg, through_focus=pinholes)
+    out = {"verdict": result.verdict, "flagged": len(result.defects), "detection_limit": result.detection_limit,
+           "defects": [d.to_json_dict() | {"indexes": None} | _pairs_z(d.indexes.get(SOURCE_KEY))
+                       for d in result.defects],
+           "grid": {"pitch_px": list(result.grid.pitch_px), "rotation_deg": result.grid.rotation_deg,
+                    "rms_residual_px": result.grid.rms_residual_px},
+           "timings_s": result.timings_s}
+    tf = getattr(result, "through_focus", None)
+    if tf is not None:
+        read = sum(1 for d in result.defects if SOURCE_KEY in d.indexes)
+        out["through_focus"] = {"frames": [Path(p).name for p in pinholes],
+                                "summary": _plain(tf.summary() | {"flags_read_by_pairs": read})}
+    return out
+
+
+def _pairs_z(z: float | None) -> dict:
+    """A flagged lens the through-focus pairs read: their significance (`through_focus_z`)."""
+    return {} if z is None else {SOURCE_KEY: _plain(float(z))}
+
+
+def _plain(value):
+    """JSON-safe: numpy scalars to Python numbers, NaN/inf to None, tuples to lists."""
+    if isinstance(value, dict):
+        return {str(k): _plain(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_plain(v) for v in value]
+    if isinstance(value, np.generic):
+        value = value.item()
+    if isinstance(value, float) and not np.isfinite(value):
+        return None
+    return value

@@ -28,33 +28,25 @@ def _mirror(i, n):
 
 
 @_jit
-def ring_residual_sample(x, r0, c0, step, sample):
-    """sample[a, b] = float32(x - ring mean) at plane pixel (3a, 3b), in the old filters' float32
-    arithmetic (a 1-in-9 sample for the plane's robust noise); returns the plane's (min, max)."""
+def ring_residual_sample(x, r0, c0, step, every, sample):
+    """sample[a, b] = float32(x - ring mean) at plane pixel (every*a, every*b), in the old filters' float32
+    arithmetic (a 1-in-every² sample for the plane's robust noise)."""
     height, width = x.shape
     ph = (height - r0 + step - 1) // step
     pw = (width - c0 + step - 1) // step
     for a in range(sample.shape[0]):
-        pi = 3 * a
+        pi = every * a
         above = x[r0 + step * _mirror(pi - 1, ph)]
         row = x[r0 + step * pi]
         below = x[r0 + step * _mirror(pi + 1, ph)]
         for b in range(sample.shape[1]):
-            pj = 3 * b
+            pj = every * b
             xm = c0 + step * _mirror(pj - 1, pw)
             x0 = c0 + step * pj
             xp = c0 + step * _mirror(pj + 1, pw)
             s1 = (np.float64(above[xm]) + np.float64(above[x0]) + np.float64(above[xp]) + np.float64(row[xm])
                   + np.float64(row[xp]) + np.float64(below[xm]) + np.float64(below[x0]) + np.float64(below[xp]))
             sample[a, b] = row[x0] - np.float32(s1) / np.float32(8.0)
-    lo = np.inf
-    hi = -np.inf
-    for pi in range(ph):
-        for pj in range(pw):
-            val = np.float64(x[r0 + step * pi, c0 + step * pj])
-            lo = min(lo, val)
-            hi = max(hi, val)
-    return lo, hi
 
 
 @_jit

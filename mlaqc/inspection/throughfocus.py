@@ -19,23 +19,43 @@ so it also steepens the slope (Table 1: D moves 8-10 % more than the paraxial de
 makes g vary over the disc; off the axis its field curvature and astigmatism move the typical lens' D
 (Table 1 at u = 5 mm: by the equivalent of 1.4 % of focal length at the array's corner). All three come
 from the camera's own optics: `model_curves` traces a pinhole through the config's main lens and an MLA
-whose lenses all carry a radius error eps, and takes the exact geometric second moments of one lens per
-shell (lenses at the same distance from their pinhole), D(eps) on the axis and D(0) at four field radii.
-A lens' reading is its D, less the model's field offset for its disc and orientation, against the
-typical lens of its shell (the median over every disc and pair of that |u|), inverted on the model's
-D(eps) - D(0) and turned into Δf/f by the thick-lens power of a lens with both radii scaled by 1 + eps
-(as the white frame's `measure_lenses` reports). The typical lens is the reference, as there: the MLA's
-slow trend over the array is kept, a defocus common to all lenses (the sensor distance) is not read.
-`model="paraxial"` reads on the paraxial D instead (spots that are scaled apertures: no aberrations).
+whose lenses all carry a radius error eps (every 0.5 % out to +-15 %), one lens per shell (lenses at the
+same distance from their pinhole), on the axis and at FIELD_POINTS field radii.
 
-Pixel sampling. A spot of about a pixel (Table 1, f/8: 1-2 px at u = ±10 mm, 1-2.5 px at ±5 mm) is
-undersampled: its measured second moment depends on where it falls on the pixel grid, by up to about
-±0.1 px^2 per axis, the scale of 1 % of focal length at u = 10 mm. What that does to the typical spots
-is fitted (the first Fourier harmonic of each frame's sub-pixel phases, over all lenses of that |u|,
-robustly) and removed, with the amplitude of each spot's own size (interpolated between the typical +u
-and -u spots, whose sizes differ: a lens whose error swaps them gets the other frame's pattern). What is
-left is smaller at small |u| (larger spots, and more signal per unit of focal error): u = ±5 mm reads
-2-3x more accurately than ±10 mm (bench/throughfocus_accuracy.py).
+Pixel sampling. A spot of about a pixel (Table 1: 1-2 px at u = +-10 mm f/8, 1-2.5 px at +-5 mm f/11)
+is undersampled, and that is what limited the sizing (issue #12: at +-5 mm f/11, seeds 2-4, -3 % errors
+read 0.76-0.99 of their size, median 0.88). Two things, both measured on frames with a third of the
+lenses seeded over -12..+12 %:
+- its measured second moment depends on where it falls on the pixels, by up to +-0.25 px^2 (x + y), and
+  how much depends on its size (binned, a uniform square 1.0 px wide reads 0.5 px^2 apart over its
+  positions, one 1.3 px wide 0.11), so the pattern's amplitude swings with a period of about 4 % in eps,
+  and a lens whose error changes its spots' sizes has a pattern of its own (the typical lens' fitted
+  pattern, applied to it, added 0.2-0.6 % of scatter to the readings of seeded lenses; healthy 0.1 %);
+- its measured centroid locks to the pixel's centre, the more the smaller the spot (the model: 0.08-0.24
+  px rms over the positions for the smaller spot of a lens 3-11 % off, <= 0.03 px for the larger spot
+  of any lens). A sub-pixel pattern fitted on the spots' own centroids is then not zero-mean over the
+  lenses whose spot is smaller than the typical one: it took 0.1-0.3 px^2 off D for -8..-2 % lenses
+  (the -3 % bias above; the model's curvature between its old nodes at 0 and +-5 % was worth 2 %).
+So the model is the measurement's, not the geometric moment: for every shell, field radius and eps, the
+traced rays of both frames' spots are binned into pixels with the spot's centre at P x P sub-pixel
+positions, put through the config's image formation (as `apply_formation`: diffraction and crosstalk
+on the binned image) and read by the same window and moment code as a frame (ModelCurves.spot_m2). Each
+lens is read on its own model: its spots' centres from the larger spot's centroid and the smoothly
+fitted offset between its two frames' spots (`true_phases`), its D against the model at its shell,
+field radius (orientation mirrored onto the traced one) and those phases, less a constant per shell
+group (the typical lens' offset: a defocus common to all lenses, the sensor distance, is not read, as
+in the white frame's `measure_lenses`; the MLA's slow trend over the array is kept), less what the
+typical lenses still show of a first-harmonic phase pattern; the eps of the lens' own curve that
+explains it (the mean under its likelihood within BRACKET_NODES nodes of the phase-averaged reading,
+with its sd: where a pixel-sized spot's moment stalls over a few % of eps at its phase, as at +-10 mm,
+the reading says so) is turned into Δf/f by the thick-lens power of a lens with both radii scaled by
+1 + eps (as `measure_lenses` reports). Measured (bench/throughfocus_accuracy.py, +-5 mm f/11, 4 lenses,
+seeds 2-6): +-3/5/10 % radius errors sized within 15 % 120 of 120 (was 109), healthy lenses' sd 0.092-
+0.094 % (was 0.114-0.116 %) with each frame scaled to 80 % of full well, 0.104-0.106 % at the protocol's
+own exposure (50 %, mlaqc.optics.throughfocus.FILL_FRACTION; still 120 of 120), none flagged; at +-10 mm
+f/8, 9 lenses (seeds 2-4, 80 %): 58 of 72 (was 33).
+`model="paraxial"` reads on the paraxial D instead (spots that are scaled apertures: no aberrations),
+with the sub-pixel pattern fitted on the typical spots (`reference_fit`).
 
 Measurement. Each lens' spot is found in its sub-image window (the white frame's grid): the brightest
 3 x 3 sum, then the centroid and second moment in a square window of half-width WINDOW_SIGMAS sigma (at
@@ -49,9 +69,14 @@ Frames: prepare them with `prepare_spots` (black-subtracted and normalized, noth
 `prepare` suppresses hot pixels, and a focused spot's peak is one to it.
 
 Uncertainty: the moments' shot and read noise (the sensor's electrons per unit from the config, the read
-noise from the frame's unlit pixels), propagated; scaled up (never down) by a Birge ratio, the robust
-spread of the readings of each |u| over their sigmas, so that what the noise model leaves out (pixel
-sampling, a render's Monte-Carlo noise) is counted.
+noise from the frame's unlit pixels), propagated, plus (traced model) what the typical lenses scatter
+about their models beyond it; through the lens' own curve; scaled up (never down) by a Birge ratio, the
+robust spread of the readings of each |u| over their sigmas, so that what the noise model leaves out (a
+render's Monte-Carlo noise) is counted.
+
+Speed: the spots' moments are batched matrix products (the window is separable), the pairs run on a
+thread per core, the model is cached on disk (and shipped for the Table 1 camera's protocols):
+bench/throughfocus_accuracy.py prints the times.
 
 Optical centre (Shack-Hartmann): a lens' spot centroid moves by d s P (d its optical-centre shift, s P =
 1 - c0 ≈ 1) whatever u is. It is read against the paraxial chief ray (through the lens' centre from the
@@ -64,8 +89,10 @@ from __future__ import annotations
 
 import functools
 import math
+import os
 import time
 from collections.abc import Sequence
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
 from typing import Any
 
@@ -89,8 +116,6 @@ SATURATED = 0.999  # a prepared (normalized) pixel at or above this is at the wh
 RING_PX = 2  # the sub-image window's outer ring this wide gives the background
 MIN_SHELL_LENSES = 5  # a shell's reference needs this many lenses (else the |u| group's median)
 PHASE_MIN_LENSES = 12  # the phase-pattern fit needs this many lenses per fitted term
-MODEL_EPS = (-0.10, -0.05, 0.0, 0.05, 0.10)  # radius errors the model curve is traced at
-MODEL_RAYS = 1_000_000  # pupil rays per frame of the model (only those reaching a shell's lens are traced on)
 
 
 def prepare_spots(frame: RawFrame) -> np.ndarray:
@@ -226,10 +251,24 @@ def focal_rel_of_radius(cfg: CameraConfig, radius_rel) -> np.ndarray:
 
 @dataclass(frozen=True)
 class ModelCurves:
-    """The traced (or paraxial) D of the typical lens, per shell (squared distance from its pinhole, in
-    lenses): D(eps) - D(0) in px^2 at MODEL_EPS on the axis, and how D(0) changes over the field: at
-    field radius r, D(0; r) - D(0; 0) = a(r) + b(r) cos 2 phi, phi the angle between the lens' offset
-    from its pinhole and the field direction (the main lens' field curvature and astigmatism)."""
+    """What the camera's optics make of one lens' pair of spots, per shell (squared distance from its
+    pinhole, in lenses), traced at the radius errors `eps`:
+
+    - `curves`: the geometric D(eps) - D(0) on the axis (exact second moments of the traced rays, px^2),
+      which gives the `gain` over the paraxial slope;
+    - `field_a`, `field_b`: how the geometric D(0) changes over the field: at field radius r,
+      D(0; r) - D(0; 0) = a(r) + b(r) cos 2 phi, phi the angle between the lens' offset from its pinhole
+      and the field direction (the main lens' field curvature and astigmatism);
+    - `spot_m2` (traced models only): the second moment the analysis *measures* of each frame's spot of
+      the shell's traced lens (`offsets`: (a, b) lenses from the pinhole along and across the field),
+      at each field radius and radius error, with the spot's centre at each of P x P sub-pixel positions:
+      the traced rays binned into pixels, put through the config's image formation (diffraction,
+      crosstalk, as `apply_formation`) and read by `_spot_window` and `moments` in the pair's common
+      window, exactly as a frame's spots are. A spot of a pixel or two is undersampled: what its moment
+      reads depends on where it falls on the pixels, by up to +-0.25 px^2, by how much swinging with the
+      spot's size (a period of about 4 % in eps), and the phase-averaged reading is not the geometric one
+      (the window cuts the formation's tails differently for each size). Reading each lens on its own
+      spots' model removes both."""
 
     eps: np.ndarray
     shells: np.ndarray  # (S,) int
@@ -238,87 +277,269 @@ class ModelCurves:
     field_mm: np.ndarray = field(default_factory=lambda: np.zeros(1))  # (R,) field radii, from 0
     field_a: np.ndarray = field(default_factory=lambda: np.zeros((1, 1)))  # (S, R) px^2
     field_b: np.ndarray = field(default_factory=lambda: np.zeros((1, 1)))  # (S, R) px^2
+    offsets: np.ndarray = field(default_factory=lambda: np.zeros((1, 2), np.int64))  # (S, 2) traced lens (a, b), a >= b >= 0
+    spot_m2: np.ndarray | None = None  # (S, R, 2, E, P, P) px^2: [.., frame (+u, -u), eps, y phase, x phase]
+    key: str = ""  # `model_key` of a traced model
 
     def field_offset(self, shell: np.ndarray, dxy: np.ndarray, pin_mm: np.ndarray) -> np.ndarray:
         """D(0) of each lens' disc position and orientation minus its shell's on-axis D(0), px^2."""
-        k = np.abs(shell[:, None] - self.shells[None, :]).argmin(axis=1)
+        k = self.shell_index(shell)
         r = np.hypot(pin_mm[:, 0], pin_mm[:, 1])
-        a, b = np.zeros(len(r)), np.zeros(len(r))
-        for j in np.unique(k):  # a few shells
-            sel = k == j
-            a[sel] = np.interp(r[sel] ** 2, self.field_mm ** 2, self.field_a[j])
-            b[sel] = np.interp(r[sel] ** 2, self.field_mm ** 2, self.field_b[j])
-        d2 = (dxy[:, 0] ** 2 + dxy[:, 1] ** 2).astype(np.float64)
-        with np.errstate(invalid="ignore", divide="ignore"):
-            along = (dxy[:, 0] * pin_mm[:, 0] + dxy[:, 1] * pin_mm[:, 1]) ** 2
-            cos2 = np.where((d2 > 0) & (r > 0), 2.0 * along / (d2 * r * r) - 1.0, 0.0)
-        return a + b * cos2
+        f2 = self.field_mm ** 2
+        a = _interp_rows(r * r, f2, self.field_a, k)
+        b = _interp_rows(r * r, f2, self.field_b, k)
+        return a + b * _cos2(dxy, pin_mm)
+
+    def shell_index(self, shell: np.ndarray) -> np.ndarray:
+        """Index into `shells` of each lens' shell (the nearest one the model has)."""
+        s = np.asarray(shell)
+        j = np.clip(np.searchsorted(self.shells, s), 1, max(len(self.shells) - 1, 1))
+        if len(self.shells) == 1:
+            return np.zeros(s.shape, np.int64)
+        lo = self.shells[j - 1]
+        return np.where(np.abs(s - lo) <= np.abs(self.shells[j] - s), j - 1, j)
 
 
-def model_curves(cfg: CameraConfig, u_mm: float, f_number: float, r_in: float) -> ModelCurves:
-    """The geometric D of the camera's lenses, shell by shell out to `r_in` lenses, traced: D(eps) on the
-    axis and D(0) over the field (cached per camera and pair geometry; a few seconds)."""
-    return _model_curves(cfg, abs(float(u_mm)), float(f_number), round(max(float(r_in), 0.0), 4))
+def _interp_rows(x: np.ndarray, xp: np.ndarray, fp: np.ndarray, k: np.ndarray) -> np.ndarray:
+    """np.interp(x[i], xp, fp[k[i]]) for every i (rows of fp picked per point; held beyond the ends)."""
+    if len(xp) == 1:
+        return fp[k, 0]
+    j = np.clip(np.searchsorted(xp, x) - 1, 0, len(xp) - 2)
+    t = np.clip((x - xp[j]) / (xp[j + 1] - xp[j]), 0.0, 1.0)
+    return fp[k, j] * (1.0 - t) + fp[k, j + 1] * t
 
 
-SPOT_REACH_MM = 0.03  # a model spot's rays are those within this of its centroid (|1 - sV| <= 0.5)
-FIELD_POINTS = 4  # field radii the model's D(0) is traced at, 0 to the array's corner, even in r^2
-
-
-def _trace_moments(patch: CameraConfig, tf: ThroughFocus, field_mm: float, targets: np.ndarray, eps: np.ndarray,
-                   rays: int) -> np.ndarray:
-    """(E, T) geometric second moments x + y (mm^2) of the spots of lenses `targets` (flat indices of the
-    patch MLA, whose centre lens sits `field_mm` along x from the axis, under the pinhole there) for
-    every lens of the MLA carrying the radius error eps."""
-    targets, back = np.unique(targets, return_inverse=True)
-    from mlaqc.optics import lowdisc
-    from mlaqc.optics.errormap import ErrorMap
-    from mlaqc.optics.raytrace import Camera, MicrolensArray, Rays
-    from mlaqc.optics.render import source_region
-    from mlaqc.optics.scene import sample_points
-    from mlaqc.optics.throughfocus import magnification
-
-    n = patch.mla.count_w
-    zero = ErrorMap.zeros(n, n).with_globals(mla_shift_x_um=1e3 * field_mm)
-    fc = frame_config(patch, tf)
-    cam = Camera(fc, zero)
-    x_obj = -field_mm / magnification(fc)  # the main lens inverts
-    r = sample_points(source_region(cam), lowdisc.batch_uniforms(0x7F0C, rays, 2), x_obj, 0.0, square=True)
-    cam.main.trace(r)
-    cam.to_mla(r)
-    zf = cam.mla.z_front
+def _cos2(dxy: np.ndarray, pin_mm: np.ndarray) -> np.ndarray:
+    """cos 2 phi, phi the angle between each lens' offset from its pinhole and the field direction."""
+    r2 = pin_mm[:, 0] ** 2 + pin_mm[:, 1] ** 2
+    d2 = (dxy[:, 0] ** 2 + dxy[:, 1] ** 2).astype(np.float64)
     with np.errstate(invalid="ignore", divide="ignore"):
-        cell, on = cam.mla.cell_of(r.x + (zf - r.z) * r.L / r.N, r.y + (zf - r.z) * r.M / r.N)
-    keep = on & (r.w > 0) & np.isin(cell, targets)
-    lens = np.searchsorted(targets, cell[keep])
-    base = [a[keep] for a in (r.x, r.y, r.z, r.L, r.M, r.N, r.w)]
-    out = np.zeros((len(eps), len(targets)))
-    for j, e in enumerate(eps):
-        em = ErrorMap(zero.shape, {**zero.lens, "radius_front_rel": np.full((n, n), e),
-                                   "radius_back_rel": np.full((n, n), e)}, zero.globals)
-        rr = Rays(*(a.copy() for a in base))
-        MicrolensArray(fc, em).trace(rr)
-        t = (cam.z_sensor - cam.z_mla - rr.z) / rr.N
-        w = np.where(np.isfinite(rr.w) & np.isfinite(t), rr.w, 0.0)
-        x, y = np.where(w > 0, rr.x + t * rr.L, 0.0), np.where(w > 0, rr.y + t * rr.M, 0.0)
-        for cut in (True, False):  # a ray the vertex-plane cell gave to the wrong lens lands a pitch away
-            sw = np.bincount(lens, w, len(targets))
-            mx, my = np.bincount(lens, w * x, len(targets)) / sw, np.bincount(lens, w * y, len(targets)) / sw
-            dx, dy = x - mx[lens], y - my[lens]
-            if cut:
-                w = np.where((np.abs(dx) < SPOT_REACH_MM) & (np.abs(dy) < SPOT_REACH_MM), w, 0.0)
-        out[j] = np.bincount(lens, w * (dx * dx + dy * dy), len(targets)) / sw
-    return out[:, back]
+        along = (dxy[:, 0] * pin_mm[:, 0] + dxy[:, 1] * pin_mm[:, 1]) ** 2
+        return np.where((d2 > 0) & (r2 > 0), 2.0 * along / (d2 * r2) - 1.0, 0.0)
+
+
+MODEL_EPS_STEP = 0.005  # the model is traced at radius errors this far apart ...
+MODEL_EPS_MAX = 0.15  # ... out to +-15 % (beyond, the end segments extend)
+MODEL_EPS = tuple(float(v) for v in np.round(np.arange(-MODEL_EPS_MAX, MODEL_EPS_MAX + 1e-9, MODEL_EPS_STEP), 6))
+MODEL_RAYS = 500_000  # pupil rays per frame of the model (a low-discrepancy set; only those reaching a shell's lens are traced on)
+MODEL_PHASES = 8  # sub-pixel spot positions per axis at which the model's spots are read
+MODEL_FINE = 16  # ray bins per pixel side before the model's spots are pixelated (a multiple of MODEL_PHASES)
+SPOT_REACH_MM = 0.03  # a model spot's rays are those within this of its centroid (|1 - sV| <= 0.5)
+FIELD_POINTS = 3  # field radii the model is traced at, 0 to the array's corner, even in r^2 (its D is linear in r^2)
+MODEL_FORMAT = 2  # the model's definition and its cache file's layout
+
+
+def model_curves(cfg: CameraConfig, u_mm: float, f_number: float, r_in: float, *, rebuild: bool = False) -> ModelCurves:
+    """The camera's model of one lens' pair of spots, shell by shell out to `r_in` lenses (see
+    ModelCurves): from the package, else the disk cache (keyed by the optics, the image formation, the
+    pixel and the pair geometry: `model_key`; `mlaqc.models.store`), else traced now and cached (Table 1:
+    6 s at +-5 mm f/11, its one shell; 8 s at +-10 mm f/8, five shells, on one core); `rebuild` traces it
+    again whatever is stored."""
+    return _model_curves(cfg, abs(float(u_mm)), float(f_number), round(max(float(r_in), 0.0), 4), rebuild)
+
+
+def model_key(cfg: CameraConfig, u_mm: float, f_number: float, r_in: float) -> str:
+    """Content hash of everything that shapes `model_curves`: the main lens, the MLA's design (and its
+    lens count: the field's extent), the distances, the pixel, the formation's blur, Fresnel, the pair
+    geometry and the model's own settings."""
+    import hashlib
+    import json
+
+    from mlaqc.models.reference import mla_hash_view
+
+    d = cfg.to_dict()
+    keep = {"main_lens": d["main_lens"], "mla": mla_hash_view(d["mla"], design=True), "geometry": d["geometry"],
+            "pixel_um": d["sensor"]["pixel_um"], "fresnel": d["trace"]["fresnel"],
+            "formation": {"diffraction": cfg.formation.diffraction, "crosstalk": cfg.formation.crosstalk},
+            "protocol": [abs(float(u_mm)), float(f_number), round(max(float(r_in), 0.0), 4)],
+            "model": [MODEL_FORMAT, list(MODEL_EPS), MODEL_RAYS, MODEL_PHASES, MODEL_FINE, SPOT_REACH_MM, FIELD_POINTS,
+                      WINDOW_SIGMAS, MIN_WINDOW_PX, RING_PX, int(math.floor(cfg.layout.subimage_pitch_px / 2))]}
+    return hashlib.sha256(json.dumps(keep, sort_keys=True).encode()).hexdigest()[:16]
+
+
+_MODEL_ARRAYS = ("eps", "shells", "curves", "field_mm", "field_a", "field_b", "offsets", "spot_m2")
 
 
 @functools.lru_cache(maxsize=16)
-def _model_curves(cfg: CameraConfig, u_mm: float, f_number: float, r_in: float) -> ModelCurves:
+def _model_curves(cfg: CameraConfig, u_mm: float, f_number: float, r_in: float, rebuild: bool = False) -> ModelCurves:
+    from mlaqc.models.store import stored
+
+    key = model_key(cfg, u_mm, f_number, r_in)
+    return stored(f"throughfocus_{key}.npz", lambda: _as_stored(trace_model(cfg, u_mm, f_number, r_in)),
+                  lambda path: load_model(path, key), save_model, rebuild=rebuild)
+
+
+def _as_stored(curves: ModelCurves) -> ModelCurves:
+    """The model as its file keeps it (spot_m2 in float32), so that a traced and a read model read alike."""
+    return replace(curves, spot_m2=curves.spot_m2.astype(np.float32).astype(np.float64))
+
+
+def save_model(curves: ModelCurves, path) -> None:
+    """Write `curves` (a traced model) as compressed NPZ, atomically, under its `model_key` (`key`)."""
+    import io
+
+    from mlaqc.atomic import write_bytes_atomic
+
+    buf = io.BytesIO()
+    np.savez_compressed(buf, key=curves.key, gain=curves.gain,
+                        **{k: (getattr(curves, k).astype(np.float32) if k == "spot_m2" else getattr(curves, k))
+                           for k in _MODEL_ARRAYS})
+    write_bytes_atomic(path, buf.getvalue())
+
+
+def load_model(path, key: str) -> ModelCurves:
+    """Read a model written by `save_model`; ValueError if it is not the model of `key`."""
+    with np.load(path, allow_pickle=False) as z:
+        if str(z["key"]) != key:
+            raise ValueError(f"{path} holds the through-focus model {z['key']}, not {key}")
+        arrays = {k: z[k] for k in _MODEL_ARRAYS}
+        gain = float(z["gain"])
+    arrays["spot_m2"] = arrays["spot_m2"].astype(np.float64)
+    return ModelCurves(gain=gain, key=key, **arrays)
+
+
+class _Landing:
+    """The rays of one pinhole (`field_mm` along x from the axis, under the patch's centre lens; `pupil`:
+    (2, N) uniform draws on the pupil) that reach lenses `targets` of the patch MLA, traced through the
+    main lens once; `land(eps)` traces them on
+    through an MLA whose lenses all carry the radius error eps, to the sensor."""
+
+    def __init__(self, patch: CameraConfig, tf: ThroughFocus, field_mm: float, targets: np.ndarray, pupil: np.ndarray):
+        from mlaqc.optics.errormap import ErrorMap
+        from mlaqc.optics.raytrace import Camera
+        from mlaqc.optics.render import source_region
+        from mlaqc.optics.scene import sample_points
+        from mlaqc.optics.throughfocus import magnification
+
+        targets = np.unique(targets)  # numbered in this order
+        self.n = patch.mla.count_w
+        self.zero = ErrorMap.zeros(self.n, self.n).with_globals(mla_shift_x_um=1e3 * field_mm)
+        self.fc = frame_config(patch, tf)
+        self.cam = Camera(self.fc, self.zero)
+        x_obj = -field_mm / magnification(self.fc)  # the main lens inverts
+        r = sample_points(source_region(self.cam), pupil, x_obj, 0.0, square=True)
+        self.cam.main.trace(r)
+        self.cam.to_mla(r)
+        zf = self.cam.mla.z_front
+        with np.errstate(invalid="ignore", divide="ignore"):
+            cell, on = self.cam.mla.cell_of(r.x + (zf - r.z) * r.L / r.N, r.y + (zf - r.z) * r.M / r.N)
+        keep = np.flatnonzero(on & (r.w > 0) & np.isin(cell, targets))
+        lens = np.searchsorted(targets, cell[keep])
+        order = np.argsort(lens, kind="stable")  # each target's rays together: sums by cumulative sums
+        self.lens = lens[order]
+        self.base = [a[keep[order]] for a in (r.x, r.y, r.z, r.L, r.M, r.N, r.w)]
+        self.count = len(targets)
+        self.bounds = np.searchsorted(self.lens, np.arange(self.count + 1))
+
+    def land(self, e: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Sensor x, y (mm, camera frame) and weight of every ray (weight 0: lost, or beyond SPOT_REACH_MM
+        of its lens' spot: a ray the vertex-plane cell gave to the wrong lens lands a pitch away)."""
+        from mlaqc.optics.errormap import ErrorMap
+        from mlaqc.optics.raytrace import MicrolensArray, Rays
+
+        n = self.n
+        em = ErrorMap(self.zero.shape, {**self.zero.lens, "radius_front_rel": np.full((n, n), e),
+                                        "radius_back_rel": np.full((n, n), e)}, self.zero.globals)
+        rr = Rays(*(a.copy() for a in self.base))
+        MicrolensArray(self.fc, em).trace(rr)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            t = (self.cam.z_sensor - self.cam.z_mla - rr.z) / rr.N
+        w = np.where(np.isfinite(rr.w) & np.isfinite(t), rr.w, 0.0)
+        x, y = np.where(w > 0, rr.x + t * rr.L, 0.0), np.where(w > 0, rr.y + t * rr.M, 0.0)
+        for _ in range(2):
+            mx, my = self.centroid(x, y, w)
+            w = np.where((np.abs(x - mx[self.lens]) < SPOT_REACH_MM) & (np.abs(y - my[self.lens]) < SPOT_REACH_MM), w, 0.0)
+        return x, y, w
+
+    def sums(self, v: np.ndarray) -> np.ndarray:
+        """Per target, the sum of v over its rays."""
+        out = np.zeros(self.count)
+        start = self.bounds[:-1]
+        some = self.bounds[1:] > start  # (reduceat would give an empty run the next ray's value)
+        if some.any():
+            out[some] = np.add.reduceat(v, start[some])
+        return out
+
+    def centroid(self, x: np.ndarray, y: np.ndarray, w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        with np.errstate(invalid="ignore", divide="ignore"):
+            sw = self.sums(w)
+            return self.sums(w * x) / sw, self.sums(w * y) / sw
+
+    def moment(self, x: np.ndarray, y: np.ndarray, w: np.ndarray) -> np.ndarray:
+        """Geometric second moment x + y (mm^2) of each target's spot."""
+        mx, my = self.centroid(x, y, w)
+        dx, dy = x - mx[self.lens], y - my[self.lens]
+        with np.errstate(invalid="ignore", divide="ignore"):
+            return self.sums(w * (dx * dx + dy * dy)) / self.sums(w)
+
+
+def _pixelated(land: _Landing, x: np.ndarray, y: np.ndarray, w: np.ndarray, pick: np.ndarray, pixel_mm: float,
+               half: int, psf: np.ndarray) -> np.ndarray:
+    """(T, P, P, n, n) the spots of `land`'s targets `pick` as a frame holds them, each centred on the
+    window's centre pixel shifted by (i, j) / P px (y, x): rays binned into pixels, then the formation's
+    PSF (`apply_formation`'s order), n = 2 half + 1. Each spot sums to 1."""
+    from scipy.signal import fftconvolve
+
+    P, Q = MODEL_PHASES, MODEL_FINE
+    step = Q // P
+    hs = int(math.ceil(SPOT_REACH_MM / pixel_mm)) + 1  # the spot's own half-width, whatever its phase
+    ns = 2 * hs + 1
+    pad = (P - 1) * step
+    F = ns * Q + pad
+    T = len(pick)
+    slot = np.full(land.count, -1)
+    slot[pick] = np.arange(T)
+    mx, my = (np.nan_to_num(v) for v in land.centroid(x, y, w))  # a lens no ray reaches: no spot
+    t = slot[land.lens]
+    fx = np.floor(((x - mx[land.lens]) / pixel_mm + hs + 0.5) * Q).astype(np.int64) + pad
+    fy = np.floor(((y - my[land.lens]) / pixel_mm + hs + 0.5) * Q).astype(np.int64) + pad
+    ok = (t >= 0) & (w > 0) & (fx >= pad) & (fx < F) & (fy >= pad) & (fy < F)
+    fine = np.bincount((t[ok] * F + fy[ok]) * F + fx[ok], w[ok], T * F * F).reshape(T, F, F)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        fine /= fine.sum(axis=(1, 2), keepdims=True)
+    integ = np.zeros((T, F + 1, F + 1))
+    integ[:, 1:, 1:] = np.cumsum(np.cumsum(fine, axis=1), axis=2)
+    bound = np.arange(ns + 1)[None, :] * Q - np.arange(P)[:, None] * step + pad  # (P, ns + 1): phase i shifts by +i/P px
+    cut = integ[:, bound[:, :, None, None], bound[None, None, :, :]]  # (T, P, ns + 1, P, ns + 1)
+    pix = np.diff(np.diff(cut, axis=2), axis=4).transpose(0, 1, 3, 2, 4)  # (T, P, P, ns, ns)
+    if psf.shape != (1, 1):
+        pix = np.maximum(fftconvolve(pix, psf[None, None, None], mode="full", axes=(3, 4)), 0.0)
+    c = pix.shape[-1] // 2  # the spot's centre pixel
+    n = 2 * half + 1
+    out = np.zeros((T, P, P, n, n))
+    a = min(c, half)
+    out[..., half - a:half + a + 1, half - a:half + a + 1] = pix[..., c - a:c + a + 1, c - a:c + a + 1]
+    return out
+
+
+def _read_model_spots(plus: np.ndarray, minus: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """What the analysis measures of model spot images (..., n, n) of the +u and -u frames of one lens at
+    the same sub-pixel position: each frame's window (`_spot_window`), the pair's common one, `moments`."""
+    shape = plus.shape[:-2]
+    out = []
+    sps = []
+    for img in (plus, minus):
+        cells = img.reshape(-1, *img.shape[-2:])
+        zeros = np.zeros(len(cells))
+        sp = Spots(cells, zeros.astype(np.int64), zeros.astype(np.int64), zeros, 0.0, zeros.astype(bool))
+        sps.append((sp, *_spot_window(sp, 1.0)))
+    w = np.maximum(sps[0][3], sps[1][3])
+    for sp, cx, cy, _ in sps:
+        out.append(moments(sp, cx, cy, w, 1.0, variance=False)[2].reshape(shape))
+    return out[0], out[1]
+
+
+def trace_model(cfg: CameraConfig, u_mm: float, f_number: float, r_in: float) -> ModelCurves:
+    """Trace `model_curves` (no cache)."""
     from mlaqc.models.signatures import patch_config
+    from mlaqc.optics.formation import formation_kernels
 
     reach = int(math.floor(r_in))
     n = 2 * reach + 3
     patch = patch_config(cfg, n)  # the pinhole's image on the centre lens
     opt = optics(cfg)
+    half = int(math.floor(cfg.layout.subimage_pitch_px / 2))
+    psf = formation_kernels(cfg, (1, 1), with_prnu=False).psf
     # one lens per shell, (a, b) with a >= b >= 0 (a along x), and its mirror (b, a) for the field's
     # orientation term
     uniq = {}
@@ -327,35 +548,49 @@ def _model_curves(cfg: CameraConfig, u_mm: float, f_number: float, r_in: float) 
             if a * a + b * b <= r_in * r_in:
                 uniq.setdefault(a * a + b * b, (a, b))
     shells = np.array(sorted(uniq))
+    S = len(shells)
     c = n // 2
     along = np.array([(c + uniq[s][1]) * n + (c + uniq[s][0]) for s in shells])  # row c + b, col c + a
     across = np.array([(c + uniq[s][0]) * n + (c + uniq[s][1]) for s in shells])
     eps = np.array(MODEL_EPS)
-    zero = int(np.flatnonzero(eps == 0.0)[0])
+    zero = int(np.argmin(np.abs(eps)))
     tf = ThroughFocus(focus_offset_mm=u_mm, f_number=f_number)
-    plus, minus = replace(tf, focus_offset_mm=u_mm), replace(tf, focus_offset_mm=-u_mm)
-    d = (_trace_moments(patch, plus, 0.0, along, eps, MODEL_RAYS)
-         - _trace_moments(patch, minus, 0.0, along, eps, MODEL_RAYS)).T / opt.pixel_mm ** 2  # (S, E)
-    curves = d - d[:, zero:zero + 1]
+    frames = (replace(tf, focus_offset_mm=u_mm), replace(tf, focus_offset_mm=-u_mm))
+    p = cfg.mla.pitch_um * 1e-3
+    corner = 0.5 * p * math.hypot(cfg.mla.count_w - 1, cfg.mla.count_h - 1)
+    radii = corner * np.sqrt(np.linspace(0.0, 1.0, FIELD_POINTS))
+    targets = np.concatenate([along, across])
+    P = MODEL_PHASES
+    spot = np.zeros((S, len(radii), 2, len(eps), P, P))
+    geo = np.zeros((len(radii), 2, len(eps), 2 * S))  # geometric x + y, mm^2
+    slots = np.searchsorted(np.unique(targets), targets)  # _Landing numbers its targets sorted
+    from mlaqc.optics import lowdisc
+
+    pupil = lowdisc.batch_uniforms(0x7F0C, MODEL_RAYS, 2)
+    for i, rf in enumerate(radii):
+        lands = [_Landing(patch, f, rf, targets, pupil) for f in frames]
+        for j, e in enumerate(eps):
+            imgs = []
+            for k, land in enumerate(lands):
+                x, y, w = land.land(e)
+                geo[i, k, j] = land.moment(x, y, w)[slots]
+                imgs.append(_pixelated(land, x, y, w, slots[:S], opt.pixel_mm, half, psf))
+            m2p, m2m = _read_model_spots(imgs[0], imgs[1])
+            spot[:, i, 0, j], spot[:, i, 1, j] = m2p, m2m
+    d = (geo[:, 0] - geo[:, 1]) / opt.pixel_mm ** 2  # (R, E, 2S)
+    curves = d[0, :, :S].T - d[0, zero, :S][:, None]  # (S, E) on the axis
     slope = (curves[0, zero + 1] - curves[0, zero - 1]) / (eps[zero + 1] - eps[zero - 1])
     dc = (focal_rel_of_radius(cfg, eps[zero + 1]) - focal_rel_of_radius(cfg, eps[zero - 1])) \
         / (eps[zero + 1] - eps[zero - 1]) * (1.0 - opt.c0)  # dc/deps of c = 1 - s P at the design lens
     paraxial = -4.0 * opt.aperture_i_px2 * (opt.g(u_mm) + opt.g(-u_mm)) * dc
-    # D(0) over the field: field curvature and astigmatism of the main lens
-    p = cfg.mla.pitch_um * 1e-3
-    corner = 0.5 * p * math.hypot(cfg.mla.count_w - 1, cfg.mla.count_h - 1)
-    radii = corner * np.sqrt(np.linspace(0.0, 1.0, FIELD_POINTS))
-    both = np.concatenate([along, across])
-    d0 = np.zeros((len(radii), 2 * len(shells)))
-    for i, rf in enumerate(radii):
-        d0[i] = (_trace_moments(patch, plus, rf, both, eps[zero:zero + 1], MODEL_RAYS // 2)[0]
-                 - _trace_moments(patch, minus, rf, both, eps[zero:zero + 1], MODEL_RAYS // 2)[0]) / opt.pixel_mm ** 2
-    d0 -= d0[:1]
-    d_along, d_across = d0[:, :len(shells)].T, d0[:, len(shells):].T  # (S, R)
+    d0 = d[:, zero] - d[:1, zero]  # (R, 2S): D(0) over the field, from the axis'
+    d_along, d_across = d0[:, :S].T, d0[:, S:].T  # (S, R)
     cos2 = np.array([(uniq[s][0] ** 2 - uniq[s][1] ** 2) / s if s else 0.0 for s in shells])
     field_b = np.where(np.abs(cos2)[:, None] > 1e-9, (d_along - d_across) / (2.0 * np.where(cos2 == 0, 1.0, cos2))[:, None], 0.0)
     field_a = 0.5 * (d_along + d_across)
-    return ModelCurves(eps, shells, curves, float(slope / paraxial), radii, field_a, field_b)
+    offsets = np.array([uniq[s] for s in shells], np.int64)
+    return ModelCurves(eps, shells, curves, float(slope / paraxial), radii, field_a, field_b, offsets, spot,
+                       model_key(cfg, u_mm, f_number, r_in))
 
 
 def paraxial_curves(cfg: CameraConfig, u_mm: float, shells: np.ndarray) -> ModelCurves:
@@ -365,7 +600,7 @@ def paraxial_curves(cfg: CameraConfig, u_mm: float, shells: np.ndarray) -> Model
     c = 1.0 - (1.0 - opt.c0) / (1.0 + focal_rel_of_radius(cfg, eps))
     gp, gm = opt.g(u_mm), opt.g(-u_mm)
     d = 2.0 * opt.aperture_i_px2 * ((c - gp) ** 2 - (c + gm) ** 2)
-    d = d - d[eps == 0.0]
+    d = d - d[np.argmin(np.abs(eps))]
     flat = np.zeros((len(shells), 1))
     return ModelCurves(eps, np.asarray(shells), np.tile(d, (len(shells), 1)), 1.0, np.zeros(1), flat, flat)
 
@@ -373,10 +608,12 @@ def paraxial_curves(cfg: CameraConfig, u_mm: float, shells: np.ndarray) -> Model
 def _invert(curves: ModelCurves, shell: np.ndarray, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """eps with curve_shell(eps) = x (piecewise linear, extended linearly past the ends) and the curve's
     slope there; a shell the model lacks takes the nearest one."""
-    k = np.abs(shell[:, None] - curves.shells[None, :]).argmin(axis=1)
-    cv = curves.curves[k]  # (L, E), decreasing in eps
-    e = curves.eps
-    # segment: where x falls between consecutive curve points (the ends extend)
+    return _invert_rows(curves.curves[curves.shell_index(shell)], curves.eps, x)
+
+
+def _invert_rows(cv: np.ndarray, e: np.ndarray, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Per row of cv (L, E), decreasing in e: the e where it crosses x (piecewise linear, the end
+    segments extended) and its slope there."""
     seg = np.sum(cv[:, 1:-1] >= x[:, None], axis=1)  # 0 .. E-2
     lo = np.take_along_axis(cv, seg[:, None], 1)[:, 0]
     hi = np.take_along_axis(cv, seg[:, None] + 1, 1)[:, 0]
@@ -384,6 +621,195 @@ def _invert(curves: ModelCurves, shell: np.ndarray, x: np.ndarray) -> tuple[np.n
     with np.errstate(invalid="ignore", divide="ignore"):
         out = e[seg] + (x - lo) / slope
     return out, slope
+
+
+def true_phases(pos: np.ndarray, m2: np.ndarray, dxy: np.ndarray, pin_mm: np.ndarray, frame: np.ndarray) -> np.ndarray:
+    """(L, 4) sub-pixel positions in [0, 1) of the centres of each lens' +u and -u spots (x, y each).
+
+    A spot of a pixel or less is centroided towards its pixel's centre (the sampled centroid locks to
+    the pixels), the more the smaller it is, so each frame's own centroid would give the small spots a
+    phase pattern of their own. The larger of the lens' two spots is centroided within a few hundredths
+    of a pixel (ModelCurves' spots); the other frame's spot sits where the offset between the frames'
+    spots puts it: the median of the lenses at the same (dx, dy) from their pinhole plus a smooth
+    field and a constant per pair (`_field_removed`), fitted over all lenses, so locking averages out."""
+    delta = pos[:, :2] - pos[:, 2:]
+    reach = int(np.abs(dxy).max()) if dxy.size else 0
+    cls = (dxy[:, 1] + reach) * (2 * reach + 1) + (dxy[:, 0] + reach)
+    smooth = np.empty_like(delta)
+    for j in range(2):
+        rest = _field_removed(_class_centred(delta[:, j], cls), pin_mm, frame)
+        smooth[:, j] = np.where(np.isfinite(rest), delta[:, j] - rest, delta[:, j])
+    plus_big = (m2[:, 0] >= m2[:, 1])[:, None]
+    centre_p = np.where(plus_big, pos[:, :2], pos[:, 2:] + smooth)
+    centre_m = np.where(plus_big, pos[:, :2] - smooth, pos[:, 2:])
+    c = np.concatenate([centre_p, centre_m], axis=1)
+    return c - np.floor(c)
+
+
+def _lens_model_index(curves: ModelCurves, shell: np.ndarray, dxy: np.ndarray, pin_mm: np.ndarray,
+                      phases: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Where each lens' model spots sit in curves.spot_m2 (flattened): (L, 2, 8) indices at eps node 0
+    (add node * P * P) and weights (2 field radii x 4 phase neighbours, per frame), and the lens'
+    shell index. The model was traced with its field along +x and its lens at (a, b) from the pinhole:
+    each lens is mirrored / transposed onto that (its offset from its pinhole; on the disc's centre, its
+    field direction), its spots' phases with it."""
+    S, R, _, E, P, _ = curves.spot_m2.shape
+    k = curves.shell_index(shell)
+    v = np.where((curves.offsets[k] == 0).all(axis=1)[:, None], pin_mm, dxy.astype(np.float64))
+    sx = np.where(v[:, 0] < 0, -1.0, 1.0)
+    sy = np.where(v[:, 1] < 0, -1.0, 1.0)
+    swap = np.abs(v[:, 1]) > np.abs(v[:, 0])
+    f2 = curves.field_mm ** 2
+    r2 = pin_mm[:, 0] ** 2 + pin_mm[:, 1] ** 2
+    if R > 1:
+        jr = np.clip(np.searchsorted(f2, r2) - 1, 0, R - 2)
+        tr = np.clip((r2 - f2[jr]) / (f2[jr + 1] - f2[jr]), 0.0, 1.0)
+    else:
+        jr, tr = np.zeros(len(k), np.int64), np.zeros(len(k))
+    idx = np.zeros((len(k), 2, 8), np.int64)
+    wts = np.zeros((len(k), 2, 8))
+    for f in range(2):
+        px = np.mod(sx * phases[:, 2 * f], 1.0)
+        py = np.mod(sy * phases[:, 2 * f + 1], 1.0)
+        px, py = np.where(swap, py, px), np.where(swap, px, py)
+        ax, ay = px * P, py * P
+        x0, y0 = np.floor(ax).astype(np.int64), np.floor(ay).astype(np.int64)
+        tx, ty = ax - x0, ay - y0
+        c = 0
+        for dr, wr in ((0, 1.0 - tr), (1, tr)):
+            base = ((k * R + np.minimum(jr + dr, R - 1)) * 2 + f) * E * P * P
+            for dy, wy in ((0, 1.0 - ty), (1, ty)):
+                for dx, wx in ((0, 1.0 - tx), (1, tx)):
+                    idx[:, f, c] = base + ((y0 + dy) % P) * P + (x0 + dx) % P
+                    wts[:, f, c] = wr * wy * wx
+                    c += 1
+    return idx, wts, k
+
+
+def _lens_model(flat: np.ndarray, idx: np.ndarray, wts: np.ndarray, nodes: np.ndarray, stride: int) -> np.ndarray:
+    """(L, K) model D = m2(+u) - m2(-u) of each lens at eps nodes (L, K)."""
+    at = flat[idx[:, :, :, None] + (nodes * stride)[:, None, None, :]]  # (L, 2, 8, K)
+    m = np.einsum("lfck,lfc->lfk", at, wts)
+    return m[:, 0] - m[:, 1]
+
+
+BRACKET_NODES = 6  # the lens' own model is read this many eps nodes either side of its first reading
+SUBSTEPS = 8  # points per node interval at which the lens' likelihood is summed
+
+
+def read_traced(curves: ModelCurves, m2: np.ndarray, var: np.ndarray, pos: np.ndarray, shell: np.ndarray,
+                dxy: np.ndarray, pin_mm: np.ndarray, frame: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Radius error, its 1-sigma (before the Birge ratio) and D against the lens' own model at eps = 0
+    (px^2) of every lens (all pairs of one |u|; `var`: the variance of its D) on the traced model of its
+    own spots (ModelCurves.spot_m2).
+
+    D = m2(+) - m2(-) of a lens is modelled as the model's D at its shell, field radius and its spots'
+    sub-pixel positions (`true_phases`), plus the field's orientation term for shells off the disc's
+    centre (`field_b`, geometric), plus a constant per shell group: the typical lens' offset from the
+    model (a defocus common to all lenses: the sensor's distance; what the model leaves out of the
+    blur). The constant is the group's median of D less the lens' model at eps = 0; what remains of a
+    sub-pixel pattern beyond the model (fitted on the first harmonic of the phases, robustly, as
+    `reference_fit` does) is removed; the lens' D is then read on the phase-averaged model curve (the
+    first reading), and then on its own curve between BRACKET_NODES nodes either side of that: the mean
+    and sd of eps under the likelihood of its D there."""
+    S, R, _, E, P, _ = curves.spot_m2.shape
+    eps = curves.eps
+    zero = int(np.argmin(np.abs(eps)))
+    flat = curves.spot_m2.reshape(-1)
+    phases = true_phases(pos, m2, dxy, pin_mm, frame)
+    idx, wts, k = _lens_model_index(curves, shell, dxy, pin_mm, phases)
+    cos_t = np.array([(a * a - b * b) / (a * a + b * b) if a or b else 0.0 for a, b in curves.offsets])
+    r2 = pin_mm[:, 0] ** 2 + pin_mm[:, 1] ** 2
+    orient = _interp_rows(r2, curves.field_mm ** 2, curves.field_b, k) * (_cos2(dxy, pin_mm) - cos_t[k])
+    d = m2[:, 0] - m2[:, 1] - orient
+    c0 = _lens_model(flat, idx, wts, np.full((len(d), 1), zero), P * P)[:, 0]
+    grp = _shell_groups(shell)
+    ok = np.isfinite(d) & np.isfinite(c0)
+    y = d - c0
+    resid = y - _group_median(y, grp, ok)
+    s0 = max(_robust_sigma(resid[ok]), 1e-12) if ok.sum() >= 2 else np.inf
+    keep = ok & (np.abs(resid) <= 4.0 * s0)
+    y = y - _pattern_fit(resid, _phase_terms(phases), grp, keep)
+    y = y - _group_median(y, grp, keep)  # D against the lens' own model at eps = 0
+    x = c0 + y
+    # the first reading: the phase-averaged model of its shell and field radius
+    avg = curves.spot_m2.mean(axis=(-1, -2))  # (S, R, 2, E)
+    avg = avg[:, :, 0] - avg[:, :, 1]  # (S, R, E)
+    f2 = curves.field_mm ** 2
+    if R > 1:
+        jr = np.clip(np.searchsorted(f2, r2) - 1, 0, R - 2)
+        tr = np.clip((r2 - f2[jr]) / (f2[jr + 1] - f2[jr]), 0.0, 1.0)[:, None]
+        cbar = avg[k, jr] * (1.0 - tr) + avg[k, jr + 1] * tr
+    else:
+        cbar = avg[k, 0]
+    first, slope = _invert_rows(cbar - cbar[:, zero:zero + 1], eps, y)
+    # then its own: the mean and sd of eps under the likelihood of x on the lens' own curve, between
+    # BRACKET_NODES nodes either side of the first reading (the phase pattern cannot move a reading
+    # further): where the curve is steep that is its crossing and the noise over the slope; where a
+    # pixel-sized spot's moment stalls over a few % of eps at its phase, the reading is honestly vague
+    noise = np.sqrt(np.maximum(var, 0.0) + _extra_variance(y, var, keep))
+    j0 = np.clip(np.searchsorted(eps, np.where(np.isfinite(first), first, 0.0)), BRACKET_NODES,
+                 E - 1 - BRACKET_NODES)
+    nodes = j0[:, None] + np.arange(-BRACKET_NODES, BRACKET_NODES + 1)[None, :]
+    own, own_sd = _likelihood_mean(_lens_model(flat, idx, wts, nodes, P * P), eps[nodes], x, noise)
+    inside = np.isfinite(own) & (first >= eps[0]) & (first <= eps[-1])  # beyond the model: the first reading
+    out = np.where(inside, own, first)
+    sigma = np.where(inside, own_sd, noise / np.abs(slope))
+    return out, sigma, y
+
+
+def _extra_variance(y: np.ndarray, var: np.ndarray, keep: np.ndarray) -> float:
+    """What the typical lenses' scatter about their own models holds beyond their quoted noise (px^4):
+    the robust variance of y over `keep` less the median quoted variance, never below 0."""
+    if keep.sum() < 20:
+        return 0.0
+    return max(_robust_sigma(y[keep]) ** 2 - float(np.median(var[keep])), 0.0)
+
+
+def _likelihood_mean(cv: np.ndarray, e: np.ndarray, x: np.ndarray, noise: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Mean and sd of e under exp(-(c(e) - x)^2 / 2 noise^2), c the piecewise-linear curve through the
+    nodes (cv, e) (L, K) of each row (e equally spaced along a row), summed at SUBSTEPS points per
+    interval (flat prior on the span)."""
+    L, K = cv.shape
+    t = np.arange(SUBSTEPS) / SUBSTEPS
+    c = np.empty((L, (K - 1) * SUBSTEPS + 1))
+    c[:, :-1] = (cv[:, :-1, None] + (cv[:, 1:] - cv[:, :-1])[:, :, None] * t).reshape(L, -1)
+    c[:, -1] = cv[:, -1]
+    with np.errstate(invalid="ignore", divide="ignore", over="ignore"):
+        c -= x[:, None]
+        c *= (1.0 / noise)[:, None]
+        c *= c  # chi^2 of every point
+        if not np.isfinite(c).all():
+            c[~np.isfinite(c)] = np.inf
+        c -= c.min(axis=1, keepdims=True)
+        np.exp(-0.5 * c, out=c)
+        pos = np.arange(c.shape[1], dtype=np.float64)
+        w = c.sum(axis=1)
+        m1 = (c @ pos) / w
+        m2 = (c @ (pos * pos)) / w
+    step = (e[:, 1] - e[:, 0]) / SUBSTEPS
+    sd = np.sqrt(np.maximum(m2 - m1 * m1, 0.0)) * step
+    return e[:, 0] + m1 * step, np.maximum(sd, step / math.sqrt(12.0))
+
+
+def _pattern_fit(resid: np.ndarray, terms: np.ndarray, grp: np.ndarray, keep: np.ndarray) -> np.ndarray:
+    """The significant part of resid's regression on `terms` (group medians removed from the terms),
+    robust (twice more without the values beyond 4 sigma); zeros when there are too few values."""
+    ok = np.isfinite(resid)
+    if keep.sum() < PHASE_MIN_LENSES * (len(np.unique(grp)) + terms.shape[1]):
+        return np.zeros(len(resid))
+    centred = terms - np.stack([_group_median(t, grp, keep) for t in terms.T], axis=1)
+    coef = np.zeros(terms.shape[1])
+    for _ in range(3):
+        a = centred[keep]
+        if len(a) < terms.shape[1] * PHASE_MIN_LENSES or np.linalg.cond(a) > 1e3:
+            return np.zeros(len(resid))
+        coef, *_ = np.linalg.lstsq(a, resid[keep], rcond=None)
+        r = resid - centred @ coef
+        keep = ok & (np.abs(r) <= 4.0 * max(_robust_sigma(r[keep]), 1e-12))
+    sig = _robust_sigma(resid[keep] - centred[keep] @ coef) * np.sqrt(np.diag(np.linalg.pinv(centred[keep].T @ centred[keep])))
+    coef = np.where(np.abs(coef) > 3.0 * sig, coef, 0.0)
+    return terms @ coef
 
 
 # ---------------------------------------------------------------------------------------------- inputs
@@ -400,6 +826,14 @@ def _check_inputs(frames, grid: Grid, cfg: CameraConfig):
     if len(frames) < 2:
         raise InputError("a through-focus reading needs at least one +u / -u pair of frames")
     shape = tuple(grid.image_shape)
+
+    def extremes(item) -> tuple[float, float] | None:  # (max, min): NaN propagates through both, +-inf shows
+        img = np.asarray(item[1][0]) if isinstance(item[1], tuple) and len(item[1]) == 2 else None
+        if img is None or img.shape != shape or img.dtype.kind not in "fiu":
+            return None
+        return float(img.max()), float(img.min())
+
+    span = list(_pool().map(extremes, enumerate(frames)))  # the frames' one full pass, a thread per core
     checked = []
     for k, item in enumerate(frames):
         try:
@@ -414,10 +848,11 @@ def _check_inputs(frames, grid: Grid, cfg: CameraConfig):
         if img.shape != shape:
             raise InputError(f"through-focus frame {k + 1} is {img.shape[1]}x{img.shape[0]} px but the white "
                              f"frame's grid is {shape[1]}x{shape[0]} px")
-        if not np.isfinite(img).all():
+        top, bottom = span[k] if span[k] is not None else (float(img.max()), float(img.min()))
+        if not (math.isfinite(top) and math.isfinite(bottom)):
             raise InputError(f"through-focus frame {k + 1} holds NaN or infinite pixels")
-        if img.max() > 2.0:
-            raise InputError(f"through-focus frame {k + 1} reaches {float(img.max()):g}, not a normalized frame "
+        if top > 2.0:
+            raise InputError(f"through-focus frame {k + 1} reaches {top:g}, not a normalized frame "
                              "(white level 1): prepare it with prepare_spots")
         checked.append((np.asarray(img, dtype=np.float32), rec))
     first = checked[0][1]
@@ -445,9 +880,16 @@ def _check_inputs(frames, grid: Grid, cfg: CameraConfig):
     return pairs
 
 
+EXPOSURE_WINDOWS = 64  # the exposure check looks at about this many of a frame's lit windows, spread over it
+NOISE_WINDOWS = 128  # the frame's read noise is the robust spread of about this many windows' rings
+
+
 def _check_exposure(cells: np.ndarray, name: str) -> None:
     """The rawio black/saturation checks, on the sub-image windows that should be lit (a pinhole frame
-    lights a few per cent of the sensor: the whole frame's percentiles would call it black)."""
+    lights a few per cent of the sensor: the whole frame's percentiles would call it black); every k-th
+    window, about EXPOSURE_WINDOWS of them (the statistics of a frame-wide check need no more; each
+    spot's own saturation is checked on all of them)."""
+    cells = cells[::max(1, len(cells) // EXPOSURE_WINDOWS)]
     flat = np.ascontiguousarray(cells.reshape(-1, cells.shape[-1]), dtype=np.float32)
     check_exposure(RawFrame(flat, 16, None, 0, 1, source=name, levels_from="normalized"))
 
@@ -465,10 +907,17 @@ def coverage(cfg: CameraConfig, tf: ThroughFocus) -> tuple[np.ndarray, np.ndarra
     if len(pins) == 0 or r_in < 0:
         z = np.zeros((rows, cols), np.int64)
         return np.zeros((rows, cols), bool), z, np.stack([z, z], axis=-1)
-    d2 = (m[..., None] - pins[:, 0]) ** 2 + (n[..., None] - pins[:, 1]) ** 2
-    near = np.argmin(d2, axis=-1)
+    pr, pc = np.unique(pins[:, 0]), np.unique(pins[:, 1])
+    if len(pins) == len(pr) * len(pc) and np.array_equal(pins, np.stack(np.meshgrid(pr, pc, indexing="ij"), -1).reshape(-1, 2)):
+        # a lattice (row-major, as pinhole_lenses lists it): the nearest pinhole is the nearest row's and
+        # column's (the first of equals, as argmin over all of them would pick)
+        ir = np.argmin((np.arange(rows)[:, None] - pr[None, :]) ** 2, axis=1)
+        ic = np.argmin((np.arange(cols)[:, None] - pc[None, :]) ** 2, axis=1)
+        near = ir[:, None] * len(pc) + ic[None, :]
+    else:
+        near = np.argmin((m[..., None] - pins[:, 0]) ** 2 + (n[..., None] - pins[:, 1]) ** 2, axis=-1)
     dxy = np.stack([n - pins[near, 1], m - pins[near, 0]], axis=-1)
-    lit = np.take_along_axis(d2, near[..., None], axis=-1)[..., 0] <= r_in * r_in
+    lit = dxy[..., 0] ** 2 + dxy[..., 1] ** 2 <= r_in * r_in
     return lit, near, dxy
 
 
@@ -487,20 +936,32 @@ class Spots:
     saturated: np.ndarray  # (L,) bool
 
 
+def _median_rows(a: np.ndarray) -> np.ndarray:
+    """np.median(a, axis=1) of a float array, by one partition (the same values, without the median's
+    extra passes)."""
+    m = a.shape[1]
+    if m == 0:
+        return np.full(len(a), np.nan, a.dtype)
+    k = (m - 1) // 2
+    part = np.partition(a, [k, m // 2], axis=1)
+    return part[:, k] if m % 2 else (part[:, k] + part[:, m // 2]) / 2
+
+
 def spots(img: np.ndarray, x_px: np.ndarray, y_px: np.ndarray, half: int) -> Spots:
     """Cut every lens' window (centred on the pixel nearest (x, y), inside the frame), subtract its
     background (the median of its outer ring) and note saturation."""
     ix = np.rint(x_px).astype(np.int64)
     iy = np.rint(y_px).astype(np.int64)
-    off = np.arange(-half, half + 1)
-    cells = img[(iy[:, None] + off)[:, :, None], (ix[:, None] + off)[:, None, :]]
     n = 2 * half + 1
+    cells = np.lib.stride_tricks.sliding_window_view(img, (n, n))[iy - half, ix - half]  # (L, n, n), a copy
     ring = np.ones((n, n), bool)
     ring[RING_PX:n - RING_PX, RING_PX:n - RING_PX] = False
     outer = cells[:, ring]
-    bg = np.median(outer, axis=1)
-    resid = outer - bg[:, None]
-    bg_sigma = 1.4826 * float(np.median(np.abs(resid))) if resid.size else 0.0
+    bg = _median_rows(outer)
+    # the frame's unlit-pixel noise: the rings of about NOISE_WINDOWS windows spread over the frame
+    step = max(1, len(outer) // NOISE_WINDOWS)
+    resid = outer[::step] - bg[::step, None]
+    bg_sigma = 1.4826 * float(_median_rows(np.abs(resid).reshape(1, -1))[0]) if resid.size else 0.0
     sat = (cells >= SATURATED).any(axis=(1, 2))
     return Spots((cells - bg[:, None, None]).astype(np.float64), ix, iy, bg, bg_sigma, sat)
 
@@ -510,47 +971,60 @@ def _window_weights(centre: np.ndarray, w: np.ndarray, coords: np.ndarray) -> np
     return np.clip(w[:, None] + 0.5 - np.abs(coords[None, :] - centre[:, None]), 0.0, 1.0)
 
 
-def moments(sp: Spots, cx: np.ndarray, cy: np.ndarray, w: np.ndarray, e_per_unit: float, refine: int = 2):
+def moments(sp: Spots, cx: np.ndarray, cy: np.ndarray, w: np.ndarray, e_per_unit: float, refine: int = 2,
+            variance: bool = True):
     """Centroid (window coordinates), second moment x + y (px^2), its variance and the flux of every
     spot in a window of half-width `w` around (cx, cy); the window follows the centroid `refine` times.
-    Returns (mx, my, m2, m2_var, flux, w)."""
-    n = sp.cells.shape[1]
+    Returns (mx, my, m2, m2_var, flux, w); m2_var is None unless `variance`.
+
+    The window's weights are separable (a row weight times a column weight), so every sum is a row
+    vector times the cell times a column vector: one batched matrix product per pass."""
+    c = sp.cells
+    n = c.shape[1]
     half = n // 2
-    k = np.arange(n) - half
+    k = np.arange(n, dtype=np.float64) - half
     limit = half - RING_PX - 0.5
     w = np.clip(w, 0.5, limit)
     for it in range(refine + 1):
         wx = _window_weights(cx, w, k)
         wy = _window_weights(cy, w, k)
-        flux = np.einsum("lij,li,lj->l", sp.cells, wy, wx)
+        rows = np.matmul(c, np.stack([wx, wx * k], axis=2))  # (L, n, 2): each row's sums over x
+        flux = np.einsum("li,li->l", wy, rows[:, :, 0])
         with np.errstate(invalid="ignore", divide="ignore"):
-            mx = np.einsum("lij,li,lj,j->l", sp.cells, wy, wx, k) / flux
-            my = np.einsum("lij,li,lj,i->l", sp.cells, wy, wx, k) / flux
+            mx = np.einsum("li,li->l", wy, rows[:, :, 1]) / flux
+            my = np.einsum("li,li,i->l", wy, rows[:, :, 0], k) / flux
         if it < refine:
             cx = np.clip(np.where(np.isfinite(mx), mx, cx), -half + 1, half - 1)
             cy = np.clip(np.where(np.isfinite(my), my, cy), -half + 1, half - 1)
             w = np.clip(np.minimum(w, limit - np.maximum(np.abs(cx), np.abs(cy)) + RING_PX), 0.5, limit)
-    dx2 = (k[None, :] - mx[:, None]) ** 2
+    dx2 = (k[None, :] - mx[:, None]) ** 2  # (L, n)
     dy2 = (k[None, :] - my[:, None]) ** 2
-    r2 = dy2[:, :, None] + dx2[:, None, :]  # (L, n, n)
-    wgt = wy[:, :, None] * wx[:, None, :]
     with np.errstate(invalid="ignore", divide="ignore"):
-        m2 = np.einsum("lij,lij,lij->l", sp.cells, wgt, r2) / flux
-        # delta method: d m2 / d v_ij = w_ij (r2_ij - m2) / flux (the centroid's own derivative is zero)
-        var_pix = np.maximum(sp.cells + sp.background[:, None, None], 0.0) / e_per_unit + sp.bg_sigma ** 2
-        lever = wgt * (r2 - m2[:, None, None])
-        m2_var = np.einsum("lij,lij->l", lever ** 2, var_pix) / flux ** 2
+        ax = np.matmul(c, (wx * dx2)[:, :, None])[:, :, 0]  # (L, n)
+        m2 = (np.einsum("li,li->l", wy, ax) + np.einsum("li,li,li->l", wy, dy2, rows[:, :, 0])) / flux
+        if not variance:
+            return mx, my, m2, None, flux, w
+        # delta method: d m2 / d v_ij = w_ij (r2_ij - m2) / flux (the centroid's own derivative is zero);
+        # with a_j = dx_j^2 and b_i = dy_i^2 - m2: sum_ij v_ij wy_i^2 wx_j^2 (a_j + b_i)^2
+        var_pix = np.maximum(c + sp.background[:, None, None], 0.0) / e_per_unit + sp.bg_sigma ** 2
+        wx2 = wx * wx
+        b = dy2 - m2[:, None]
+        t = np.matmul(var_pix, np.stack([wx2 * dx2 * dx2, wx2 * dx2, wx2], axis=2))  # (L, n, 3)
+        wy2 = wy * wy
+        m2_var = (np.einsum("li,li->l", wy2, t[:, :, 0]) + 2.0 * np.einsum("li,li,li->l", wy2, b, t[:, :, 1])
+                  + np.einsum("li,li,li->l", wy2, b * b, t[:, :, 2])) / flux ** 2
         ring = n * n - (n - 2 * RING_PX) ** 2
-        m2_var += (np.pi / 2) * sp.bg_sigma ** 2 / ring * (lever.sum(axis=(1, 2)) / flux) ** 2  # the ring median
+        lever_sum = wy.sum(axis=1) * np.einsum("lj,lj->l", wx, dx2) + np.einsum("li,li->l", wy, b) * wx.sum(axis=1)
+        m2_var += (np.pi / 2) * sp.bg_sigma ** 2 / ring * (lever_sum / flux) ** 2  # the ring median
     return mx, my, m2, m2_var, flux, w
 
 
 def _first_guess(sp: Spots) -> tuple[np.ndarray, np.ndarray]:
     """The brightest 3 x 3 sum inside the ring of every window (window coordinates)."""
-    c = sp.cells
-    s = sum(c[:, i:c.shape[1] - 2 + i, j:c.shape[2] - 2 + j] for i in range(3) for j in range(3))
-    n = c.shape[1]
-    inner = s[:, RING_PX - 1:n - 1 - RING_PX, RING_PX - 1:n - 1 - RING_PX]
+    n = sp.cells.shape[1]
+    c = sp.cells[:, RING_PX - 1:n + 1 - RING_PX, RING_PX - 1:n + 1 - RING_PX]  # the centres inside the ring, +1
+    rows = c[:, :-2] + c[:, 1:-1] + c[:, 2:]
+    inner = rows[:, :, :-2] + rows[:, :, 1:-1] + rows[:, :, 2:]
     iy, ix = np.divmod(inner.reshape(len(c), -1).argmax(axis=1), inner.shape[2])
     return (ix + RING_PX - n // 2).astype(np.float64), (iy + RING_PX - n // 2).astype(np.float64)
 
@@ -560,7 +1034,7 @@ def _spot_window(sp: Spots, e_per_unit: float):
     cx, cy = _first_guess(sp)
     w = np.full(len(cx), 3.0)
     for _ in range(2):
-        cx, cy, m2, _, _, _ = moments(sp, cx, cy, w, e_per_unit, refine=1)
+        cx, cy, m2, _, _, _ = moments(sp, cx, cy, w, e_per_unit, refine=1, variance=False)
         sig = np.sqrt(np.clip(0.5 * np.where(np.isfinite(m2), m2, 1.0), 0.0, None))
         w = np.maximum(WINDOW_SIGMAS * sig, MIN_WINDOW_PX)
     return cx, cy, w
@@ -651,20 +1125,23 @@ def reference_fit(m2: np.ndarray, shell: np.ndarray, frac: np.ndarray | None,
     return corrected - _group_median(corrected, grp, keep)
 
 
-def measure_through_focus(frames: Sequence[tuple[np.ndarray, ThroughFocus]], grid: Grid, cfg: CameraConfig,
-                          *, model: str = "traced") -> ThroughFocusResult:
-    """Every microlens' focal-length error (with its sign) and optical-centre displacement from prepared
-    through-focus frames (`prepare_spots`), each with its ThroughFocus record, on the white frame's `grid`
-    (see the module note). `model`: 'traced' reads D on the camera's traced D(eps) (aberrations
-    included), 'paraxial' on the paraxial one (spots that are scaled apertures). Raises InputError on
-    frames that do not fit the grid, pairs without both signs, records that disagree, black or saturated
-    frames, or when no lens is fully lit in any pair."""
-    t0 = time.perf_counter()
-    if model not in ("traced", "paraxial"):
-        raise InputError(f"the through-focus model must be 'traced' or 'paraxial', not {model!r}")
+_POOLS: dict[int, ThreadPoolExecutor] = {}
+
+
+def _pool() -> ThreadPoolExecutor:
+    """A thread per core, kept for the process (per process id: a forked child starts its own)."""
+    pool = _POOLS.get(os.getpid())
+    if pool is None:
+        pool = _POOLS[os.getpid()] = ThreadPoolExecutor(max(1, os.cpu_count() or 1), thread_name_prefix="mlaqc-tf")
+    return pool
+
+
+def pair_spots(frames: Sequence[tuple[np.ndarray, ThroughFocus]], grid: Grid, cfg: CameraConfig) -> list[dict]:
+    """Check the frames (`_check_inputs`) and measure every +u / -u pair's spots: per pair a dict of the
+    per-lens arrays of the lenses it reads (flat index, m2 of both frames, D, its variance, spot
+    centroids, shell, offset from the pinhole and the pinhole's index)."""
     pairs = _check_inputs(frames, grid, cfg)
     opt = optics(cfg)
-    rows, cols = grid.rows, grid.cols
     half = int(math.floor(cfg.layout.subimage_pitch_px / 2))
     h_img, w_img = grid.image_shape
     gx, gy = grid.grid_x_px.ravel(), grid.grid_y_px.ravel()
@@ -672,12 +1149,12 @@ def measure_through_focus(frames: Sequence[tuple[np.ndarray, ThroughFocus]], gri
         inside = (np.isfinite(gx) & np.isfinite(gy) & (np.rint(gx) - half >= 0) & (np.rint(gy) - half >= 0)
                   & (np.rint(gx) + half <= w_img - 1) & (np.rint(gy) + half <= h_img - 1))
 
-    got = []  # per pair: dict of per-lens arrays
-    for u, off, plus, minus in pairs:
+    def one(pair) -> dict | None:
+        u, off, plus, minus = pair
         lit, near, dxy = coverage(cfg, plus[1])
         idx = np.flatnonzero(lit.ravel() & inside)
         if idx.size == 0:
-            continue
+            return None
         meas = []
         for img, rec, k in (plus, minus):
             sp = spots(img, gx[idx], gy[idx], half)
@@ -698,15 +1175,37 @@ def measure_through_focus(frames: Sequence[tuple[np.ndarray, ThroughFocus]], gri
             lit_p, lit_m = fp > MIN_FLUX * np.nanmedian(fp), fm > MIN_FLUX * np.nanmedian(fm)
         good = np.isfinite(m2p) & np.isfinite(m2m) & np.isfinite(vp) & np.isfinite(vm) & lit_p & lit_m & ~sat
         pos = np.stack([xp, yp, xm, ym], axis=1)[good]
-        got.append(dict(u=u, off=off, rec=plus[1], idx=idx[good], d=(m2p - m2m)[good], var=(vp + vm)[good],
-                        m2=np.stack([m2p, m2m], axis=1)[good],
-                        shell=(dxy[..., 0] ** 2 + dxy[..., 1] ** 2).ravel()[idx[good]],
-                        dxy=dxy.reshape(-1, 2)[idx[good]], pin=near.ravel()[idx[good]], pos=pos,
-                        grid_xy=np.stack([gx[idx[good]], gy[idx[good]]], axis=1),
-                        saturated=int(sat.sum()), window=float(np.median(w_common))))
+        return dict(u=u, off=off, rec=plus[1], idx=idx[good], d=(m2p - m2m)[good], var=(vp + vm)[good],
+                    m2=np.stack([m2p, m2m], axis=1)[good],
+                    shell=(dxy[..., 0] ** 2 + dxy[..., 1] ** 2).ravel()[idx[good]],
+                    dxy=dxy.reshape(-1, 2)[idx[good]], pin=near.ravel()[idx[good]], pos=pos,
+                    grid_xy=np.stack([gx[idx[good]], gy[idx[good]]], axis=1),
+                    saturated=int(sat.sum()), window=float(np.median(w_common)))
+
+    # the pairs are independent and NumPy lets go of the GIL in the array work: one thread per core
+    # (results in the pairs' order, and the first pair's error first, as a loop would raise it)
+    got = [p for p in _pool().map(one, pairs) if p is not None] if len(pairs) > 1 else \
+        [p for p in map(one, pairs) if p is not None]
     if not got or sum(len(p["idx"]) for p in got) == 0:
         raise InputError("no lens is fully lit (and unsaturated) in both frames of any +u / -u pair: check the "
                          "pinhole offsets, the focus offset u and the exposure")
+    return got
+
+
+def measure_through_focus(frames: Sequence[tuple[np.ndarray, ThroughFocus]], grid: Grid, cfg: CameraConfig,
+                          *, model: str = "traced") -> ThroughFocusResult:
+    """Every microlens' focal-length error (with its sign) and optical-centre displacement from prepared
+    through-focus frames (`prepare_spots`), each with its ThroughFocus record, on the white frame's `grid`
+    (see the module note). `model`: 'traced' reads D on the camera's traced D(eps) (aberrations
+    included), 'paraxial' on the paraxial one (spots that are scaled apertures). Raises InputError on
+    frames that do not fit the grid, pairs without both signs, records that disagree, black or saturated
+    frames, or when no lens is fully lit in any pair."""
+    t0 = time.perf_counter()
+    if model not in ("traced", "paraxial"):
+        raise InputError(f"the through-focus model must be 'traced' or 'paraxial', not {model!r}")
+    got = pair_spots(frames, grid, cfg)
+    opt = optics(cfg)
+    rows, cols = grid.rows, grid.cols
     t_moments = time.perf_counter() - t0
 
     # D against the typical lens of its shell (the main lens' field effects on it removed), phase
@@ -716,18 +1215,23 @@ def measure_through_focus(frames: Sequence[tuple[np.ndarray, ThroughFocus]], gri
         shells = np.unique(np.concatenate([p["shell"] for p in group]))
         curves = (model_curves(cfg, u, group[0]["rec"].f_number, pair_radius_lenses(cfg, group[0]["rec"]))
                   if model == "traced" else paraxial_curves(cfg, u, shells))
-        field_d = np.concatenate([curves.field_offset(p["shell"], p["dxy"],
-                                                      lens_centres_mm(cfg, pinhole_lenses(cfg, p["rec"])[p["pin"]]))
-                                  for p in group])
-        frac = np.concatenate([p["pos"] - np.rint(p["pos"]) for p in group])
-        rel = reference_fit(np.concatenate([p["m2"] for p in group]), np.concatenate([p["shell"] for p in group]),
-                            frac, field_d)
+        pin_mm = [lens_centres_mm(cfg, pinhole_lenses(cfg, p["rec"])[p["pin"]]) for p in group]
+        cat = {k: np.concatenate([p[k] for p in group]) for k in ("m2", "var", "pos", "shell", "dxy")}
+        if model == "traced":
+            frame_of = np.concatenate([np.full(len(p["d"]), j) for j, p in enumerate(group)])
+            eps_all, sig_all, rel = read_traced(curves, cat["m2"], cat["var"], cat["pos"], cat["shell"], cat["dxy"],
+                                                np.concatenate(pin_mm), frame_of)
+        else:
+            field_d = np.concatenate([curves.field_offset(p["shell"], p["dxy"], q) for p, q in zip(group, pin_mm)])
+            rel = reference_fit(cat["m2"], cat["shell"], cat["pos"] - np.rint(cat["pos"]), field_d)
+            eps_all, slope_all = _invert(curves, cat["shell"], rel)
+            sig_all = np.sqrt(cat["var"]) / np.abs(slope_all)
         start = 0
         for p in group:
-            p["rel"] = rel[start:start + len(p["d"])]
+            sl = slice(start, start + len(p["d"]))
             start += len(p["d"])
-            p["eps"], slope = _invert(curves, p["shell"], p["rel"])
-            p["eps_sig"] = np.sqrt(p["var"]) / np.abs(slope)
+            p["rel"], p["eps"] = rel[sl], eps_all[sl]
+            p["eps_sig"] = sig_all[sl]
             p["gain"] = curves.gain
     t_model = time.perf_counter() - t0 - t_moments
 
@@ -814,27 +1318,46 @@ def _clipped_rms(r: np.ndarray) -> float:
     return float(np.sqrt(np.mean(r[keep] ** 2)))
 
 
+def _least_squares(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """argmin |a x - b| for a tall, well-scaled a (a few columns): the normal equations (SVD-based lstsq
+    where they are singular)."""
+    try:
+        return np.linalg.solve(a.T @ a, a.T @ b)
+    except np.linalg.LinAlgError:
+        return np.linalg.lstsq(a, b, rcond=None)[0]
+
+
 def _field_removed(v: np.ndarray, xy: np.ndarray, frame: np.ndarray) -> np.ndarray:
     """v minus its robust least-squares fit on a constant per frame (the mask's placement) plus a
     polynomial of the pinhole positions xy (L, 2) common to all frames of this u (the main lens'
-    distortion; quadratic, cubic from 200 values): twice more without the values beyond 4 sigma."""
+    distortion; quadratic, cubic from 200 values): twice more without the values beyond 4 sigma. The
+    frames' constants are eliminated first (the polynomial is fitted to values and terms less their
+    frame's means, then each constant is its frame's mean residual: the same least squares)."""
     ok = np.isfinite(v)
     if not ok.any():
         return v
-    x, y = xy[:, 0], xy[:, 1]
-    frames = np.unique(frame)
-    cols = [(frame == f).astype(np.float64) for f in frames]
-    cols += [x, y, x * x, x * y, y * y]
+    scale = max(float(np.max(np.abs(xy))), 1e-12)  # terms of order 1: the normal equations stay well conditioned
+    x, y = xy[:, 0] / scale, xy[:, 1] / scale
+    frames, f = np.unique(frame, return_inverse=True)
+    nf = len(frames)
+    cols = [x, y, x * x, x * y, y * y]
     if ok.sum() >= 200:
         cols += [x ** 3, x * x * y, x * y * y, y ** 3]
     a = np.stack(cols, axis=1)
+    vz = np.where(ok, v, 0.0)
     keep = ok.copy()
     out = v - np.median(v[ok])
     for _ in range(3):
-        if keep.sum() <= a.shape[1]:
+        if keep.sum() <= a.shape[1] + nf:
             break
-        beta, *_ = np.linalg.lstsq(a[keep], v[keep], rcond=None)
-        out = v - a @ beta
+        fk = f[keep]
+        n = np.maximum(np.bincount(fk, minlength=nf), 1).astype(np.float64)
+        ak = a[keep]
+        one_hot = (fk[None, :] == np.arange(nf)[:, None]).astype(np.float64)
+        sums = one_hot @ np.concatenate([ak, vz[keep][:, None]], axis=1)  # each frame's sums of terms and values
+        am, vm = sums[:, :-1] / n[:, None], sums[:, -1] / n
+        beta = _least_squares(ak - am[fk], vz[keep] - vm[fk])
+        out = v - (vm - am @ beta)[f] - a @ beta
         keep = ok & (np.abs(out) <= 4.0 * max(_robust_sigma(out[keep]), 1e-12))
     return out
 
@@ -855,4 +1378,5 @@ def _class_centred(v: np.ndarray, cls: np.ndarray, min_count: int = MIN_SHELL_LE
 
 __all__ = ["ThroughFocusResult", "PairReading", "ModelCurves", "measure_through_focus", "prepare_spots",
            "model_curves", "paraxial_curves", "optics", "aperture_moment_mm2", "coverage", "pair_radius_lenses",
-           "focal_rel_of_radius", "reference_fit"]
+           "focal_rel_of_radius", "reference_fit", "read_traced", "true_phases", "pair_spots", "trace_model",
+           "model_key", "save_model", "load_model"]

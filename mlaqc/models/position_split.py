@@ -21,13 +21,12 @@ the optics' signature key.
 
 from __future__ import annotations
 
-import json
 from dataclasses import asdict, dataclass
 
 import numpy as np
 
-from mlaqc.atomic import write_json_atomic
-from mlaqc.models.reference import PACKAGE_DATA, build_reference, cache_dir
+from mlaqc.models.reference import build_reference
+from mlaqc.models.store import stored_json
 from mlaqc.optics.config import CameraConfig
 from mlaqc.optics.errormap import ErrorMap
 
@@ -114,22 +113,10 @@ def position_split(cfg: CameraConfig) -> PositionSplit | None:
     from mlaqc.models.signatures import signature_key
 
     key = signature_key(cfg)
-    if key in _SPLITS:
-        return _SPLITS[key]
-    for folder in (PACKAGE_DATA, cache_dir()):
-        path = folder / f"position_split_{key}.json"
-        if path.is_file():
-            try:
-                return _SPLITS.setdefault(key, PositionSplit.from_json_dict(json.loads(path.read_text())))
-            except (OSError, ValueError, KeyError, TypeError):
-                pass  # a damaged cache entry is rebuilt
-    split = _SPLITS.setdefault(key, build_position_split(cfg))
-    try:
-        cache_dir().mkdir(parents=True, exist_ok=True)
-        write_json_atomic(cache_dir() / f"position_split_{key}.json", split.to_json_dict())
-    except OSError:
-        pass
-    return split
+    if key not in _SPLITS:
+        _SPLITS[key] = stored_json(f"position_split_{key}.json", lambda: build_position_split(cfg),
+                                   PositionSplit.to_json_dict, PositionSplit.from_json_dict)
+    return _SPLITS[key]
 
 
 SPLIT_Z = 4.0  # the two kinds' predictions must lie this many sigma apart before a lens is typed (2 sigma each side: 2.3 % wrong)

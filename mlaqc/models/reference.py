@@ -11,20 +11,19 @@ import dataclasses
 import hashlib
 import io
 import json
-import os
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
 from mlaqc.atomic import write_bytes_atomic
+from mlaqc.models.store import PACKAGE_DATA, cache_dir, stored  # noqa: F401 (PACKAGE_DATA, cache_dir: re-exported)
 from mlaqc.optics.config import CameraConfig
 from mlaqc.optics.errormap import ErrorMap
 from mlaqc.optics.render import Renderer
 from mlaqc.optics.scene import WhiteScene
 
 OVERSAMPLE = 8
-PACKAGE_DATA = Path(__file__).resolve().parents[1] / "data"
 FORMAT_VERSION = 1
 
 
@@ -68,29 +67,14 @@ def config_key(cfg: CameraConfig) -> str:
     return hashlib.sha256(json.dumps(keep, sort_keys=True).encode()).hexdigest()[:16]
 
 
-def cache_dir() -> Path:
-    """Where rendered references are kept: $MLAQC_CACHE or ~/.cache/mlaqc."""
-    return Path(os.environ.get("MLAQC_CACHE", Path.home() / ".cache" / "mlaqc"))
-
-
 def reference_model(cfg: CameraConfig, *, build_if_missing: bool = True, rays_per_lens: int = 4_000_000,
                     client=None, rebuild: bool = False) -> ReferenceModel:
     """The reference for `cfg`: from the package, else the disk cache, else rendered now (its full-frame
-    flux render on a Dask `client` if given) and cached; `rebuild` renders it again whatever is stored."""
+    flux render on a Dask `client` if given) and cached (`mlaqc.models.store`); `rebuild` renders it
+    again whatever is stored."""
     key = config_key(cfg)
-    for folder in (() if rebuild else (PACKAGE_DATA, cache_dir())):
-        path = folder / f"reference_{key}.npz"
-        if path.is_file():
-            return _load(path, key)
-    if not build_if_missing:
-        raise FileNotFoundError(f"no reference model for config {key}")
-    model = build_reference(cfg, rays_per_lens=rays_per_lens, client=client)
-    try:
-        cache_dir().mkdir(parents=True, exist_ok=True)
-        save_reference(model, cache_dir() / f"reference_{key}.npz")
-    except OSError:
-        pass  # a read-only home still gets a working (uncached) reference
-    return model
+    return stored(f"reference_{key}.npz", lambda: build_reference(cfg, rays_per_lens=rays_per_lens, client=client),
+                  lambda path: _load(path, key), save_reference, rebuild=rebuild, build_if_missing=build_if_missing)
 
 
 def save_reference(model: ReferenceModel, path: Path) -> None:

@@ -21,10 +21,10 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.ndimage import gaussian_filter
 
-from mlaqc.atomic import write_json_atomic
 from mlaqc.inspection.metrics import compute_metrics
 from mlaqc.inspection.metrics_kernels import N_RING
-from mlaqc.models.reference import PACKAGE_DATA, ReferenceModel, build_reference, cache_dir, mla_hash_view
+from mlaqc.models.reference import ReferenceModel, build_reference, mla_hash_view
+from mlaqc.models.store import stored_json
 from mlaqc.optics.config import CameraConfig
 from mlaqc.optics.errormap import ErrorMap
 from mlaqc.optics.formation import apply_formation, blur_key, formation_kernels
@@ -305,18 +305,8 @@ def _edge_width(img: np.ndarray, cfg: CameraConfig) -> float:
 def signature_table(cfg: CameraConfig, *, build_if_missing: bool = True, progress=None, client=None,
                     rebuild: bool = False) -> SignatureSet:
     """The tables for `cfg`'s optics: from the package, else the disk cache, else rendered (on a Dask
-    `client` if given) and cached; `rebuild` renders them again whatever is stored."""
-    key = signature_key(cfg)
-    for folder in (() if rebuild else (PACKAGE_DATA, cache_dir())):
-        path = folder / f"signatures_{key}.json"
-        if path.is_file():
-            return SignatureSet.from_json_dict(json.loads(path.read_text()))
-    if not build_if_missing:
-        raise FileNotFoundError(f"no signature table for optics {key}")
-    tables = build_signature_set(cfg, progress=progress, client=client)
-    try:
-        cache_dir().mkdir(parents=True, exist_ok=True)
-        write_json_atomic(cache_dir() / f"signatures_{key}.json", tables.to_json_dict())
-    except OSError:
-        pass
-    return tables
+    `client` if given) and cached (`mlaqc.models.store`); `rebuild` renders them again whatever is stored."""
+    return stored_json(f"signatures_{signature_key(cfg)}.json",
+                       lambda: build_signature_set(cfg, progress=progress, client=client),
+                       SignatureSet.to_json_dict, SignatureSet.from_json_dict, rebuild=rebuild,
+                       build_if_missing=build_if_missing)

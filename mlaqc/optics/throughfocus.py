@@ -4,12 +4,19 @@ with its sign (bench/type_separation.py chose it; README "What a frame can carry
 A plate of pinholes sits where the white target was, the main lens is stopped to f/N, and the plate is
 moved along the optical axis (stage Z) so the main lens images the pinholes `focus_offset_mm` (u) behind
 (+) or in front of (-) the MLA. Each pinhole then lights a disc on the MLA (`blur_radius_mm`, traced:
-0.310 mm at u = +10 mm and 0.450 mm at u = -10 mm for Table 1 at f/8, so the -10 mm discs of
-pinholes 9 lenses apart touch; paraxially (D_N / 2) |u| / (b + u), 0.35 / 0.39 mm, but the main lens'
-spherical aberration moves the marginal focus), and every lenslet fully inside it sees a nearly
-spherical wave of vergence 1/u and focuses it to a spot on the sensor (a Shack-Hartmann sensor). A
+0.115 mm at u = +5 mm and 0.161 mm at u = -5 mm for Table 1 at f/11, 1.2 / 1.6 lens pitches, so the
+discs of pinholes 4 lenses apart stay apart; paraxially (D_N / 2) |u| / (b + u), 0.131 / 0.139 mm, but
+the main lens' spherical aberration moves the marginal focus), and every lenslet fully inside it sees a
+nearly spherical wave of vergence 1/u and focuses it to a spot on the sensor (a Shack-Hartmann sensor). A
 lens' own focus error grows the spot in one frame of the +u / -u pair and shrinks it in the other, so
 the pair carries the sign at first order.
+
+The shipped protocol (`FOCUS_OFFSET_MM`, `F_NUMBER`, `SPACING_LENSES`: the Carrier, the scan plan's
+[through_focus] table, the mock camera's mask and `mlaqc simulate --scene through-focus`) is u = ±5 mm at
+f/11 with pinholes 4 lenses apart: 16 lattice offsets, 32 frames to cover the array, and 88-96 % of
+seeded focal errors sized within 15 % (README, bench/throughfocus_accuracy.py; at ±10 mm the spots are
+about a pixel and magnitudes read 25-35 % low). `ThroughFocus`'s own field defaults are still the first
+protocol's (10 mm, f/8, 9 lenses): tests/test_throughfocus_analysis.py builds its frames on them.
 
 The pinholes' images form a square lattice `spacing_lenses` lens pitches apart, shifted by
 `offset_lenses` (x, y) lens pitches; `coverage_offsets` lists the lattice shifts that put every lens
@@ -17,21 +24,33 @@ fully inside some disc. Lens (row r, col c) has its design centre at x = (c - (c
 y = (r - (rows - 1) / 2) p on the MLA (camera frame: x right, y down); the main lens inverts, so an
 object point at -x / m images at x.
 
-`photons_per_pinhole` defaults to 2.2e6: with the Table 1 sensor (QE 0.6, full well 20,000 e-) the
-brightest spot pixel of a u = +10 mm, f/8 frame then reads about 80 % of full well after the image
-formation model (diffraction, crosstalk; `mlaqc simulate --no-noise`: 80.4 %), and 76.4 % at
-u = -10 mm (measured on the whole Table 1 frame at the default 50 rays per pixel; the brightest pixel
-is the best-phased spot of the 144; tests/test_throughfocus_acquire.py checks 68-90 % on the small
-camera, 78 % / 76 % there). The photons scale linearly: 2.2e6 into the f/8 pupil per 10 ms is about
-70 pW per pinhole at 633 nm.
+`photons_per_pinhole` defaults to None: the protocol's exposure, `pinhole_photons(cfg, tf)`, derived from
+the optics rather than tuned. `spot_peak_per_photon` traces the pinhole nearest the axis (and the lattice
+neighbours whose discs can reach the same lenses) through the stopped main lens and the design MLA to the
+sensor, bins the spots at every sub-pixel phase, applies the formation model's PSF (diffraction,
+crosstalk) and takes the best-phased brightest pixel; `pinhole_photons` then sets the brighter frame of
+the +|u| / -|u| pair to `FILL_FRACTION` (50 %: room for the focused spots of defective lenses) of full
+well at the sensor's QE, whatever u, the f-number or the spacing are, and the other frame falls where the
+optics put it. Table 1 (QE 0.6, full well 20,000 e-): 2.63e5 photons at ±5 mm f/11, the -5 mm frame the
+brighter (6.3 % / 3.5 % of a pinhole's photons in the brightest pixel at -5 / +5 mm, so +5 mm peaks
+near 28 %); 1.39e6 at ±10 mm f/8 (the +10 mm frame; the first protocol's constant, tuned for 80 %, was
+2.2e6 = 1.39e6 x 0.8 / 0.5). Rendered frames land within a few % of that (`mlaqc simulate --no-noise`,
+default rays; measured at 80 %: the whole Table 1 frame 81.3 % / 44.9 % of full well at -5 / +5 mm, 676
+spots; PRNU and the render's noise add about 1 %; the 24 x 24 small camera 76.5 % / 44.6 %, 36 spots hold
+fewer sub-pixel phases); tests/test_throughfocus_acquire.py checks the small camera. The photons scale
+linearly: 2.63e5 into the f/11 pupil per 10 ms is about 8 pW per pinhole at 633 nm. The target is the
+healthy array's: a lens whose focal error brings one frame's focus near the sensor gathers its spot into
+a pixel or two and peaks up to 1.75x higher (the FILL_FRACTION note), still under full well at 50 %;
+mlaqc.inspection.throughfocus leaves a lens with a saturated spot out of that pair.
 
 The bench (`Carrier`): the pinholes are a backlit chrome-on-glass mask on the stage's auxiliary axes Z
 (along the optical axis, +Z away from the camera) and A, B (across it, +A along the camera's +x, +B
 along +y). Along B the mask holds a clear window (field 0: the backlight's diffuser fills the view, the
 white frame) and one pinhole lattice per focus offset (field k), each drawn at the object pitch that
-images to `spacing_lenses` lens pitches at its own u (the magnification differs by 18 % between
-u = +10 and -10 mm, so one lattice cannot serve both). `carrier_axes` gives the Z, A, B of a frame;
-`carrier_view` turns stage readings back into what the camera sees (the mock camera renders that).
+images to `spacing_lenses` lens pitches at its own u (the magnification differs by 9 % between
+u = +5 and -5 mm, 18 % between ±10 mm, so one lattice cannot serve both). `carrier_axes` gives the Z, A,
+B of a frame; `carrier_view` turns stage readings back into what the camera sees (the mock camera
+renders that).
 """
 
 from __future__ import annotations
@@ -49,18 +68,27 @@ from mlaqc.optics.paraxial import image_distance
 from mlaqc.optics.scene import PointScene, Scene, WhiteScene
 
 PROTOCOL = "through-focus"
-PHOTONS_PER_PINHOLE = 2.2e6  # brightest spot pixel near 80 % of full well, Table 1 sensor, u = +10 mm, f/8
+FOCUS_OFFSET_MM = 5.0  # the shipped protocol: pinholes imaged ±5 mm from the MLA ...
+F_NUMBER = 11.0  # ... through the main lens stopped to f/11 ...
+SPACING_LENSES = 4  # ... 4 lens pitches apart (16 lattice offsets: 32 frames cover the array)
+# The default exposure puts the pair's brightest healthy spot pixel at this fraction of full well. A lens
+# whose focal error brings its spot into focus peaks up to 1.75x higher (traced on the small camera at
+# ±5 mm f/11: radius +8 to +14 % at +5 mm, -4 to -8 % at -5 mm), and a clipped spot cannot be read; at
+# 0.5 those stay under 0.9 of full well, for 1.26x the shot noise of 0.8 (healthy sd 0.09 -> ~0.12 %).
+FILL_FRACTION = 0.5
 
 
 @dataclass(frozen=True)
 class ThroughFocus:
-    """One frame of the protocol: where the pinholes' image lies and how the lattice sits."""
+    """One frame of the protocol: where the pinholes' image lies and how the lattice sits. The field
+    defaults are the first protocol's (see the module docstring); the shipped one is FOCUS_OFFSET_MM,
+    F_NUMBER, SPACING_LENSES."""
 
     focus_offset_mm: float = 10.0  # u: paraxial image of the pinholes this far behind (+) / in front of (-) the MLA
     f_number: float = 8.0  # main lens stopped to efl / N
     spacing_lenses: int = 9  # pinhole images this many lens pitches apart on the MLA
     offset_lenses: tuple[int, int] = (0, 0)  # (x, y) shift of the lattice, in lens pitches
-    photons_per_pinhole: float = PHOTONS_PER_PINHOLE  # photons each pinhole sends into the entrance pupil
+    photons_per_pinhole: float | None = None  # photons each pinhole sends into the pupil; None: `pinhole_photons`
 
     def __post_init__(self) -> None:
         if not (math.isfinite(self.focus_offset_mm) and abs(self.focus_offset_mm) >= 0.5):
@@ -69,7 +97,8 @@ class ThroughFocus:
             raise InputError(f"through-focus f-number must be at least 1, not {self.f_number!r}")
         if int(self.spacing_lenses) != self.spacing_lenses or self.spacing_lenses < 2:
             raise InputError(f"pinhole spacing must be a whole number of lenses >= 2, not {self.spacing_lenses!r}")
-        if not (math.isfinite(self.photons_per_pinhole) and self.photons_per_pinhole > 0):
+        if self.photons_per_pinhole is not None and not (math.isfinite(self.photons_per_pinhole)
+                                                         and self.photons_per_pinhole > 0):
             raise InputError(f"photons per pinhole must be positive, not {self.photons_per_pinhole!r}")
 
     def to_dict(self) -> dict[str, Any]:
@@ -78,13 +107,17 @@ class ThroughFocus:
 
     @classmethod
     def from_dict(cls, d: dict[str, Any], source: str = "record") -> ThroughFocus:
-        """Inverse of `to_dict`; a malformed record is one InputError naming `source`."""
+        """Inverse of `to_dict`; a malformed record is one InputError naming `source`. The focus offset,
+        f-number and spacing must all be stated: a frame read with another protocol's value is read wrong."""
+        missing = [k for k in ("focus_offset_mm", "f_number", "spacing_lenses") if not isinstance(d, dict) or k not in d]
+        if missing:
+            raise InputError(f"{source} is not a through-focus frame record (it does not state {', '.join(missing)})")
         try:
-            kw = {k: d[k] for k in ("focus_offset_mm", "f_number", "spacing_lenses") if k in d}
+            kw = {k: d[k] for k in ("focus_offset_mm", "f_number", "spacing_lenses")}
             kw["offset_lenses"] = tuple(int(v) for v in d.get("offset_lenses", (0, 0)))
             if len(kw["offset_lenses"]) != 2:
                 raise ValueError("offset_lenses needs two values")
-            if "photons_per_pinhole" in d:
+            if d.get("photons_per_pinhole") is not None:
                 kw["photons_per_pinhole"] = float(d["photons_per_pinhole"])
             return cls(**kw)
         except (TypeError, ValueError, KeyError) as exc:
@@ -220,10 +253,118 @@ def lens_centres_mm(cfg: CameraConfig, rc: np.ndarray) -> np.ndarray:
 
 
 def scene(cfg: CameraConfig, tf: ThroughFocus) -> PointScene:
-    """The pinhole plate of this frame: object points whose paraxial images land on the lattice lenses."""
+    """The pinhole plate of this frame: object points whose paraxial images land on the lattice lenses, each
+    sending `tf.photons_per_pinhole` (None: `pinhole_photons(cfg, tf)`) into the pupil."""
     m = magnification(frame_config(cfg, tf))
     img = lens_centres_mm(cfg, pinhole_lenses(cfg, tf))
-    return PointScene(points_mm=tuple((-float(x) / m, -float(y) / m) for x, y in img), photons=tf.photons_per_pinhole)
+    photons = pinhole_photons(cfg, tf) if tf.photons_per_pinhole is None else tf.photons_per_pinhole
+    return PointScene(points_mm=tuple((-float(x) / m, -float(y) / m) for x, y in img), photons=photons)
+
+
+def pinhole_photons(cfg: CameraConfig, tf: ThroughFocus) -> float:
+    """The protocol's exposure: photons each pinhole sends into the pupil so that the brightest spot pixel of
+    the brighter frame of the +|u| / -|u| pair (same f-number and spacing) holds FILL_FRACTION of full well
+    (`spot_peak_per_photon`; the QE of the sensor's most sensitive pixels). The same for both frames of a
+    pair, as one backlit mask gives; the lattice offset does not matter."""
+    return _pinhole_photons(cfg, abs(float(tf.focus_offset_mm)), float(tf.f_number), int(tf.spacing_lenses))
+
+
+@functools.lru_cache(maxsize=32)
+def _pinhole_photons(cfg: CameraConfig, u_mm: float, f_number: float, spacing: int) -> float:
+    s = cfg.sensor
+    qe = max(s.cfa_qe) if s.cfa != "none" else s.qe
+    peak = max(spot_peak_per_photon(cfg, ThroughFocus(u, f_number, spacing, photons_per_pinhole=1.0))
+               for u in (u_mm, -u_mm))
+    return FILL_FRACTION * s.full_well_e / (qe * peak)
+
+
+PEAK_PUPIL_GRID = 256  # pupil samples per side (a polar grid, uniform in area) of each traced pinhole
+PEAK_PHASES = 16  # sub-pixel phases per axis at which the spots are binned (8: 1 % lower peaks)
+
+
+def spot_peak_per_photon(cfg: CameraConfig, tf: ThroughFocus) -> float:
+    """Expected photons in a frame's brightest pixel per photon a pinhole sends into the pupil, after the
+    image formation model's PSF (diffraction, crosstalk; PRNU and noise left out).
+
+    The lattice pinhole nearest the axis is traced, with the light of every lattice neighbour whose disc
+    reaches a lens its own disc lights (their spots can share a sub-image when the discs nearly touch;
+    this is where the spacing enters; by the lattice's symmetry those lenses stand for all), from a
+    deterministic pupil grid (weights as the renderer's: cos^3, Fresnel and vignetting losses) through
+    the stopped main lens and the design MLA to the sensor. The spots are binned at PEAK_PHASES^2
+    sub-pixel shifts of the pixel grid, each put through the PSF, and the brightest pixel of the
+    best-phased binning is returned: a frame holds spots at many phases (the sub-image pitch is not a
+    whole number of pixels), so its brightest pixel reads about this, PRNU and render noise aside, a few
+    % less where no spot falls near the best phase. Independent of the lattice offset; a fraction of a
+    second for the shipped protocol, seconds where discs overlap widely (`pinhole_photons` caches its
+    answer per camera and protocol)."""
+    import cv2
+
+    from mlaqc.optics.formation import formation_kernels
+    from mlaqc.optics.raytrace import Camera, Rays
+    from mlaqc.optics.render import source_region
+    from mlaqc.optics.scene import sample_points
+
+    fc = frame_config(cfg, tf)
+    cam = Camera(fc)
+    region = source_region(cam)
+    m = magnification(fc)
+    p = cfg.mla.pitch_um * 1e-3
+    s = int(tf.spacing_lenses)
+    centre = np.array([cfg.mla.count_h // 2, cfg.mla.count_w // 2])
+    radius = blur_radius_mm(cfg, tf)
+    lit = radius + math.sqrt(2.0) * p  # the lenses a disc lights lie within this of its centre
+    reach = (lit + radius) / (s * p)  # in lattice steps
+    k = int(math.floor(reach))
+    steps = [(i, j) for i in range(-k, k + 1) for j in range(-k, k + 1) if math.hypot(i, j) < reach]
+    img = lens_centres_mm(cfg, centre + s * np.array(steps))  # off the array too: a neighbour's light
+    cx, cy = img[steps.index((0, 0))]
+    g = (np.arange(PEAK_PUPIL_GRID) + 0.5) / PEAK_PUPIL_GRID
+    u = np.stack(np.meshgrid(g, g, indexing="ij")).reshape(2, -1)
+    xs, ys, ws = [], [], []
+    for step, (x, y) in zip(steps, img):
+        r = sample_points(region, u, -float(x) / m, -float(y) / m)
+        cam.trace_to_mla(r)
+        if step != (0, 0):  # a neighbour: only its light on the lenses the centre disc lights
+            t = (cam.z_mla - r.z) / r.N
+            on = (r.w > 0) & (np.hypot(r.x + t * r.L - cx, r.y + t * r.M - cy) <= lit)
+            r = Rays(*(a[on] for a in (r.x, r.y, r.z, r.L, r.M, r.N, r.w)))
+        cam.trace_behind_main(r)
+        ok = r.w > 0
+        xs.append((r.x[ok] - cam.sx0) * cam.inv_pixel)
+        ys.append((r.y[ok] - cam.sy0) * cam.inv_pixel)
+        ws.append(r.w[ok] / u.shape[1])
+    px, py, w = np.concatenate(xs), np.concatenate(ys), np.concatenate(ws)
+    if not len(w):
+        return 0.0
+    psf = formation_kernels(fc, (1, 1), with_prnu=False).psf
+    q, reach = PEAK_PHASES, psf.shape[0] // 2 + 2  # a pixel after the PSF gathers the rays binned this near it
+    x0, y0 = math.floor(px.min()) - reach, math.floor(py.min()) - reach
+    nx, ny = math.ceil(px.max()) + reach + 1 - x0, math.ceil(py.max()) + reach + 1 - y0
+    col, row = np.floor(px - x0).astype(np.int64), np.floor(py - y0).astype(np.int64)
+
+    def blurred(img: np.ndarray) -> np.ndarray:
+        return cv2.filter2D(img, -1, psf[::-1, ::-1], borderType=cv2.BORDER_CONSTANT) if psf.shape != (1, 1) else img
+
+    raw = np.bincount(row * nx + col, w, minlength=ny * nx).reshape(ny, nx)
+    best = float(blurred(raw).max())  # phase 0; other phases only where the light nearby could beat it
+    size = (2 * reach + 1, 2 * reach + 1)
+    near = cv2.boxFilter(raw, -1, size, normalize=False, borderType=cv2.BORDER_CONSTANT)
+    zone = cv2.dilate((near >= best).astype(np.uint8), np.ones(size, np.uint8))
+    count, labels = cv2.connectedComponents(zone)
+    for lab in range(1, count):
+        rr, cc = np.nonzero(labels == lab)
+        r0, c0 = rr.min(), cc.min()
+        h, wd = rr.max() + 2 - r0, cc.max() + 2 - c0  # one pixel more: a shifted grid moves rays by up to one
+        sel = (row >= r0) & (row < r0 + h - 1) & (col >= c0) & (col < c0 + wd - 1)
+        fy = np.floor((py[sel] - y0 - r0) * q).astype(np.int64)
+        fx = np.floor((px[sel] - x0 - c0) * q).astype(np.int64)
+        fine = np.bincount(fy * (wd * q) + fx, w[sel], minlength=h * q * wd * q).reshape(h * q, wd * q)
+        # box[y, x]: the pixel whose top-left corner is fine cell (y, x), i.e. every pixel at every phase
+        box = cv2.boxFilter(fine, -1, (q, q), anchor=(0, 0), normalize=False, borderType=cv2.BORDER_CONSTANT)
+        for dy in range(q):
+            for dx in range(q):
+                best = max(best, float(blurred(np.ascontiguousarray(box[dy::q, dx::q][:h, :wd])).max()))
+    return best
 
 
 def coverage_offsets(cfg: CameraConfig, tf: ThroughFocus) -> list[tuple[int, int]]:
@@ -251,11 +392,13 @@ class Carrier:
     Field k along B is centred at B = b_window_mm + k * field_pitch_mm: k = 0 the clear window (white
     frames), k >= 1 the lattice made for focus offset `focus_offsets_mm[k - 1]` and `spacing_lenses`.
     Z = z_white_mm puts the mask in the white target's plane; A = a_centre_mm centres the lattices
-    (lattice offset 0, 0). The default field pitch leaves each field 25 mm of glass, more than the
-    Table 1 camera's object field (16.4 mm at u = -10 mm) plus the largest lattice offset (1.3 mm)."""
+    (lattice offset 0, 0). The defaults are the shipped protocol (±5 mm, lattices 4 lenses apart; f/11 is
+    the iris', set at the camera). The default field pitch leaves each field 25 mm of glass, more than
+    the Table 1 camera's object field plus the largest lattice offset: 15.6 mm + 0.46 mm at u = -5 mm
+    (14.4 + 0.42 mm at +5 mm; for the first protocol 16.4 + 1.3 mm at u = -10 mm)."""
 
-    focus_offsets_mm: tuple[float, ...] = (10.0, -10.0)
-    spacing_lenses: int = 9
+    focus_offsets_mm: tuple[float, ...] = (FOCUS_OFFSET_MM, -FOCUS_OFFSET_MM)
+    spacing_lenses: int = SPACING_LENSES
     z_white_mm: float = 50.0
     a_centre_mm: float = 10.0
     b_window_mm: float = 0.0
@@ -345,13 +488,14 @@ def native_f_number(cfg: CameraConfig) -> float:
 
 
 def carrier_view(cfg: CameraConfig, carrier: Carrier, axes: dict[str, float], f_number: float,
-                 photons_per_pinhole: float = PHOTONS_PER_PINHOLE) -> CarrierView:
+                 photons_per_pinhole: float | None = None) -> CarrierView:
     """The view at stage readings `axes` (z, a, b in mm): a physical forward model. The pinholes stay where
     the mask holds them: the lattice field's design points (the images on lens centres at its own u and
     the nearest lattice offset), moved by the mask's residual lateral shift, imaged from the object
     distance the actual Z gives. At the nominal axes of a frame this is exactly `frame_config` and
-    `scene`. The white window ignores Z: a uniform Lambertian plane that fills the field gives the same
-    image at any distance."""
+    `scene`. `photons_per_pinhole` None: the field's protocol exposure (`pinhole_photons` of its design
+    |u| at this f-number and the mask's spacing; the light does not follow Z). The white window ignores
+    Z: a uniform Lambertian plane that fills the field gives the same image at any distance."""
     z, a, b = (float(axes[k]) for k in ("z", "a", "b"))
     k = round((b - carrier.b_window_mm) / carrier.field_pitch_mm)
     cam = iris_config(cfg, f_number)
@@ -361,6 +505,8 @@ def carrier_view(cfg: CameraConfig, carrier: Carrier, axes: dict[str, float], f_
         return CarrierView("opaque", cam, None, k)
     s = carrier.spacing_lenses
     design = ThroughFocus(carrier.focus_offsets_mm[k - 1], f_number, s, (0, 0), photons_per_pinhole)
+    if photons_per_pinhole is None:
+        design = replace(design, photons_per_pinhole=pinhole_photons(cfg, design))
     m = magnification(frame_config(cfg, design))
     p = cfg.mla.pitch_um * 1e-3
     dx, dy = a - carrier.a_centre_mm, b - (carrier.b_window_mm + k * carrier.field_pitch_mm)
@@ -375,4 +521,5 @@ def carrier_view(cfg: CameraConfig, carrier: Carrier, axes: dict[str, float], f_
         frame = replace(nominal, focus_offset_mm=round(focus_offset_at_stage_z(cfg, dz), 6))
     except InputError:
         frame = None  # the pinholes are (nearly) imaged onto the MLA: not a through-focus frame
-    return CarrierView("pinholes", cam, PointScene(points_mm=pts, photons=photons_per_pinhole), k, frame, residual)
+    return CarrierView("pinholes", cam, PointScene(points_mm=pts, photons=design.photons_per_pinhole), k, frame,
+                       residual)

@@ -1,0 +1,207 @@
+"""The through-focus analysis' fast paths (mlaqc.inspection.throughfocus) against their plain definitions:
+the separable (batched matrix product) moments against the per-pixel sums, the lattice's nearest pinhole
+against the argmin over every pinhole, the one-partition median against np.median, the per-frame
+constants eliminated before the field polynomial against one least squares with a column per frame, the
+pairs on threads against a plain loop, the likelihood reading against the Gaussian's closed form, and
+the model's disk cache (read back as traced; a damaged file traced again). No wall-clock assertions.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from analytic_frames import AnalyticModel
+from mlaqc.inspection import throughfocus as tf
+from mlaqc.inspection.calibrate import calibrate
+from mlaqc.optics.config import default_config, load_config
+from mlaqc.optics.throughfocus import ThroughFocus, pinhole_lenses
+
+FIXTURES = Path(__file__).resolve().parent.parent / "fixtures"
+SMALL = load_config(FIXTURES / "small_camera.toml")
+
+
+def _plain_moments(sp: tf.Spots, cx, cy, w, e_per_unit: float, refine: int = 2):
+    """The moments written out pixel by pixel (the weights' full (L, n, n) product)."""
+    n = sp.cells.shape[1]
+    half = n // 2
+    k = np.arange(n) - half
+    limit = half - tf.RING_PX - 0.5
+    w = np.clip(w, 0.5, limit)
+    for it in range(refine + 1):
+        wx, wy = tf._window_weights(cx, w, k), tf._window_weights(cy, w, k)
+        wgt = wy[:, :, None] * wx[:, None, :]
+        flux = np.sum(sp.cells * wgt, axis=(1, 2))
+        mx = np.sum(sp.cells * wgt * k[None, None, :], axis=(1, 2)) / flux
+        my = np.sum(sp.cells * wgt * k[None, :, None], axis=(1, 2)) / flux
+        if it < refine:
+            cx = np.clip(np.where(np.isfinite(mx), mx, cx), -half + 1, half - 1)
+            cy = np.clip(np.where(np.isfinite(my), my, cy), -half + 1, half - 1)
+            w = np.clip(np.minimum(w, limit - np.maximum(np.abs(cx), np.abs(cy)) + tf.RING_PX), 0.5, limit)
+    r2 = (k[None, None, :] - mx[:, None, None]) ** 2 + (k[None, :, None] - my[:, None, None]) ** 2
+    m2 = np.sum(sp.cells * wgt * r2, axis=(1, 2)) / flux
+    var_pix = np.maximum(sp.cells + sp.background[:, None, None], 0.0) / e_per_unit + sp.bg_sigma ** 2
+    lever = wgt * (r2 - m2[:, None, None])
+    m2_var = np.sum(lever ** 2 * var_pix, axis=(1, 2)) / flux ** 2
+    ring = n * n - (n - 2 * tf.RING_PX) ** 2
+    m2_var += (np.pi / 2) * sp.bg_sigma ** 2 / ring * (lever.sum(axis=(1, 2)) / flux) ** 2
+    return mx, my, m2, m2_var, flux, w
+
+
+def _random_spots(n_lens: int = 300, seed: int = 1) -> tf.Spots:
+    """Gaussian spots of 0.5-2 px rms anywhere within 3 px of the window's centre, with noise."""
+    rng = np.random.default_rng(seed)
+    k = np.arange(21) - 10
+    cx, cy = rng.uniform(-3, 3, (2, n_lens))
+    s = rng.uniform(0.5, 2.0, n_lens)
+    cells = np.exp(-((k[None, None, :] - cx[:, None, None]) ** 2 + (k[None, :, None] - cy[:, None, None]) ** 2)
+                   / (2 * s[:, None, None] ** 2)) * 0.3 + rng.normal(0, 1e-3, (n_lens, 21, 21))
+    return tf.Spots(cells, np.zeros(n_lens, np.int64), np.zeros(n_lens, np.int64), np.full(n_lens, 0.01), 1e-3,
+                    np.zeros(n_lens, bool))
+
+
+def test_separable_moments_equal_the_pixel_sums():
+    sp = _random_spots()
+    cx, cy, w = tf._spot_window(sp, 2e4)
+    fast = tf.moments(sp, cx, cy, w, 2e4)
+    plain = _plain_moments(sp, cx, cy, w, 2e4)
+    for a, b in zip(fast, plain):
+        assert np.allclose(a, b, rtol=1e-10, atol=1e-13)
+    m = tf.moments(sp, cx, cy, w, 2e4, variance=False)
+    assert m[3] is None and np.array_equal(m[2], fast[2])
+
+
+@pytest.mark.parametrize("cfg", [default_config(), SMALL], ids=["table1", "small"])
+@pytest.mark.parametrize("u, f, s, off", [(5, 11, 4, (0, 0)), (5, 11, 4, (3, 1)), (10, 8, 9, (0, 0)),
+                                          (10, 8, 9, (4, 7)), (5, 8, 9, (2, 2)), (3, 4, 2, (1, 0))])
+def test_the_lattices_nearest_pinhole_is_the_argmin_over_all(cfg, u, f, s, off):
+    rec = ThroughFocus(u, f, s, off)
+    lit, near, dxy = tf.coverage(cfg, rec)
+    pins = pinhole_lenses(cfg, rec)
+    m, n = np.meshgrid(np.arange(cfg.mla.count_h), np.arange(cfg.mla.count_w), indexing="ij")
+    d2 = (m[..., None] - pins[:, 0]) ** 2 + (n[..., None] - pins[:, 1]) ** 2
+    want = np.argmin(d2, axis=-1)
+    assert np.array_equal(near, want)
+    assert np.array_equal(dxy, np.stack([n - pins[want, 1], m - pins[want, 0]], axis=-1))
+    r_in = tf.pair_radius_lenses(cfg, rec)
+    assert np.array_equal(lit, np.min(d2, axis=-1) <= r_in * r_in)
+
+
+@pytest.mark.parametrize("m", [1, 2, 151, 152, 1001])
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+def test_one_partition_median_is_numpys(m, dtype):
+    a = np.random.default_rng(m).normal(size=(9, m)).astype(dtype)
+    assert np.array_equal(tf._median_rows(a), np.median(a, axis=1))
+
+
+def test_frame_constants_eliminated_first_give_the_joint_least_squares():
+    rng = np.random.default_rng(2)
+    n, frames = 4000, 12
+    frame = rng.integers(0, frames, n)
+    xy = rng.uniform(-7, 7, (n, 2))
+    v = 0.3 * frame + 0.01 * xy[:, 0] ** 2 - 0.002 * xy[:, 0] * xy[:, 1] ** 2 + rng.normal(0, 0.05, n)
+    v[rng.random(n) < 0.02] += 3.0  # outliers the robust passes drop
+    v[:3] = np.nan
+    got = tf._field_removed(v, xy, frame)
+    # the plain form: one least squares with a column per frame, the same robust passes
+    x, y = xy[:, 0], xy[:, 1]
+    a = np.stack([(frame == f).astype(float) for f in range(frames)]
+                 + [x, y, x * x, x * y, y * y, x ** 3, x * x * y, x * y * y, y ** 3], axis=1)
+    ok = np.isfinite(v)
+    keep = ok.copy()
+    for _ in range(3):
+        beta, *_ = np.linalg.lstsq(a[keep], v[keep], rcond=None)
+        want = v - a @ beta
+        keep = ok & (np.abs(want) <= 4.0 * max(tf._robust_sigma(want[keep]), 1e-12))
+    assert np.allclose(got[ok], want[ok], atol=1e-10) and np.isnan(got[~ok]).all()
+
+
+def test_the_likelihood_reading_of_a_straight_curve_is_its_crossing_and_noise_over_slope():
+    """exp(-(c(e) - x)^2 / 2 s^2) on a straight c = a + b e is a Gaussian in e: mean (x - a) / b, sd
+    s / |b|; on a flat one it is the span's uniform mean and sd."""
+    e = np.tile(np.linspace(-0.03, 0.03, 13), (2, 1))
+    b = np.array([-25.0, 0.0])
+    cv = 0.2 + b[:, None] * e
+    x = np.array([0.2 + 25.0 * 0.004, 0.2])
+    noise = np.array([0.02, 0.02])
+    mean, sd = tf._likelihood_mean(cv, e, x, noise)
+    assert mean[0] == pytest.approx(-0.004, abs=2e-5) and sd[0] == pytest.approx(0.02 / 25.0, rel=0.02)
+    assert mean[1] == pytest.approx(0.0, abs=1e-12) and sd[1] == pytest.approx(0.06 / math.sqrt(12), rel=0.02)
+
+
+def test_pairs_on_threads_equal_a_plain_loop(monkeypatch):
+    """Two +u / -u pairs of spot frames (Gaussian spots at the lit lenses of the analytic white frame's
+    grid): the threaded pair measurement is the loop's, pair for pair."""
+    white = AnalyticModel(shape=(496, 496), lenses=(24, 24))
+    grid = calibrate((0.8 * white.render()).astype(np.float32), expected_pitch_px=SMALL.layout.subimage_pitch_px,
+                     expected_shape=(24, 24))
+    yy, xx = np.mgrid[:496, :496]
+    frames = []
+    rng = np.random.default_rng(3)
+    for off in ((0, 0), (3, 3)):
+        for u in (10.0, -10.0):
+            rec = ThroughFocus(focus_offset_mm=u, offset_lenses=off)
+            lit = tf.coverage(SMALL, rec)[0]
+            img = np.zeros((496, 496))
+            for m, n in zip(*np.nonzero(lit)):
+                x0, y0 = grid.grid_x_px[m, n] + rng.normal(0, 0.3), grid.grid_y_px[m, n] + rng.normal(0, 0.3)
+                s = 0.7 if u > 0 else 1.0
+                img += 0.5 * np.exp(-((xx - x0) ** 2 + (yy - y0) ** 2) / (2 * s * s))
+            frames.append((img.astype(np.float32), rec))
+    threaded = tf.pair_spots(frames, grid, SMALL)
+
+    class Loop:
+        def map(self, fn, items):
+            return map(fn, list(items))
+
+    monkeypatch.setattr(tf, "_pool", lambda: Loop())
+    plain = tf.pair_spots(frames, grid, SMALL)
+    assert len(threaded) == len(plain) == 2
+    for a, b in zip(threaded, plain):
+        assert a.keys() == b.keys()
+        for key in a:
+            assert np.array_equal(np.asarray(a[key]), np.asarray(b[key])), key
+
+
+def test_the_model_is_cached_on_disk_and_read_back_as_traced(tmp_path, monkeypatch):
+    """`model_curves` traces a model once, writes it to the cache and reads it back (the same arrays a
+    trace gives); a damaged cache file is traced again."""
+    from mlaqc.models import store
+
+    monkeypatch.setattr(store, "PACKAGE_DATA", tmp_path / "package")
+    monkeypatch.setenv("MLAQC_CACHE", str(tmp_path / "cache"))
+    rng = np.random.default_rng(0)
+    calls = []
+
+    def fake_trace(cfg, u, f, r_in):
+        calls.append((u, f, r_in))
+        return tf.ModelCurves(np.array(tf.MODEL_EPS), np.array([0]), rng.normal(size=(1, len(tf.MODEL_EPS))), 1.09,
+                              np.array([0.0, 5.0]), np.zeros((1, 2)), np.zeros((1, 2)), np.zeros((1, 2), np.int64),
+                              rng.normal(size=(1, 2, 2, len(tf.MODEL_EPS), 8, 8)), tf.model_key(cfg, u, f, r_in))
+
+    monkeypatch.setattr(tf, "trace_model", fake_trace)
+    cfg = replace(SMALL, mla=replace(SMALL.mla, count_w=23))  # a config no other test caches
+    tf._model_curves.cache_clear()
+    try:
+        first = tf.model_curves(cfg, 5.0, 11.0, 0.3)
+        files = list((tmp_path / "cache").glob("throughfocus_*.npz"))
+        assert len(calls) == 1 and len(files) == 1 and files[0].name == f"throughfocus_{first.key}.npz"
+        tf._model_curves.cache_clear()
+        again = tf.model_curves(cfg, 5.0, 11.0, 0.3)
+        assert len(calls) == 1
+        for name in tf._MODEL_ARRAYS:
+            assert np.array_equal(getattr(first, name), getattr(again, name)), name
+        assert first.gain == again.gain and again.spot_m2.dtype == np.float64
+        files[0].write_bytes(b"not a model")
+        tf._model_curves.cache_clear()
+        tf.model_curves(cfg, 5.0, 11.0, 0.3)
+        assert len(calls) == 2
+        assert tf.model_key(cfg, 5.0, 11.0, 0.3) != tf.model_key(cfg, 5.0, 8.0, 0.3)
+        assert tf.model_key(cfg, 5.0, 11.0, 0.3) != tf.model_key(replace(cfg, formation=replace(
+            cfg.formation, crosstalk=0.0)), 5.0, 11.0, 0.3)
+    finally:
+        tf._model_curves.cache_clear()
