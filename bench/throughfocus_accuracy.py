@@ -9,7 +9,7 @@ render -> `apply_formation` -> `expose`.
 
 For each focus offset |u| (default: the shipped protocol, ±5 mm, f/11, pinholes 4 lenses apart) the frames are the +u / -u
 pairs of the `coverage_offsets` that light a seeded lens fully (u = 5 mm reads only the lens under each
-pinhole: 81 offsets cover the array, the bench takes those it needs, at least --min-pairs), the white
+pinhole: 16 offsets cover the array at spacing 4, the bench takes those it needs, at least --min-pairs), the white
 frame's grid calibrated on a white render. Printed per |u|:
 
 - per seeded size: lenses read / found (|reading| > qc.detect_sigma sigma) / sign right / within 15 % of the truth,
@@ -96,7 +96,7 @@ def frame(cfg, em, tf: ThroughFocus, rays: int, seed: int, kernels) -> np.ndarra
 
 
 def run_u(cfg, grid, em, truth, u: float, rays_per_lens: float, min_pairs: int, seed: int, kernels,
-          f_number: float = 8.0, spacing: int = 9, all_pairs: bool = False) -> None:
+          f_number: float = F_NUMBER, spacing: int = SPACING_LENSES, all_pairs: bool = False) -> None:
     tf0 = ThroughFocus(focus_offset_mm=u, f_number=f_number, spacing_lenses=spacing)
     offsets = coverage_offsets(cfg, tf0)
     read_all = np.zeros((cfg.mla.count_h, cfg.mla.count_w), bool)

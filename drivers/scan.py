@@ -124,7 +124,8 @@ from drivers.capture import (MAX_AVERAGE, SavedFrame, jsonable, check_out_dir, f
 from mlaqc.atomic import write_bytes_atomic, write_json_atomic
 from mlaqc.errors import DeviceError, InputError, MlaqcError
 from mlaqc.optics.config import CameraConfig, default_config, load_config
-from mlaqc.optics.throughfocus import Carrier, ThroughFocus, carrier_axes, coverage_offsets, white_axes
+from mlaqc.optics.throughfocus import (F_NUMBER, FOCUS_OFFSET_MM, SPACING_LENSES, Carrier, ThroughFocus, carrier_axes,
+                                      coverage_offsets, white_axes)
 
 log = logging.getLogger(__name__)
 
@@ -198,9 +199,9 @@ class PlanPosition:
 class ThroughFocusPlan:
     """The plan's [through_focus] table, validated; `frames(cfg)` expands it for a camera."""
 
-    focus_offsets_mm: tuple[float, ...] = (5.0, -5.0)  # the shipped protocol (mlaqc.optics.throughfocus:
-    f_number: float = 11.0  # FOCUS_OFFSET_MM, F_NUMBER, SPACING_LENSES; the Carrier's defaults match)
-    spacing_lenses: int = 4
+    focus_offsets_mm: tuple[float, ...] = (FOCUS_OFFSET_MM, -FOCUS_OFFSET_MM)  # the shipped protocol
+    f_number: float = F_NUMBER  # (mlaqc.optics.throughfocus; the Carrier's defaults match)
+    spacing_lenses: int = SPACING_LENSES
     offsets: str | tuple[tuple[int, int], ...] = "cover"
     exposure_us: float | None = None
     settle_s: float | None = None
@@ -902,10 +903,12 @@ class ScanRunner:
                                          f"stage's soft limits ({name} {lo:g}..{hi:g} mm); check the carrier keys")
             shown = getattr(self.camera, "carrier", None)  # a camera that models the mask itself (the mock)
             if isinstance(shown, Carrier) and shown != tf.carrier:
-                raise InputError(f"scan plan {self.plan.source!r} describes a pinhole mask ({_mask_text(tf.carrier)}) other "
-                                 f"than the one camera {self._camera_label()} shows ({_mask_text(shown)}); make the "
+                raise InputError(f"scan plan {self.plan.source!r} describes a pinhole mask ({_mask_text(tf.carrier, shown)}) "
+                                 f"other than the one camera {self._camera_label()} shows ({_mask_text(shown, tf.carrier)}); "
+                                 "make the "
                                  "plan's [through_focus] and the camera's mask agree")
-            if tf.iris == "camera" and not callable(getattr(self.camera, "set_f_number", None)):
+            if tf.iris == "camera" and (not callable(getattr(self.camera, "set_f_number", None))
+                                        or getattr(self.camera, "has_iris", True) is False):
                 raise InputError(f"camera {self._camera_label()} cannot set its iris, which through_focus.iris = 'camera' "
                                  "needs; set the lens to f/N by hand with iris = 'manual' and white_frames = false")
         limits = getattr(self.stage, "limits", None)
@@ -988,7 +991,7 @@ class ScanRunner:
             return
         try:
             self.camera.set_f_number(self._white_f_number)  # type: ignore[attr-defined]
-        except DeviceError as exc:
+        except MlaqcError as exc:  # a device fault, or a full aperture the lens cannot reach
             self._event("iris_not_reopened", error=str(exc))
 
     def _position(self, pos: PlanPosition) -> None:
@@ -1184,6 +1187,8 @@ class ScanRunner:
             frame = ScanFrame(path, self.out / item["sidecar"], record, self._header or {}, self.out, pinholes)
             try:
                 result = self.inspect(frame)
+                if isinstance(result, dict):  # (a result that cannot be written is a failed inspection too)
+                    write_json_atomic(self.out / (item["file"] + ".inspect.json"), result)
             except (KeyboardInterrupt, MemoryError):
                 raise
             except Exception as exc:  # noqa: BLE001 - a failed inspection must not lose the scan
@@ -1191,8 +1196,6 @@ class ScanRunner:
                 self._event("inspect_failed", index=pos.index, file=item["file"], error=f"{type(exc).__name__}: {exc}")
                 continue
             self.result.inspected += 1
-            if isinstance(result, dict):
-                write_json_atomic(self.out / (item["file"] + ".inspect.json"), result)
 
     # ------------------------------------------------------------ stopping
 
@@ -1273,9 +1276,14 @@ def run_scan(camera: Camera | str, stage: Any, plan: ScanPlan | str | os.PathLik
     return runner.run()
 
 
-def _mask_text(c: Carrier) -> str:
-    """A pinhole mask in a few words: its lattices' focus offsets and spacing."""
-    return f"lattices for u = {', '.join(f'{u:+g}' for u in c.focus_offsets_mm)} mm, {c.spacing_lenses} lenses apart"
+def _mask_text(c: Carrier, other: Carrier | None = None) -> str:
+    """A pinhole mask in a few words: its lattices' focus offsets and spacing, and any other field in which
+    it differs from `other`."""
+    text = f"lattices for u = {', '.join(f'{u:+g}' for u in c.focus_offsets_mm)} mm, {c.spacing_lenses} lenses apart"
+    mine, theirs = c.to_dict(), (other.to_dict() if other is not None else {})
+    diff = [f"{k} {mine[k]:g}" for k in ("z_white_mm", "a_centre_mm", "b_window_mm", "field_pitch_mm")
+            if k in theirs and mine[k] != theirs[k]]
+    return text + "".join(f", {d}" for d in diff)
 
 
 def default_inspect_hook() -> InspectHook | None:

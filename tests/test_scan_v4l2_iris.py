@@ -51,7 +51,9 @@ def test_through_focus_scan_sets_the_iris_through_a_uvc_camera(tmp_path):
     assert writes[0] == 250 and 800 in writes and dev.values[CID_IRIS_ABSOLUTE] == 250  # opened again at the end
 
 
-def test_through_focus_scan_on_a_camera_without_an_iris_stops_in_one_sentence(tmp_path):
+def test_through_focus_scan_on_a_camera_without_an_iris_is_refused_before_it_starts(tmp_path):
+    """Refused up front (before the stage moves or a manifest is written), in one sentence."""
     _, cam = v4l2_camera(tmp_path, default_controls())
-    with pytest.raises(InputError, match=r"scan stopped at position 1 of 1 .*has no iris control.*iris = 'manual'"):
+    with pytest.raises(InputError, match=r"cannot set its iris.*iris = 'manual'"):
         run_scan(cam, STAGE, plan_from_dict(PLAN, "p.toml"), tmp_path / "scan")
+    assert not (tmp_path / "scan" / "manifest.jsonl").exists()

@@ -57,3 +57,23 @@ def test_nothing_is_built_when_building_is_not_allowed(cache):
     with pytest.raises(FileNotFoundError, match="m_5.json"):
         lookup("m_5.json", built, build_if_missing=False)
     assert built == []
+
+
+def test_a_truncated_npz_entry_is_rebuilt(cache):
+    """np.load on a truncated archive raises BadZipFile or EOFError: the entry is built again, not a crash."""
+    import numpy as np
+
+    (cache / "cache").mkdir()
+    good = cache / "good.npz"
+    np.savez_compressed(good, a=np.arange(1000.0))
+    (cache / "cache" / "m_6.npz").write_bytes(good.read_bytes()[:200])
+
+    def read(path):
+        with np.load(path) as z:
+            return float(z["a"].sum())
+
+    def write(value, path):
+        np.savez_compressed(path, a=np.array([value]))
+
+    assert store.stored("m_6.npz", lambda: 7.0, read, write) == 7.0
+    assert read(cache / "cache" / "m_6.npz") == 7.0

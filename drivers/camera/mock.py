@@ -5,7 +5,7 @@ URL (every parameter optional)::
     mock://?config=small&wafer=3x3&pitch_mm=5&origin_mm=10,10&defects=5&seed=1&rpp=4
            &exposure_us=5000&gain=1&pos_mm=10,10&stage=NAME&quantum_um=1&cache_mb=256
            &light=1&faults=timeout@5,black@9x2&threads=0&f_number=11&mask=5,-5&mask_spacing=4
-           &z_white_mm=50&a_centre_mm=10&b_window_mm=0&field_pitch_mm=25&pinhole_photons=4.2e5
+           &z_white_mm=50&a_centre_mm=10&b_window_mm=0&field_pitch_mm=25&pinhole_photons=2.6e5
 
 - ``config``: camera config — ``small`` (default: the 24x24-lens, 496x496-px test camera, the same as
   fixtures/small_camera.toml), ``table1`` (the paper's full camera) or a TOML path.
@@ -40,8 +40,8 @@ URL (every parameter optional)::
   u = 5 and -5 mm, 4 lenses apart; stop the iris to f/11 for them), ``pinhole_photons`` the photons each
   pinhole sends into the pupil at the reference exposure (default: the protocol's exposure,
   `mlaqc.optics.throughfocus.pinhole_photons` for the field's |u| at the current f-number and the mask's
-  spacing, so that the brighter frame of each +u / -u pair peaks near 80 % of full well at 10 ms; about
-  4.2e5 at ±5 mm, f/11; settings() reports None). Pinhole views go through the config's image formation
+  spacing, so that the brighter frame of each +u / -u pair peaks near `FILL_FRACTION` (50 %) of full well
+  at 10 ms; about 2.6e5 at ±5 mm, f/11; settings() reports None). Pinhole views go through the config's image formation
   model (diffraction, crosstalk, PRNU; mlaqc.optics.formation) as `mlaqc simulate` does: their spots are
   1-2.5 px wide at ±5 mm, about a pixel at ±10 mm. Without auxiliary readings every frame shows the
   white target.

@@ -711,6 +711,12 @@ class V4L2Camera(Camera):
             self._start_settling()
             return back
 
+    @property
+    def has_iris(self) -> bool:
+        """Whether the open camera has an iris control (absolute or relative) that `set_f_number` can drive."""
+        with self._lock:
+            return self._adapter is not None and self._iris_cid() is not None
+
     def _iris_cid(self) -> int | None:
         """V4L2_CID_IRIS_ABSOLUTE if present, else V4L2_CID_IRIS_RELATIVE, else None."""
         return next((cid for cid in (CID_IRIS_ABSOLUTE, CID_IRIS_RELATIVE) if cid in self._controls), None)

@@ -24,7 +24,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("models", help="build (or rebuild) a camera's reference model, signature tables and "
                                       "through-focus model",
                        description="Render the reference sub-image model and the signature tables that inspection "
-                                   "compares every lens with, for the camera's optics, and store them in the cache "
+                                   "compares every lens with, and the shipped through-focus protocol's model, for the "
+                                   "camera's optics, and store them in the cache "
                                    "($MLAQC_CACHE or ~/.cache/mlaqc). Tables already stored are kept unless --rebuild.")
     p.add_argument("--config", "-c", help="camera config TOML (default: the paper's Table 1 camera)")
     p.add_argument("--rebuild", action="store_true", help="render them again even if stored")
@@ -58,9 +59,8 @@ def run(args: argparse.Namespace) -> int:
 
 def _through_focus_model(cfg, rebuild: bool) -> str:
     """Build (if missing, or again with `rebuild`) the shipped through-focus protocol's model; its key."""
-    from mlaqc.inspection.throughfocus import model_curves, model_key
+    from mlaqc.inspection.throughfocus import model_curves
     from mlaqc.optics.throughfocus import F_NUMBER, FOCUS_OFFSET_MM, SPACING_LENSES, ThroughFocus, pair_radius_lenses
 
-    r_in = round(pair_radius_lenses(cfg, ThroughFocus(FOCUS_OFFSET_MM, F_NUMBER, SPACING_LENSES)), 4)
-    model_curves(cfg, FOCUS_OFFSET_MM, F_NUMBER, r_in, rebuild=rebuild)
-    return model_key(cfg, FOCUS_OFFSET_MM, F_NUMBER, r_in)
+    r_in = pair_radius_lenses(cfg, ThroughFocus(FOCUS_OFFSET_MM, F_NUMBER, SPACING_LENSES))
+    return model_curves(cfg, FOCUS_OFFSET_MM, F_NUMBER, r_in, rebuild=rebuild).key

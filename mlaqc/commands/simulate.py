@@ -43,8 +43,9 @@ def register(sub: argparse._SubParsersAction) -> None:
                     help="shift of the pinhole lattice in whole lens pitches (default 0,0)")
     tf.add_argument("--pinhole-photons", type=float, metavar="P",
                     help="photons each pinhole sends into the pupil (default: the protocol's exposure, derived "
-                         "from the optics: the brighter frame of the +U / -U pair peaks near 80 %% of full well; "
-                         "4.2e5 for the Table 1 camera at ±5 mm, f/11)")
+                         "from the optics: the brighter frame of the +U / -U pair peaks near 50 %% of full well, "
+                         "room for the focused spots of defective lenses; 2.6e5 for the Table 1 camera at ±5 mm, "
+                         "f/11)")
     grp = p.add_mutually_exclusive_group()
     grp.add_argument("--errors", "-e", help="JSON error map (keyed by U(m,n))")
     grp.add_argument("--random-defects", type=int, metavar="N", help="seed N random defective lenses")

@@ -172,7 +172,7 @@ def _on_cores(run, n: int) -> None:
     if len(parts) <= 1:
         run(0, n)
     else:
-        run_parts(lambda ab: run(*ab), parts, workers)
+        run_parts(lambda ab: run(*ab), parts, os.cpu_count() or 1)  # the process' pool; len(parts) bounds the threads
 
 
 @njit(cache=True, nogil=True)

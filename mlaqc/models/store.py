@@ -8,6 +8,8 @@ from __future__ import annotations
 
 import json
 import os
+import zipfile
+import zlib
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any, TypeVar
@@ -16,7 +18,8 @@ from mlaqc.atomic import write_json_atomic
 
 PACKAGE_DATA = Path(__file__).resolve().parents[1] / "data"
 T = TypeVar("T")
-_DAMAGED = (OSError, ValueError, KeyError, TypeError, IndexError)
+# what reading a damaged entry raises (a truncated or garbled .npz: BadZipFile, EOFError, zlib.error)
+_DAMAGED = (OSError, ValueError, KeyError, TypeError, IndexError, EOFError, zipfile.BadZipFile, zlib.error)
 
 
 def cache_dir() -> Path:

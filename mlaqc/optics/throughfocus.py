@@ -13,9 +13,9 @@ the pair carries the sign at first order.
 
 The shipped protocol (`FOCUS_OFFSET_MM`, `F_NUMBER`, `SPACING_LENSES`: the Carrier, the scan plan's
 [through_focus] table, the mock camera's mask and `mlaqc simulate --scene through-focus`) is u = ±5 mm at
-f/11 with pinholes 4 lenses apart: 16 lattice offsets, 32 frames to cover the array, and 88-96 % of
-seeded focal errors sized within 15 % (README, bench/throughfocus_accuracy.py; at ±10 mm the spots are
-about a pixel and magnitudes read 25-35 % low). `ThroughFocus`'s own field defaults are still the first
+f/11 with pinholes 4 lenses apart: 16 lattice offsets, 32 frames to cover the array, and every seeded
+±3/5/10 % focal error sized within 15 % (120 of 120 over seeds 2-6; README, bench/throughfocus_accuracy.py;
+at ±10 mm the spots are about a pixel and 58 of 72 are). `ThroughFocus`'s own field defaults are still the first
 protocol's (10 mm, f/8, 9 lenses): tests/test_throughfocus_analysis.py builds its frames on them.
 
 The pinholes' images form a square lattice `spacing_lenses` lens pitches apart, shifted by
@@ -275,6 +275,9 @@ def _pinhole_photons(cfg: CameraConfig, u_mm: float, f_number: float, spacing: i
     qe = max(s.cfa_qe) if s.cfa != "none" else s.qe
     peak = max(spot_peak_per_photon(cfg, ThroughFocus(u, f_number, spacing, photons_per_pinhole=1.0))
                for u in (u_mm, -u_mm))
+    if not peak > 0:
+        raise InputError(f"no pinhole light reaches the sensor at u = ±{u_mm:g} mm, f/{f_number:g}: no exposure can "
+                         "be derived for this protocol; check the camera config and the focus offset")
     return FILL_FRACTION * s.full_well_e / (qe * peak)
 
 
