@@ -20,27 +20,28 @@ from mlaqc.inspection.rawio import Levels, thread_map, load_raw, resolve_levels
 from mlaqc.optics.config import CameraConfig
 from mlaqc.optics.throughfocus import ThroughFocus
 
-# (sidecar suffix, path of the record in it): the simulator's, a scan's, another program's
-SIDECARS = ((".sim.json", ("protocol",)), (".meta.json", ("context", "through_focus", "record")),
-            (".meta.json", ("through_focus",)))
+# sidecar suffix -> where the record sits in it: the simulator's; a scan's, or another program's
+SIDECARS = {".sim.json": (("protocol",),), ".meta.json": (("context", "through_focus", "record"), ("through_focus",))}
 
 
 def frame_record(raw: str | Path) -> ThroughFocus:
     """The ThroughFocus record of a pinhole frame, from its sidecar; InputError when it has none."""
     p = Path(raw)
-    for suffix, keys in SIDECARS:
+    for suffix, paths in SIDECARS.items():
         side = p.with_name(p.name + suffix)
         if not side.is_file():
             continue
         try:
-            rec = json.loads(side.read_text())
+            doc = json.loads(side.read_text())
         except (OSError, ValueError) as exc:
             raise InputError(f"sidecar {str(side)!r} of through-focus frame {str(p)!r} is not readable JSON "
                              f"({exc.__class__.__name__})") from None
-        for key in keys:
-            rec = rec.get(key) if isinstance(rec, dict) else None
-        if isinstance(rec, dict):
-            return ThroughFocus.from_dict(rec, source=f"sidecar {str(side)!r}")
+        for keys in paths:
+            rec = doc
+            for key in keys:
+                rec = rec.get(key) if isinstance(rec, dict) else None
+            if isinstance(rec, dict):
+                return ThroughFocus.from_dict(rec, source=f"sidecar {str(side)!r}")
     raise InputError(f"through-focus frame {str(p)!r} has no record of how it was taken: give it a "
                      f"{p.name}.meta.json sidecar with a \"through_focus\" object (focus_offset_mm, f_number, "
                      f"spacing_lenses, offset_lenses; README 'File formats')")

@@ -346,11 +346,12 @@ def model_key(cfg: CameraConfig, u_mm: float, f_number: float, r_in: float) -> s
     import json
 
     from mlaqc.models.reference import mla_hash_view
+    from mlaqc.optics.formation import blur_key
 
     d = cfg.to_dict()
     keep = {"main_lens": d["main_lens"], "mla": mla_hash_view(d["mla"], design=True), "geometry": d["geometry"],
             "pixel_um": d["sensor"]["pixel_um"], "fresnel": d["trace"]["fresnel"],
-            "formation": {"diffraction": cfg.formation.diffraction, "crosstalk": cfg.formation.crosstalk},
+            **blur_key(cfg),
             "protocol": [abs(float(u_mm)), float(f_number), round(max(float(r_in), 0.0), 4)],
             "model": [MODEL_FORMAT, list(MODEL_EPS), MODEL_RAYS, MODEL_PHASES, MODEL_FINE, SPOT_REACH_MM, FIELD_POINTS,
                       WINDOW_SIGMAS, MIN_WINDOW_PX, RING_PX, int(math.floor(cfg.layout.subimage_pitch_px / 2))]}

@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 
 from mlaqc.atomic import write_bytes_atomic
-from mlaqc.models.store import PACKAGE_DATA, cache_dir, stored  # noqa: F401 (PACKAGE_DATA, cache_dir: re-exported)
+from mlaqc.models.store import stored
 from mlaqc.optics.config import CameraConfig
 from mlaqc.optics.errormap import ErrorMap
 from mlaqc.optics.render import Renderer
