@@ -46,7 +46,7 @@ from typing import Any
 
 import gui.qt  # noqa: F401 - first: the PySide6 reference-count guard
 import numpy as np
-from PySide6.QtCore import QObject, QThread, QTimer, Signal, Slot
+from PySide6.QtCore import QMetaObject, QObject, Qt, QThread, QTimer, Signal, Slot
 
 from mlaqc.errors import DeviceError, InputError, MlaqcError
 
@@ -70,8 +70,16 @@ def one_sentence(exc: BaseException) -> str:
     return text if text.endswith((".", "!", "?")) else text + "."
 
 
+class _Quitter(QObject):
+    """Lives in a worker thread; ends that thread's event loop when its queued turn comes."""
+
+    @Slot()
+    def quit(self) -> None:
+        QThread.currentThread().quit()
+
+
 class WorkerThread:
-    """A QThread owning one worker QObject; `stop()` quits its event loop and joins it."""
+    """A QThread owning one worker QObject; `stop()` drains its queued requests, then joins it."""
 
     def __init__(self, worker: QObject, name: str) -> None:
         self.worker = worker
@@ -79,11 +87,17 @@ class WorkerThread:
         self.thread.setObjectName(name)
         self.name = name
         worker.moveToThread(self.thread)
+        self._quitter = _Quitter()
+        self._quitter.moveToThread(self.thread)
         self.thread.start()
 
     def stop(self, timeout_s: float) -> bool:
-        """Quit the thread's event loop (after the events already queued) and wait; False on timeout."""
-        self.thread.quit()
+        """Quit the thread's event loop after the requests already queued to it, and wait; False on timeout.
+
+        `QThread.quit()` from here would end the loop before a request posted just now (a report asked for
+        right before closing) is delivered; a quit queued behind it runs after it, in order.
+        """
+        QMetaObject.invokeMethod(self._quitter, "quit", Qt.ConnectionType.QueuedConnection)
         ok = self.thread.wait(int(timeout_s * 1000))
         if not ok:
             log.error("thread %s did not finish within %.1f s", self.name, timeout_s)

@@ -116,6 +116,31 @@ def wait_homed_at(qtbot, w: MainWindow, x: float, y: float) -> None:
 # ---------------------------------------------------------------------------------------------- tests
 
 
+def test_worker_thread_stop_runs_requests_queued_before_it(qtbot):
+    """A request posted just before stop() (a report asked for while closing) runs; it is not dropped."""
+    from PySide6.QtCore import QObject, Signal, Slot
+
+    done: list[int] = []
+
+    class Slow(QObject):
+        @Slot(int)
+        def job(self, k: int) -> None:
+            time.sleep(0.05)
+            done.append(k)
+
+    class Asker(QObject):
+        ask = Signal(int)
+
+    t = workers.WorkerThread(Slow(), "drain-test")
+    asker = Asker()
+    asker.ask.connect(t.worker.job, Qt.ConnectionType.QueuedConnection)
+    for k in range(4):  # the first blocks the thread while the others wait in its queue
+        asker.ask.emit(k)
+    assert t.stop(10.0)
+    assert done == [0, 1, 2, 3]
+    assert t.stop(1.0)  # a second stop of a finished thread returns at once
+
+
 def test_cli_help_is_fast_and_needs_no_qt():
     code = ("import sys; from mlaqc.cli import build_parser; p = build_parser(); "
             "assert 'gui' in p.format_help(); print('PySide6' in sys.modules, 'pyqtgraph' in sys.modules)")
