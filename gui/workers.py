@@ -914,7 +914,7 @@ class FrameWorker(QObject):
         try:
             from mlaqc.inspection.pinhole_frames import load_pinhole_frames
 
-            img = load_pinhole_frames([path], cfg)[0][0]
+            img = load_pinhole_frames([path], cfg)[0][0].image()
             levels = spot_levels(img)
         except Exception as exc:  # noqa: BLE001
             self.frameFailed.emit(job, one_sentence(exc))

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import os
 from pathlib import Path
 
 import cv2
@@ -158,6 +159,38 @@ def test_tiff_8bit_round_trip(tmp_path: Path) -> None:
         assert tif.pages[0].bitspersample == 8
     frame = load_raw(tmp_path / "a.tif")
     assert np.array_equal(frame.data, data) and (frame.bits, frame.white_level, frame.cfa) == (8, 255, None)
+
+
+@pytest.mark.parametrize("layout", ["plain", "big-endian", "compressed", "strips", "8-bit"])
+def test_mapped_tiff_reads_the_same_pixels_and_outlives_a_replaced_file(tmp_path: Path, layout: str) -> None:
+    """load_raw(mapped=True) gives the plain load's pixels and levels for every TIFF layout (mapped where
+    the pixels are one native block, read otherwise), and a frame written in place of the file
+    (os.replace, as mlaqc writes) leaves the loaded frame as it was."""
+    path = tmp_path / "f.tif"
+    if layout == "plain":
+        data = _random(12, seed=21)
+        write_raw(path, data, bits=12, black_level=64)
+    else:
+        data = _random(8, seed=21, dtype=np.uint8) if layout == "8-bit" else _random(16, seed=21)
+        kw = {"big-endian": dict(byteorder=">"), "compressed": dict(compression="zlib"),
+              "strips": dict(rowsperstrip=7), "8-bit": {}}[layout]
+        tifffile.imwrite(path, data, metadata=None, **kw)
+    plain, mapped = load_raw(path), load_raw(path, mapped=True)
+    assert np.array_equal(mapped.data, plain.data) and np.array_equal(mapped.data, data)
+    assert mapped.data.dtype == plain.data.dtype and mapped.data.dtype.isnative
+    assert (mapped.bits, mapped.black_level, mapped.white_level) == (plain.bits, plain.black_level, plain.white_level)
+    assert isinstance(mapped.data.base, np.memmap) == (layout in ("plain", "strips"))
+    write_raw(tmp_path / "g.tif", np.zeros((H, W), np.uint16), bits=12)
+    os.replace(tmp_path / "g.tif", path)
+    assert np.array_equal(mapped.data, data)
+
+
+def test_mapped_tiff_checks_truncation_first(tmp_path: Path) -> None:
+    path = tmp_path / "t.tif"
+    write_raw(path, _random(seed=10))
+    path.write_bytes(path.read_bytes()[:-1000])
+    with pytest.raises(InputError, match="truncated"):
+        load_raw(path, mapped=True)
 
 
 def test_foreign_tiff_without_record(tmp_path: Path) -> None:

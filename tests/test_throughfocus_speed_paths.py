@@ -1,6 +1,6 @@
 """The through-focus analysis' fast paths (mlaqc.inspection.throughfocus) against their plain definitions:
-the separable (batched matrix product) moments against the per-pixel sums, the lattice's nearest pinhole
-against the argmin over every pinhole, the one-partition median against np.median, the per-frame
+the compiled moments and first guess against the per-pixel sums, the lattice's nearest pinhole
+against the argmin over every pinhole, the compiled window cut against the normalized frame, the per-frame
 constants eliminated before the field polynomial against one least squares with a column per frame, the
 pairs on threads against a plain loop, the likelihood reading against the Gaussian's closed form, and
 the model's disk cache (read back as traced; a damaged file traced again). No wall-clock assertions.
@@ -25,6 +25,11 @@ FIXTURES = Path(__file__).resolve().parent.parent / "fixtures"
 SMALL = load_config(FIXTURES / "small_camera.toml")
 
 
+def _share(centre, w, coords):
+    """(L, n): the share of each pixel [k - 1/2, k + 1/2] inside [centre - w, centre + w]."""
+    return np.clip(w[:, None] + 0.5 - np.abs(coords[None, :] - centre[:, None]), 0.0, 1.0)
+
+
 def _plain_moments(sp: tf.Spots, cx, cy, w, e_per_unit: float, refine: int = 2):
     """The moments written out pixel by pixel (the weights' full (L, n, n) product)."""
     n = sp.cells.shape[1]
@@ -33,7 +38,7 @@ def _plain_moments(sp: tf.Spots, cx, cy, w, e_per_unit: float, refine: int = 2):
     limit = half - tf.RING_PX - 0.5
     w = np.clip(w, 0.5, limit)
     for it in range(refine + 1):
-        wx, wy = tf._window_weights(cx, w, k), tf._window_weights(cy, w, k)
+        wx, wy = _share(cx, w, k), _share(cy, w, k)
         wgt = wy[:, :, None] * wx[:, None, :]
         flux = np.sum(sp.cells * wgt, axis=(1, 2))
         mx = np.sum(sp.cells * wgt * k[None, None, :], axis=(1, 2)) / flux
@@ -64,15 +69,45 @@ def _random_spots(n_lens: int = 300, seed: int = 1) -> tf.Spots:
                     np.zeros(n_lens, bool))
 
 
-def test_separable_moments_equal_the_pixel_sums():
+def _plain_first_guess(sp: tf.Spots):
+    """The brightest 3 x 3 box sum centred inside the ring, by ndimage (first of equals, row-major)."""
+    from scipy import ndimage
+
+    n, r = sp.cells.shape[1], tf.RING_PX
+    box = ndimage.uniform_filter(sp.cells, size=(1, 3, 3), mode="constant") * 9
+    inner = box[:, r:n - r, r:n - r].reshape(len(box), -1)
+    iy, ix = np.divmod(inner.argmax(axis=1), n - 2 * r)
+    return ix + r - n // 2, iy + r - n // 2
+
+
+@pytest.mark.parametrize("refine", [0, 1, 2])
+def test_compiled_moments_equal_the_pixel_sums(refine):
     sp = _random_spots()
     cx, cy, w = tf._spot_window(sp, 2e4)
-    fast = tf.moments(sp, cx, cy, w, 2e4)
-    plain = _plain_moments(sp, cx, cy, w, 2e4)
+    fast = tf.moments(sp, cx, cy, w, 2e4, refine=refine)
+    plain = _plain_moments(sp, cx, cy, w, 2e4, refine=refine)
     for a, b in zip(fast, plain):
         assert np.allclose(a, b, rtol=1e-10, atol=1e-13)
-    m = tf.moments(sp, cx, cy, w, 2e4, variance=False)
+    m = tf.moments(sp, cx, cy, w, 2e4, refine=refine, variance=False)
     assert m[3] is None and np.array_equal(m[2], fast[2])
+
+
+def test_a_window_without_light_reads_nan_and_keeps_its_place():
+    """A dark window: flux 0, no centroid (NaN), the window not moved; its neighbours unaffected."""
+    sp = _random_spots(4)
+    cells = sp.cells.copy()
+    cells[1] = 0.0
+    sp = replace(sp, cells=cells)
+    mx, my, m2, var, flux, w = tf.moments(sp, np.zeros(4), np.zeros(4), np.full(4, 3.0), 2e4)
+    assert flux[1] == 0.0 and np.isnan(mx[1]) and np.isnan(m2[1]) and w[1] == 3.0
+    assert np.isfinite(m2[[0, 2, 3]]).all()
+
+
+def test_first_guess_is_the_brightest_box_inside_the_ring():
+    sp = _random_spots(200, seed=4)
+    gx, gy = tf._first_guess(sp)
+    px, py = _plain_first_guess(sp)
+    assert np.array_equal(gx, px) and np.array_equal(gy, py)
 
 
 @pytest.mark.parametrize("cfg", [default_config(), SMALL], ids=["table1", "small"])
@@ -91,11 +126,32 @@ def test_the_lattices_nearest_pinhole_is_the_argmin_over_all(cfg, u, f, s, off):
     assert np.array_equal(lit, np.min(d2, axis=-1) <= r_in * r_in)
 
 
-@pytest.mark.parametrize("m", [1, 2, 151, 152, 1001])
-@pytest.mark.parametrize("dtype", [np.float32, np.float64])
-def test_one_partition_median_is_numpys(m, dtype):
-    a = np.random.default_rng(m).normal(size=(9, m)).astype(dtype)
-    assert np.array_equal(tf._median_rows(a), np.median(a, axis=1))
+@pytest.mark.parametrize("stored", ["uint16", "float32", "float64"])
+def test_spot_windows_are_the_normalized_frame_less_the_ring_median(stored):
+    """The compiled cut equals its definition: the frame normalized as rawio.normalized does (float32),
+    each window less the NumPy median of its outer ring, saturation where a pixel reaches SATURATED."""
+    from mlaqc.inspection.rawio import RawFrame, normalized
+
+    rng = np.random.default_rng(3)
+    counts = rng.integers(60, 4095, (120, 150)).astype(np.uint16)
+    counts[40, 50] = 4095  # a saturated pixel in one window
+    raw = RawFrame(counts, 12, None, 64, 4095)
+    norm = normalized(raw)
+    frame = tf.prepare_spots(raw) if stored == "uint16" else tf.SpotFrame(norm.astype(stored))
+    x, y = rng.uniform(12, 137, 40), rng.uniform(12, 107, 40)
+    x[0], y[0] = 50.3, 39.6
+    sp = tf.spots(frame, x, y, 10)
+    ix, iy = np.rint(x).astype(int), np.rint(y).astype(int)
+    ring = np.ones((21, 21), bool)
+    ring[tf.RING_PX:21 - tf.RING_PX, tf.RING_PX:21 - tf.RING_PX] = False
+    for m in range(len(x)):
+        win = norm[iy[m] - 10:iy[m] + 11, ix[m] - 10:ix[m] + 11]
+        bg = np.median(win[ring])
+        assert sp.background[m] == bg
+        assert np.array_equal(sp.cells[m], (win - bg).astype(np.float64))
+        assert sp.saturated[m] == (win >= tf.SATURATED).any()
+    assert sp.saturated[0] and sp.saturated.sum() >= 1
+    assert np.array_equal(frame.image(), norm)
 
 
 def test_frame_constants_eliminated_first_give_the_joint_least_squares():

@@ -256,8 +256,14 @@ def _sidecar_path(path: Path) -> Path:
 # --------------------------------------------------------------------------------------------- loading
 
 
-def load_raw(path: str | os.PathLike[str], *, expected_shape: tuple[int, int] | None = None) -> RawFrame:
-    """Load a raw frame from DNG/vendor raw, TIFF, PNG or NPY; any problem is an InputError naming the file."""
+def load_raw(path: str | os.PathLike[str], *, expected_shape: tuple[int, int] | None = None,
+             mapped: bool = False) -> RawFrame:
+    """Load a raw frame from DNG/vendor raw, TIFF, PNG or NPY; any problem is an InputError naming the file.
+
+    `mapped`: an uncompressed TIFF's pixels are mapped from the file, not read: only the pages the caller
+    touches are read (a pinhole frame's analysis reads a quarter of its rows). For callers that are done
+    with the frame before the file could change: a frame written in place of it (os.replace, as every
+    mlaqc writer does) leaves the mapping intact, a file cut short under it would not."""
     path = Path(path)
     name = str(path)
     _check_file(path)
@@ -267,7 +273,8 @@ def load_raw(path: str | os.PathLike[str], *, expected_shape: tuple[int, int] | 
         kinds = "DNG, a camera raw, TIFF, PNG or NPY"
         raise InputError(f"Raw file {name} has unsupported type {suffix or '(no suffix)'}; use {kinds}.")
     try:
-        frame = loader(path, _read_sidecar(path))
+        sidecar = _read_sidecar(path)
+        frame = _load_tiff(path, sidecar, mapped=True) if mapped and loader is _load_tiff else loader(path, sidecar)
     except InputError:
         raise
     except MemoryError:
@@ -532,8 +539,8 @@ def _rawpy_cfa(raw: Any, path: Path) -> str | None:
     return letters
 
 
-def _load_tiff(path: Path, sidecar: dict | None) -> RawFrame:
-    """TIFF through tifffile: first page, 8- or 16-bit single channel."""
+def _load_tiff(path: Path, sidecar: dict | None, mapped: bool = False) -> RawFrame:
+    """TIFF through tifffile: first page, 8- or 16-bit single channel; `mapped` as `load_raw` says."""
     import tifffile
 
     tags = _tiff_info(path)
@@ -548,7 +555,9 @@ def _load_tiff(path: Path, sidecar: dict | None) -> RawFrame:
                 f"Raw file {path} has shape {page.shape} ({page.samplesperpixel} samples per pixel); "
                 "a raw frame must be a single-channel 2-D image."
             )
-        data = page.asarray()
+        data = _mapped_page(tif, page, path) if mapped else None
+        if data is None:
+            data = page.asarray()
     data = _integer_data(data, path)
     bits = 8 if data.dtype == np.uint8 else 16
     data = data.astype(np.uint16, copy=False)  # the page's array is ours: no 8 MB copy when already 16-bit
@@ -559,6 +568,17 @@ def _load_tiff(path: Path, sidecar: dict | None) -> RawFrame:
     tagged = "BlackLevel" in tags or "WhiteLevel" in tags
     return RawFrame(data, bits, _tiff_cfa(tags), black, white, metadata, str(path),
                     "file" if tagged else "container")
+
+
+def _mapped_page(tif: Any, page: Any, path: Path) -> np.ndarray | None:
+    """The page's pixels mapped read-only from the file (the extent was checked by `_tiff_info`), or None
+    where they are not stored as one plain native-order block (compressed, in strips apart, big-endian)."""
+    if page.dtype is None or not page.is_memmappable or not page.is_contiguous:
+        return None
+    dtype = np.dtype(tif.byteorder + page.dtype.char)
+    if not dtype.isnative or dtype not in (np.uint8, np.uint16):
+        return None
+    return np.asarray(np.memmap(path, dtype=dtype, mode="r", offset=int(page.dataoffsets[0]), shape=page.shape))
 
 
 def _int_tag(tags: dict, name: str, default: int, reduce: Any) -> int:

@@ -118,11 +118,43 @@ MIN_SHELL_LENSES = 5  # a shell's reference needs this many lenses (else the |u|
 PHASE_MIN_LENSES = 12  # the phase-pattern fit needs this many lenses per fitted term
 
 
-def prepare_spots(frame: RawFrame) -> np.ndarray:
-    """A through-focus frame for `measure_through_focus`: black-subtracted, normalized float32 (CFA sites
+@dataclass(frozen=True)
+class SpotFrame:
+    """A through-focus frame as `measure_through_focus` reads it: the counts as stored and the scale that
+    normalizes them, (data - black) / span. A pinhole frame lights a few per cent of the sensor, so only
+    the windows the analysis cuts are normalized (the same float32 operations as `rawio.normalized`, so
+    the same values), never the whole frame: 32 frames of the shipped protocol are then read at 8 MB
+    each as stored instead of 16 MB of float32 written and read again."""
+
+    data: np.ndarray  # (H, W): integer counts, or an already normalized float32 frame (black 0, span 1)
+    black: float = 0.0
+    span: float = 1.0
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        return self.data.shape  # type: ignore[return-value]
+
+    @property
+    def normalized_floats(self) -> bool:
+        """True for float data, whose pixels may be anything (NaN, not normalized): check them whole."""
+        return self.data.dtype.kind == "f"
+
+    def image(self) -> np.ndarray:
+        """The whole frame normalized (float32), as the analysis' windows see it: for display."""
+        out = self.data.astype(np.float32)  # a copy, then in place
+        out -= np.float32(self.black)
+        out /= np.float32(self.span)
+        return out
+
+
+def prepare_spots(frame: RawFrame) -> SpotFrame:
+    """A through-focus frame for `measure_through_focus`: black-subtracted and normalized (CFA sites
     balanced), without the hot-pixel pass of `pipeline.prepare` (which takes a focused spot's peak pixel
-    for a hot pixel and cuts it)."""
-    return normalized(frame).astype(np.float32, copy=False)
+    for a hot pixel and cuts it). A monochrome integer frame stays as stored (`SpotFrame`); a CFA frame's
+    site gains need the whole frame, so it is normalized whole."""
+    if frame.cfa is None and frame.data.dtype.kind in "iu":
+        return SpotFrame(frame.data, float(frame.black_level), float(frame.white_level - frame.black_level))
+    return SpotFrame(normalized(frame).astype(np.float32, copy=False))
 
 
 # ---------------------------------------------------------------------------------------------- results
@@ -828,13 +860,21 @@ def _check_inputs(frames, grid: Grid, cfg: CameraConfig):
         raise InputError("a through-focus reading needs at least one +u / -u pair of frames")
     shape = tuple(grid.image_shape)
 
+    def as_spot_frame(img) -> SpotFrame:
+        return img if isinstance(img, SpotFrame) else SpotFrame(np.asarray(img))
+
     def extremes(item) -> tuple[float, float] | None:  # (max, min): NaN propagates through both, +-inf shows
-        img = np.asarray(item[1][0]) if isinstance(item[1], tuple) and len(item[1]) == 2 else None
+        img = as_spot_frame(item[1][0]).data if isinstance(item[1], tuple) and len(item[1]) == 2 else None
         if img is None or img.shape != shape or img.dtype.kind not in "fiu":
             return None
         return float(img.max()), float(img.min())
 
-    span = list(_pool().map(extremes, enumerate(frames)))  # the frames' one full pass, a thread per core
+    # a prepared integer frame is normalized by construction and holds no NaN: only other frames are
+    # checked whole (their one full pass, a thread per core)
+    whole = [k for k, item in enumerate(frames)
+             if not (isinstance(item, tuple) and len(item) == 2 and isinstance(item[0], SpotFrame)
+                     and not item[0].normalized_floats)]
+    span = dict(zip(whole, _pool().map(extremes, [(k, frames[k]) for k in whole])))
     checked = []
     for k, item in enumerate(frames):
         try:
@@ -843,19 +883,21 @@ def _check_inputs(frames, grid: Grid, cfg: CameraConfig):
             raise InputError(f"through-focus frame {k + 1} must be an (image, ThroughFocus) pair") from None
         if not isinstance(rec, ThroughFocus):
             raise InputError(f"through-focus frame {k + 1} has no ThroughFocus record")
-        img = np.asarray(img)
-        if img.ndim != 2 or img.dtype.kind not in "fiu":
+        img = as_spot_frame(img)
+        if img.data.ndim != 2 or img.data.dtype.kind not in "fiu":
             raise InputError(f"through-focus frame {k + 1} must be a 2-D numeric image")
         if img.shape != shape:
             raise InputError(f"through-focus frame {k + 1} is {img.shape[1]}x{img.shape[0]} px but the white "
                              f"frame's grid is {shape[1]}x{shape[0]} px")
-        top, bottom = span[k] if span[k] is not None else (float(img.max()), float(img.min()))
-        if not (math.isfinite(top) and math.isfinite(bottom)):
-            raise InputError(f"through-focus frame {k + 1} holds NaN or infinite pixels")
-        if top > 2.0:
-            raise InputError(f"through-focus frame {k + 1} reaches {top:g}, not a normalized frame "
-                             "(white level 1): prepare it with prepare_spots")
-        checked.append((np.asarray(img, dtype=np.float32), rec))
+        if k in span:
+            top, bottom = span[k] if span[k] is not None else (float(img.data.max()), float(img.data.min()))
+            if not (math.isfinite(top) and math.isfinite(bottom)):
+                raise InputError(f"through-focus frame {k + 1} holds NaN or infinite pixels")
+            top = (top - img.black) / img.span
+            if top > 2.0:
+                raise InputError(f"through-focus frame {k + 1} reaches {top:g}, not a normalized frame "
+                                 "(white level 1): prepare it with prepare_spots")
+        checked.append((img, rec))
     first = checked[0][1]
     for k, (_, rec) in enumerate(checked):
         if rec.f_number != first.f_number or rec.spacing_lenses != first.spacing_lenses:
@@ -937,97 +979,55 @@ class Spots:
     saturated: np.ndarray  # (L,) bool
 
 
-def _median_rows(a: np.ndarray) -> np.ndarray:
-    """np.median(a, axis=1) of a float array, by one partition (the same values, without the median's
-    extra passes)."""
-    m = a.shape[1]
-    if m == 0:
-        return np.full(len(a), np.nan, a.dtype)
-    k = (m - 1) // 2
-    part = np.partition(a, [k, m // 2], axis=1)
-    return part[:, k] if m % 2 else (part[:, k] + part[:, m // 2]) / 2
+def spots(img: SpotFrame | np.ndarray, x_px: np.ndarray, y_px: np.ndarray, half: int) -> Spots:
+    """Cut every lens' window (centred on the pixel nearest (x, y), inside the frame), normalized,
+    subtract its background (the median of its outer ring) and note saturation. Compiled:
+    mlaqc.inspection.throughfocus_kernels.spot_windows_kernel."""
+    from mlaqc.inspection import throughfocus_kernels as kern
 
-
-def spots(img: np.ndarray, x_px: np.ndarray, y_px: np.ndarray, half: int) -> Spots:
-    """Cut every lens' window (centred on the pixel nearest (x, y), inside the frame), subtract its
-    background (the median of its outer ring) and note saturation."""
+    frame = img if isinstance(img, SpotFrame) else SpotFrame(np.asarray(img))
     ix = np.rint(x_px).astype(np.int64)
     iy = np.rint(y_px).astype(np.int64)
-    n = 2 * half + 1
-    cells = np.lib.stride_tricks.sliding_window_view(img, (n, n))[iy - half, ix - half]  # (L, n, n), a copy
+    n, L = 2 * half + 1, len(ix)
+    cells, bg, sat = np.empty((L, n, n)), np.empty(L, np.float32), np.empty(L, bool)
+    kern.spot_windows_kernel(frame.data, iy - half, ix - half, frame.black, frame.span, RING_PX, SATURATED,
+                             cells, bg, sat)
+    # the frame's unlit-pixel noise: the rings of about NOISE_WINDOWS windows spread over the frame
     ring = np.ones((n, n), bool)
     ring[RING_PX:n - RING_PX, RING_PX:n - RING_PX] = False
-    outer = cells[:, ring]
-    bg = _median_rows(outer)
-    # the frame's unlit-pixel noise: the rings of about NOISE_WINDOWS windows spread over the frame
-    step = max(1, len(outer) // NOISE_WINDOWS)
-    resid = outer[::step] - bg[::step, None]
-    bg_sigma = 1.4826 * float(_median_rows(np.abs(resid).reshape(1, -1))[0]) if resid.size else 0.0
-    sat = (cells >= SATURATED).any(axis=(1, 2))
-    return Spots((cells - bg[:, None, None]).astype(np.float64), ix, iy, bg, bg_sigma, sat)
-
-
-def _window_weights(centre: np.ndarray, w: np.ndarray, coords: np.ndarray) -> np.ndarray:
-    """(L, n): the share of each pixel [k - 1/2, k + 1/2] inside [centre - w, centre + w]."""
-    return np.clip(w[:, None] + 0.5 - np.abs(coords[None, :] - centre[:, None]), 0.0, 1.0)
+    resid = cells[::max(1, L // NOISE_WINDOWS)][:, ring]
+    bg_sigma = 1.4826 * float(np.median(np.abs(resid))) if resid.size else 0.0
+    return Spots(cells, ix, iy, bg, bg_sigma, sat)
 
 
 def moments(sp: Spots, cx: np.ndarray, cy: np.ndarray, w: np.ndarray, e_per_unit: float, refine: int = 2,
             variance: bool = True):
     """Centroid (window coordinates), second moment x + y (px^2), its variance and the flux of every
-    spot in a window of half-width `w` around (cx, cy); the window follows the centroid `refine` times.
-    Returns (mx, my, m2, m2_var, flux, w); m2_var is None unless `variance`.
+    spot in a window of half-width `w` around (cx, cy); the window follows the centroid `refine` times
+    and shrinks so that it stays inside the ring. Pixels at the window's edge weigh by the share of
+    them inside it (a row weight times a column weight). The variance is the delta method's
+    (d m2 / d v_ij = w_ij (r2_ij - m2) / flux) over the pixels' shot and read noise, plus the ring
+    median's. Returns (mx, my, m2, m2_var, flux, w); m2_var is None unless `variance`.
+    Compiled: mlaqc.inspection.throughfocus_kernels."""
+    from mlaqc.inspection import throughfocus_kernels as kern
 
-    The window's weights are separable (a row weight times a column weight), so every sum is a row
-    vector times the cell times a column vector: one batched matrix product per pass."""
-    c = sp.cells
-    n = c.shape[1]
-    half = n // 2
-    k = np.arange(n, dtype=np.float64) - half
-    limit = half - RING_PX - 0.5
-    w = np.clip(w, 0.5, limit)
-    for it in range(refine + 1):
-        wx = _window_weights(cx, w, k)
-        wy = _window_weights(cy, w, k)
-        rows = np.matmul(c, np.stack([wx, wx * k], axis=2))  # (L, n, 2): each row's sums over x
-        flux = np.einsum("li,li->l", wy, rows[:, :, 0])
-        with np.errstate(invalid="ignore", divide="ignore"):
-            mx = np.einsum("li,li->l", wy, rows[:, :, 1]) / flux
-            my = np.einsum("li,li,i->l", wy, rows[:, :, 0], k) / flux
-        if it < refine:
-            cx = np.clip(np.where(np.isfinite(mx), mx, cx), -half + 1, half - 1)
-            cy = np.clip(np.where(np.isfinite(my), my, cy), -half + 1, half - 1)
-            w = np.clip(np.minimum(w, limit - np.maximum(np.abs(cx), np.abs(cy)) + RING_PX), 0.5, limit)
-    dx2 = (k[None, :] - mx[:, None]) ** 2  # (L, n)
-    dy2 = (k[None, :] - my[:, None]) ** 2
-    with np.errstate(invalid="ignore", divide="ignore"):
-        ax = np.matmul(c, (wx * dx2)[:, :, None])[:, :, 0]  # (L, n)
-        m2 = (np.einsum("li,li->l", wy, ax) + np.einsum("li,li,li->l", wy, dy2, rows[:, :, 0])) / flux
-        if not variance:
-            return mx, my, m2, None, flux, w
-        # delta method: d m2 / d v_ij = w_ij (r2_ij - m2) / flux (the centroid's own derivative is zero);
-        # with a_j = dx_j^2 and b_i = dy_i^2 - m2: sum_ij v_ij wy_i^2 wx_j^2 (a_j + b_i)^2
-        var_pix = np.maximum(c + sp.background[:, None, None], 0.0) / e_per_unit + sp.bg_sigma ** 2
-        wx2 = wx * wx
-        b = dy2 - m2[:, None]
-        t = np.matmul(var_pix, np.stack([wx2 * dx2 * dx2, wx2 * dx2, wx2], axis=2))  # (L, n, 3)
-        wy2 = wy * wy
-        m2_var = (np.einsum("li,li->l", wy2, t[:, :, 0]) + 2.0 * np.einsum("li,li,li->l", wy2, b, t[:, :, 1])
-                  + np.einsum("li,li,li->l", wy2, b * b, t[:, :, 2])) / flux ** 2
-        ring = n * n - (n - 2 * RING_PX) ** 2
-        lever_sum = wy.sum(axis=1) * np.einsum("lj,lj->l", wx, dx2) + np.einsum("li,li->l", wy, b) * wx.sum(axis=1)
-        m2_var += (np.pi / 2) * sp.bg_sigma ** 2 / ring * (lever_sum / flux) ** 2  # the ring median
-    return mx, my, m2, m2_var, flux, w
+    L = len(sp.cells)
+    out = np.empty((L, 6))
+    kern.moments_kernel(np.ascontiguousarray(sp.cells, dtype=np.float64), np.asarray(sp.background, np.float64),
+                        np.broadcast_to(np.asarray(cx, np.float64), (L,)), np.broadcast_to(np.asarray(cy, np.float64), (L,)),
+                        np.broadcast_to(np.asarray(w, np.float64), (L,)), int(refine), float(e_per_unit),
+                        float(sp.bg_sigma), RING_PX, bool(variance), out)
+    m2_var = out[:, kern.M2_VAR] if variance else None
+    return out[:, kern.MX], out[:, kern.MY], out[:, kern.M2], m2_var, out[:, kern.FLUX], out[:, kern.WIDTH]
 
 
 def _first_guess(sp: Spots) -> tuple[np.ndarray, np.ndarray]:
     """The brightest 3 x 3 sum inside the ring of every window (window coordinates)."""
-    n = sp.cells.shape[1]
-    c = sp.cells[:, RING_PX - 1:n + 1 - RING_PX, RING_PX - 1:n + 1 - RING_PX]  # the centres inside the ring, +1
-    rows = c[:, :-2] + c[:, 1:-1] + c[:, 2:]
-    inner = rows[:, :, :-2] + rows[:, :, 1:-1] + rows[:, :, 2:]
-    iy, ix = np.divmod(inner.reshape(len(c), -1).argmax(axis=1), inner.shape[2])
-    return (ix + RING_PX - n // 2).astype(np.float64), (iy + RING_PX - n // 2).astype(np.float64)
+    from mlaqc.inspection import throughfocus_kernels as kern
+
+    out = np.empty((len(sp.cells), 2))
+    kern.first_guess_kernel(np.ascontiguousarray(sp.cells, dtype=np.float64), RING_PX, out)
+    return out[:, 0], out[:, 1]
 
 
 def _spot_window(sp: Spots, e_per_unit: float):
@@ -1354,8 +1354,8 @@ def _field_removed(v: np.ndarray, xy: np.ndarray, frame: np.ndarray) -> np.ndarr
         fk = f[keep]
         n = np.maximum(np.bincount(fk, minlength=nf), 1).astype(np.float64)
         ak = a[keep]
-        one_hot = (fk[None, :] == np.arange(nf)[:, None]).astype(np.float64)
-        sums = one_hot @ np.concatenate([ak, vz[keep][:, None]], axis=1)  # each frame's sums of terms and values
+        # each frame's sums of terms and values
+        sums = np.stack([np.bincount(fk, weights=c, minlength=nf) for c in (*ak.T, vz[keep])], axis=1)
         am, vm = sums[:, :-1] / n[:, None], sums[:, -1] / n
         beta = _least_squares(ak - am[fk], vz[keep] - vm[fk])
         out = v - (vm - am @ beta)[f] - a @ beta
