@@ -210,11 +210,7 @@ def test_pairs_on_threads_equal_a_plain_loop(monkeypatch):
             frames.append((img.astype(np.float32), rec))
     threaded = tf.pair_spots(frames, grid, SMALL)
 
-    class Loop:
-        def map(self, fn, items):
-            return map(fn, list(items))
-
-    monkeypatch.setattr(tf, "_pool", lambda: Loop())
+    monkeypatch.setattr(tf, "thread_map", lambda fn, items: [fn(item) for item in items])
     plain = tf.pair_spots(frames, grid, SMALL)
     assert len(threaded) == len(plain) == 2
     for a, b in zip(threaded, plain):

@@ -49,7 +49,6 @@ from __future__ import annotations
 import json
 import math
 import os
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -61,6 +60,7 @@ from scipy import ndimage
 from mlaqc.atomic import write_json_atomic
 from mlaqc.errors import InputError
 from mlaqc.inspection import calibrate_kernels as kernels
+from mlaqc.parallel import thread_map
 
 FORMAT = "mlaqc-grid"
 VERSION = 1
@@ -636,21 +636,19 @@ class _DiscFit:
         self.coupled = np.zeros(self.n, bool)  # lenses next to (or being) a lens far off the lattice
         self.wide = None  # lenses fitted with a wide edge (capture of far-off lenses)
         self.wide_edge = 1.0
-        workers = min(_workers(), -(-self.n // 16))
-        self.pool = ThreadPoolExecutor(workers) if workers > 1 else None
-        self.workers = workers
+        self.workers = min(_workers(), -(-self.n // 16))
 
     def _map(self, fn, lenses: np.ndarray) -> None:
-        """fn(block) over blocks of `lenses` (an index array), on the thread pool: a multiple of the worker
-        count of equal blocks (small sets are split too), so the workers finish together."""
+        """fn(block) over blocks of `lenses` (an index array), on the process' pool: a multiple of the
+        worker count of equal blocks (small sets are split too), so the workers finish together."""
         n_blocks = self.workers * -(-lenses.size // (self.workers * BLOCK_LENSES))
         size = max(16, -(-lenses.size // max(n_blocks, 1)))
         blocks = [slice(b, min(b + size, lenses.size)) for b in range(0, lenses.size, size)]
-        if self.pool is None or len(blocks) == 1:
+        if self.workers > 1:
+            thread_map(fn, blocks)
+        else:
             for b in blocks:
                 fn(b)
-        else:
-            list(self.pool.map(fn, blocks))
 
     def set_band(self, band: float) -> None:
         """Fit each lens on |r - R| <= band (+ a 0.5 px taper); note how much of each rim is in the frame."""
@@ -773,10 +771,6 @@ class _DiscFit:
         self.prev_step[idx] = step
         self.last_step[idx] = np.hypot(step[:, 1], step[:, 2])
 
-    def close(self) -> None:
-        if self.pool is not None:
-            self.pool.shutdown()
-
 
 # ------------------------------------------------------------------------------------------ calibrate
 
@@ -858,74 +852,68 @@ def _measure(img: np.ndarray, px: np.ndarray, py: np.ndarray, lat_j: np.ndarray,
     lattice_x, lattice_y = px, py
     sub = _DiscFit(img, px[block], py[block], radius0, _lattice_neighbours(lat_j[block], lat_i[block], ring),
                    colour[block])
-    try:
-        sub.init_amplitude(radius0)
-        sub.set_band(band)
-        ref = float(np.percentile(sub.amp, 90)) if sub.amp.size else 0.0
-        act = inner[block] & (sub.amp > 0.2 * ref) & (sub.valid_fraction >= MIN_VALID_FRACTION)
-        if np.count_nonzero(act) >= MIN_LENSES:
-            sub.sweep(max(0.8, 0.05 * pitch), act, weighted=False)
-            sub.edge = max(0.4, 0.025 * pitch)
-            for it in range(BLOCK_SWEEPS):
-                sub.sweep(None, act, weighted=it >= 1)
-            radius0 = float(np.median(sub.radius[act]))
-            edge0 = sub.edge
-            # a better lattice from the block's centres (the Fourier pitch is good to ~1e-4): every lens
-            # then starts within a few hundredths of a pixel; the block's lenses start where they were found
-            design = np.stack([np.ones(act.sum()), lat_j[block][act], lat_i[block][act]], 1)
-            coef = np.linalg.lstsq(design, np.stack([sub.cx[act], sub.cy[act]], 1), rcond=None)[0]
-            if np.count_nonzero(act) >= 25:
-                px = coef[0, 0] + coef[1, 0] * lat_j + coef[2, 0] * lat_i
-                py = coef[0, 1] + coef[1, 1] * lat_j + coef[2, 1] * lat_i
-            lattice_x, lattice_y = px.copy(), py.copy()
-            done = np.flatnonzero(block)[act]
-            px[done], py[done] = sub.cx[act], sub.cy[act]
-        else:
-            edge0 = max(0.4, 0.025 * pitch)
-    finally:
-        sub.close()
+    sub.init_amplitude(radius0)
+    sub.set_band(band)
+    ref = float(np.percentile(sub.amp, 90)) if sub.amp.size else 0.0
+    act = inner[block] & (sub.amp > 0.2 * ref) & (sub.valid_fraction >= MIN_VALID_FRACTION)
+    if np.count_nonzero(act) >= MIN_LENSES:
+        sub.sweep(max(0.8, 0.05 * pitch), act, weighted=False)
+        sub.edge = max(0.4, 0.025 * pitch)
+        for it in range(BLOCK_SWEEPS):
+            sub.sweep(None, act, weighted=it >= 1)
+        radius0 = float(np.median(sub.radius[act]))
+        edge0 = sub.edge
+        # a better lattice from the block's centres (the Fourier pitch is good to ~1e-4): every lens
+        # then starts within a few hundredths of a pixel; the block's lenses start where they were found
+        design = np.stack([np.ones(act.sum()), lat_j[block][act], lat_i[block][act]], 1)
+        coef = np.linalg.lstsq(design, np.stack([sub.cx[act], sub.cy[act]], 1), rcond=None)[0]
+        if np.count_nonzero(act) >= 25:
+            px = coef[0, 0] + coef[1, 0] * lat_j + coef[2, 0] * lat_i
+            py = coef[0, 1] + coef[1, 1] * lat_j + coef[2, 1] * lat_i
+        lattice_x, lattice_y = px.copy(), py.copy()
+        done = np.flatnonzero(block)[act]
+        px[done], py[done] = sub.cx[act], sub.cy[act]
+    else:
+        edge0 = max(0.4, 0.025 * pitch)
     # stage 2: every lens
     neighbours = _lattice_neighbours(lat_j, lat_i, ring)
     fit = _DiscFit(img, px, py, radius0, neighbours, colour)
-    try:
-        fit.edge = edge0
-        fit.init_amplitude(radius0)
-        ref = float(np.percentile(fit.amp, 90)) if fit.amp.size else 0.0
-        fit.set_band(band)
-        active = (fit.amp > 0.2 * ref) & (fit.valid_fraction >= MIN_VALID_FRACTION)
-        if np.count_nonzero(active) < MIN_LENSES:
-            raise InputError(f"only {int(np.count_nonzero(active))} microlens sub-images found in the white image "
-                             f"(at least {MIN_LENSES} are needed)")
-        side = neighbours[:, :8]  # the first ring: who is coupled to whom
-        for it in range(N_SWEEPS):
-            if it == 1:
-                fit.set_slopes(lat_j, lat_i, basis, active)
-                off = active & (np.hypot(fit.cx - lattice_x, fit.cy - lattice_y) > COUPLED_PX)
-                fit.coupled[_with_neighbours(np.flatnonzero(off), side)] = True
-                # a new objective (weights, slopes): its first step is no oscillation to damp
-                fit.prev_step[:] = 0.0
-            fit.sweep(fit.edge, active, weighted=it >= 1)  # the edge width is known from the block
-        # lenses the sharp edge cannot pull in (beyond ~1 px off the lattice: big defects) fit badly; they
-        # are captured with a wide edge of their own, then refined; only they and their neighbours step
-        per_px = fit.rss / np.maximum(fit.npix, 1)
-        typical = float(np.median(per_px[active]))
-        far = active & ((per_px > 3.0 * typical) | (fit.last_step > 0.3))
-        if far.any():
-            fit.wide, fit.wide_edge = far, max(WIDE_EDGE, 4.0 * fit.edge)
-            group = _with_neighbours(np.flatnonzero(far), side)
-            fit.coupled[group] = True
-            for _ in range(3):
-                fit.sweep(fit.edge, active, weighted=True, lenses=group)
-            fit.wide = None
-        for _ in range(MAX_EXTRA):  # until every lens has settled
-            moving = np.flatnonzero(active & (fit.last_step > SETTLED_PX))
-            if not moving.size:
-                break
-            fit.sweep(fit.edge, active, weighted=True, lenses=_with_neighbours(moving, side))
-        fit.valid_fraction = fit.rim_in_frame()
-        discs = _Discs(fit.cx, fit.cy, fit.amp, fit.radius, fit.edge, fit.valid_fraction)
-    finally:
-        fit.close()
+    fit.edge = edge0
+    fit.init_amplitude(radius0)
+    ref = float(np.percentile(fit.amp, 90)) if fit.amp.size else 0.0
+    fit.set_band(band)
+    active = (fit.amp > 0.2 * ref) & (fit.valid_fraction >= MIN_VALID_FRACTION)
+    if np.count_nonzero(active) < MIN_LENSES:
+        raise InputError(f"only {int(np.count_nonzero(active))} microlens sub-images found in the white image "
+                         f"(at least {MIN_LENSES} are needed)")
+    side = neighbours[:, :8]  # the first ring: who is coupled to whom
+    for it in range(N_SWEEPS):
+        if it == 1:
+            fit.set_slopes(lat_j, lat_i, basis, active)
+            off = active & (np.hypot(fit.cx - lattice_x, fit.cy - lattice_y) > COUPLED_PX)
+            fit.coupled[_with_neighbours(np.flatnonzero(off), side)] = True
+            # a new objective (weights, slopes): its first step is no oscillation to damp
+            fit.prev_step[:] = 0.0
+        fit.sweep(fit.edge, active, weighted=it >= 1)  # the edge width is known from the block
+    # lenses the sharp edge cannot pull in (beyond ~1 px off the lattice: big defects) fit badly; they
+    # are captured with a wide edge of their own, then refined; only they and their neighbours step
+    per_px = fit.rss / np.maximum(fit.npix, 1)
+    typical = float(np.median(per_px[active]))
+    far = active & ((per_px > 3.0 * typical) | (fit.last_step > 0.3))
+    if far.any():
+        fit.wide, fit.wide_edge = far, max(WIDE_EDGE, 4.0 * fit.edge)
+        group = _with_neighbours(np.flatnonzero(far), side)
+        fit.coupled[group] = True
+        for _ in range(3):
+            fit.sweep(fit.edge, active, weighted=True, lenses=group)
+        fit.wide = None
+    for _ in range(MAX_EXTRA):  # until every lens has settled
+        moving = np.flatnonzero(active & (fit.last_step > SETTLED_PX))
+        if not moving.size:
+            break
+        fit.sweep(fit.edge, active, weighted=True, lenses=_with_neighbours(moving, side))
+    fit.valid_fraction = fit.rim_in_frame()
+    discs = _Discs(fit.cx, fit.cy, fit.amp, fit.radius, fit.edge, fit.valid_fraction)
     return discs, active
 
 

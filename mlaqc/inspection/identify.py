@@ -33,7 +33,6 @@ from __future__ import annotations
 import functools
 import hashlib
 import os
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from itertools import pairwise
 
@@ -45,6 +44,7 @@ from mlaqc.inspection.results import Defect, LensMetrics
 from mlaqc.models.position_split import PositionSplit, contrast_sigma, neighbour_contrast, split_limits, type_position
 from mlaqc.models.signatures import FEATURES, KIND_BY_NAME, RINGS, SignatureTable, lens_features
 from mlaqc.optics.config import QC
+from mlaqc.parallel import thread_map
 
 UNEXPLAINED = 0.75  # a best fit leaving more than this share of the deviation's chi-square: type 'unknown' (measured: tracer defects leave 0.1-0.7, foreign anomalies 0.8-0.95)
 LIMIT_MARGIN = 2.0  # a lens at the detection limit scores detect_sigma + 2 on average: found 97.7 % of the time
@@ -76,8 +76,8 @@ def local_deviations(planes: list[np.ndarray], axes: list[str], size: int = 5) -
         workers = min(len(stack) // 2, os.cpu_count() or 1)  # the kernel releases the GIL: planes in parallel
         if workers > 1:
             cuts = np.linspace(0, len(stack), workers + 1).astype(int)
-            list(_pool().map(lambda ab: median_baselines(stack[ab[0]:ab[1]], int(size), x_axis[ab[0]:ab[1]],
-                                                         base[ab[0]:ab[1]]), pairwise(cuts)))
+            thread_map(lambda ab: median_baselines(stack[ab[0]:ab[1]], int(size), x_axis[ab[0]:ab[1]],
+                                                   base[ab[0]:ab[1]]), pairwise(cuts))
         else:
             median_baselines(stack, int(size), x_axis, base)
     else:
@@ -146,18 +146,6 @@ def _nan_medians(vals: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     hi = np.minimum(hi, vals.shape[-1] - 1)
     med = 0.5 * (np.take_along_axis(s, lo, -1) + np.take_along_axis(s, hi, -1))[..., 0]
     return med, k > 0
-
-
-_POOLS: dict[int, ThreadPoolExecutor] = {}
-
-
-def _pool() -> ThreadPoolExecutor:
-    """One thread per core, kept for the process (per process id: a forked child starts its own):
-    starting threads per frame cost 4 ms."""
-    pool = _POOLS.get(os.getpid())
-    if pool is None:
-        pool = _POOLS[os.getpid()] = ThreadPoolExecutor(os.cpu_count() or 1, thread_name_prefix="mlaqc-identify")
-    return pool
 
 
 def _scipy_baseline(fill: np.ndarray, size: int, axis: str) -> np.ndarray:

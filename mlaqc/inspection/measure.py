@@ -31,7 +31,7 @@ from numba import njit
 
 from mlaqc.inspection.identify import (RINGS, Identification, _kind_curve, _unit_noise, class_centred, response,
                                        robust_sigma)
-from mlaqc.inspection.metrics_kernels import run_parts
+from mlaqc.parallel import run_parts
 from mlaqc.models.signatures import FEATURES, SignatureTable
 from mlaqc.optics.config import CameraConfig
 from mlaqc.optics.paraxial import thick_lens

@@ -26,7 +26,8 @@ from itertools import pairwise
 
 import numpy as np
 
-from mlaqc.inspection.metrics_kernels import INDEX_NAMES, N_INDEX, gather_tables_at, lens_indexes, run_parts
+from mlaqc.inspection.metrics_kernels import INDEX_NAMES, N_INDEX, gather_tables_at, lens_indexes
+from mlaqc.parallel import run_parts
 from mlaqc.inspection.results import LensMetrics
 from mlaqc.models.reference import ReferenceModel
 

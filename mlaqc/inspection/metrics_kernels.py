@@ -11,8 +11,6 @@ float64, the reference is interpolated in float64; the entropy bins follow the N
 from __future__ import annotations
 
 import math
-import os
-from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 from numba import njit
@@ -37,23 +35,6 @@ _RING0 = INDEX_NAMES.index("ring0")
 ENTROPY_BINS = 32
 # The outermost TAPER_PX of a window fade out of every index computed against the reference (`_taper`).
 TAPER_PX = 1.0
-
-
-_POOLS: dict[int, ThreadPoolExecutor] = {}
-
-
-def run_parts(fn, parts: list, workers: int) -> None:
-    """fn(part) for every part, `workers` at a time on threads (the kernels release the GIL). With one
-    thread per core that is a pool kept for the process (per process id: a forked child starts its
-    own): starting the threads anew for every frame cost a few milliseconds."""
-    if workers != (os.cpu_count() or 1):
-        with ThreadPoolExecutor(workers) as pool:
-            list(pool.map(fn, parts))
-        return
-    pool = _POOLS.get(os.getpid())
-    if pool is None:
-        pool = _POOLS[os.getpid()] = ThreadPoolExecutor(workers, thread_name_prefix="mlaqc-kernels")
-    list(pool.map(fn, parts))
 
 
 @_jit

@@ -16,9 +16,10 @@ from pathlib import Path
 import numpy as np
 
 from mlaqc.errors import InputError
-from mlaqc.inspection.rawio import Levels, thread_map, load_raw, resolve_levels
+from mlaqc.inspection.rawio import Levels, load_raw, resolve_levels
 from mlaqc.optics.config import CameraConfig
 from mlaqc.optics.throughfocus import ThroughFocus
+from mlaqc.parallel import thread_map
 
 # sidecar suffix -> where the record sits in it: the simulator's; a scan's, or another program's
 SIDECARS = {".sim.json": (("protocol",),), ".meta.json": (("context", "through_focus", "record"), ("through_focus",))}

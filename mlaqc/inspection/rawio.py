@@ -25,7 +25,6 @@ import logging
 import os
 import zlib
 from collections.abc import Iterator
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from functools import partial
 from itertools import pairwise
@@ -36,6 +35,7 @@ import numpy as np
 
 from mlaqc.atomic import atomic_path
 from mlaqc.errors import InputError
+from mlaqc.parallel import thread_map
 
 CFA_PATTERNS = ("RGGB", "BGGR", "GRBG", "GBRG")
 
@@ -947,21 +947,6 @@ def suppress_hot_pixels(
         i, j = np.nonzero(mask[rows])
         cleaned[rows[i], j] = med[rows[i], j].astype(img.dtype)
     return cleaned, mask
-
-
-_POOLS: dict[int, ThreadPoolExecutor] = {}
-
-
-def thread_map(fn, items: list) -> list:
-    """[fn(item) for item in items], on a thread pool of one thread per core kept for the process (per
-    process id: a forked child starts its own) when there are several: starting threads anew for every
-    frame cost a few milliseconds."""
-    if len(items) <= 1 or (os.cpu_count() or 1) == 1:
-        return [fn(item) for item in items]
-    pool = _POOLS.get(os.getpid())
-    if pool is None:
-        pool = _POOLS[os.getpid()] = ThreadPoolExecutor(os.cpu_count() or 1, thread_name_prefix="mlaqc-rawio")
-    return list(pool.map(fn, items))
 
 
 def _median(a: np.ndarray) -> np.floating:

@@ -17,7 +17,8 @@ import numpy as np
 
 from mlaqc.errors import InputError
 from mlaqc.inspection.calibrate import Grid
-from mlaqc.inspection.metrics_kernels import cut_windows_kernel, run_parts
+from mlaqc.inspection.metrics_kernels import cut_windows_kernel
+from mlaqc.parallel import run_parts
 
 
 @dataclass(frozen=True, eq=False)

@@ -89,10 +89,8 @@ from __future__ import annotations
 
 import functools
 import math
-import os
 import time
 from collections.abc import Sequence
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
 from typing import Any
 
@@ -108,6 +106,7 @@ from mlaqc.optics.paraxial import thick_lens
 from mlaqc.optics.sensor import white_level
 from mlaqc.optics.throughfocus import (RIM_MARGIN_LENSES, ThroughFocus, frame_config, inner_radius_lenses,  # noqa: F401
                                       lens_centres_mm, pair_radius_lenses, pinhole_lenses)
+from mlaqc.parallel import thread_map
 
 WINDOW_SIGMAS = 4.0  # moment window half-width, in the spot's per-axis rms
 MIN_WINDOW_PX = 2.0  # never narrower: a spot smaller than a pixel still has the pixel's own width
@@ -874,7 +873,7 @@ def _check_inputs(frames, grid: Grid, cfg: CameraConfig):
     whole = [k for k, item in enumerate(frames)
              if not (isinstance(item, tuple) and len(item) == 2 and isinstance(item[0], SpotFrame)
                      and not item[0].normalized_floats)]
-    span = dict(zip(whole, _pool().map(extremes, [(k, frames[k]) for k in whole])))
+    span = dict(zip(whole, thread_map(extremes, [(k, frames[k]) for k in whole])))
     checked = []
     for k, item in enumerate(frames):
         try:
@@ -1126,17 +1125,6 @@ def reference_fit(m2: np.ndarray, shell: np.ndarray, frac: np.ndarray | None,
     return corrected - _group_median(corrected, grp, keep)
 
 
-_POOLS: dict[int, ThreadPoolExecutor] = {}
-
-
-def _pool() -> ThreadPoolExecutor:
-    """A thread per core, kept for the process (per process id: a forked child starts its own)."""
-    pool = _POOLS.get(os.getpid())
-    if pool is None:
-        pool = _POOLS[os.getpid()] = ThreadPoolExecutor(max(1, os.cpu_count() or 1), thread_name_prefix="mlaqc-tf")
-    return pool
-
-
 def pair_spots(frames: Sequence[tuple[np.ndarray, ThroughFocus]], grid: Grid, cfg: CameraConfig) -> list[dict]:
     """Check the frames (`_check_inputs`) and measure every +u / -u pair's spots: per pair a dict of the
     per-lens arrays of the lenses it reads (flat index, m2 of both frames, D, its variance, spot
@@ -1185,8 +1173,7 @@ def pair_spots(frames: Sequence[tuple[np.ndarray, ThroughFocus]], grid: Grid, cf
 
     # the pairs are independent and NumPy lets go of the GIL in the array work: one thread per core
     # (results in the pairs' order, and the first pair's error first, as a loop would raise it)
-    got = [p for p in _pool().map(one, pairs) if p is not None] if len(pairs) > 1 else \
-        [p for p in map(one, pairs) if p is not None]
+    got = [p for p in thread_map(one, pairs) if p is not None]
     if not got or sum(len(p["idx"]) for p in got) == 0:
         raise InputError("no lens is fully lit (and unsaturated) in both frames of any +u / -u pair: check the "
                          "pinhole offsets, the focus offset u and the exposure")
