@@ -257,3 +257,12 @@ def test_the_model_is_cached_on_disk_and_read_back_as_traced(tmp_path, monkeypat
             cfg.formation, crosstalk=0.0)), 5.0, 11.0, 0.3)
     finally:
         tf._model_curves.cache_clear()
+
+
+def test_a_spot_window_past_the_frame_edge_is_refused():
+    """The compiled cut reads without bounds checks: a window reaching past the edge is refused first."""
+    frame = tf.SpotFrame(np.zeros((60, 80), np.uint16), 0.0, 4095.0)
+    assert tf.spots(frame, np.array([10.0, 69.4]), np.array([10.0, 49.4]), 10).cells.shape == (2, 21, 21)
+    for x, y in ((9.4, 30.0), (70.0, 30.0), (40.0, 9.0), (40.0, 50.0)):
+        with pytest.raises(ValueError, match="edge"):
+            tf.spots(frame, np.array([x]), np.array([y]), 10)

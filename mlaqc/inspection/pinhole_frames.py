@@ -12,14 +12,16 @@ from __future__ import annotations
 import json
 from collections.abc import Sequence
 from pathlib import Path
-
-import numpy as np
+from typing import TYPE_CHECKING
 
 from mlaqc.errors import InputError
 from mlaqc.inspection.rawio import Levels, load_raw, resolve_levels
 from mlaqc.optics.config import CameraConfig
 from mlaqc.optics.throughfocus import ThroughFocus
 from mlaqc.parallel import thread_map
+
+if TYPE_CHECKING:
+    from mlaqc.inspection.throughfocus import SpotFrame
 
 # sidecar suffix -> where the record sits in it: the simulator's; a scan's, or another program's
 SIDECARS = {".sim.json": (("protocol",),), ".meta.json": (("context", "through_focus", "record"), ("through_focus",))}
@@ -49,7 +51,7 @@ def frame_record(raw: str | Path) -> ThroughFocus:
 
 
 def load_pinhole_frames(paths: Sequence[str | Path], cfg: CameraConfig,
-                        levels: Levels | None = None) -> list[tuple[np.ndarray, ThroughFocus]]:
+                        levels: Levels | None = None) -> list[tuple[SpotFrame, ThroughFocus]]:
     """Each frame prepared (`throughfocus.prepare_spots`) with its record, levels settled as for the white
     frame (`pipeline.load_frame`); the analysis checks exposure itself (a pinhole frame is mostly dark).
     Frames load on a thread per core (file reads and NumPy release the GIL); uncompressed TIFFs are mapped
@@ -59,7 +61,7 @@ def load_pinhole_frames(paths: Sequence[str | Path], cfg: CameraConfig,
     s = cfg.sensor
     records = [frame_record(path) for path in paths]  # every sidecar checked before any raw is read
 
-    def load(path: str | Path) -> np.ndarray:
+    def load(path: str | Path) -> SpotFrame:
         frame = resolve_levels(load_raw(path, expected_shape=(s.height_px, s.width_px), mapped=True), levels,
                                Levels(s.bit_depth, s.black_level_dn))
         return prepare_spots(frame)

@@ -98,6 +98,7 @@ import numpy as np
 from scipy import ndimage
 
 from mlaqc.errors import InputError
+from mlaqc.inspection import throughfocus_kernels as kern
 from mlaqc.inspection.calibrate import Grid
 from mlaqc.inspection.rawio import RawFrame, check_exposure, normalized
 from mlaqc.optics.config import CameraConfig
@@ -982,12 +983,13 @@ def spots(img: SpotFrame | np.ndarray, x_px: np.ndarray, y_px: np.ndarray, half:
     """Cut every lens' window (centred on the pixel nearest (x, y), inside the frame), normalized,
     subtract its background (the median of its outer ring) and note saturation. Compiled:
     mlaqc.inspection.throughfocus_kernels.spot_windows_kernel."""
-    from mlaqc.inspection import throughfocus_kernels as kern
-
     frame = img if isinstance(img, SpotFrame) else SpotFrame(np.asarray(img))
     ix = np.rint(x_px).astype(np.int64)
     iy = np.rint(y_px).astype(np.int64)
     n, L = 2 * half + 1, len(ix)
+    height, width = frame.shape
+    if L and (min(ix.min(), iy.min()) < half or ix.max() + half >= width or iy.max() + half >= height):
+        raise ValueError("a spot window reaches past the frame's edge")  # the kernel reads without bounds checks
     cells, bg, sat = np.empty((L, n, n)), np.empty(L, np.float32), np.empty(L, bool)
     kern.spot_windows_kernel(frame.data, iy - half, ix - half, frame.black, frame.span, RING_PX, SATURATED,
                              cells, bg, sat)
@@ -1008,22 +1010,21 @@ def moments(sp: Spots, cx: np.ndarray, cy: np.ndarray, w: np.ndarray, e_per_unit
     (d m2 / d v_ij = w_ij (r2_ij - m2) / flux) over the pixels' shot and read noise, plus the ring
     median's. Returns (mx, my, m2, m2_var, flux, w); m2_var is None unless `variance`.
     Compiled: mlaqc.inspection.throughfocus_kernels."""
-    from mlaqc.inspection import throughfocus_kernels as kern
-
     L = len(sp.cells)
+
+    def per_lens(v) -> np.ndarray:  # (L,) contiguous float64: one compiled specialization
+        return np.ascontiguousarray(np.broadcast_to(np.asarray(v, np.float64), (L,)))
+
     out = np.empty((L, 6))
-    kern.moments_kernel(np.ascontiguousarray(sp.cells, dtype=np.float64), np.asarray(sp.background, np.float64),
-                        np.broadcast_to(np.asarray(cx, np.float64), (L,)), np.broadcast_to(np.asarray(cy, np.float64), (L,)),
-                        np.broadcast_to(np.asarray(w, np.float64), (L,)), int(refine), float(e_per_unit),
-                        float(sp.bg_sigma), RING_PX, bool(variance), out)
+    kern.moments_kernel(np.ascontiguousarray(sp.cells, dtype=np.float64), per_lens(sp.background), per_lens(cx),
+                        per_lens(cy), per_lens(w), int(refine), float(e_per_unit), float(sp.bg_sigma), RING_PX,
+                        bool(variance), out)
     m2_var = out[:, kern.M2_VAR] if variance else None
     return out[:, kern.MX], out[:, kern.MY], out[:, kern.M2], m2_var, out[:, kern.FLUX], out[:, kern.WIDTH]
 
 
 def _first_guess(sp: Spots) -> tuple[np.ndarray, np.ndarray]:
     """The brightest 3 x 3 sum inside the ring of every window (window coordinates)."""
-    from mlaqc.inspection import throughfocus_kernels as kern
-
     out = np.empty((len(sp.cells), 2))
     kern.first_guess_kernel(np.ascontiguousarray(sp.cells, dtype=np.float64), RING_PX, out)
     return out[:, 0], out[:, 1]
