@@ -74,9 +74,11 @@ about their models beyond it; through the lens' own curve; scaled up (never down
 robust spread of the readings of each |u| over their sigmas, so that what the noise model leaves out (a
 render's Monte-Carlo noise) is counted.
 
-Speed: the spots' moments are batched matrix products (the window is separable), the pairs run on a
-thread per core, the model is cached on disk (and shipped for the Table 1 camera's protocols):
-bench/throughfocus_accuracy.py prints the times.
+Speed: a frame is kept as stored (`SpotFrame`; an uncompressed TIFF mapped from its file), and only
+the spots' windows are cut and normalized; cutting, the ring median, the first guess and the moments are
+compiled (mlaqc.inspection.throughfocus_kernels), the pairs run on a thread per core, the model is cached
+on disk (and shipped for the Table 1 camera's protocols): bench/throughfocus_accuracy.py prints the
+times, bench/inspection.py --through-focus the whole white + 32-frame inspection.
 
 Optical centre (Shack-Hartmann): a lens' spot centroid moves by d s P (d its optical-centre shift, s P =
 1 - c0 ≈ 1) whatever u is. It is read against the paraxial chief ray (through the lens' centre from the
