@@ -29,6 +29,7 @@ import argparse
 import asyncio
 import concurrent.futures
 import contextlib
+import gc
 import logging
 import os
 import sys
@@ -115,13 +116,21 @@ def connect(address: str, *, timeout_s: float | None = None, quiet: bool = False
                                   f"{_reason(exc)})") from exc
         else:
             target = check_address(address)
+        client = failure = None
         try:
-            client = stack.enter_context(Client(target, timeout=timeout, set_as_default=False))
+            client = Client(target, timeout=timeout, set_as_default=False)
         except (OSError, TimeoutError):
-            raise DeviceError(f"cannot reach the Dask scheduler at {address} within {timeout:g} s "
-                              "(is it running, and is the address right?)") from None
+            failure = DeviceError(f"cannot reach the Dask scheduler at {address} within {timeout:g} s "
+                                  "(is it running, and is the address right?)")
         except Exception as exc:  # something answered, but not as a scheduler (garbage, another protocol)
-            raise DeviceError(f"the service at {address} did not answer as a Dask scheduler ({_reason(exc)})") from None
+            failure = DeviceError(f"the service at {address} did not answer as a Dask scheduler ({_reason(exc)})")
+        if failure is not None:
+            # the half-built Client sits in a reference cycle: finalized by some later collection, its
+            # close() can run inside the next Dask start in this thread and hang it (the loop runner's
+            # lock); finalize it now, outside the except block that still referenced it
+            gc.collect()
+            raise failure
+        stack.enter_context(client)
         try:
             client.wait_for_workers(1, timeout=timeout)
         except (TimeoutError, OSError):

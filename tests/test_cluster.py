@@ -5,6 +5,7 @@ tests' (tests/test_inspect_batch.py: 24 x 24 lenses, 496 x 496 px).
 """
 
 import csv
+import gc
 import io
 import json
 import operator
@@ -219,10 +220,8 @@ def test_unreachable_scheduler_is_one_sentence_exit_3(raws, tmp_path, monkeypatc
     assert "cannot reach" in capsys.readouterr().err
 
 
-def test_a_service_that_is_no_scheduler_and_bad_addresses(raws, tmp_path, monkeypatch, capsys):  # noqa: F811
-    # 4 s: long enough that the garbage service's answer, not a timeout, ends the handshake on a loaded
-    # machine (at 1 s it once timed out under the parallel suite); the worker-less scheduler waits it out
-    monkeypatch.setattr(cluster, "CONNECT_TIMEOUT_S", 4.0)
+def _garbage_service() -> socket.socket:
+    """A listening socket that answers every connection with HTTP garbage (no Dask scheduler)."""
     srv = socket.socket()
     srv.bind(("127.0.0.1", 0))
     srv.listen(4)
@@ -237,6 +236,43 @@ def test_a_service_that_is_no_scheduler_and_bad_addresses(raws, tmp_path, monkey
                 conn.sendall(b"HTTP/1.1 400 Bad Request\r\n\r\n" * 8)
 
     threading.Thread(target=answer_garbage, daemon=True).start()
+    return srv
+
+
+def _live_clients() -> int:
+    return sum(isinstance(o, distributed.Client) for o in gc.get_objects())
+
+
+@pytest.mark.parametrize("service", ["garbage", "closed port"])
+def test_a_failed_connection_leaves_no_client_for_the_garbage_collector(raws, tmp_path, monkeypatch, capsys,  # noqa: F811
+                                                                         service):
+    """A Client whose connection failed sits in a reference cycle; finalized by a later collection, its
+    close() ran inside the next Dask start and hung it (distributed's loop-runner lock: the suite hung in
+    a LocalCluster start). mlaqc finalizes it before saying why the cluster failed."""
+    monkeypatch.setattr(cluster, "CONNECT_TIMEOUT_S", 4.0)
+    srv = _garbage_service() if service == "garbage" else None
+    port = srv.getsockname()[1] if srv else _closed_port()
+    frames = [str(raws / "perfect.npy")]
+    gc.collect()
+    gc.disable()  # only mlaqc's own collection may finalize it
+    try:
+        before = _live_clients()
+        code = main(["inspect", *frames, "-c", SMALL_TOML, "-o", str(tmp_path / "r"),
+                     "--scheduler", f"tcp://127.0.0.1:{port}"])
+        after = _live_clients()
+    finally:
+        gc.enable()
+        if srv:
+            srv.close()
+    assert code == 3, capsys.readouterr().err
+    assert after == before
+
+
+def test_a_service_that_is_no_scheduler_and_bad_addresses(raws, tmp_path, monkeypatch, capsys):  # noqa: F811
+    # 4 s: long enough that the garbage service's answer, not a timeout, ends the handshake on a loaded
+    # machine (at 1 s it once timed out under the parallel suite); the worker-less scheduler waits it out
+    monkeypatch.setattr(cluster, "CONNECT_TIMEOUT_S", 4.0)
+    srv = _garbage_service()
     frames = [str(raws / "perfect.npy"), str(raws / "defects.npy")]
     try:
         code = main(["inspect", *frames, "-c", SMALL_TOML, "-o", str(tmp_path / "r"),
