@@ -258,6 +258,8 @@ def test_a_good_pair_reads(pair, grid):
     ("spacing", "pinholes 7 lenses apart"),
     ("black", "is black"),
     ("saturated", "is saturated"),
+    ("black counts", "is black"),
+    ("saturated counts", "is saturated"),
     ("nan", "NaN or infinite"),
     ("counts", "not a normalized frame"),
     ("no-record", "has no ThroughFocus record"),
@@ -284,6 +286,11 @@ def test_bad_inputs_are_one_sentence(pair, grid, case, match):
         frames[1] = (np.random.default_rng(1).normal(0, 1e-4, b.shape).astype(np.float32), tb)
     elif case == "saturated":
         frames[1] = (np.where(b > 0.002, 1.0, b).astype(np.float32), tb)
+    elif case in ("black counts", "saturated counts"):  # a 12-bit frame as read, black level 64
+        rng = np.random.default_rng(2)
+        dn = np.rint(64 + rng.normal(0, 1.5, b.shape)) if case == "black counts" else \
+            np.where(b > 0.002, 4095, np.rint(b * 4031 + 64))
+        frames[1] = (prepare_spots(RawFrame(np.clip(dn, 0, 4095).astype(np.uint16), 12, None, 64, 4095)), tb)
     elif case == "nan":
         bad = b.copy()
         bad[5, 5] = np.nan

@@ -189,6 +189,54 @@ def test_the_likelihood_reading_of_a_straight_curve_is_its_crossing_and_noise_ov
     assert mean[1] == pytest.approx(0.0, abs=1e-12) and sd[1] == pytest.approx(0.06 / math.sqrt(12), rel=0.02)
 
 
+def _plain_likelihood_mean(cv, e, x, noise):
+    """The likelihood reading written with whole-array NumPy: every row's curve at SUBSTEPS points per
+    interval, its chi-square, the weights and their moments."""
+    L, K = cv.shape
+    t = np.arange(tf.SUBSTEPS) / tf.SUBSTEPS
+    c = np.concatenate([(cv[:, :-1, None] + (cv[:, 1:] - cv[:, :-1])[:, :, None] * t).reshape(L, -1), cv[:, -1:]], axis=1)
+    with np.errstate(invalid="ignore", divide="ignore", over="ignore"):
+        chi = ((c - x[:, None]) / noise[:, None]) ** 2
+        chi[~np.isfinite(chi)] = np.inf
+        w = np.exp(-0.5 * (chi - chi.min(axis=1, keepdims=True)))
+        pos = np.arange(c.shape[1])
+        m1 = (w * pos).sum(axis=1) / w.sum(axis=1)
+        m2 = (w * pos ** 2).sum(axis=1) / w.sum(axis=1)
+    step = (e[:, 1] - e[:, 0]) / tf.SUBSTEPS
+    return e[:, 0] + m1 * step, np.maximum(np.sqrt(np.maximum(m2 - m1 * m1, 0.0)) * step, step / math.sqrt(12.0))
+
+
+def test_compiled_likelihood_reading_equals_the_array_formula():
+    """Random curves (some flat, some steep, one NaN reading, one zero noise): the compiled reading is the
+    whole-array formula's, NaN where it is."""
+    rng = np.random.default_rng(8)
+    L, K = 400, 13
+    e = np.tile(np.linspace(-0.03, 0.03, K), (L, 1)) + rng.uniform(-0.1, 0.1, (L, 1))
+    cv = rng.normal(0, 0.05, (L, 1)) + rng.uniform(-40, 40, (L, 1)) * e + rng.normal(0, 0.01, (L, K))
+    x = rng.normal(0, 0.3, L)
+    noise = rng.uniform(0.005, 0.05, L)
+    x[3], noise[5] = np.nan, 0.0
+    got, want = tf._likelihood_mean(cv, e, x, noise), _plain_likelihood_mean(cv, e, x, noise)
+    for a, b in zip(got, want):
+        assert np.array_equal(np.isnan(a), np.isnan(b))
+        assert np.allclose(a, b, rtol=1e-9, atol=1e-12, equal_nan=True)
+    assert np.isnan(got[0][3])
+
+
+def test_compiled_lens_model_equals_the_gather():
+    """The compiled model read is the fancy-index gather and weighted sum it replaced."""
+    rng = np.random.default_rng(9)
+    flat, stride = rng.normal(size=5000), 64
+    idx = rng.integers(0, 64, (300, 2, 8))
+    wts = rng.uniform(0, 1, (300, 2, 8))
+    nodes = rng.integers(0, 70, (300, 5))
+    at = flat[idx[:, :, :, None] + (nodes * stride)[:, None, None, :]]
+    m = np.einsum("lfck,lfc->lfk", at, wts)
+    assert np.allclose(tf._lens_model(flat, idx, wts, nodes, stride), m[:, 0] - m[:, 1], rtol=1e-12, atol=1e-12)
+    with pytest.raises(ValueError, match="outside"):
+        tf._lens_model(flat, idx, wts, nodes + 20, stride)
+
+
 def test_pairs_on_threads_equal_a_plain_loop(monkeypatch):
     """Two +u / -u pairs of spot frames (Gaussian spots at the lit lenses of the analytic white frame's
     grid): the threaded pair measurement is the loop's, pair for pair."""

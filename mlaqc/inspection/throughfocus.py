@@ -722,10 +722,15 @@ def _lens_model_index(curves: ModelCurves, shell: np.ndarray, dxy: np.ndarray, p
 
 
 def _lens_model(flat: np.ndarray, idx: np.ndarray, wts: np.ndarray, nodes: np.ndarray, stride: int) -> np.ndarray:
-    """(L, K) model D = m2(+u) - m2(-u) of each lens at eps nodes (L, K)."""
-    at = flat[idx[:, :, :, None] + (nodes * stride)[:, None, None, :]]  # (L, 2, 8, K)
-    m = np.einsum("lfck,lfc->lfk", at, wts)
-    return m[:, 0] - m[:, 1]
+    """(L, K) model D = m2(+u) - m2(-u) of each lens at eps nodes (L, K): its model spots' moments
+    (flat[idx + node * stride]) weighted by `wts`, per frame. Compiled: throughfocus_kernels."""
+    nodes = np.ascontiguousarray(nodes, dtype=np.int64)
+    if len(idx) and (nodes.min() < 0 or idx.max() + nodes.max() * stride >= flat.size or idx.min() < 0):
+        raise ValueError("a lens' model index lies outside the model")  # the kernel reads without bounds checks
+    out = np.empty(nodes.shape)
+    kern.lens_model_kernel(np.ascontiguousarray(flat, dtype=np.float64), np.ascontiguousarray(idx, dtype=np.int64),
+                           np.ascontiguousarray(wts, dtype=np.float64), nodes, int(stride), out)
+    return out
 
 
 BRACKET_NODES = 6  # the lens' own model is read this many eps nodes either side of its first reading
@@ -804,26 +809,13 @@ def _extra_variance(y: np.ndarray, var: np.ndarray, keep: np.ndarray) -> float:
 def _likelihood_mean(cv: np.ndarray, e: np.ndarray, x: np.ndarray, noise: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Mean and sd of e under exp(-(c(e) - x)^2 / 2 noise^2), c the piecewise-linear curve through the
     nodes (cv, e) (L, K) of each row (e equally spaced along a row), summed at SUBSTEPS points per
-    interval (flat prior on the span)."""
-    L, K = cv.shape
-    t = np.arange(SUBSTEPS) / SUBSTEPS
-    c = np.empty((L, (K - 1) * SUBSTEPS + 1))
-    c[:, :-1] = (cv[:, :-1, None] + (cv[:, 1:] - cv[:, :-1])[:, :, None] * t).reshape(L, -1)
-    c[:, -1] = cv[:, -1]
-    with np.errstate(invalid="ignore", divide="ignore", over="ignore"):
-        c -= x[:, None]
-        c *= (1.0 / noise)[:, None]
-        c *= c  # chi^2 of every point
-        if not np.isfinite(c).all():
-            c[~np.isfinite(c)] = np.inf
-        c -= c.min(axis=1, keepdims=True)
-        np.exp(-0.5 * c, out=c)
-        pos = np.arange(c.shape[1], dtype=np.float64)
-        w = c.sum(axis=1)
-        m1 = (c @ pos) / w
-        m2 = (c @ (pos * pos)) / w
+    interval (flat prior on the span). Compiled: throughfocus_kernels.likelihood_kernel."""
+    L = len(cv)
+    m1, var = np.empty(L), np.empty(L)
+    kern.likelihood_kernel(np.ascontiguousarray(cv, dtype=np.float64), np.ascontiguousarray(x, dtype=np.float64),
+                           np.ascontiguousarray(noise, dtype=np.float64), SUBSTEPS, m1, var)
     step = (e[:, 1] - e[:, 0]) / SUBSTEPS
-    sd = np.sqrt(np.maximum(m2 - m1 * m1, 0.0)) * step
+    sd = np.sqrt(np.maximum(var, 0.0)) * step
     return e[:, 0] + m1 * step, np.maximum(sd, step / math.sqrt(12.0))
 
 
@@ -929,13 +921,22 @@ EXPOSURE_WINDOWS = 64  # the exposure check looks at about this many of a frame'
 NOISE_WINDOWS = 128  # the frame's read noise is the robust spread of about this many windows' rings
 
 
-def _check_exposure(cells: np.ndarray, name: str) -> None:
+def _check_exposure(frame: SpotFrame, sp: Spots, name: str) -> None:
     """The rawio black/saturation checks, on the sub-image windows that should be lit (a pinhole frame
     lights a few per cent of the sensor: the whole frame's percentiles would call it black); every k-th
     window, about EXPOSURE_WINDOWS of them (the statistics of a frame-wide check need no more; each
-    spot's own saturation is checked on all of them)."""
-    cells = cells[::max(1, len(cells) // EXPOSURE_WINDOWS)]
-    flat = np.ascontiguousarray(cells.reshape(-1, cells.shape[-1]), dtype=np.float32)
+    spot's own saturation is checked on all of them). A frame of integer counts is checked on its counts
+    against its own black and white levels (rawio's histogram statistics), as a white frame is."""
+    pick = slice(None, None, max(1, len(sp.cells) // EXPOSURE_WINDOWS))
+    n = sp.cells.shape[-1]
+    if frame.data.dtype.kind in "iu":
+        half = n // 2
+        cells = np.lib.stride_tricks.sliding_window_view(frame.data, (n, n))[sp.iy[pick] - half, sp.ix[pick] - half]
+        black, white = int(round(frame.black)), int(round(frame.black + frame.span))
+        bits = min(16, max(8, white.bit_length()))
+        check_exposure(RawFrame(np.ascontiguousarray(cells.reshape(-1, n)), bits, None, black, white, source=name))
+        return
+    flat = np.ascontiguousarray((sp.cells + sp.background[:, None, None])[pick].reshape(-1, n), dtype=np.float32)
     check_exposure(RawFrame(flat, 16, None, 0, 1, source=name, levels_from="normalized"))
 
 
@@ -1151,7 +1152,7 @@ def pair_spots(frames: Sequence[tuple[np.ndarray, ThroughFocus]], grid: Grid, cf
         for img, rec, k in (plus, minus):
             sp = spots(img, gx[idx], gy[idx], half)
             name = f"{k + 1} of the through-focus series (u = {rec.focus_offset_mm:+g} mm, offset {off})"
-            _check_exposure(sp.cells + sp.background[:, None, None], name)
+            _check_exposure(img, sp, name)
             if sp.saturated.mean() > 0.5:
                 raise InputError(f"Frame {name} is saturated: {int(sp.saturated.sum())} of {len(idx)} spots reach "
                                  "the white level; reduce the exposure or the light")

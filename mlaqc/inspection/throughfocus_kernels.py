@@ -184,3 +184,50 @@ def spot_windows_kernel(data, iy0, ix0, black, span, ring_px, saturated_level, c
                 cells[m, i, j] = win[i, j] - bg
         background[m] = bg
         saturated[m] = sat
+
+
+@_jit
+def likelihood_kernel(cv, x, noise, substeps, m1_out, var_out):
+    """Per row of cv (L, K): the likelihood exp(-(c - x)^2 / 2 noise^2) of the piecewise-linear curve
+    through the K nodes, at `substeps` points per interval (the last node included); its mean and
+    variance over the point index (0 .. (K-1) substeps) into m1_out, var_out. NaN where it is nowhere
+    finite (a NaN reading or noise). The sums run in point order."""
+    L, K = cv.shape
+    n = (K - 1) * substeps + 1
+    chi = np.empty(n)
+    for m in range(L):
+        inv = 1.0 / noise[m]
+        low = np.inf
+        for i in range(n):
+            k, t = divmod(i, substeps)
+            c = cv[m, k] if k == K - 1 else cv[m, k] + (cv[m, k + 1] - cv[m, k]) * (t / substeps)
+            v = (c - x[m]) * inv
+            v = v * v
+            if not math.isfinite(v):
+                v = np.inf
+            chi[i] = v
+            low = min(low, v)
+        w = s1 = s2 = 0.0
+        for i in range(n):
+            p = math.exp(-0.5 * (chi[i] - low))
+            w += p
+            s1 += p * i
+            s2 += p * i * i
+        mean = s1 / w
+        m1_out[m] = mean
+        var_out[m] = s2 / w - mean * mean
+
+
+@_jit
+def lens_model_kernel(flat, idx, wts, nodes, stride, out):
+    """out[l, k] = the model D of lens l at eps node nodes[l, k]: sum over c of wts[l, f, c] *
+    flat[idx[l, f, c] + nodes[l, k] * stride] for the +u frame (f = 0) less the same for the -u frame."""
+    L, F, C = idx.shape
+    for m in range(L):
+        for k in range(nodes.shape[1]):
+            shift = nodes[m, k] * stride
+            plus = minus = 0.0
+            for c in range(C):
+                plus += flat[idx[m, 0, c] + shift] * wts[m, 0, c]
+                minus += flat[idx[m, 1, c] + shift] * wts[m, 1, c]
+            out[m, k] = plus - minus
