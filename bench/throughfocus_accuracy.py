@@ -44,7 +44,7 @@ from mlaqc.inspection.calibrate import calibrate  # noqa: E402
 from mlaqc.inspection.pipeline import prepare  # noqa: E402
 from mlaqc.inspection.rawio import RawFrame  # noqa: E402
 from mlaqc.inspection.throughfocus import (coverage, focal_rel_of_radius, measure_through_focus,  # noqa: E402
-                                          pair_radius_lenses, prepare_spots, trace_model)
+                                          SpotFrame, pair_radius_lenses, prepare_spots, trace_model)
 from mlaqc.optics.config import default_config  # noqa: E402
 from mlaqc.optics.errormap import ErrorMap  # noqa: E402
 from mlaqc.optics.formation import apply_formation, formation_kernels  # noqa: E402
@@ -85,7 +85,7 @@ def white_grid(cfg, rpp: float, seed: int):
     return grid
 
 
-def frame(cfg, em, tf: ThroughFocus, rays: int, seed: int, kernels) -> np.ndarray:
+def frame(cfg, em, tf: ThroughFocus, rays: int, seed: int, kernels) -> SpotFrame:
     """Render at the protocol's exposure (the scene's derived photons per pinhole), form, expose, prepare
     for the spot reading."""
     s = cfg.sensor

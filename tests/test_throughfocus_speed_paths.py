@@ -314,3 +314,13 @@ def test_a_spot_window_past_the_frame_edge_is_refused():
     for x, y in ((9.4, 30.0), (70.0, 30.0), (40.0, 9.0), (40.0, 50.0)):
         with pytest.raises(ValueError, match="edge"):
             tf.spots(frame, np.array([x]), np.array([y]), 10)
+
+
+def test_a_spot_window_without_an_inside_is_refused():
+    """The compiled cut fills the ring from the window's edge: a window no wider than twice the ring has
+    no inside, and would overrun the ring's buffer; it is refused."""
+    frame = tf.SpotFrame(np.zeros((60, 80), np.uint16), 0.0, 4095.0)
+    for half in (0, 1, tf.RING_PX):
+        with pytest.raises(ValueError, match="ring"):
+            tf.spots(frame, np.array([30.0]), np.array([30.0]), half)
+    assert tf.spots(frame, np.array([30.0]), np.array([30.0]), tf.RING_PX + 1).cells.shape == (1, 7, 7)

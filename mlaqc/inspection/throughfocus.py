@@ -990,6 +990,8 @@ def spots(img: SpotFrame | np.ndarray, x_px: np.ndarray, y_px: np.ndarray, half:
     ix = np.rint(x_px).astype(np.int64)
     iy = np.rint(y_px).astype(np.int64)
     n, L = 2 * half + 1, len(ix)
+    if half <= RING_PX:
+        raise ValueError(f"a spot window of half-width {half} px has no pixels inside its {RING_PX}-px ring")
     height, width = frame.shape
     if L and (min(ix.min(), iy.min()) < half or ix.max() + half >= width or iy.max() + half >= height):
         raise ValueError("a spot window reaches past the frame's edge")  # the kernel reads without bounds checks
@@ -1136,6 +1138,9 @@ def pair_spots(frames: Sequence[tuple[np.ndarray, ThroughFocus]], grid: Grid, cf
     pairs = _check_inputs(frames, grid, cfg)
     opt = optics(cfg)
     half = int(math.floor(cfg.layout.subimage_pitch_px / 2))
+    if half <= RING_PX + 1:
+        raise InputError(f"the sub-images are {cfg.layout.subimage_pitch_px:.3g} px apart: the through-focus "
+                         f"analysis needs at least {2 * (RING_PX + 2)} px for a spot window inside its background ring")
     h_img, w_img = grid.image_shape
     gx, gy = grid.grid_x_px.ravel(), grid.grid_y_px.ravel()
     with np.errstate(invalid="ignore"):
