@@ -136,10 +136,15 @@ class SpotFrame:
     def shape(self) -> tuple[int, int]:
         return self.data.shape  # type: ignore[return-value]
 
+    @classmethod
+    def of(cls, img: SpotFrame | np.ndarray) -> SpotFrame:
+        """`img` itself, or an array taken as an already normalized frame."""
+        return img if isinstance(img, SpotFrame) else cls(np.asarray(img))
+
     @property
-    def normalized_floats(self) -> bool:
-        """True for float data, whose pixels may be anything (NaN, not normalized): check them whole."""
-        return self.data.dtype.kind == "f"
+    def counts(self) -> bool:
+        """True for integer data: normalized by construction, no NaN (float data may hold anything)."""
+        return self.data.dtype.kind in "iu"
 
     def image(self) -> np.ndarray:
         """The whole frame normalized (float32), as the analysis' windows see it: for display."""
@@ -854,11 +859,8 @@ def _check_inputs(frames, grid: Grid, cfg: CameraConfig):
         raise InputError("a through-focus reading needs at least one +u / -u pair of frames")
     shape = tuple(grid.image_shape)
 
-    def as_spot_frame(img) -> SpotFrame:
-        return img if isinstance(img, SpotFrame) else SpotFrame(np.asarray(img))
-
     def extremes(item) -> tuple[float, float] | None:  # (max, min): NaN propagates through both, +-inf shows
-        img = as_spot_frame(item[1][0]).data if isinstance(item[1], tuple) and len(item[1]) == 2 else None
+        img = SpotFrame.of(item[1][0]).data if isinstance(item[1], tuple) and len(item[1]) == 2 else None
         if img is None or img.shape != shape or img.dtype.kind not in "fiu":
             return None
         return float(img.max()), float(img.min())
@@ -867,7 +869,7 @@ def _check_inputs(frames, grid: Grid, cfg: CameraConfig):
     # checked whole (their one full pass, a thread per core)
     whole = [k for k, item in enumerate(frames)
              if not (isinstance(item, tuple) and len(item) == 2 and isinstance(item[0], SpotFrame)
-                     and not item[0].normalized_floats)]
+                     and item[0].counts)]
     span = dict(zip(whole, thread_map(extremes, [(k, frames[k]) for k in whole])))
     checked = []
     for k, item in enumerate(frames):
@@ -877,7 +879,7 @@ def _check_inputs(frames, grid: Grid, cfg: CameraConfig):
             raise InputError(f"through-focus frame {k + 1} must be an (image, ThroughFocus) pair") from None
         if not isinstance(rec, ThroughFocus):
             raise InputError(f"through-focus frame {k + 1} has no ThroughFocus record")
-        img = as_spot_frame(img)
+        img = SpotFrame.of(img)
         if img.data.ndim != 2 or img.data.dtype.kind not in "fiu":
             raise InputError(f"through-focus frame {k + 1} must be a 2-D numeric image")
         if img.shape != shape:
@@ -929,7 +931,7 @@ def _check_exposure(frame: SpotFrame, sp: Spots, name: str) -> None:
     against its own black and white levels (rawio's histogram statistics), as a white frame is."""
     pick = slice(None, None, max(1, len(sp.cells) // EXPOSURE_WINDOWS))
     n = sp.cells.shape[-1]
-    if frame.data.dtype.kind in "iu":
+    if frame.counts:
         half = n // 2
         cells = np.lib.stride_tricks.sliding_window_view(frame.data, (n, n))[sp.iy[pick] - half, sp.ix[pick] - half]
         black, white = int(round(frame.black)), int(round(frame.black + frame.span))
@@ -986,7 +988,7 @@ def spots(img: SpotFrame | np.ndarray, x_px: np.ndarray, y_px: np.ndarray, half:
     """Cut every lens' window (centred on the pixel nearest (x, y), inside the frame), normalized,
     subtract its background (the median of its outer ring) and note saturation. Compiled:
     mlaqc.inspection.throughfocus_kernels.spot_windows_kernel."""
-    frame = img if isinstance(img, SpotFrame) else SpotFrame(np.asarray(img))
+    frame = SpotFrame.of(img)
     ix = np.rint(x_px).astype(np.int64)
     iy = np.rint(y_px).astype(np.int64)
     n, L = 2 * half + 1, len(ix)
