@@ -162,25 +162,27 @@ def _without_pixels(frame: Frame) -> Frame:
                  dict(frame.extra))
 
 
-def frame_warnings(g: Grab, *, dark: bool = False) -> list[str]:
-    """Plain-language problems with a grabbed image: black (unless dark), not dark (if dark), saturated, gaps."""
-    warnings = []
+def exposure_problem(g: Grab) -> str | None:
+    """Why a grabbed image cannot be inspected (black or saturated: the inspection's own check), else None."""
     # Every 3rd pixel each way: the statistics are the same, 9x cheaper; an odd stride keeps every CFA site.
     sample = g.data[::3, ::3] if g.data.size > 90_000 else g.data
     raw = RawFrame(sample, max(8, g.first.bits), g.first.cfa, g.black_level, max(g.white_level, g.black_level + 1))
     try:
         check_exposure(raw)
     except InputError as exc:
-        text = str(exc).replace("Frame (in memory) ", "frame ")
-        black = " is black" in str(exc)
-        if black and not dark:
-            warnings.append(text)
-        elif not black:
-            warnings.append(text)
-    else:
-        if dark:
-            warnings.append("dark frame is not dark: light rises above the black level; cover the lens or "
-                            "switch the light off")
+        return str(exc).replace("Frame (in memory) ", "frame ")
+    return None
+
+
+def frame_warnings(g: Grab, *, dark: bool = False) -> list[str]:
+    """Plain-language problems with a grabbed image: black (unless dark), not dark (if dark), saturated, gaps."""
+    warnings = []
+    problem = exposure_problem(g)
+    if problem is not None and not (dark and " is black" in problem):
+        warnings.append(problem)
+    elif problem is None and dark:
+        warnings.append("dark frame is not dark: light rises above the black level; cover the lens or "
+                        "switch the light off")
     if g.sequence_gap:
         warnings.append(f"{g.sequence_gap} frame(s) were lost (sequence-number gap) while capturing")
     return warnings

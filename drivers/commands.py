@@ -128,6 +128,10 @@ def run_scan_command(args: argparse.Namespace) -> int:
                        f"{event['device']} error: {event['error']}")
         elif kind == "frame_warning":
             _note(bar, f"{event['file']}: {event['warning']}")
+        elif kind == "frame_rejected":
+            _note(bar, f"{event['file']} cannot be inspected ({event['reason'].rstrip('.')}); kept, capturing again")
+        elif kind == "position_failed":
+            _note(bar, f"position {event['index'] + 1} ({event['label']}) FAILED: {event['reason']}")
         elif kind == "invalid_record":
             _note(bar, f"position {event['index'] + 1} will be captured again: {event['reason']}")
         elif kind == "inspect_failed":

@@ -6,7 +6,7 @@ Plan (TOML; see fixtures/scan_plan_raster.toml and fixtures/scan_plan_list.toml)
     settle_s = 0.05             # wait after each move before capturing (s, >= 0)
     frames_per_position = 1     # raw files per position
     average = 1                 # frames averaged into each file
-    retries = 3                 # extra attempts per position after a device error
+    retries = 3                 # extra attempts per position after a device error or an uninspectable frame
     retry_delay_s = 0.5         # pause before a retry (s, >= 0)
     move_timeout_s = 30.0       # deadline of each move (s, > 0)
     capture_timeout_s = 5.0     # deadline of each frame (s, > 0)
@@ -71,9 +71,11 @@ has one, e.g. the mock's wafer: every array's position and error map) and ``came
 camera's settings read back at the start; the mock's include its camera config). Then exactly one line per completed
 position, appended and fsync'd only after its frames and sidecars are on disk:
 ``{"type": "position", "index", "label", "target_mm", "position_mm" (read back), "files": [{"file",
-"sha256", "bytes", "sidecar", "sequence", "warnings"}], "attempts", "completed", "timing_s": {"move",
+"sha256", "bytes", "sidecar", "sequence", "warnings"}], "attempts", "rejected": [{"file", "sha256", "bytes",
+"sidecar", "sequence", "warnings", "attempt", "reason"}], "failed", "completed", "timing_s": {"move",
 "settle", "capture", "write", "recover", "total"}, "truth"}`` (`truth`: which wafer array the frame shows
-and its offset, from the mock camera).
+and its offset, from the mock camera; `rejected`: the frames of earlier attempts that could not be inspected;
+`failed`: null, or why the position's own frames cannot be inspected either).
 
 Resume: positions with a record whose files still match their checksums are skipped; a record whose
 files are missing or altered, a torn last line (a kill mid-append) and leftover temporary files are
@@ -87,6 +89,16 @@ each retry the failed device is reconnected (stage: closed and reopened from its
 `reopen()`, exposure and gain re-applied). When the retries are used up, or on Ctrl-C, the stage is
 stopped, the manifest is left consistent and ScanFailed (DeviceError, exit 3) or ScanInterrupted (exit
 130) says in one sentence where the scan stopped and that --resume continues it.
+
+Frames that cannot be inspected: a white frame that is black or saturated (`drivers.capture.exposure_problem`,
+the inspection's own check) makes the position capture again within the same `retries` (no reconnect). The
+rejected attempt's white frames are kept as ``pos_NNNNN_rejectedK.tiff`` (K: the first free number) with
+sidecars whose ``context`` has ``rejected`` (the reason), listed under the position record's ``rejected``;
+an event ``frame_rejected`` each. When the retries are used up the last attempt's frames are recorded as the
+position's frames, the record's ``failed`` says why, a ``position_failed`` event is written, the inspection
+hook is not run on it, and the scan goes on with the next position (a resume does not capture it again).
+Pinhole (through-focus) frames are sparse spots by design: their exposure is checked per spot when they are
+inspected, not here.
 
 Inspection: `inspect` is a callable ``(frame: ScanFrame) -> dict | None`` run for each white raw file right
 after its position is recorded (a ScanFrame carries the raw and sidecar paths, the manifest record, the
@@ -119,8 +131,8 @@ from typing import Any
 
 from drivers.camera import camera_from_url
 from drivers.camera.base import Camera
-from drivers.capture import (MAX_AVERAGE, SavedFrame, jsonable, check_out_dir, file_suffix, grab, load_sidecar,
-                             save_frame, sha256_file, versions)
+from drivers.capture import (MAX_AVERAGE, Grab, SavedFrame, jsonable, check_out_dir, exposure_problem, file_suffix, grab,
+                             load_sidecar, save_frame, sha256_file, versions)
 from mlaqc.atomic import write_bytes_atomic, write_json_atomic
 from mlaqc.errors import DeviceError, InputError, MlaqcError
 from mlaqc.optics.config import CameraConfig, default_config, load_config
@@ -167,6 +179,10 @@ InspectHook = Callable[[ScanFrame], "dict | None"]
 
 class ScanFailed(DeviceError):
     """The scan stopped because a device kept failing at one position (exit status 3)."""
+
+
+class FramesRejected(Exception):
+    """An attempt's white frames cannot be inspected (black or saturated); the position is captured again."""
 
 
 class ScanInterrupted(MlaqcError, KeyboardInterrupt):
@@ -608,20 +624,28 @@ class _ManifestWriter:
 def verify_record(out_dir: Path, record: dict[str, Any]) -> str | None:
     """None if every file of a manifest record exists and matches its recorded checksum; else why not."""
     for item in record.get("files", []):
-        name = item.get("file")
-        if not isinstance(name, str) or "/" in name or name.startswith("."):
-            return f"record {record.get('index')} names a bad file {name!r}"
-        path = out_dir / name
-        if not path.is_file():
-            return f"{name} is missing"
-        if sha256_file(path) != item.get("sha256"):
-            return f"{name} does not match its recorded checksum"
-        try:
-            side = load_sidecar(path)
-        except InputError as exc:
-            return str(exc)
-        if side.get("sha256") != item.get("sha256"):
-            return f"the sidecar of {name} does not match its recorded checksum"
+        why = _verify_item(out_dir, record, item)
+        if why:
+            return why
+    return None
+
+
+def _verify_item(out_dir: Path, record: dict[str, Any], item: dict[str, Any]) -> str | None:
+    """None if one listed frame and its sidecar are on disk with the recorded checksum; else why not."""
+    name = item.get("file")
+    if not isinstance(name, str) or "/" in name or name.startswith("."):
+        return f"record {record.get('index')} names a bad file {name!r}"
+    path = out_dir / name
+    if not path.is_file():
+        return f"{name} is missing"
+    if sha256_file(path) != item.get("sha256"):
+        return f"{name} does not match its recorded checksum"
+    try:
+        side = load_sidecar(path)
+    except InputError as exc:
+        return str(exc)
+    if side.get("sha256") != item.get("sha256"):
+        return f"the sidecar of {name} does not match its recorded checksum"
     return None
 
 
@@ -640,12 +664,26 @@ def verify_scan(out_dir: str | os.PathLike[str]) -> list[str]:
         why = verify_record(out, rec)
         if why:
             problems.append(f"position {rec['index'] + 1}: {why}")
+        for item in rec.get("rejected", []):  # (a rejected frame is evidence: checked here, not needed to resume)
+            why = _verify_item(out, rec, item)
+            if why:
+                problems.append(f"position {rec['index'] + 1}, rejected frame: {why}")
     total = len(data.header.get("plan", {}).get("positions", []))
     missing = total - len(seen)
     if missing:
         problems.append(f"{missing} of {total} positions have no record")
     problems += [f"stray temporary file {p.name}" for p in _temp_files(out)]
     return problems
+
+
+def _rejected_path(path: Path) -> Path:
+    """`pos_00001.tiff` -> the first free `pos_00001_rejectedK.tiff` (K = 1, 2, ...): never overwrite a frame."""
+    k = 1
+    while True:
+        candidate = path.with_name(f"{path.stem}_rejected{k}{path.suffix}")
+        if not candidate.exists():
+            return candidate
+        k += 1
 
 
 def _temp_files(out: Path) -> list[Path]:
@@ -668,6 +706,8 @@ class ScanResult:
     retries: int = 0
     reconnects: dict[str, int] = field(default_factory=lambda: {"stage": 0, "camera": 0})
     warnings: int = 0
+    rejected: int = 0  # frames that could not be inspected, captured again
+    failed: list[str] = field(default_factory=list)  # labels of positions whose frames could not be inspected
     inspected: int = 0
     inspect_failures: int = 0
     elapsed_s: float = 0.0  # the whole run, device opening included
@@ -692,8 +732,17 @@ class ScanResult:
         return (f"scan complete: {self.done} of {self.total} positions in {self.out_dir} "
                 f"({self.captured} captured now, {self.resumed} already done, {self.retries} retries, "
                 f"{self.reconnects['stage']} stage and {self.reconnects['camera']} camera reconnects, "
-                f"{self.warnings} frame warnings); {self.elapsed_s:.1f} s in all, {self.motion_s:.1f} s moving and "
+                f"{self.warnings} frame warnings, {self.rejected} uninspectable frames captured again)"
+                f"{self._failed_text()}; {self.elapsed_s:.1f} s in all, {self.motion_s:.1f} s moving and "
                 f"settling, {rate_text}")
+
+    def _failed_text(self) -> str:
+        """The failed positions for the summary line ('' if none): the operator must see them."""
+        if not self.failed:
+            return ""
+        shown = ", ".join(self.failed[:10]) + (", ..." if len(self.failed) > 10 else "")
+        plural = "s" if len(self.failed) != 1 else ""
+        return f"; {len(self.failed)} position{plural} FAILED (frames not inspectable: {shown})"
 
 
 class ScanRunner:
@@ -747,6 +796,7 @@ class ScanRunner:
         self._tf_axes: list[dict[str, float]] = []  # the carrier's Z, A, B for each
         self._tf_header: dict[str, Any] | None = None
         self._white_f_number: float | None = None
+        self._rejected: list[dict[str, Any]] = []  # the current position's rejected frames (manifest items)
 
     # ------------------------------------------------------------ public
 
@@ -997,11 +1047,17 @@ class ScanRunner:
     def _position(self, pos: PlanPosition) -> None:
         """Attempt a position until it is recorded or the retries are used up."""
         attempt = 0
+        self._rejected = []
         while True:
             attempt += 1
             phase = ["stage"]
             try:
                 record = self._attempt(pos, attempt, phase)
+            except FramesRejected:  # (the frames and the event are already written)
+                self.result.retries += 1
+                if self.plan.retry_delay_s:
+                    time.sleep(self.plan.retry_delay_s)
+                continue
             except DeviceError as exc:
                 device = phase[0]
                 self._event("device_error", index=pos.index, label=pos.label, attempt=attempt, device=device,
@@ -1021,6 +1077,10 @@ class ScanRunner:
                 continue
             self._done[pos.index] = record
             self.result.captured += 1
+            if record["failed"]:
+                self.result.failed.append(pos.label)
+                self._event("position_failed", index=pos.index, label=pos.label, attempts=attempt,
+                            reason=record["failed"])
             self._run_inspect(pos, record)
             return
 
@@ -1043,6 +1103,7 @@ class ScanRunner:
         read_back = tuple(float(v) for v in self.stage.position(timeout_s=READBACK_TIMEOUT_S))
         tf = self.plan.through_focus
         names = pos.file_names(self.plan.frames_per_position, self.plan.suffix)
+        failed: str | None = None
         grabs: list = []
         contexts: list[dict[str, Any]] = []
         if tf is None or tf.white_frames:
@@ -1052,6 +1113,7 @@ class ScanRunner:
             grabs = [grab(self.camera, self.plan.average, self.plan.capture_timeout_s)
                      for _ in range(self.plan.frames_per_position)]
             contexts = [{} for _ in grabs]
+            failed = self._check_white(pos, attempt, names, grabs, read_back)
         else:
             names = []
         t4 = time.monotonic()
@@ -1065,9 +1127,7 @@ class ScanRunner:
         saved: list[SavedFrame] = []
         for k, (name, g, extra) in enumerate(zip(names, grabs, contexts), start=1):
             (self.out / (name + ".inspect.json")).unlink(missing_ok=True)
-            context = {"scan": {"index": pos.index, "label": pos.label, "frame": k, "target_mm": [pos.x_mm, pos.y_mm],
-                                "attempt": attempt, "plan_digest": self.plan.digest}, **extra}
-            item = save_frame(self.out / name, g, position_mm=read_back, context=context)
+            item = save_frame(self.out / name, g, position_mm=read_back, context=self._context(pos, k, attempt, extra))
             saved.append(item)
             for text in item.warnings:
                 self.result.warnings += 1
@@ -1085,7 +1145,7 @@ class ScanRunner:
                        "sequence": s.record["sequence"], "warnings": s.warnings,
                        **({"through_focus": extra.get("through_focus", {}).get("record")} if tf is not None else {})}
                       for s, extra in zip(saved, contexts)],
-            "attempts": attempt, "completed": _now_iso(),
+            "attempts": attempt, "rejected": list(self._rejected), "failed": failed, "completed": _now_iso(),
             "timing_s": timing,
         }
         truth = grabs[0].first.extra.get("truth")
@@ -1093,6 +1153,39 @@ class ScanRunner:
             record["truth"] = {k: v for k, v in truth.items() if k != "error_map"}
         self._writer.append(record)
         return record
+
+    def _context(self, pos: PlanPosition, k: int, attempt: int, extra: dict[str, Any]) -> dict[str, Any]:
+        """The sidecar context of frame k of an attempt at `pos`: where and when in the scan it was taken."""
+        return {"scan": {"index": pos.index, "label": pos.label, "frame": k, "target_mm": [pos.x_mm, pos.y_mm],
+                         "attempt": attempt, "plan_digest": self.plan.digest}, **extra}
+
+    def _check_white(self, pos: PlanPosition, attempt: int, names: list[str], grabs: list[Grab],
+                     read_back: tuple[float, ...]) -> str | None:
+        """None if the white frames can be inspected; else, with retries left, keep them as rejected frames and
+        raise FramesRejected (capture again), or on the last attempt return why (the position fails)."""
+        problems = [p for p in (exposure_problem(g) for g in grabs) if p]
+        if not problems:
+            return None
+        reason = problems[0]
+        if attempt > self.plan.retries:
+            return f"{reason.rstrip('.')} (after {attempt} attempt{'s' if attempt != 1 else ''})"
+        for k, (name, g) in enumerate(zip(names, grabs), start=1):
+            self._save_rejected(pos, attempt, k, name, g, read_back, reason)
+        _fsync_dir(self.out)
+        raise FramesRejected(reason)
+
+    def _save_rejected(self, pos: PlanPosition, attempt: int, k: int, name: str, g: Grab,
+                       read_back: tuple[float, ...], reason: str) -> None:
+        """Write a frame that cannot be inspected beside the scan's frames (nothing is lost) and note it."""
+        path = _rejected_path(self.out / name)
+        context = {**self._context(pos, k, attempt, {}), "rejected": reason}
+        item = save_frame(path, g, position_mm=read_back, context=context)
+        self._rejected.append({"file": path.name, "sha256": item.sha256, "bytes": item.record["bytes"],
+                               "sidecar": item.sidecar.name, "sequence": item.record["sequence"],
+                               "warnings": item.warnings, "attempt": attempt, "reason": reason})
+        self.result.rejected += 1
+        self._event("frame_rejected", index=pos.index, label=pos.label, attempt=attempt, file=path.name,
+                    reason=reason)
 
     def _move_carrier(self, axes: dict[str, float]) -> None:
         """Move the pinhole carrier's axes and settle (the through-focus settle time if the plan sets one)."""
@@ -1174,8 +1267,9 @@ class ScanRunner:
             self._run_inspect(pos, self._done[pos.index], missing_only=True)
 
     def _run_inspect(self, pos: PlanPosition, record: dict[str, Any], missing_only: bool = False) -> None:
-        """Run the hook on each white frame of a recorded position, with the position's pinhole frames."""
-        if self.inspect is None:
+        """Run the hook on each white frame of a recorded position, with the position's pinhole frames (not on
+        a failed position's: they cannot be inspected)."""
+        if self.inspect is None or record.get("failed"):
             return
         pinholes = tuple(self.out / item["file"] for item in record["files"] if item.get("through_focus"))
         for item in record["files"]:

@@ -93,6 +93,7 @@ class MainWindow(QMainWindow):
         self.last_frame: Any = None
         self.input: tuple[str, Any] | None = None  # ('raw', path) or ('frame', Frame)
         self.white: str | None = None
+        self.darks: tuple[str, ...] = ()  # dark frames: their master dark is subtracted before inspection
         self.tf_frames: tuple[Any, ...] = ()  # through-focus frames in use (gui.workers.TfFrame), checked
         self.tf_pending: tuple[str, ...] | None = None  # paths chosen, being checked by the frames worker
         self.tf_job = 0
@@ -220,6 +221,7 @@ class MainWindow(QMainWindow):
         self._action(m, "Open raw…", self.browse_raw, QKeySequence.StandardKey.Open)
         self._action(m, "Open white image…", self.browse_white)
         self._action(m, "Through-focus frames…", self.browse_through_focus)
+        self._action(m, "Dark frames…", self.browse_darks)
         self._action(m, "Camera config…", self.browse_config)
         self._action(m, "Export report…", self.browse_export, "Ctrl+E")
         self._action(m, "Load scan plan…", self.browse_plan)
@@ -254,6 +256,8 @@ class MainWindow(QMainWindow):
         ip.clearWhiteRequested.connect(lambda: self.set_white(None))
         ip.openThroughFocusRequested.connect(self.browse_through_focus)
         ip.clearThroughFocusRequested.connect(self.clear_through_focus)
+        ip.openDarksRequested.connect(self.browse_darks)
+        ip.clearDarksRequested.connect(lambda: self.set_darks(()))
         ip.useFrameRequested.connect(self.use_last_frame)
         ip.configRequested.connect(self.browse_config)
         ip.runRequested.connect(self.run_inspection)
@@ -560,6 +564,21 @@ class MainWindow(QMainWindow):
         self.white = str(path) if path else None
         self.inspection_panel.white.setText(self.white or "none (the image calibrates itself)")
 
+    def browse_darks(self) -> None:
+        paths, _ = QFileDialog.getOpenFileNames(self, "Dark frames (lens covered, the frames' exposure and gain)", "",
+                                                RAW_FILTER)
+        if paths:
+            self.set_darks(paths)
+
+    def set_darks(self, paths: Any) -> None:
+        """Subtract the master dark of these frames from every inspected image (checked when it runs)."""
+        self.darks = tuple(str(p) for p in paths or ())
+        names = [Path(p).name for p in self.darks]
+        self.inspection_panel.darks.setText(f"{len(names)} frames ({names[0]} …)" if len(names) > 1
+                                            else (names[0] if names else "none"))
+        self.inspection_panel.darks.setToolTip("\n".join(self.darks))
+        self.log(f"Dark frames in use: {len(names)}." if names else "No dark frames: hot pixels are guessed from the image.")
+
     # ------------------------------------------------------------------ through-focus frames
 
     def browse_through_focus(self) -> None:
@@ -699,7 +718,7 @@ class MainWindow(QMainWindow):
         kind, what = self.input
         tf = self.tf_pending if self.tf_pending is not None else tuple(f.path for f in self.tf_frames)
         req = InspectionRequest(self.cfg, raw=what if kind == "raw" else None, frame=what if kind == "frame" else None,
-                                white=self.white, token=self.token, through_focus=tf)
+                                white=self.white, token=self.token, through_focus=tf, darks=self.darks)
         self.inspection_panel.error.clear_error()
         self.inspection_panel.set_running(True)
         self.inspection_panel.progress.setValue(0)
@@ -1031,8 +1050,8 @@ class MainWindow(QMainWindow):
 
     def _scan_event(self, ev: dict) -> None:
         kind = ev.get("event")
-        if kind in ("device_error", "inspect_failed", "frame_warning", "failed"):
-            text = ev.get("error") or ev.get("warning") or ev.get("message") or str(ev)
+        if kind in ("device_error", "inspect_failed", "frame_warning", "frame_rejected", "position_failed", "failed"):
+            text = ev.get("error") or ev.get("warning") or ev.get("reason") or ev.get("message") or str(ev)
             self.log(f"Scan {kind.replace('_', ' ')}: {text}", "warning")
         elif kind in ("reconnect",):
             self.log(f"Scan: reconnecting the {ev.get('device')}.", "warning")

@@ -28,6 +28,17 @@ def _button(text: str, tip: str = "", primary: bool = False) -> QPushButton:
     return b
 
 
+def _fit_text(button: QPushButton, other_text: str = "") -> None:
+    """Never let a layout squeeze `button` below its text (or `other_text`, which it also shows)."""
+    width = button.sizeHint().width()
+    if other_text:
+        shown = button.text()
+        button.setText(other_text)
+        width = max(width, button.sizeHint().width())
+        button.setText(shown)
+    button.setMinimumWidth(width)
+
+
 def _readback() -> QLabel:
     label = QLabel("—")
     label.setFont(MONO)
@@ -367,6 +378,8 @@ class InspectionPanel(QWidget):
     clearWhiteRequested = Signal()
     openThroughFocusRequested = Signal()
     clearThroughFocusRequested = Signal()
+    openDarksRequested = Signal()
+    clearDarksRequested = Signal()
     useFrameRequested = Signal()
     configRequested = Signal()
     runRequested = Signal()
@@ -385,14 +398,17 @@ class InspectionPanel(QWidget):
         self.throughfocus.setWordWrap(True)
         self.throughfocus.setToolTip("pinhole frames of the same array imaged ±u behind / in front of the MLA: "
                                      "they read every covered lens' focal error with its sign")
+        self.darks = QLabel("none")
+        self.darks.setWordWrap(True)
         self.config = QLabel("—")
         self.config.setWordWrap(True)
-        for w in (self.source, self.white, self.throughfocus, self.config):
+        for w in (self.source, self.white, self.throughfocus, self.darks, self.config):
             w.setStyleSheet("color: #24292f")
             w.setSizePolicy(QSizePolicy.Policy.Ignored, QSizePolicy.Policy.Preferred)
         form.addRow("Image", self.source)
         form.addRow("White", self.white)
         form.addRow("Through-focus", self.throughfocus)
+        form.addRow("Darks", self.darks)
         form.addRow("Config", self.config)
         lay.addLayout(form)
         row = QHBoxLayout()
@@ -414,8 +430,16 @@ class InspectionPanel(QWidget):
         self.clear_tf = QPushButton("✕")
         self.clear_tf.setToolTip("inspect without through-focus frames")
         self.clear_tf.setMaximumWidth(28)
+        self.open_darks = QPushButton("Dark frames…")
+        self.open_darks.setToolTip("dark frames (lens covered, the frames' exposure and gain): their master dark is "
+                                   "subtracted first and its hot and dead pixels replaced")
+        self.clear_darks = QPushButton("✕")
+        self.clear_darks.setToolTip("inspect without dark frames")
+        self.clear_darks.setMaximumWidth(28)
         tf_row.addWidget(self.open_tf)
         tf_row.addWidget(self.clear_tf)
+        tf_row.addWidget(self.open_darks)
+        tf_row.addWidget(self.clear_darks)
         tf_row.addStretch(1)
         lay.addLayout(tf_row)
         row2 = QHBoxLayout()
@@ -446,6 +470,8 @@ class InspectionPanel(QWidget):
         self.clear_white.clicked.connect(self.clearWhiteRequested)
         self.open_tf.clicked.connect(self.openThroughFocusRequested)
         self.clear_tf.clicked.connect(self.clearThroughFocusRequested)
+        self.open_darks.clicked.connect(self.openDarksRequested)
+        self.clear_darks.clicked.connect(self.clearDarksRequested)
         self.use_frame.clicked.connect(self.useFrameRequested)
         self.open_config.clicked.connect(self.configRequested)
         self.run.clicked.connect(self.runRequested)
@@ -457,8 +483,8 @@ class InspectionPanel(QWidget):
     def set_running(self, running: bool) -> None:
         self.run.setEnabled(not running)
         self.cancel.setEnabled(running)
-        for w in (self.open_raw, self.open_white, self.clear_white, self.open_tf, self.clear_tf, self.use_frame,
-                  self.open_config):
+        for w in (self.open_raw, self.open_white, self.clear_white, self.open_tf, self.clear_tf, self.open_darks,
+                  self.clear_darks, self.use_frame, self.open_config):
             w.setEnabled(not running)
 
 
@@ -487,15 +513,16 @@ class ScanPanel(QWidget):
         form.addRow("Plan", self.plan)
         out_row = QHBoxLayout()
         out_row.addWidget(self.out, 1)
-        self.choose_out = QPushButton("…")
-        self.choose_out.setMaximumWidth(28)
+        self.choose_out = QToolButton()  # a tool button: as narrow as its "…", never clipped
+        self.choose_out.setText("…")
+        self.choose_out.setToolTip("choose the output folder")
         out_row.addWidget(self.choose_out)
         form.addRow("Output", out_row)
         left.addLayout(form)
         self.inspect = QCheckBox("Inspect each position (verdict on the wafer map)")
         self.inspect.setChecked(True)
         left.addWidget(self.inspect)
-        row = QHBoxLayout()
+        row = QGridLayout()
         self.load = QPushButton("Load plan…")
         self.edit = QPushButton("Edit plan…")
         self.run = _button("Run scan", primary=True)
@@ -505,8 +532,11 @@ class ScanPanel(QWidget):
         self.abort.setStyleSheet("QPushButton:enabled { color: #cf222e; font-weight: bold; }")
         self.resume = QPushButton("Resume")
         self.resume.setToolTip("continue the last aborted or failed scan in the same folder")
-        for w in (self.load, self.edit, self.run, self.pause, self.abort, self.resume):
-            row.addWidget(w)
+        # two rows (plan and start; then the running scan's controls): six buttons in one row did not fit
+        # the column at the default window size and Qt squeezed them below their text ("un sca")
+        for k, w in enumerate((self.load, self.edit, self.run, self.pause, self.abort, self.resume)):
+            _fit_text(w, "Continue" if w is self.pause else "")
+            row.addWidget(w, k // 3, k % 3)
         left.addLayout(row)
         self.progress = QProgressBar()
         self.progress.setFormat("no plan")
@@ -521,8 +551,8 @@ class ScanPanel(QWidget):
         left.addStretch(1)
         lw = QWidget()
         lw.setLayout(left)
-        lw.setMinimumWidth(340)
-        lw.setMaximumWidth(460)
+        lw.setMinimumWidth(max(340, lw.minimumSizeHint().width()))
+        lw.setMaximumWidth(max(460, lw.minimumSizeHint().width()))  # a large font widens the column, never clips
         outer.addWidget(lw)
         self.wafer = WaferMap()
         self.wafer.setMinimumHeight(160)

@@ -538,6 +538,7 @@ class InspectionRequest:
     white: str | None = None
     token: CancelToken = field(default_factory=CancelToken)
     through_focus: tuple[str, ...] = ()  # pinhole frame files (+u / -u pairs), read after the white inspection
+    darks: tuple[str, ...] = ()  # dark frame files: their master dark is subtracted from the image and the white
 
 
 @dataclass(frozen=True)
@@ -680,8 +681,9 @@ class InspectionView:
         return ref if ref.ndim == 2 else ref[m - 1, n - 1]
 
 
-def frame_to_image(frame: Any) -> np.ndarray:
-    """A camera Frame as the prepared float32 image the inspection takes (exposure checked)."""
+def frame_to_image(frame: Any, dark: Any = None) -> np.ndarray:
+    """A camera Frame as the prepared float32 image the inspection takes (exposure checked); `dark`: a
+    master dark (mlaqc.inspection.darks) checked against the frame and subtracted first."""
     from drivers.capture import Grab
     from mlaqc.inspection.pipeline import prepare
     from mlaqc.inspection.rawio import RawFrame, check_exposure
@@ -691,6 +693,12 @@ def frame_to_image(frame: Any) -> np.ndarray:
     raw = RawFrame(frame.data, bits, frame.cfa, g.black_level, max(g.white_level, g.black_level + 1), {},
                    f"frame {frame.sequence}")
     check_exposure(raw)
+    if dark is not None:
+        from mlaqc.inspection.darks import FrameFacts, correct
+
+        dark.check(FrameFacts.of(raw, exposure_us=getattr(frame, "exposure_us", None), gain=getattr(frame, "gain", None)),
+                   "captured frame")
+        return correct([raw], dark)
     return prepare(raw)
 
 
@@ -824,10 +832,25 @@ class InspectionWorker(QObject):
             from mlaqc.inspection.pipeline import inspect_image, load_frame
 
             cfg = req.cfg
+            dark, info, notes = None, None, []
+            if req.darks:
+                from mlaqc.inspection.darks import load_frames, master_dark_cached, noise_info, noise_notes, with_noise
+                from mlaqc.inspection.rawio import Levels
+
+                stage(3, "building the master dark")
+                s = cfg.sensor
+                dark = master_dark_cached(tuple(req.darks), sensor=Levels(s.bit_depth, s.black_level_dn),
+                                          pitch_px=cfg.layout.subimage_pitch_px, expected_shape=(s.height_px, s.width_px))
             stage(5, "loading the image")
             if req.frame is not None:
-                img = frame_to_image(req.frame)
+                img = frame_to_image(req.frame, dark)
                 source = f"captured frame #{req.frame.sequence}"
+                if dark is not None:
+                    info = noise_info(1, dark)
+                    notes = noise_notes(info)
+            elif req.raw and dark is not None:
+                img, info = load_frames([req.raw], cfg, None, notes, dark)
+                source = str(req.raw)
             elif req.raw:
                 img = load_frame(req.raw, cfg)
                 source = str(req.raw)
@@ -840,12 +863,14 @@ class InspectionWorker(QObject):
             white = img
             if req.white:
                 stage(15, "loading the white image")
-                white = load_frame(req.white, cfg)
+                white = load_frame(req.white, cfg, dark=dark)
             stage(25, "calibrating the microlens grid")
             grid = calibrate(white, expected_pitch_px=cfg.layout.subimage_pitch_px,
                              expected_shape=(cfg.mla.count_h, cfg.mla.count_w))
             stage(60, "measuring and identifying every lens")
-            result = inspect_image(img, cfg, grid=grid, source=source)
+            result = inspect_image(img, cfg, grid=grid, source=source, notes=tuple(notes))
+            if info is not None:
+                with_noise(result, info)
             frames: tuple[TfFrame, ...] = ()
             white_flagged = None
             if req.through_focus:
@@ -1104,8 +1129,8 @@ class ScanWorker(QObject):
             control.check()
 
         def on_event(ev: dict) -> None:
-            if ev.get("event") == "inspect_failed" and "index" in ev:
-                verdicts[int(ev["index"])] = {"verdict": "ERROR", "error": str(ev.get("error", ""))}
+            if ev.get("event") in ("inspect_failed", "position_failed") and "index" in ev:
+                verdicts[int(ev["index"])] = {"verdict": "ERROR", "error": str(ev.get("error") or ev.get("reason", ""))}
             self.event.emit(ev)
 
         inspect_hook = None

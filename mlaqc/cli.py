@@ -10,67 +10,85 @@ from __future__ import annotations
 import argparse
 import gc
 import importlib
+import importlib.util
 import sys
 from collections.abc import Sequence
 
 from mlaqc import __version__
 from mlaqc.errors import MlaqcError
 
-# Modules that contribute subcommands, in --help order. Missing optional ones are skipped.
-COMMAND_MODULES = (
-    "mlaqc.commands.simulate",
-    "mlaqc.commands.errormap",
-    "mlaqc.commands.calibrate",
-    "mlaqc.commands.inspect",
-    "mlaqc.commands.models",
-    "mlaqc.commands.demo",
-    "drivers.commands",
-    "gui.commands",
-)
-
-
-# The module that registers each subcommand: `mlaqc COMMAND ...` imports that module alone (importing
-# them all, with their numerical and hardware dependencies, cost a few tenths of a second per run).
-COMMAND_OWNERS = {
-    "simulate": "mlaqc.commands.simulate", "errormap": "mlaqc.commands.errormap",
-    "calibrate": "mlaqc.commands.calibrate", "inspect": "mlaqc.commands.inspect",
-    "models": "mlaqc.commands.models", "demo": "mlaqc.commands.demo",
-    "capture": "drivers.commands", "scan": "drivers.commands", "gui": "gui.commands",
+# Every subcommand: the module that registers it, and the line `mlaqc --help` shows for it (the same as
+# the module's own `help=`, checked by tests/test_fast_paths.py). `mlaqc COMMAND ...` imports that module
+# alone, and `mlaqc --help` none of them: their numerical and hardware imports cost tenths of a second.
+COMMANDS = {
+    "simulate": ("mlaqc.commands.simulate", "render a raw image with the ray-traced camera model"),
+    "errormap": ("mlaqc.commands.errormap", "create or check a per-lens error map (JSON keyed by U(m,n))"),
+    "calibrate": ("mlaqc.commands.calibrate", "find every microlens in a white image and write grid.json"),
+    "inspect": ("mlaqc.commands.inspect", "inspect raw images: defective lenses, type, size, PASS/FAIL"),
+    "models": ("mlaqc.commands.models",
+               "build (or rebuild) a camera's reference model, signature tables and through-focus model"),
+    "kernels": ("mlaqc.commands.kernels", "compile the inspection kernels ahead of time for this machine (or check them)"),
+    "demo": ("mlaqc.commands.demo", "simulate an MLA with seeded defects, inspect it, report found vs seeded"),
+    "capture": ("drivers.commands", "capture raw frames (or averages) from a camera with provenance sidecars"),
+    "scan": ("drivers.commands", "XY scan: move, settle, capture at each plan position; resumable"),
+    "gui": ("gui.commands", "the desktop QC app: live view, stage, inspection, scans"),
 }
+COMMAND_MODULES = tuple(dict.fromkeys(module for module, _ in COMMANDS.values()))
 
 
 def build_parser(modules: Sequence[str] = COMMAND_MODULES) -> argparse.ArgumentParser:
-    """The top-level parser with every available subcommand (of `modules`: all of them by default)."""
-    return _build(modules)[0]
+    """The top-level parser with every available subcommand (of `modules`) fully registered."""
+    parser, sub = _top()
+    for name in modules:
+        module = _import_command(name)
+        if module is not None:
+            module.register(sub)
+    return parser
 
 
-def _build(modules: Sequence[str]) -> tuple[argparse.ArgumentParser, argparse._SubParsersAction]:
+def _top() -> tuple[argparse.ArgumentParser, argparse._SubParsersAction]:
     parser = argparse.ArgumentParser(
         prog="mlaqc",
         description="Microlens-array QC: simulate, capture, calibrate and inspect plenoptic raw images.",
     )
     parser.add_argument("--version", action="version", version=f"mlaqc {__version__}")
-    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
-    for name in modules:
-        try:
-            module = importlib.import_module(name)
-        except ModuleNotFoundError as exc:
-            if exc.name and name.startswith(exc.name):
-                continue  # that part of the product is not installed or not written yet
-            raise
-        module.register(sub)
-    return parser, sub
+    return parser, parser.add_subparsers(dest="command", metavar="COMMAND")
+
+
+def _import_command(name: str):
+    """The command module, or None when that part of the product is not installed."""
+    try:
+        return importlib.import_module(name)
+    except ModuleNotFoundError as exc:
+        if exc.name and name.startswith(exc.name):
+            return None
+        raise
+
+
+def _installed(module: str) -> bool:
+    """Whether a command's module can be imported (found, not imported)."""
+    try:
+        return importlib.util.find_spec(module) is not None
+    except ModuleNotFoundError:
+        return False
 
 
 def _parser_for(argv: Sequence[str]) -> argparse.ArgumentParser:
-    """The parser for this command line: the named subcommand's module alone when that registers it,
-    else every module (top-level options, help, an unknown or uninstalled command)."""
-    owner = COMMAND_OWNERS.get(argv[0]) if argv else None
-    if owner is not None:
-        parser, sub = _build((owner,))
-        if argv[0] in sub.choices:
-            return parser
-    return build_parser()
+    """The parser for this command line: the named subcommand's module alone, registered in full; for
+    top-level options, help, or an unknown or uninstalled command, every command by name and help line."""
+    entry = COMMANDS.get(argv[0]) if argv else None
+    if entry is not None:
+        parser, sub = _top()
+        module = _import_command(entry[0])
+        if module is not None:
+            module.register(sub)
+            if argv[0] in sub.choices:
+                return parser
+    parser, sub = _top()
+    for name, (module, line) in COMMANDS.items():
+        if _installed(module):
+            sub.add_parser(name, help=line)
+    return parser
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -82,6 +100,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     if not getattr(args, "func", None):
         parser.print_help()
         return 2
+    if process:
+        gc.freeze()  # what the imports made lives to the end: collections during the work need not scan it
     try:
         return int(args.func(args) or 0)
     except MlaqcError as exc:

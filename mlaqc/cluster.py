@@ -26,7 +26,6 @@
 from __future__ import annotations
 
 import argparse
-import asyncio
 import concurrent.futures
 import contextlib
 import gc
@@ -52,7 +51,6 @@ TASK_RETRIES = 2  # extra runs of a task that raised (a worker that died is hand
 NO_MALLOC_TRIM = "distributed.nanny.pre-spawn-environ.MALLOC_TRIM_THRESHOLD_"
 
 T = TypeVar("T")
-CANCELLED = (concurrent.futures.CancelledError, asyncio.CancelledError)  # Dask's FutureCancelledError is the first
 
 
 def add_scheduler_option(p: argparse.ArgumentParser) -> None:
@@ -95,6 +93,8 @@ def connect(address: str, *, timeout_s: float | None = None, quiet: bool = False
     timeout = CONNECT_TIMEOUT_S if timeout_s is None else timeout_s
     stream = stream or sys.stderr
     try:
+        import asyncio
+
         import dask
         from distributed import Client, KilledWorker, LocalCluster
         from distributed.comm.core import CommClosedError
@@ -142,7 +142,7 @@ def connect(address: str, *, timeout_s: float | None = None, quiet: bool = False
             yield client
         except KilledWorker as exc:
             raise _killed(exc) from exc
-        except (CommClosedError, *CANCELLED) as exc:
+        except (CommClosedError, concurrent.futures.CancelledError, asyncio.CancelledError) as exc:
             why = getattr(exc, "reason", None) or _reason(exc)  # FutureCancelledError: scheduler-connection-lost
             raise DeviceError(f"lost the Dask cluster at {address} mid-run ({why}); what was written so far is "
                               "complete") from exc

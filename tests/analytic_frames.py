@@ -253,3 +253,46 @@ def write_container(path: str | Path, counts: np.ndarray, bits: int, black: int,
     else:
         raise ValueError(f"unknown container {path.suffix}")
     return path
+
+
+@dataclass(frozen=True)
+class DarkPattern:
+    """A camera's fixed dark pattern, in counts above the black level: amplifier glow in one corner
+    (`glow_dn` at the corner pixel, falling off as exp(-r / (glow_scale x the frame's smaller side)) with
+    r from a point just outside the corner),
+    a random offset per column (uniform within ±`column_dn`) and `hot` hot pixels (dark excess
+    log-uniform in `hot_dn`). What `dark_frame` adds read noise to, and what a white frame carries too."""
+
+    shape: tuple[int, int] = (2048, 2048)
+    glow_dn: float = 400.0
+    glow_scale: float = 0.08
+    column_dn: float = 6.0
+    hot: int = 2000
+    hot_dn: tuple[float, float] = (40.0, 3000.0)
+    seed: int = 17
+
+    def hot_pixels(self) -> tuple[np.ndarray, np.ndarray]:
+        """(rows, cols) of the hot pixels, distinct."""
+        rng = np.random.default_rng(self.seed)
+        flat = rng.choice(self.shape[0] * self.shape[1], size=self.hot, replace=False)
+        return np.unravel_index(np.sort(flat), self.shape)
+
+    def level(self) -> np.ndarray:
+        """The pattern (float64, H x W), counts above black."""
+        h, w = self.shape
+        rng = np.random.default_rng(self.seed + 1)
+        y, x = np.ogrid[:h, :w]
+        scale = self.glow_scale * min(h, w)
+        d = 0.5 * scale  # the amplifier sits just outside the top-right corner: the corner pixel gets glow_dn
+        out = self.glow_dn * np.exp(-(np.hypot(x - (w - 1) - d, y + d) - np.sqrt(2) * d) / scale)
+        out = out + rng.uniform(-self.column_dn, self.column_dn, w)[None, :]
+        r, c = self.hot_pixels()
+        lo, hi = self.hot_dn
+        out[r, c] += np.exp(rng.uniform(np.log(lo), np.log(hi), r.size))
+        return out
+
+
+def dark_frame(pattern: np.ndarray, read_noise_dn: float, rng: np.random.Generator, bits: int, black: int) -> np.ndarray:
+    """One dark frame's counts: black + the pattern + Gaussian read noise, rounded and clipped to `bits`."""
+    counts = black + pattern + read_noise_dn * rng.standard_normal(pattern.shape)
+    return np.clip(np.rint(counts), 0, (1 << bits) - 1).astype(np.uint8 if bits <= 8 else np.uint16)

@@ -213,12 +213,12 @@ def test_focus_fit_split_over_lens_ranges_is_the_whole_array_call():
     ug = np.outer(dense_m, rng.normal(size=f)) + 0.3 * np.outer(dense_m ** 2, rng.normal(size=f))
     uv = ug[rng.integers(0, gd, n)] + rng.normal(scale=0.2, size=(n, f))
     chi2 = np.empty((n, (gd - 1) // ms.COARSE + 1))
-    ms._coarse_chi2(uv, ug, ms.COARSE, chi2)
+    ms.coarse_chi2(uv, ug, ms.COARSE, chi2)
     whole = [np.empty(n), np.empty(n), np.empty(n), np.empty(n, np.bool_)]
     step = float(np.median(np.diff(dense_m[:: ms.COARSE])))
-    ms._focal_scan(chi2, dense_m, ug, uv, ms.COARSE, 1.0 / 1.5 ** 2, ms.SIGN_RESOLVED_CHI2, 3.0 * step, *whole)
+    ms.focal_scan(chi2, dense_m, ug, uv, ms.COARSE, 1.0 / 1.5 ** 2, ms.SIGN_RESOLVED_CHI2, 3.0 * step, *whole)
     split_chi2 = np.empty_like(chi2)
-    ms._on_cores(lambda a, b: ms._coarse_chi2(uv[a:b], ug, ms.COARSE, split_chi2[a:b]), n)
+    ms._on_cores(lambda a, b: ms.coarse_chi2(uv[a:b], ug, ms.COARSE, split_chi2[a:b]), n)
     assert np.array_equal(split_chi2, chi2)
     for got, want in zip(ms._focal((dense_m, ug, uv, chi2), 1.5), whole):
         assert np.array_equal(got, want, equal_nan=True)

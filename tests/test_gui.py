@@ -426,3 +426,29 @@ def test_scan_plan_can_be_edited_and_is_validated(qtbot, tmp_path):
         assert dialog.check() and len(dialog.plan.positions) == 6
     finally:
         w.close()
+
+
+def clipped_texts(panel) -> list[str]:
+    """The panel's visible buttons and one-line labels that are narrower or lower than their text needs."""
+    from PySide6.QtWidgets import QAbstractButton, QLabel
+
+    widgets = [*panel.findChildren(QAbstractButton),
+               *(label for label in panel.findChildren(QLabel) if not label.wordWrap())]
+    return [f"{type(b).__name__} {b.text()!r}: {b.width()}x{b.height()} px, needs {b.sizeHint().width()}x"
+            f"{b.sizeHint().height()}" for b in widgets
+            if b.isVisible() and b.text() and (b.sizeHint().width() > b.width() or b.sizeHint().height() > b.height())]
+
+
+def test_scan_panel_shows_every_label_whole_at_the_default_size(qtbot, window):
+    """At the default window size no button or label of the scan panel is clipped (issue 24: "un sca"),
+    also when Pause reads "Continue"."""
+    from PySide6.QtWidgets import QApplication
+
+    panel = window.scan_panel
+    window.docks["scan"].raise_()
+    QApplication.processEvents()  # run the pending layout requests
+    assert panel.isVisible()  # (the window as MainWindow sizes it: no resize here)
+    assert clipped_texts(panel) == []
+    panel.pause.setText("Continue")  # what a paused scan shows
+    QApplication.processEvents()
+    assert clipped_texts(panel) == []

@@ -26,6 +26,7 @@ from mlaqc.report import ERROR_COLOURS, REPORT_FILES
 from mlaqc.report import html as report_html
 from mlaqc.report import load_report
 from mlaqc.report import maps as report_maps
+from mlaqc.report import png as report_png
 from mlaqc.report import write as report_write
 from mlaqc.report import write_report
 
@@ -385,17 +386,16 @@ def test_encoder_failure_half_way_leaves_old_files_and_no_partial_ones(tmp_path,
     out = tmp_path / "r"
     write_report(result, out)
     before = _snapshot(out)
-    real, calls = report_maps._encode_png, []
+    real, calls = report_png.PendingPng._compress, []
 
-    def flaky(img, **kw):
-        calls.append(img.shape)
+    def flaky(self, a, b, final):  # one band of one image (the maps' bands on the pool, the gallery's here)
+        calls.append((a, b))
         if len(calls) == 3:
             raise RuntimeError("encoder exploded")
-        return real(img, **kw)
+        return real(self, a, b, final)
 
-    monkeypatch.setattr(report_write, "_encode_png", flaky)
-    monkeypatch.setattr(report_html, "_encode_png", flaky)
-    changed = make_result(source="/data/other.dng")  # full map, then lens sub-images: call 3 is in the gallery
+    monkeypatch.setattr(report_png.PendingPng, "_compress", flaky)
+    changed = make_result(source="/data/other.dng")
     with pytest.raises(RuntimeError, match="exploded"):
         write_report(changed, out)
     assert _snapshot(out) == before

@@ -21,6 +21,7 @@ from drivers.scan import (MANIFEST_NAME, ScanFailed, ScanInterrupted, default_in
 from drivers.stage import open_stage
 from mlaqc.cli import main
 from mlaqc.errors import InputError
+from waiting import stays, wait_until
 
 REPO = Path(__file__).resolve().parents[1]
 FIXTURES = REPO / "fixtures"
@@ -41,14 +42,14 @@ def events(out: Path) -> list[dict]:
 
 def wait_for_records(out: Path, count: int, proc: subprocess.Popen, timeout_s: float) -> int:
     """Poll the manifest until it holds `count` position records (or the process ends)."""
-    deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline and proc.poll() is None:
+
+    def recorded() -> int:
         manifest = out / MANIFEST_NAME
-        if manifest.exists():
-            n = manifest.read_bytes().count(b"\n") - 1
-            if n >= count:
-                return n
-        time.sleep(0.02)
+        return manifest.read_bytes().count(b"\n") - 1 if manifest.exists() else 0
+
+    wait_until(lambda: recorded() >= count or proc.poll() is not None, timeout_s, poll_s=0.02)
+    if recorded() >= count:
+        return recorded()
     raise AssertionError(f"the scan did not record {count} positions in {timeout_s} s (exit {proc.poll()}): "
                          f"{proc.stderr.read().decode() if proc.poll() is not None else ''}")
 
@@ -206,6 +207,8 @@ def test_200_position_scan_survives_faults_kill_and_resume(tmp_path):
     assert sorted(r["index"] for r in recs) == list(range(200))
     assert result.resumed == len(done) and result.captured == 200 - len(done) and result.done == 200
     expected_files = {f"pos_{i:05d}.tiff" for i in range(1, 201)}
+    rejected = [x for r in recs for x in r.get("rejected", [])]  # (records of the killed run have them too)
+    expected_files |= {x["file"] for x in rejected}
     names = {p.name for p in out.iterdir()}
     assert names == expected_files | {n + ".meta.json" for n in expected_files} | {MANIFEST_NAME, "events.jsonl"}
     for rec in recs:
@@ -228,10 +231,14 @@ def test_200_position_scan_survives_faults_kill_and_resume(tmp_path):
     assert any("lost its connection" in e["error"] for e in errors) and any("alarm" in e["error"].lower() for e in errors)
     assert result.reconnects["stage"] >= 3 and result.reconnects["camera"] >= 3 and result.retries >= 7
     kinds = {e["event"] for e in events(out)}
-    assert {"removed_temp_file", "manifest_compacted", "reconnect", "frame_warning", "finished"} <= kinds
+    assert {"removed_temp_file", "manifest_compacted", "reconnect", "frame_warning", "frame_rejected",
+            "finished"} <= kinds
+    # the black frame (black@35, in each run) was captured again: kept as a rejected frame, not as the position's
+    assert rejected and all("is black" in x["reason"] and x["attempt"] == 1 for x in rejected)
+    assert all(r["failed"] is None for r in recs)
     warnings = [w for r in recs for w in r["files"][0]["warnings"]]
-    assert any("black" in w for w in warnings) and any("lost" in w for w in warnings)
-    assert len(warnings) <= 6  # only the injected black frames and frame drops (each fires in both runs)
+    assert warnings and all("lost" in w for w in warnings)
+    assert len(warnings) <= 3  # only the frame drops (the URL's fires in both runs, plus the injected one)
     rate = result.positions_per_s_excl_motion
     print(f"\nresumed {result.captured} positions in {elapsed:.1f} s: {rate:.1f} positions/s excluding "
           f"{result.motion_s:.2f} s of motion; {result.retries} retries, reconnects {result.reconnects}")
@@ -279,10 +286,9 @@ def test_ctrl_c_mid_move_stops_the_stage_and_keeps_the_manifest(tmp_path, capsys
         assert msg.startswith("scan interrupted at position 3 of 4") and "the stage was stopped" in msg
         assert "2 of 4 positions are recorded" in msg and msg.endswith("rerun with --resume to continue.")
         sim = stage.sim
-        assert b"!" in sim.realtime_log  # feed hold sent
+        assert wait_until(lambda: b"!" in sim.realtime_log)  # feed hold sent (the simulator reads on its own thread)
         x1, _ = sim.position_mm
-        time.sleep(0.15)
-        assert sim.position_mm[0] == x1 and 15.0 < x1 < 20.0  # stopped mid-move and staying there
+        assert stays(lambda: sim.position_mm[0] == x1, for_s=0.15) and 15.0 < x1 < 20.0  # stopped mid-move, staying
         assert not stage.is_busy()
     finally:
         stage.close()
@@ -351,6 +357,69 @@ def test_retries_exhausted_stops_safely_with_exit_3(tmp_path, capsys):
     assert main(["scan", "--camera", "mock://?wafer=3x1&rpp=0.5&exposure_us=2000", "--stage", "mock://", "--plan", str(plan),
                  "--out", str(out), "--resume", "-q"]) == 0
     assert verify_scan(out) == []
+
+
+# --------------------------------------------------------------------------------------------- frames that cannot be inspected
+
+
+@pytest.mark.timeout(60)
+@pytest.mark.parametrize("fault, word", [("black", "is black"), ("saturated", "is saturated")])
+def test_uninspectable_frame_is_captured_again_and_kept(tmp_path, fault, word):
+    plan = write_plan(tmp_path / "plan.toml", QUICK_PLAN)
+    out = tmp_path / "scan"
+    seen: list[dict] = []
+    inspected: list[tuple[str, int]] = []
+    result = run_scan(f"mock://?wafer=3x1&rpp=0.5&exposure_us=2000&faults={fault}@2", "mock://", plan, out,
+                      inspect=lambda f: inspected.append((f.path.name, f.record["index"])) or None,
+                      on_event=seen.append)
+    assert (result.done, result.retries, result.rejected, result.failed, result.warnings) == (3, 1, 1, [], 0)
+    first, second, third = records(out)
+    # the retried frame is the position's frame: good, no warning, from the second attempt
+    assert (second["attempts"], second["failed"], second["files"][0]["file"]) == (2, None, "pos_00002.tiff")
+    assert second["files"][0]["warnings"] == []
+    good = load_sidecar(out / "pos_00002.tiff")
+    assert good["device_extra"]["mock"]["fault"] is None and good["context"]["scan"]["attempt"] == 2
+    # the bad attempt is kept, listed and checksummed: nothing is lost
+    (bad,) = second["rejected"]
+    assert (bad["file"], bad["attempt"]) == ("pos_00002_rejected1.tiff", 1) and word in bad["reason"]
+    side = load_sidecar(out / bad["file"])
+    assert side["device_extra"]["mock"]["fault"] == fault and side["sha256"] == bad["sha256"]
+    assert side["context"]["rejected"] == bad["reason"] and side["context"]["scan"]["attempt"] == 1
+    assert side["sequence"] == 2 and good["sequence"] == 3  # captured again right away
+    assert first["rejected"] == third["rejected"] == [] and first["attempts"] == third["attempts"] == 1
+    assert [e["file"] for e in seen if e["event"] == "frame_rejected"] == ["pos_00002_rejected1.tiff"]
+    assert not [e for e in seen if e["event"] in ("frame_warning", "position_failed", "device_error")]
+    assert inspected == [("pos_00001.tiff", 0), ("pos_00002.tiff", 1), ("pos_00003.tiff", 2)]
+    assert verify_scan(out) == []
+
+
+@pytest.mark.timeout(60)
+def test_always_black_position_fails_after_its_retries_and_the_scan_goes_on(tmp_path):
+    plan = write_plan(tmp_path / "plan.toml", QUICK_PLAN)  # retries = 2: three attempts per position
+    out = tmp_path / "scan"
+    cam = "mock://?wafer=3x1&rpp=0.5&exposure_us=2000&faults=black@2x3"  # every attempt at position 2 is black
+    seen: list[dict] = []
+    inspected: list[int] = []
+    result = run_scan(cam, "mock://", plan, out, inspect=lambda f: inspected.append(f.record["index"]) or None,
+                      on_event=seen.append)
+    assert (result.done, result.captured, result.retries, result.rejected) == (3, 3, 2, 2)
+    assert result.failed == ["r001c002"] and "1 position FAILED (frames not inspectable: r001c002)" in result.summary()
+    first, second, third = records(out)
+    assert second["attempts"] == 3 and "is black" in second["failed"] and "after 3 attempts" in second["failed"]
+    assert [(x["file"], x["attempt"]) for x in second["rejected"]] == [
+        ("pos_00002_rejected1.tiff", 1), ("pos_00002_rejected2.tiff", 2)]
+    (last,) = second["files"]  # the last attempt's frame stays the position's frame, flagged by its warning
+    assert last["file"] == "pos_00002.tiff" and any("is black" in w for w in last["warnings"])
+    assert load_sidecar(out / "pos_00002.tiff")["device_extra"]["mock"]["fault"] == "black"
+    assert first["failed"] is None and third["failed"] is None and third["files"][0]["warnings"] == []
+    assert load_sidecar(out / "pos_00003.tiff")["device_extra"]["mock"]["fault"] is None
+    (failed,) = [e for e in seen if e["event"] == "position_failed"]
+    assert (failed["index"], failed["label"], failed["attempts"]) == (1, "r001c002", 3)
+    assert inspected == [0, 2]  # a failed position's frame is not handed to the inspection
+    assert verify_scan(out) == []
+    assert run_scan(cam, "mock://", plan, out, resume=True).captured == 0  # recorded: a resume keeps it
+    (out / "pos_00002_rejected1.tiff").unlink()
+    assert verify_scan(out) == ["position 2, rejected frame: pos_00002_rejected1.tiff is missing"]
 
 
 @pytest.mark.timeout(60)

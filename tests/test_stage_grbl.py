@@ -1,6 +1,8 @@
 """The real GRBL driver against the GRBL simulator on a pty, fault by fault.
 
-No fixed sleeps: tests wait on simulator state (wait_state / wait_for) and on the driver's own deadlines.
+No fixed sleeps: tests wait on simulator state (wait_state / wait_for / waiting.wait_until) and on the driver's
+own deadlines. State the simulator records on its own thread after the driver has already reacted (the pty hung
+up, then `hung_up`) is waited for, never read at once.
 """
 
 import re
@@ -12,6 +14,7 @@ import pytest
 from drivers.sim import GrblSim
 from drivers.stage import GrblStage, Limits, NotHomedError, StageAlarm, StageStopped, StageTimeout
 from mlaqc.errors import DeviceError, InputError
+from waiting import wait_until
 
 pytestmark = pytest.mark.timeout(20)
 
@@ -277,7 +280,7 @@ def test_disconnect_mid_move_names_the_device(sim, homed):
     sim.disconnect_mid_move(at_fraction=0.3)
     with pytest.raises(DeviceError, match=rf"GRBL stage {re.escape(sim.path)} lost its connection while moving to \(150.000, 150.000\) mm"):
         homed.move_to(150, 150, timeout_s=2.0)
-    assert sim.hung_up
+    assert wait_until(lambda: sim.hung_up, timeout_s=2.0)  # the server thread records it after closing the pty
     assert not homed.is_connected and not homed.homed
     with pytest.raises(DeviceError, match="is not connected"):
         homed.position()

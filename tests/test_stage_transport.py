@@ -64,8 +64,7 @@ def test_endless_noise_is_cut_into_bounded_lines(loop):
 
 
 def test_discard_input_drops_stale_bytes(loop):
-    loop.write(b"stale\n")
-    time.sleep(0)  # loop:// is synchronous: the bytes are already queued
+    loop.write(b"stale\n")  # loop:// is synchronous: the bytes are already queued
     loop.discard_input()
     assert loop.read_line(time.monotonic() + 0.05) is None
 

@@ -19,7 +19,13 @@ def register(sub: argparse._SubParsersAction) -> None:
                        description="Calibrate the microlens grid from a white (uniformly lit) raw image: pitch, "
                                    "rotation and every lens' measured centre, residual, flux and size, indexed "
                                    "U(m,n) for the config's MLA shape. Writes grid.json atomically.")
-    p.add_argument("white", help="white raw image (DNG or camera raw, TIFF, PNG, NPY)")
+    p.add_argument("white", nargs="+", help="white raw image (DNG or camera raw, TIFF, PNG, NPY); several frames of "
+                                             "one state are averaged into one")
+    p.add_argument("--dark", "-d", nargs="+", metavar="FRAME",
+                   help="dark frames (lens covered, the white's exposure and gain): their master dark is subtracted "
+                        "first and its hot and dead pixels replaced")
+    p.add_argument("--dark-method", choices=("median", "mean"), default="median",
+                   help="master dark: per-pixel median of the dark frames, or their sigma-clipped mean (default median)")
     p.add_argument("--out", "-o", required=True, help="output grid file (.json)")
     p.add_argument("--config", "-c", help="camera config TOML (default: the paper's Table 1 camera)")
     p.add_argument("--quiet", "-q", action="store_true", help="no summary")
@@ -37,9 +43,20 @@ def run(args: argparse.Namespace) -> int:
     cfg = load_config(args.config)
     start = time.perf_counter()
     s = cfg.sensor
-    frame = resolve_levels(load_raw(args.white), stated_levels(args), Levels(s.bit_depth, s.black_level_dn))
-    check_exposure(frame)
-    img, _ = suppress_hot_pixels(normalized(frame), frame.cfa)
+    whites = [args.white] if isinstance(args.white, str) else list(args.white)
+    if len(whites) > 1 or getattr(args, "dark", None):
+        from mlaqc.inspection.darks import build_master_dark, load_frames
+
+        dark = None
+        if args.dark:
+            dark = build_master_dark(args.dark, levels=stated_levels(args), sensor=Levels(s.bit_depth, s.black_level_dn),
+                                     method=args.dark_method, pitch_px=cfg.layout.subimage_pitch_px,
+                                     expected_shape=(s.height_px, s.width_px))
+        img, _ = load_frames(whites, cfg, stated_levels(args), None, dark)
+    else:
+        frame = resolve_levels(load_raw(whites[0]), stated_levels(args), Levels(s.bit_depth, s.black_level_dn))
+        check_exposure(frame)
+        img, _ = suppress_hot_pixels(normalized(frame), frame.cfa)
     grid = calibrate(img, expected_pitch_px=cfg.layout.subimage_pitch_px,
                      expected_shape=(cfg.mla.count_h, cfg.mla.count_w))
     grid.save(out)

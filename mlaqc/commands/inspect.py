@@ -18,6 +18,11 @@ and exit status as on this machine.
 --through-focus adds the second measurement (mlaqc.inspection.throughfocus): pinhole frames of the same
 array, read on the inspected frame's grid and combined into its report (mlaqc.inspection.combine). A scan
 folder whose plan had a [through_focus] step pairs each white frame with the pinhole frames of its position.
+
+--dark FRAME ... (or a scan folder's own dark frames, found from their sidecars) makes one master dark per
+batch (mlaqc.inspection.darks), checked against every raw's sidecar before anything is inspected or
+written, subtracted from every frame and from --white; --stack N averages every N consecutive raws into
+one frame (named by the first), and several --white frames are averaged likewise.
 """
 
 from __future__ import annotations
@@ -33,7 +38,7 @@ import sys
 import time
 import uuid
 from collections.abc import Iterator
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -59,12 +64,23 @@ def register(sub: argparse._SubParsersAction) -> None:
                                    "could not be inspected; the others still are), 3 = the Dask cluster failed.")
     p.add_argument("raw", nargs="+", help="raw image(s) (DNG, vendor raw, TIFF, PNG, NPY), or a scan folder")
     src = p.add_mutually_exclusive_group()
-    src.add_argument("--white", "-w", help="white image to calibrate the grid on (default: each raw itself)")
+    src.add_argument("--white", "-w", nargs="+", metavar="W",
+                     help="white image to calibrate the grid on (default: each raw itself); several frames of one "
+                          "state are averaged into one")
     src.add_argument("--grid", "-g", help="grid.json from `mlaqc calibrate`, reused without recalibrating")
     p.add_argument("--through-focus", "-t", nargs="+", metavar="FRAME", default=[],
                    help="through-focus pinhole frames of the same array (+u and -u pairs, each with its "
                         ".sim.json or .meta.json record): every covered lens' focal error with its sign, "
                         "combined into the report (one raw only; a scan folder pairs its own)")
+    p.add_argument("--dark", "-d", nargs="+", metavar="FRAME",
+                   help="dark frames (lens covered, the raws' exposure and gain): their master dark is subtracted "
+                        "from every frame first and its hot and dead pixels replaced (default: a scan folder's own "
+                        "dark frames, found from their .meta.json sidecars)")
+    p.add_argument("--dark-method", choices=("median", "mean"), default="median",
+                   help="master dark: per-pixel median of the dark frames, or their sigma-clipped mean (default median)")
+    p.add_argument("--stack", type=int, default=1, metavar="N",
+                   help="average every N consecutive raws (frames of one state) into one before inspecting: the "
+                        "noise drops by √N (default 1)")
     p.add_argument("--config", "-c", help="camera config TOML (default: the paper's Table 1 camera)")
     p.add_argument("--out", "-o", required=True, help="output folder for the report set(s)")
     p.add_argument("--quiet", "-q", action="store_true", help="no summary on stderr")
@@ -108,8 +124,9 @@ def through_focus_text(tf) -> str:
             f"pairs, focal error 1σ {'–' if sig is None else f'{100 * sig:.2f} %'} (median)")
 
 
-def shared_grid(args: argparse.Namespace, cfg: CameraConfig):
-    """The calibration every raw reuses: loaded from --grid, fitted on --white, or None (self-calibrate)."""
+def shared_grid(args: argparse.Namespace, cfg: CameraConfig, dark=None):
+    """The calibration every raw reuses: loaded from --grid, fitted on --white (its frames averaged, the
+    master dark `dark` subtracted), or None (self-calibrate)."""
     from mlaqc.inspection.calibrate import calibrate, load_grid
     from mlaqc.inspection.pipeline import load_frame
 
@@ -122,7 +139,9 @@ def shared_grid(args: argparse.Namespace, cfg: CameraConfig):
                              f"{cfg.mla.count_w}x{cfg.mla.count_h} lenses on {want[1]}x{want[0]} px")
         return grid
     if args.white:
-        return calibrate(load_frame(args.white, cfg, stated_levels(args)), expected_pitch_px=cfg.layout.subimage_pitch_px,
+        white = [args.white] if isinstance(args.white, str) else list(args.white)
+        img = load_frame(white[0] if len(white) == 1 else white, cfg, stated_levels(args), dark=dark)
+        return calibrate(img, expected_pitch_px=cfg.layout.subimage_pitch_px,
                          expected_shape=(cfg.mla.count_h, cfg.mla.count_w))
     return None
 
@@ -162,18 +181,33 @@ def scan_raws(folder: Path) -> list[tuple[str, tuple[str, ...]]]:
             files = [f for f in record.get("files", []) if isinstance(f, dict) and "file" in f]
             tf = tuple(str(folder / f["file"]) for f in files if f.get("through_focus"))
             raws += [(str(folder / f["file"]), tf) for f in files if not f.get("through_focus")]
+    if raws:  # dark frames (their sidecars say so) are the folder's darks, not frames to inspect
+        from mlaqc.inspection.darks import scan_dark_frames
+
+        dark = set(scan_dark_frames(folder))
+        raws = [(r, tf) for r, tf in raws if r not in dark]
     if not raws:
         raise InputError(f"scan folder {str(folder)!r} records no frames yet")
     return raws
 
 
-def batch_raws(args_raw: list[str], through_focus: list[str] = ()) -> tuple[list[str], dict[str, tuple[str, ...]], bool]:
+def batch_raws(args_raw: list[str], through_focus: list[str] = (), stack: int = 1,
+               stacks: dict[str, tuple[str, ...]] | None = None) -> tuple[list[str], dict[str, tuple[str, ...]], bool]:
     """The raws to inspect (each scan folder replaced by its white frames), the through-focus frames of
     each (from --through-focus for one raw, from the manifest for a scan folder's), and whether they are
-    a batch (several raws, or any scan folder: one report folder each plus batch.csv)."""
+    a batch (several raws, or any scan folder: one report folder each plus batch.csv). With `stack` N
+    every N consecutive raws are one frame (named by the first; `stacks` gets its N paths)."""
     jobs: list[tuple[str, tuple[str, ...]]] = []
     for raw in args_raw:
         jobs += scan_raws(Path(raw)) if Path(raw).is_dir() else [(raw, ())]
+    if stack != 1:
+        if stack < 1 or len(jobs) % stack:
+            raise InputError(f"--stack {stack} averages every {stack} raws into one, but {len(jobs)} raws were given"
+                             if stack >= 1 else f"--stack must be at least 1, not {stack}")
+        groups = [jobs[i:i + stack] for i in range(0, len(jobs), stack)]
+        if stacks is not None:
+            stacks.update({g[0][0]: tuple(r for r, _ in g) for g in groups})
+        jobs = [(g[0][0], tuple(f for _, tf in g for f in tf)) for g in groups]
     batch = len(jobs) > 1 or any(Path(r).is_dir() for r in args_raw)
     if through_focus:
         if batch:
@@ -184,18 +218,35 @@ def batch_raws(args_raw: list[str], through_focus: list[str] = ()) -> tuple[list
 
 
 def inspect_raw(raw: str, cfg: CameraConfig, grid, levels: Levels | None = None, *, path: str | None = None,
-                through_focus: tuple[str, ...] = ()):
+                through_focus: tuple[str, ...] = (), stack: tuple[str, ...] = (), dark=None):
     """Load and inspect one raw (read from `path` if given; the report names `raw`), with its through-focus
-    frames if any; InputError propagates."""
+    frames if any; `stack`: the frames of one state averaged into it (paths, `raw` among them); `dark`: a
+    master dark (mlaqc.inspection.darks) subtracted first. InputError propagates."""
     from mlaqc.inspection.pipeline import inspect_image, load_frame, with_through_focus
 
-    t0 = time.perf_counter()
+    from mlaqc.compiled import compile_seconds, net_clock
+
+    compiled_before = compile_seconds()
+    t0 = net_clock()
     notes: list[str] = []
-    img = load_frame(path or raw, cfg, levels, notes)
-    load_s = time.perf_counter() - t0
+    info = None
+    if len(stack) > 1 or dark is not None:
+        from mlaqc.inspection.darks import load_frames
+
+        img, info = load_frames(tuple(stack) if len(stack) > 1 else (path or raw,), cfg, levels, notes, dark)
+    else:
+        img = load_frame(path or raw, cfg, levels, notes)
+    load_s = net_clock() - t0
     result = inspect_image(img, cfg, grid=grid, source=str(raw), notes=tuple(notes))
-    result.timings_s["load"] = round(load_s, 4)  # the dict is mutable; the result is frozen
-    return with_through_focus(result, through_focus, cfg, levels) if through_focus else result
+    result.timings_s["load"] = round(max(load_s, 0.0), 4)  # the dict is mutable; the result is frozen
+    if info is not None:
+        from mlaqc.inspection.darks import with_noise
+
+        with_noise(result, info)
+    result = with_through_focus(result, through_focus, cfg, levels) if through_focus else result
+    if compile_seconds() > compiled_before:  # first use without the ahead-of-time kernels: said apart
+        result.timings_s["kernel_compile"] = round(compile_seconds() - compiled_before, 4)
+    return result
 
 
 def frame_row(result, folder: Path, seconds: float) -> dict:
@@ -207,12 +258,12 @@ def frame_row(result, folder: Path, seconds: float) -> dict:
 
 
 def inspect_one(raw: str, cfg: CameraConfig, grid, folder: Path, levels: Levels | None = None,
-                through_focus: tuple[str, ...] = ()) -> dict:
+                through_focus: tuple[str, ...] = (), stack: tuple[str, ...] = (), dark=None) -> dict:
     """Load, inspect and report one raw; a row of batch.csv (InputError propagates)."""
     from mlaqc.report import write_report
 
     t0 = time.perf_counter()
-    result = inspect_raw(raw, cfg, grid, levels, through_focus=through_focus)
+    result = inspect_raw(raw, cfg, grid, levels, through_focus=through_focus, stack=stack, dark=dark)
     write_report(result, folder, config_dict=cfg.to_dict())
     return {"result": result, **frame_row(result, folder, time.perf_counter() - t0)}
 
@@ -236,9 +287,11 @@ class BatchSpec:
     grid: Any  # the shared Grid, or None: each frame calibrates itself
     levels: Levels | None
     config_dict: dict  # for report.json
+    darks: dict = field(default_factory=dict)  # raw -> its master dark (mlaqc.inspection.darks), shared objects
 
 
-def inspect_remote(spec: BatchSpec, raw: str, path: str, client_sees_it: bool, through_focus: tuple[str, ...] = ()) -> dict:
+def inspect_remote(spec: BatchSpec, raw: str, path: str, client_sees_it: bool, through_focus: tuple[str, ...] = (),
+                   stack: tuple[str, ...] = ()) -> dict:
     """Run on a Dask worker: load the raw at `path` (absolute), inspect it and render its report set in
     memory; nothing is written. Returns {"row": batch.csv row, "contents": {file key: bytes}}, or
     {"error": sentence} for a frame that is bad input (a value, not an exception: Dask must not retry
@@ -249,7 +302,8 @@ def inspect_remote(spec: BatchSpec, raw: str, path: str, client_sees_it: bool, t
         return {"unseen": socket.gethostname()}
     t0 = time.perf_counter()
     try:
-        result = inspect_raw(raw, spec.cfg, spec.grid, spec.levels, path=path, through_focus=through_focus)
+        result = inspect_raw(raw, spec.cfg, spec.grid, spec.levels, path=path, through_focus=through_focus,
+                             stack=stack, dark=spec.darks.get(raw))
         contents = render_report(result, spec.config_dict)
     except InputError as exc:
         return {"error": str(exc)}
@@ -257,7 +311,8 @@ def inspect_remote(spec: BatchSpec, raw: str, path: str, client_sees_it: bool, t
 
 
 def rows_on_cluster(client: Any, raws: list[str], folders: list[Path], spec: BatchSpec,
-                    quiet: bool, pinholes: dict[str, tuple[str, ...]] | None = None) -> Iterator[tuple[int, dict]]:
+                    quiet: bool, pinholes: dict[str, tuple[str, ...]] | None = None,
+                    stacks: dict[str, tuple[str, ...]] | None = None) -> Iterator[tuple[int, dict]]:
     """(index, row) of every frame inspected on the cluster of `client`, in the order they complete;
     each frame's report set is written here, once, before its row is yielded."""
     from mlaqc.inspection.pipeline import _models
@@ -270,7 +325,8 @@ def rows_on_cluster(client: Any, raws: list[str], folders: list[Path], spec: Bat
     for i, raw in enumerate(raws):
         path = os.path.abspath(raw)  # workers have another working directory
         tf = tuple(os.path.abspath(f) for f in (pinholes or {}).get(raw, ()))
-        fut = client.submit(inspect_remote, shared, raw, path, os.path.exists(path), tf, pure=False,
+        stk = tuple(os.path.abspath(f) for f in (stacks or {}).get(raw, ()))
+        fut = client.submit(inspect_remote, shared, raw, path, os.path.exists(path), tf, stk, pure=False,
                             retries=cluster.TASK_RETRIES, key=f"inspect-{i + 1:05d}-{Path(raw).name}-{run_id}")
         futures[fut] = i
     label = f"inspecting {len(raws)} frames on Dask"
@@ -294,11 +350,13 @@ def rows_on_cluster(client: Any, raws: list[str], folders: list[Path], spec: Bat
 
 
 def rows_here(raws: list[str], folders: list[Path], cfg: CameraConfig, grid,
-              levels: Levels | None, pinholes: dict[str, tuple[str, ...]] | None = None) -> Iterator[tuple[int, dict]]:
+              levels: Levels | None, pinholes: dict[str, tuple[str, ...]] | None = None,
+              stacks: dict[str, tuple[str, ...]] | None = None, darks: dict | None = None) -> Iterator[tuple[int, dict]]:
     """(index, row) of every frame inspected in this process, in order."""
     for i, (raw, folder) in enumerate(zip(raws, folders)):
         try:
-            row = inspect_one(raw, cfg, grid, folder, levels, (pinholes or {}).get(raw, ()))
+            row = inspect_one(raw, cfg, grid, folder, levels, (pinholes or {}).get(raw, ()),
+                              (stacks or {}).get(raw, ()), (darks or {}).get(raw))
         except InputError as exc:
             yield i, error_row(raw, str(exc))
             continue
@@ -315,21 +373,23 @@ def run(args: argparse.Namespace) -> int:
     """Inspect and report; 0 all PASS, 1 some FAIL, 2 some frame was bad input (batch) or bad input,
     3 the Dask cluster failed."""
     out = check_out_dir(args.out)
-    raws, pinholes, batch = batch_raws(args.raw, args.through_focus)
+    stacks: dict[str, tuple[str, ...]] = {}
+    raws, pinholes, batch = batch_raws(args.raw, args.through_focus, getattr(args, "stack", 1), stacks)
     cfg = load_config(args.config)
     address = cluster.scheduler_address(args.scheduler)
     if address is not None:
         cluster.check_address(address)  # a malformed address is bad input, said before any work
-    grid = shared_grid(args, cfg)
     levels = stated_levels(args)
+    darks, white_dark = master_darks(args, raws, stacks, cfg, levels)
+    grid = shared_grid(args, cfg, white_dark)
     folders = report_folders(out, raws) if batch else [out]
     with contextlib.ExitStack() as stack:
         if address is None:
-            frames = rows_here(raws, folders, cfg, grid, levels, pinholes)
+            frames = rows_here(raws, folders, cfg, grid, levels, pinholes, stacks, darks)
         else:  # connected before anything is written: an unreachable cluster leaves no output
             client = stack.enter_context(cluster.connect(address, quiet=args.quiet))
-            frames = rows_on_cluster(client, raws, folders, BatchSpec(cfg, grid, levels, cfg.to_dict()), args.quiet,
-                                     pinholes)
+            frames = rows_on_cluster(client, raws, folders, BatchSpec(cfg, grid, levels, cfg.to_dict(), darks),
+                                     args.quiet, pinholes, stacks)
         if not batch:
             return _single(frames, out, args.quiet)
         out.mkdir(exist_ok=True)
@@ -348,6 +408,45 @@ def run(args: argparse.Namespace) -> int:
         print(f"{verdicts.count('PASS')} PASS, {verdicts.count('FAIL')} FAIL, {verdicts.count('ERROR')} ERROR "
               f"in {dt:.1f} s ({dt / len(rows):.2f} s/frame); {out / 'batch.csv'}", file=sys.stderr)
     return 2 if "ERROR" in verdicts else (1 if "FAIL" in verdicts else 0)
+
+
+def master_darks(args: argparse.Namespace, raws: list[str], stacks: dict[str, tuple[str, ...]], cfg: CameraConfig,
+                 levels: Levels | None) -> tuple[dict, Any]:
+    """({raw: its master dark}, the master dark of --white): from --dark for every raw, else each scan
+    folder's own dark frames for its raws; each master built once, and every raw's .meta.json sidecar
+    checked against it before anything is inspected or written (InputError: exit 2)."""
+    sets: dict[str, tuple[str, ...]] = {}
+    if getattr(args, "dark", None):
+        sets = {raw: tuple(args.dark) for raw in raws}
+    elif any(Path(r).is_dir() for r in args.raw):
+        from mlaqc.inspection.darks import scan_dark_frames
+
+        for folder in (Path(r) for r in args.raw if Path(r).is_dir()):
+            found = tuple(scan_dark_frames(folder))
+            if found:
+                sets.update({raw: found for raw in raws if Path(raw).parent == folder})
+                if not args.quiet:
+                    print(f"{folder}: {len(found)} dark frames found (their sidecars say dark)", file=sys.stderr)
+    if not sets:
+        return {}, None
+    from mlaqc.inspection.darks import build_master_dark, prepare_check
+    from mlaqc.inspection.rawio import Levels as SensorLevels
+
+    s = cfg.sensor
+    masters: dict[tuple[str, ...], Any] = {}
+    darks = {}
+    for raw, paths in sets.items():
+        if paths not in masters:
+            masters[paths] = build_master_dark(paths, levels=levels, sensor=SensorLevels(s.bit_depth, s.black_level_dn),
+                                               method=getattr(args, "dark_method", "median"),
+                                               pitch_px=cfg.layout.subimage_pitch_px,
+                                               expected_shape=(s.height_px, s.width_px))
+        darks[raw] = masters[paths]
+        prepare_check(stacks.get(raw, (raw,)), darks[raw])
+    white_dark = next(iter(masters.values())) if len(masters) == 1 else None
+    if white_dark is not None and args.white:
+        prepare_check([args.white] if isinstance(args.white, str) else args.white, white_dark)
+    return darks, white_dark
 
 
 def _single(frames: Iterator[tuple[int, dict]], out: Path, quiet: bool) -> int:

@@ -54,11 +54,10 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-import scipy.fft
-from scipy import ndimage
 
 from mlaqc.atomic import write_json_atomic
 from mlaqc.errors import InputError
+from mlaqc.inspection.fft import rfft2
 from mlaqc.inspection import calibrate_kernels as kernels
 from mlaqc.parallel import thread_map
 
@@ -159,10 +158,12 @@ class Grid:
         m_all, n_all = np.divmod(np.arange(self.rows * self.cols), self.cols)
         floats = [_rounded_column(getattr(self, key)) for key in _LENS_FLOATS]
         flags = [np.asarray(getattr(self, key), dtype=bool).ravel().tolist() for key in ("missing", "clipped")]
-        lenses = [{"m": m, "n": n, "measured_x_px": mx, "measured_y_px": my, "grid_x_px": gx, "grid_y_px": gy,
-                   "residual_px": res, "flux": flux, "radius_px": rad, "missing": miss, "clipped": clip}
-                  for m, n, mx, my, gx, gy, res, flux, rad, miss, clip
-                  in zip((m_all + 1).tolist(), (n_all + 1).tolist(), *floats, *flags)]
+        columns = [(m_all + 1).tolist(), (n_all + 1).tolist(), *floats, *flags]
+        lenses = _LensRecords([{"m": m, "n": n, "measured_x_px": mx, "measured_y_px": my, "grid_x_px": gx,
+                                "grid_y_px": gy, "residual_px": res, "flux": flux, "radius_px": rad,
+                                "missing": miss, "clipped": clip}
+                               for m, n, mx, my, gx, gy, res, flux, rad, miss, clip in zip(*columns)])
+        lenses.record_columns = (_LENS_KEYS, columns)
         return {
             "format": FORMAT,
             "version": VERSION,
@@ -268,6 +269,16 @@ class Grid:
 
 
 _LENS_FLOATS = ("measured_x_px", "measured_y_px", "grid_x_px", "grid_y_px", "residual_px", "flux", "radius_px")
+
+
+_LENS_KEYS = ("m", "n", *_LENS_FLOATS, "missing", "clipped")  # the order of to_json_dict's records
+
+
+class _LensRecords(list):
+    """grid.json's lens records, with the same values column by column (`record_columns`: keys, one list of
+    plain JSON values per key), so a writer need not gather them back out of 10^4 dicts."""
+
+    record_columns: tuple[tuple[str, ...], list[list]]
 
 
 def _rounded_column(a: np.ndarray) -> list[float | None]:
@@ -480,10 +491,10 @@ def _fft_lattice(img: np.ndarray, expected_pitch_px: float | None) -> _Lattice:
         src = img
     h, w = src.shape
     a = (src - np.float32(src.mean())) * _hann(h)[:, None] * _hann(w)[None, :]
-    spec = scipy.fft.rfft2(a, workers=_workers() if a.size > 1 << 20 else 1)  # small: threads cost more
+    spec = rfft2(a, workers=_workers() if a.size > 1 << 20 else 1)  # small: threads cost more
     power = spec.real ** 2 + spec.imag ** 2
-    ky = scipy.fft.fftfreq(h).astype(np.float32)
-    kx = scipy.fft.rfftfreq(w).astype(np.float32)
+    ky = np.fft.fftfreq(h).astype(np.float32)
+    kx = np.fft.rfftfreq(w).astype(np.float32)
     kr = np.hypot(ky[:, None], kx[None, :])
     band = (kr >= 6.0 / min(h, w)) & (kr <= 1.0 / MIN_PITCH_PX)
     pb = np.where(band, power, 0.0)
@@ -566,7 +577,7 @@ def _resolve_half_period(img: np.ndarray, basis: np.ndarray, base: np.ndarray) -
             ok = inside(pts) & np.all([inside(c) for c in corners], axis=0)
             if not ok.any():
                 continue
-            sample = lambda p: ndimage.map_coordinates(img, [p[1][ok], p[0][ok]], order=1)  # noqa: E731
+            sample = lambda p: _bilinear(img, p[0][ok], p[1][ok])  # noqa: E731
             score = float(np.mean(sample(pts)) - np.mean([sample(c) for c in corners]))
             if score > score_best:
                 best, score_best = o, score
@@ -574,6 +585,15 @@ def _resolve_half_period(img: np.ndarray, basis: np.ndarray, base: np.ndarray) -
 
 
 # --------------------------------------------------------------------------------------- disc fitting
+
+
+def _bilinear(img: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """img interpolated bilinearly at points (x, y) inside the frame (map_coordinates' order=1, in NumPy)."""
+    x0, y0 = np.floor(x).astype(np.intp), np.floor(y).astype(np.intp)
+    fx, fy = x - x0, y - y0
+    top = img[y0, x0] * (1.0 - fx) + img[y0, x0 + 1] * fx
+    bottom = img[y0 + 1, x0] * (1.0 - fx) + img[y0 + 1, x0 + 1] * fx
+    return top * (1.0 - fy) + bottom * fy
 
 
 def _workers() -> int:

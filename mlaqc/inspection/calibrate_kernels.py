@@ -13,7 +13,11 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from numba import njit
+from mlaqc.compiled import kernel
+
+_jit = kernel(cache=True, nogil=True, error_model="numpy")
+_jit_fast = kernel(cache=True, nogil=True, error_model="numpy", fastmath=True)
+_inline_fast = kernel(cache=True, nogil=True, error_model="numpy", inline="always", fastmath=True)
 
 N_NORMAL = 5  # amplitude, centre x, centre y, radius, (global edge width)
 TAIL = 10.0  # a neighbour's disc is left out beyond this many edge widths outside its rim (< 5e-5 of its level)
@@ -27,7 +31,7 @@ _LO, _HI, _S = _F(-20.0), _F(20.0), _F(1.0 / 32.0)
 _C3, _C4, _C5, _C6, _C7, _C8 = _F(1 / 6), _F(1 / 24), _F(1 / 120), _F(1 / 720), _F(1 / 5040), _F(1 / 40320)
 
 
-@njit(cache=True, nogil=True, error_model="numpy", inline="always", fastmath=True)
+@_inline_fast
 def _logistic(t):
     """1 / (1 + exp(t)) in float32, t clipped to +-20 (off by < 3e-9 there): exp(t) = exp(t / 32)^32, the
     inner one a Taylor polynomial (|t / 32| <= 0.625), so loops of it vectorize (no libm call);
@@ -42,14 +46,15 @@ def _logistic(t):
     return _ONE / (_ONE + p)
 
 
-@njit(cache=True, nogil=True, error_model="numpy", inline="always", fastmath=True)
+@_inline_fast
 def _disc(u, v, amp, radius, inv, sx, sy):
     """One lens' model (float32) at offset (u, v) from its centre: plateau (amplitude + slope) times the rim."""
     r = math.sqrt(u * u + v * v) + _TINY
     return (amp + sx * u + sy * v) * _logistic((r - radius) * inv)
 
 
-@njit(cache=True, nogil=True, error_model="numpy", fastmath=True)
+@_jit_fast.aot("f4[:, ::1], i8[::1], f8[::1], f8[::1], f8[::1], f8[::1], f8[::1], f8[::1], f8[::1], "
+               "i8[:, ::1], b1[::1], b1[::1], f8, b1, b1, f8, f8[:, :, ::1], f8[:, ::1], f8[::1], i8[::1]")
 def disc_normals(img, lenses, cx, cy, amp, radius, inv_edge, slope_x, slope_y, neighbours, coupled,
                  wide, half_band, weighted, fit_edge, floor, normal, rhs, rss, npix):
     """Normal equations of lenses `lenses` against the frame `img` (float32, (h, w)).
@@ -210,7 +215,7 @@ def disc_normals(img, lenses, cx, cy, amp, radius, inv_edge, slope_x, slope_y, n
         rss[t] = ss
 
 
-@njit(cache=True, nogil=True, error_model="numpy")
+@_jit.aot("f4[:, ::1], f8[::1], f8[::1], i8")
 def plateau_mean(img, cx, cy, half):
     """Mean level of the pixels within `half` px of each rounded centre (0 where none is in the frame)."""
     h, w = img.shape
@@ -234,7 +239,8 @@ def plateau_mean(img, cx, cy, half):
     return out
 
 
-@njit(cache=True, nogil=True, error_model="numpy")
+@_jit.aot("i8[::1], f8[:, :, ::1], f8[:, ::1], b1[::1], f8[::1], f8[::1], f8[::1], f8[::1], "
+          "f8[:, ::1], f8[::1], f8, f8")
 def apply_steps(idx, normal, rhs, active, amp, cx, cy, radius, prev_step, last_step, r_lo, r_hi):
     """One Gauss-Newton step per lens idx[t] from its normal equations (normal[t][:4, :4], rhs[t][:4]):
     a 1e-6 relative ridge, Cholesky solve (inactive lenses: amplitude only), centre and radius steps
@@ -291,7 +297,7 @@ def apply_steps(idx, normal, rhs, active, amp, cx, cy, radius, prev_step, last_s
         last_step[k] = math.hypot(step[1], step[2])
 
 
-@njit(cache=True, nogil=True, error_model="numpy", fastmath=True)
+@_jit_fast.aot("f4[:, ::1], f4[:, ::1]")
 def row_dots(a, m):
     """a (h, w) float32 times m.T, m (k, w) float32: (h, k) float64 (each row sum in float32). A narrow
     product that multi-threaded BLAS handles poorly on a busy machine; this stays on one core."""
@@ -306,7 +312,7 @@ def row_dots(a, m):
     return out
 
 
-@njit(cache=True, nogil=True, error_model="numpy")
+@_jit.aot("f8[::1], f8[::1], f8[::1], f8[::1], f8[:, ::1], f8, f8, f8, f8, i8")
 def grid_normal_equations(u, v, x, y, hom, k, cx, cy, scale, n_par):
     """Gauss-Newton normal equations of the global grid model (mlaqc.inspection.calibrate._model_xy: projective map
     hom of the lattice (u, v), then the radial term k about (cx, cy) / scale) against centres (x, y).

@@ -37,8 +37,8 @@ from dataclasses import dataclass, field
 from itertools import pairwise
 
 import numpy as np
-from scipy.ndimage import maximum_filter, median_filter
 
+from mlaqc.inspection.filters import max_filter_nearest, max_of_neighbours
 from mlaqc.inspection.metrics_kernels import median_baselines
 from mlaqc.inspection.results import Defect, LensMetrics
 from mlaqc.models.position_split import PositionSplit, contrast_sigma, neighbour_contrast, split_limits, type_position
@@ -105,8 +105,8 @@ def _refine_baselines(stack: np.ndarray, finite: np.ndarray, base: np.ndarray, s
         ring = np.minimum(np.minimum(m_, n_), np.minimum(rows - 1 - m_, cols - 1 - n_))
     outer = edges & (ring == 0)
     # left out of a window: NaN lenses; the outermost ones too for lenses two or more in
-    near_nan = maximum_filter(~finite.all(axis=0), size=size, mode="nearest")
-    near_outer = maximum_filter(outer, size=size, mode="nearest") & (ring >= 2) if edges else np.zeros_like(outer)
+    near_nan = max_filter_nearest(~finite.all(axis=0), size)
+    near_outer = max_filter_nearest(outer, size) & (ring >= 2) if edges else np.zeros_like(outer)
     m, n = np.nonzero((near_nan | near_outer) & ~outer)
     if m.size:
         off = np.arange(-half, half + 1)
@@ -150,6 +150,8 @@ def _nan_medians(vals: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 def _scipy_baseline(fill: np.ndarray, size: int, axis: str) -> np.ndarray:
     """The local median baseline of one NaN-filled map with scipy (the reference formulation)."""
+    from scipy.ndimage import median_filter
+
     base = median_filter(fill, size=size, mode="nearest")
     rows, cols = fill.shape
     if rows >= size and cols >= size:
@@ -551,9 +553,7 @@ def spill(score: np.ndarray, flagged: np.ndarray, ratio: float = 0.65, asym: tup
     lenses' intensity tilts `asym` (x, y) are given, under `facing_ratio` times it with its tilt along
     the line to that neighbour (light that crossed into or out of its window), as where sub-images touch;
     or, with the lenses' `offset` (x, y), under `facing_ratio` times a neighbour that moved along that line."""
-    ring = np.ones((3, 3), bool)
-    ring[1, 1] = False
-    strongest = maximum_filter(np.where(flagged, score, 0.0), footprint=ring, mode="constant")
+    strongest = max_of_neighbours(np.where(flagged, score, 0.0))
     echo = flagged & (score < ratio * strongest)
     if asym is None and offset is None:
         return echo

@@ -13,12 +13,12 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from numba import njit
+from mlaqc.compiled import kernel
 
-_jit = njit(cache=True, nogil=True, error_model="numpy")
+_jit = kernel(cache=True, nogil=True, error_model="numpy")
 # reassociation lets LLVM vectorize the window sums (their order changes at the 1e-16 level); no
 # finite-math assumptions: NaN marks pixels outside the frame and lost lenses
-_jit_fast = njit(cache=True, nogil=True, error_model="numpy", fastmath={"reassoc", "contract"})
+_jit_fast = kernel(cache=True, nogil=True, error_model="numpy", fastmath={"reassoc", "contract"})
 
 # Column order of the (N, N_INDEX) array `lens_indexes` fills (the order of results.METRICS).
 # Rings of the residual profile: outer radii in units of half the window (a 21-px window: 6, 8, 9, 10, 11 and
@@ -37,7 +37,7 @@ ENTROPY_BINS = 32
 TAPER_PX = 1.0
 
 
-@_jit
+@_jit.aot("f4[:, ::1], i8[::1], i8[::1], i8, i8, f4[:, :, ::1], b1[:, :, ::1]")
 def cut_windows_kernel(img, ox, oy, h, w, data, valid):
     """data[k] = img[oy[k]:oy[k]+h, ox[k]:ox[k]+w] as float32, NaN (and valid False) outside the frame."""
     height, width = img.shape
@@ -56,7 +56,9 @@ def cut_windows_kernel(img, ox, oy, h, w, data, valid):
                     valid[k, i, j] = False
 
 
-@_jit
+# fast like its first caller, lens_indexes: Numba gives a helper the fastmath of the kernel whose compile
+# first reaches it, so without this its code (and the references' last bits) hung on which kernel ran first
+@_jit_fast
 def _gather_at(stack, size, c, os_, phases, pad, fx, fy, h, w, ntab, dst):
     """dst[k, i*w + j] (float64; rows of dst at least h*w + 8 long for the fast blend) = template table k
     at the continuous template position (c + i*os_ - fy, c + j*os_ - fx), bilinear between its samples
@@ -129,7 +131,8 @@ def _gather_at(stack, size, c, os_, phases, pad, fx, fy, h, w, ntab, dst):
                                          + (w10 * stack[k, r1 + j0] + w11 * stack[k, r1 + j1]))
 
 
-@_jit
+@_jit.aot("f4[:, ::1], i8, i8, i8, f4[:, :, :, :, ::1], i8, f8[::1], f8[::1], i8, i8, i8, f4[:, :, ::1]",
+          "f4[:, ::1], i8, i8, i8, f4[:, :, :, :, ::1], i8, f8[::1], f8[::1], i8, i8, i8, f8[:, :, ::1]")
 def gather_tables_at(stack, size, c, os_, phases, pad, cx, cy, h, w, ntab, out):
     """out[k, t] (float64, (N, ntab, h*w)) = the first `ntab` template tables for a lens centred at
     (cx[k], cy[k]) window px, continuous in that centre (`_gather_at`): what `lens_indexes` registers
@@ -141,7 +144,7 @@ def gather_tables_at(stack, size, c, os_, phases, pad, cx, cy, h, w, ntab, out):
         out[k] = tab[:, :npx]
 
 
-@njit(cache=True, nogil=True, inline="always")
+@kernel(cache=True, nogil=True, inline="always")
 def _taper(u, half):
     """Weight of a window pixel at u px from the lens' grid centre along one axis, in a window reaching
     `half` px either side of that centre: 1 inside, falling to 0 over the outermost TAPER_PX as a raised
@@ -157,7 +160,8 @@ def _taper(u, half):
     return 0.5 - 0.5 * math.cos(math.pi * t)
 
 
-@_jit_fast
+@_jit_fast.aot("f4[:, :, ::1], f8[::1], f8[::1], f4[:, ::1], i8, i8, i8, f4[:, :, :, :, ::1], i8, f8, i8, i8, i8, "
+               "f8[:, ::1]")
 def lens_indexes(data, cx, cy, stack, size, c, os_, phases, pad, um_per_px, steps, start, stop, out):
     """Every index of lenses [start, stop) of `data` (N, h, w) float32 (NaN = outside the frame) into
     out[k, :] (columns INDEX_NAMES; 'flux' raw, normalized over all lenses by the caller).
@@ -483,7 +487,7 @@ MEDIAN25_PAIRS = np.array([
 ], dtype=np.int64)
 
 
-@_jit
+@_jit.aot("f8[:, :, ::1], i8, b1[::1], f8[:, :, ::1]")
 def median_baselines(values, size, x_axis, out):
     """Local median baseline of each (rows, cols) plane of `values` (F, rows, cols, no NaN) into `out`:
     the size x size median (scipy median_filter, mode 'nearest'); along the array's edges the running

@@ -12,9 +12,9 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from numba import njit
+from mlaqc.compiled import kernel
 
-_jit = njit(cache=True, nogil=True, error_model="numpy")
+_jit = kernel(cache=True, nogil=True, error_model="numpy")
 
 
 @_jit
@@ -27,7 +27,7 @@ def _mirror(i, n):
     return i
 
 
-@_jit
+@_jit.aot("f4[:, ::1], i8, i8, i8, i8, f4[:, ::1]")
 def ring_residual_sample(x, r0, c0, step, every, sample):
     """sample[a, b] = float32(x - ring mean) at plane pixel (every*a, every*b), in the old filters' float32
     arithmetic (a 1-in-every² sample for the plane's robust noise)."""
@@ -49,7 +49,7 @@ def ring_residual_sample(x, r0, c0, step, every, sample):
             sample[a, b] = row[x0] - np.float32(s1) / np.float32(8.0)
 
 
-@_jit
+@_jit.aot("f4[:, ::1], i8, i8, i8, f8, f8, i8, i8, b1[:, ::1], f4[:, ::1], i8[::1]")
 def hot_pixel_rows(x, r0, c0, step, noise, nsigma, row_start, row_stop, mask, med, row_bad):
     """Outliers of plane rows [row_start, row_stop): mask[y, x] = True and med[y, x] = the 3 x 3
     same-channel median (centre included) where a pixel stands more than nsigma * max(noise, structure)

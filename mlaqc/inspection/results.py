@@ -175,9 +175,24 @@ def detection_limit_text(limit: dict[str, Any]) -> str:
     parts = [f"pitch {fmt('pitch_um', 1, 'µm')}", f"decenter {fmt('decenter_um', 1, 'µm')}",
              f"radius −{fmt('radius_rel_neg', 100, '%')} / +{fmt('radius_rel_pos', 100, '%')}"]
     text = "detects at least: " + ", ".join(parts).replace("−not", "not").replace("+not", "not")
+    text += _noise_text(limit.get("noise"))
     if "pitch_vs_decenter" not in limit:
         return text
     split = limit["pitch_vs_decenter"]
     if split is None:
         return text + "; pitch vs decenter: not told apart (grid lens boundaries: reported as 'position')"
     return text + f"; tells pitch from decenter from {split['pitch_um']:.3g} µm pitch / {split['decenter_um']:.3g} µm decenter"
+
+
+def _noise_text(noise: Any) -> str:
+    """What a stack and a master dark did to this frame (mlaqc.inspection.darks.noise_info), or ''."""
+    if not isinstance(noise, dict):
+        return ""
+    parts = []
+    k = noise.get("frames_averaged", 1)
+    if k > 1:
+        parts.append(f"an average of {k} frames (pixel noise ×{noise.get('noise_scale', 1.0):.2f})")
+    dark = noise.get("dark")
+    if dark:
+        parts.append(f"dark-subtracted ({dark['frames']} darks, {dark['hot_pixels'] + dark['dead_pixels']} bad pixels)")
+    return f" [{'; '.join(parts)}]" if parts else ""

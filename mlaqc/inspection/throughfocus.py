@@ -97,7 +97,6 @@ from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
-from scipy import ndimage
 
 from mlaqc.errors import InputError
 from mlaqc.inspection import throughfocus_kernels as kern
@@ -1368,6 +1367,8 @@ def _class_centred(v: np.ndarray, cls: np.ndarray, min_count: int = MIN_SHELL_LE
     if not ok.any():
         return out
     labels, inv, cnt = np.unique(cls[ok], return_inverse=True, return_counts=True)
+    from scipy import ndimage
+
     med = np.asarray(ndimage.median(v[ok], cls[ok], labels), dtype=np.float64)
     vals = v[ok] - med[inv]
     vals[cnt[inv] < min_count] = np.nan

@@ -14,9 +14,9 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from numba import njit
+from mlaqc.compiled import kernel
 
-_jit = njit(cache=True, nogil=True, error_model="numpy")
+_jit = kernel(cache=True, nogil=True, error_model="numpy")
 
 # columns of the (L, 6) array `moments_kernel` fills
 MX, MY, M2, M2_VAR, FLUX, WIDTH = range(6)
@@ -36,7 +36,7 @@ def _weights(centre, w, half, out):
     return lo, hi
 
 
-@_jit
+@_jit.aot("f8[:, :, ::1], f8[::1], f8[::1], f8[::1], f8[::1], i8, f8, f8, i8, b1, f8[:, ::1]")
 def moments_kernel(cells, background, cx0, cy0, w0, refine, e_per_unit, bg_sigma, ring_px, variance, out):
     """For every window of `cells` (L, n, n), background-subtracted, with its `background` (L,): the
     centroid (window coordinates), the second moment x + y (px^2), its variance (NaN unless `variance`),
@@ -92,7 +92,7 @@ def moments_kernel(cells, background, cx0, cy0, w0, refine, e_per_unit, bg_sigma
         out[m, MX], out[m, MY], out[m, M2], out[m, M2_VAR], out[m, FLUX], out[m, WIDTH] = mx, my, m2, m2_var, flux, w
 
 
-@_jit
+@_jit.aot("f8[:, :, ::1], i8, f8[:, ::1]")
 def first_guess_kernel(cells, ring_px, out):
     """out[m] = (x, y), window coordinates, of the brightest 3 x 3 sum of window m whose centre is inside
     the ring (the first of equals in row-major order)."""
@@ -145,7 +145,10 @@ def _select(a, k):
     return a[k]
 
 
-@_jit
+@_jit.aot("u1[:, ::1], i8[::1], i8[::1], f8, f8, i8, f8, f8[:, :, ::1], f4[::1], b1[::1]",
+          "u2[:, ::1], i8[::1], i8[::1], f8, f8, i8, f8, f8[:, :, ::1], f4[::1], b1[::1]",
+          "f4[:, ::1], i8[::1], i8[::1], f8, f8, i8, f8, f8[:, :, ::1], f4[::1], b1[::1]",
+          "f8[:, ::1], i8[::1], i8[::1], f8, f8, i8, f8, f8[:, :, ::1], f4[::1], b1[::1]")
 def spot_windows_kernel(data, iy0, ix0, black, span, ring_px, saturated_level, cells, background, saturated):
     """Window m of `cells` (L, n, n) = the frame's pixels from (iy0[m], ix0[m]) normalized in float32,
     (data - black) / span as `rawio.normalized` computes it, less the window's background: the median of
@@ -186,7 +189,7 @@ def spot_windows_kernel(data, iy0, ix0, black, span, ring_px, saturated_level, c
         saturated[m] = sat
 
 
-@_jit
+@_jit.aot("f8[:, ::1], f8[::1], f8[::1], i8, f8[::1], f8[::1]")
 def likelihood_kernel(cv, x, noise, substeps, m1_out, var_out):
     """Per row of cv (L, K): the likelihood exp(-(c - x)^2 / 2 noise^2) of the piecewise-linear curve
     through the K nodes, at `substeps` points per interval (the last node included); its mean and
@@ -218,7 +221,7 @@ def likelihood_kernel(cv, x, noise, substeps, m1_out, var_out):
         var_out[m] = s2 / w - mean * mean
 
 
-@_jit
+@_jit.aot("f8[::1], i8[:, :, ::1], f8[:, :, ::1], i8[:, ::1], i8, f8[:, ::1]")
 def lens_model_kernel(flat, idx, wts, nodes, stride, out):
     """out[l, k] = the model D of lens l at eps node nodes[l, k]: sum over c of wts[l, f, c] *
     flat[idx[l, f, c] + nodes[l, k] * stride] for the +u frame (f = 0) less the same for the -u frame."""

@@ -19,7 +19,6 @@ from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.ndimage import gaussian_filter
 
 from mlaqc.inspection.metrics import compute_metrics
 from mlaqc.inspection.metrics_kernels import N_RING
@@ -290,7 +289,11 @@ def _blurred(img: np.ndarray, cfg: CameraConfig, extra_blur_px: float | None) ->
     if extra_blur_px is None:
         return img
     out = apply_formation(img, cfg, formation_kernels(cfg, img.shape, with_prnu=False))
-    return gaussian_filter(out, extra_blur_px, mode="constant") if extra_blur_px > 0 else out
+    if extra_blur_px <= 0:
+        return out
+    from scipy.ndimage import gaussian_filter
+
+    return gaussian_filter(out, extra_blur_px, mode="constant")
 
 
 def _edge_width(img: np.ndarray, cfg: CameraConfig) -> float:

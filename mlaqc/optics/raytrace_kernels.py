@@ -19,6 +19,7 @@ import math
 
 import numpy as np
 
+from mlaqc.compiled import compile_notice
 from mlaqc.optics import lowdisc
 from mlaqc.optics.scene import FOUR_OVER_PI
 from mlaqc.optics.scene import aperture_point as _aperture_point
@@ -935,6 +936,7 @@ class FastCamera:
     def __init__(self, camera, image_region, source_region, texture_half_mm, cells=None) -> None:
         """`cells` (a scene.CellGrid) switches on the low-discrepancy sampler."""
         mla, main, cfg = camera.mla, camera.main, camera.cfg
+        self._warm = False  # a batch has run: the kernel variant is compiled (or loaded)
         self.tab = np.ascontiguousarray(np.stack([mla.fx, mla.fy, mla.dx, mla.dy, mla.c1, mla.c2, mla.z_rear]))
         self.margins = np.ascontiguousarray(np.stack([mla.margin_front, mla.margin_rear])) if mla.sag else None
         # None (not an identity) where unused: Numba then compiles a kernel without those branches.
@@ -988,7 +990,15 @@ class FastCamera:
         w = np.empty(n)
         box = np.array([2 ** 31, -1, 2 ** 31, -1], np.int64)
         args = (s, np.uint64(key), n, self.tab, self.rot, self.grot, tex, self.shift_coef, rows, cols, w, box)
-        k = kernel(*args) if self.margins is None else kernel_sag(*args, self.margins)
+        if self.margins is not None:
+            args += (self.margins,)
+        trace = kernel if self.margins is None else kernel_sag
+        if self._warm:
+            k = trace(*args)
+        else:  # the variant's first batch: a compile of about a minute on first use is said, not silent
+            with compile_notice("the ray tracer"):
+                k = trace(*args)
+            self._warm = True
         return rows[:k], cols[:k], w[:k], box
 
     def trace(self, mode: int, key: int, n: int, tile=None, point=None, texture=None, cells=None):

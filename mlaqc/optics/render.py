@@ -29,7 +29,6 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from mlaqc.optics import raytrace_kernels
 from mlaqc.optics.config import CameraConfig
 from mlaqc.optics.errormap import ErrorMap
 from mlaqc.errors import InputError
@@ -41,6 +40,14 @@ from mlaqc.optics.scene import (CellGrid, ImageRegion, PointScene, Scene, Source
 
 Progress = Callable[[int, int], None]
 MAX_RAYS = 10 ** 11
+
+
+def _kernels():
+    """The tracer's compiled kernels, imported on the first render (`import numba` costs a few tenths of a
+    second that inspecting alone need not pay)."""
+    from mlaqc.optics import raytrace_kernels
+
+    return raytrace_kernels
 
 
 @dataclass(frozen=True)
@@ -282,8 +289,8 @@ class Renderer:
             raise ValueError(f"sampler must be 'sobol' or 'random', got {self.sampler!r}")
         engine = engine or cfg.trace.engine
         if engine == "auto":
-            engine = "numba" if raytrace_kernels.AVAILABLE else "numpy"
-        if engine == "numba" and not raytrace_kernels.AVAILABLE:
+            engine = "numba" if _kernels().AVAILABLE else "numpy"
+        if engine == "numba" and not _kernels().AVAILABLE:
             raise InputError("the numba engine was asked for but numba is not installed")
         self.engine = engine
         self.cfg = cfg
@@ -295,7 +302,7 @@ class Renderer:
         mag = self.region.magnification
         hx, hy = _mla_half_extent(self.camera)
         self.texture_half_mm = (hx / mag, hy / mag)  # a texture spans the object-side conjugate of the MLA
-        self.fast = (raytrace_kernels.FastCamera(self.camera, self.image_region, self.region, self.texture_half_mm,
+        self.fast = (_kernels().FastCamera(self.camera, self.image_region, self.region, self.texture_half_mm,
                                                  self.cells if self.sampler == "sobol" else None)
                      if engine == "numba" else None)
 
@@ -412,8 +419,8 @@ class Renderer:
         return sample_image_cells(self.image_region, self.cells, u, row.astype(np.float64), col.astype(np.float64))
 
     def _fast_mode(self, point) -> int:
-        return (raytrace_kernels.POINT if point is not None else
-                raytrace_kernels.IMAGE_SIDE if self.sampling == "image" else raytrace_kernels.OBJECT_SIDE)
+        return (_kernels().POINT if point is not None else
+                _kernels().IMAGE_SIDE if self.sampling == "image" else _kernels().OBJECT_SIDE)
 
     def _weigh_by_main_lens(self, scene: Scene, r: Rays) -> None:
         """Trace image-side rays back through the main lens: vignetting, Fresnel, and the object radiance."""

@@ -14,6 +14,7 @@ import cv2
 import numpy as np
 
 from mlaqc.inspection.results import InspectionResult
+from mlaqc.report.png import encode_png
 from mlaqc.report.view import View
 
 #: Defect-map colour per error type, RGB. The seven Okabe & Ito "Color Universal Design" colours
@@ -162,9 +163,6 @@ def _draw_legend(bgr: np.ndarray, v: View, thin: int, thick: int) -> None:
 
 
 def _encode_png(rgb: np.ndarray, level: int = _PNG_LEVEL) -> bytes:
-    """PNG bytes of an RGB (H, W, 3) or grey (H, W) uint8 image; `level` is zlib's 0-9."""
-    img = cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR) if rgb.ndim == 3 else rgb
-    ok, buf = cv2.imencode(".png", img, [cv2.IMWRITE_PNG_COMPRESSION, level])
-    if not ok:
-        raise RuntimeError("OpenCV could not encode a PNG image")
-    return buf.tobytes()
+    """PNG bytes of an RGB (H, W, 3) or grey (H, W) uint8 image; `level` is zlib's 0-9 (mlaqc.report.png:
+    deflated on every core)."""
+    return encode_png(rgb, level)

@@ -9,6 +9,7 @@ import numpy as np
 
 from mlaqc.errors import InputError
 from mlaqc.inspection.results import METRICS, InspectionResult, LazyReferences
+from mlaqc.parallel import cores, thread_map
 
 
 class View:
@@ -85,13 +86,20 @@ class View:
         lo, hi = (np.percentile(sample, [0.5, 99.5]) if sample.size else (0.0, 1.0))
         if not hi > lo:
             hi = lo + 1.0
-        out = img - np.float32(lo)
-        out *= np.float32(255.0 / (hi - lo))
-        out += np.float32(0.5)
-        # fmax/fmin clip as np.clip does and send NaN to 0 (the NaN-ignoring pair): NaN black, ±inf clipped
-        np.fmax(out, np.float32(0), out=out)
-        np.fmin(out, np.float32(255), out=out)
-        return out.astype(np.uint8)
+        out = np.empty(img.shape, np.uint8)
+
+        def band(rows: slice) -> None:  # element by element: bands on the pool's threads give the same bytes
+            x = img[rows] - np.float32(lo)
+            x *= np.float32(255.0 / (hi - lo))
+            x += np.float32(0.5)
+            # fmax/fmin clip as np.clip does and send NaN to 0 (the NaN-ignoring pair): NaN black, ±inf clipped
+            np.fmax(x, np.float32(0), out=x)
+            np.fmin(x, np.float32(255), out=x)
+            out[rows] = x
+
+        edges = np.linspace(0, img.shape[0], 2 * cores() + 1).astype(int) if img.ndim == 2 else [0, len(img)]
+        thread_map(band, [slice(a, b) for a, b in zip(edges[:-1], edges[1:])])
+        return out
 
 
 def _check(ok: bool, what: str) -> None:

@@ -1,0 +1,69 @@
+"""Install-time steps pyproject.toml cannot declare: the inspection kernels compiled ahead of time.
+
+`mlaqc._kernels` is built by numba.pycc from the kernels' own sources (mlaqc/compiled_build.py), for this
+machine's CPU, so the first `mlaqc inspect` after `pip install` compiles nothing. A build that fails (no C
+compiler, no Numba in the build environment) only warns: the package then compiles the kernels with
+Numba's JIT on first use, as before. An editable install also byte-compiles the sources, which
+PYTHONDONTWRITEBYTECODE would otherwise have every run recompile.
+"""
+
+from __future__ import annotations
+
+import compileall
+import os
+import shutil
+import sys
+from pathlib import Path
+
+from setuptools import Extension, setup
+from setuptools.command.build_ext import build_ext
+
+HERE = Path(__file__).resolve().parent
+
+
+class BuildKernels(build_ext):
+    """Build `mlaqc._kernels` with numba.pycc instead of a C compiler run over sources."""
+
+    def run(self) -> None:
+        self._built: list[Path] = []
+        super().run()
+
+    def build_extension(self, ext: Extension) -> None:
+        target = Path(self.get_ext_fullpath(ext.name))
+        if os.environ.get("MLAQC_AOT", "1") == "0":
+            print("mlaqc: MLAQC_AOT=0, kernels left to Numba's JIT", file=sys.stderr)
+            return
+        sys.path.insert(0, str(HERE))
+        try:
+            from mlaqc.compiled_build import build_extension
+
+            build_extension(target, log=lambda text: print(text, file=sys.stderr))
+            self._built.append(target)
+        except Exception as exc:  # noqa: BLE001 - any failure leaves the JIT path, which always works
+            print(f"mlaqc: WARNING: the kernels were not compiled ahead of time ({type(exc).__name__}: {exc}); "
+                  "Numba compiles them on first use instead (`mlaqc kernels` retries)", file=sys.stderr)
+        finally:
+            sys.path.remove(str(HERE))
+
+    def copy_extensions_to_source(self) -> None:
+        """Editable install: the built extension and its stamp into the package folder, sources byte-compiled."""
+        for built in self._built:
+            for name in (built.name, "_kernels.stamp"):
+                src = built.parent / name
+                dst = HERE / "mlaqc" / name
+                part = dst.with_name(dst.name + ".part")
+                shutil.copyfile(src, part)
+                os.chmod(part, 0o755 if name == built.name else 0o644)
+                os.replace(part, dst)
+        for package in ("mlaqc", "drivers", "gui"):
+            compileall.compile_dir(str(HERE / package), quiet=1)
+
+    def get_outputs(self) -> list[str]:
+        built = getattr(self, "_built", [])
+        return [str(p) for p in built] + [str(p.parent / "_kernels.stamp") for p in built]
+
+    def get_output_mapping(self) -> dict[str, str]:
+        return {str(p): str(HERE / "mlaqc" / p.name) for p in getattr(self, "_built", [])}
+
+
+setup(ext_modules=[Extension("mlaqc._kernels", sources=[])], cmdclass={"build_ext": BuildKernels})
