@@ -21,10 +21,13 @@ def _values(seed: int = 0, n: int = 20_000) -> np.ndarray:
         rng.integers(-10 ** 6, 10 ** 6, n) / 1024.0])
 
 
-@pytest.mark.parametrize("fmt", ["%.6g", "%.5g", "%.3g", "%.1g", "%.15g", "%.3f", "%.0f", "%.6f", "%.5j", "%.6j"])
+@pytest.mark.parametrize("fmt", ["%.6g", "%.5g", "%.3g", "%.1g", "%.15g", "%.3f", "%.0f", "%.6f", "%.5j", "%.6j",
+                                 "%.6r", "%.4r", "%.0r"])
 def test_every_value_is_written_as_python_writes_it(fmt):
     values = _values()
     want = [_python_cell(x, fmt, ()) for x in values]
+    if fmt.endswith("r"):  # the reference itself: what JSON writes for round(x, N)
+        assert want == [json.dumps(round(float(x), int(fmt[2:-1]))) if np.isfinite(x) else "null" for x in values]
     if fmt.startswith("%.5"):  # the reference itself, against the formatting it stands for
         want_direct = [(fmt.replace("j", "g") % x if np.isfinite(x) else "") if fmt.endswith("g") else
                        (json.dumps(float(f"{x:.5g}")) if np.isfinite(x) else "null") for x in values]
@@ -59,6 +62,23 @@ def test_bad_formats_are_refused():
         format_rows(np.array([[0.0], [2.0]]), ["%s"], ["a", "b"])
     with pytest.raises(ValueError):
         format_rows(np.array([[0.5]]), ["%s"], ["a"])
+
+
+def test_a_grids_records_are_the_json_encoders_lines():
+    """A grid's lens records (floats rounded to 6 decimals, ints, booleans, nulls) through the compiled
+    formatter: the lines the JSON encoder writes record by record."""
+    from calib_images import synthetic_white
+    from mlaqc.inspection.calibrate import calibrate
+    from mlaqc.report.document import _flat_records, _jsonable
+
+    img, _, _ = synthetic_white(noise=0.01, seed=3)
+    grid = calibrate(img, expected_pitch_px=20.05, expected_shape=(18, 19))
+    grid.measured_x_px[0, 3], grid.missing[0, 3] = np.nan, True  # as a lens not found
+    lenses = grid.to_json_dict()["lenses"]
+    assert lenses[3]["measured_x_px"] is None and lenses[3]["missing"] is True
+    fast = _jsonable(lenses)
+    assert fast.record_decimals == 6
+    assert _flat_records(fast) == [json.dumps(x, ensure_ascii=False) for x in lenses]
 
 
 def test_lenses_csv_is_the_csv_module_s_text():

@@ -276,9 +276,12 @@ _LENS_KEYS = ("m", "n", *_LENS_FLOATS, "missing", "clipped")  # the order of to_
 
 class _LensRecords(list):
     """grid.json's lens records, with the same values column by column (`record_columns`: keys, one list of
-    plain JSON values per key), so a writer need not gather them back out of 10^4 dicts."""
+    plain JSON values per key), so a writer need not gather them back out of 10^4 dicts; every float in
+    them is rounded to `record_decimals` (`_rounded_column`). Read-only: the columns do not follow an edit
+    of a record (change a copy, `list(records)`)."""
 
     record_columns: tuple[tuple[str, ...], list[list]]
+    record_decimals = 6
 
 
 def _rounded_column(a: np.ndarray) -> list[float | None]:

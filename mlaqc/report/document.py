@@ -137,9 +137,10 @@ class _Records(list):
     """Records (dicts with the same keys) of plain JSON values, with those values column by column
     (`_record_columns`: found once, by `_jsonable`, used again by `_dumps`)."""
 
-    def __init__(self, records: list, columns: tuple[tuple[str, ...], list[list]]):
+    def __init__(self, records: list, columns: tuple[tuple[str, ...], list[list]], decimals: int | None = None):
         super().__init__(records)
         self.columns = columns
+        self.record_decimals = decimals  # every float is round(v, decimals), if given
 
 
 _PLAIN = frozenset({str, int, bool, type(None)})
@@ -158,7 +159,8 @@ def _jsonable(obj: Any) -> Any:
         return {k if type(k) is str else str(k): v if (tv := type(v)) in _PLAIN or (tv is float and _INF > v > _NINF)
                 else _jsonable(v) for k, v in obj.items()}
     if t is not list and isinstance(obj, list) and hasattr(obj, "record_columns"):
-        return _Records(obj, obj.record_columns)  # records that carry their columns (a grid's lenses)
+        # records that carry their columns (a grid's lenses)
+        return _Records(obj, obj.record_columns, getattr(obj, "record_decimals", None))
     if t is list:
         columns = _record_columns(obj, finite=True)
         if columns is not None:  # records of plain JSON values already (a grid's lenses): nothing to convert
@@ -265,13 +267,44 @@ def _flat_records(obj: list) -> list[str] | None:
     if found is None:
         return None
     keys, columns = found
-    # a list's encoding is its values' encodings joined by ", " (no scalar's encoding holds one)
-    tokens = [_ENCODER.encode(column)[1:-1].split(", ") for column in columns]
     head = ["{" + json.dumps(keys[0], ensure_ascii=False) + ": "]
     head += [", " + json.dumps(k, ensure_ascii=False) + ": " for k in keys[1:]]
+    decimals = getattr(obj, "record_decimals", None)
+    if decimals is not None and len(obj) > 100:
+        compiled = _rounded_records(head, columns, decimals)
+        if compiled is not None:
+            return compiled
+    # a list's encoding is its values' encodings joined by ", " (no scalar's encoding holds one)
+    tokens = [_ENCODER.encode(column)[1:-1].split(", ") for column in columns]
     template = "".join(h.replace("%", "%%") + "%s" for h in head) + "}\0"
     flat = [t for row in zip(*tokens) for t in row]
     return (template * len(obj) % tuple(flat)).split("\0")[:-1]
+
+
+def _rounded_records(head: list[str], columns: list[list], decimals: int) -> list[str] | None:
+    """The records' JSON lines by the compiled formatter, for records whose floats are round(v, decimals)
+    (a grid's lenses: JSON writes repr of each, "%.{decimals}r"), ints and booleans; None for other columns.
+    The keys' text goes in as constant text cells between the values."""
+    table = [*head, "}", "false", "true"]
+    cells, formats = [], []
+    for k, column in enumerate(columns):
+        kinds = set(map(type, column))
+        if kinds <= {bool}:
+            values, fmt = np.array(column, dtype=np.float64) + (len(head) + 1), "%s"
+        elif kinds <= {int}:
+            values, fmt = np.array(column, dtype=np.float64), "%d"
+            if np.abs(values).max(initial=0) >= 2 ** 53:
+                return None
+        elif kinds <= {float, type(None)}:
+            values, fmt = np.array(column, dtype=np.float64), f"%.{decimals}r"
+        else:
+            return None
+        cells += [np.full(len(column), float(k)), values]
+        formats += ["%s", fmt]
+    cells.append(np.full(len(columns[0]), float(len(head))))
+    formats.append("%s")
+    text = format_rows(np.column_stack(cells), formats, table, col_sep="", row_sep="\0", parallel=False)
+    return text.split("\0")[:-1]
 
 
 def lenses_csv(view: View | InspectionResult) -> str:

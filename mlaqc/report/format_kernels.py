@@ -18,7 +18,8 @@ from mlaqc.compiled import kernel
 
 _jit = kernel(cache=True, nogil=True, error_model="numpy")
 
-INT, FIXED, GENERAL, TEXT, JSON_GENERAL = 0, 1, 2, 3, 4  # column codes (JSON_GENERAL: repr(float("%.Ng" % x)))
+INT, FIXED, GENERAL, TEXT, JSON_GENERAL, JSON_ROUND = 0, 1, 2, 3, 4, 5  # column codes (JSON_GENERAL: repr(float(
+# "%.Ng" % x)); JSON_ROUND: repr(round(x, N)), N <= 6; both null for NaN and infinities)
 CELL_MAX = 32  # bytes a number cell can take ("-1.23456789012345e-300" and the like)
 _TIE = 4e-9  # closer than this to a rounding tie (in units of the last digit kept): left to Python
 _P10 = np.array([10.0 ** k for k in range(23)])  # exact powers of ten
@@ -174,6 +175,60 @@ def _put_general(out, pos, x, prec, digits, as_json):
 
 
 @_jit
+def _put_round(out, pos, x, n_dec):
+    """repr(round(x, n_dec)) at out[pos:] (n_dec <= 6, |x| < 1e9: the shortest repr of that double is the
+    decimal itself, trailing zeros dropped, ".0" on whole numbers, d.de-XX below 1e-4); (position, ok)."""
+    ax = abs(x)
+    if ax >= 1e9:
+        return pos, False
+    m, ok = _round_scaled(_scaled(ax, n_dec))
+    if not ok:
+        return pos, False
+    if math.copysign(1.0, x) < 0:
+        out[pos] = 45
+        pos += 1
+    p10 = np.int64(_P10[n_dec])
+    if n_dec >= 4 and 0 < m < np.int64(_P10[n_dec - 4]):  # below 1e-4: d.ddde-XX
+        nd = 0
+        t = m
+        while t > 0:
+            nd += 1
+            t //= 10
+        ae = n_dec + 1 - nd  # the value is m / 10**n_dec = d.ddd x 10**-ae
+        while m % 10 == 0:
+            m //= 10
+        start = pos
+        pos = _put_uint(out, pos, m)
+        if pos - start > 1:  # the point after the first digit
+            for q in range(pos, start + 1, -1):
+                out[q] = out[q - 1]
+            out[start + 1] = 46
+            pos += 1
+        out[pos] = 101
+        out[pos + 1] = 45
+        pos += 2
+        if ae < 10:
+            out[pos] = 48
+            pos += 1
+        return _put_uint(out, pos, ae), True
+    pos = _put_uint(out, pos, m // p10)
+    out[pos] = 46
+    pos += 1
+    frac = m % p10
+    if frac == 0:
+        out[pos] = 48
+        return pos + 1, True
+    keep = n_dec
+    while frac % 10 == 0:
+        frac //= 10
+        keep -= 1
+    for i in range(keep - 1, -1, -1):
+        out[pos + i] = 48 + frac % 10
+        frac //= 10
+    return pos + keep, True
+
+
+@_jit
 def _put_entry(out, pos, table, ends, j):
     """Entry j of a table of byte strings ending at `ends` at out[pos:]; the new position."""
     a = ends[j - 1] if j > 0 else 0
@@ -187,9 +242,10 @@ def _put_entry(out, pos, table, ends, j):
 def format_table(values, codes, precs, table, table_ends, given, given_table, given_ends, col_sep, row_sep, out,
                  undecided):
     """Every cell of values (rows, columns), row by row, cells joined by col_sep, rows ended by row_sep
-    (bytes), column k written as codes[k]: INT "%d", FIXED "%.{precs[k]}f", GENERAL "%.{precs[k]}g" (NaN
-    and infinities empty), JSON_GENERAL that value as JSON writes it (NaN and infinities null), TEXT entry
-    int(value) of `table` (its entries end at table_ends; < 0: empty).
+    (bytes; col_sep < 0: none), column k written as codes[k]: INT "%d", FIXED "%.{precs[k]}f", GENERAL
+    "%.{precs[k]}g" (NaN and infinities empty), JSON_GENERAL that value as JSON writes it, JSON_ROUND
+    round(value, precs[k]) as JSON writes it (both null for NaN and infinities), TEXT entry int(value) of
+    `table` (its entries end at table_ends; < 0: empty).
     Cells whose flat index is in the sorted `given` are written as the matching entry of `given_table`.
     Returns the bytes written; or, when some values lie too close to a rounding tie to decide here,
     -1 - their count, their flat indices in `undecided` (as many as fit), and nothing usable in `out`.
@@ -201,7 +257,7 @@ def format_table(values, codes, precs, table, table_ends, given, given_table, gi
     g = 0
     for i in range(rows):
         for k in range(cols):
-            if k:
+            if k and col_sep >= 0:
                 out[pos] = col_sep
                 pos += 1
             x = values[i, k]
@@ -222,13 +278,15 @@ def format_table(values, codes, precs, table, table_ends, given, given_table, gi
                     v = -v
                 pos = _put_uint(out, pos, v)
             elif not math.isfinite(x):
-                if code == JSON_GENERAL:  # null
+                if code == JSON_GENERAL or code == JSON_ROUND:  # null
                     out[pos], out[pos + 1], out[pos + 2], out[pos + 3] = 110, 117, 108, 108
                     pos += 4
             else:
                 start = pos
                 if code == FIXED:
                     pos, ok = _put_fixed(out, pos, x, precs[k])
+                elif code == JSON_ROUND:
+                    pos, ok = _put_round(out, pos, x, precs[k])
                 else:
                     pos, ok = _put_general(out, pos, x, precs[k], digits, code == JSON_GENERAL)
                 if not ok:

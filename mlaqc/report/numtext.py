@@ -13,9 +13,9 @@ from collections.abc import Sequence
 import numpy as np
 
 from mlaqc.parallel import cores, thread_map
-from mlaqc.report.format_kernels import CELL_MAX, FIXED, GENERAL, INT, JSON_GENERAL, TEXT, format_table
+from mlaqc.report.format_kernels import CELL_MAX, FIXED, GENERAL, INT, JSON_GENERAL, JSON_ROUND, TEXT, format_table
 
-_FORMAT = re.compile(r"^%(?:\.(\d+))?([dfgsj])$")  # %.Nj: repr(float("%.Ng" % x)), as JSON writes it
+_FORMAT = re.compile(r"^%(?:\.(\d+))?([dfgsjr])$")  # %.Nj: repr(float("%.Ng" % x)); %.Nr: repr(round(x, N))
 BLOCK_CELLS = 100_000  # cells per pool task at least
 _MAX_UNDECIDED = 4096  # beyond this many near-ties (data made of exact binary ties) Python formats all
 _EMPTY_U8, _EMPTY_I8 = np.zeros(0, np.uint8), np.zeros(0, np.int64)
@@ -59,7 +59,7 @@ def _format_block(values: np.ndarray, formats: Sequence[str], texts: Sequence[st
         given_bytes = np.frombuffer(b"".join(given_text), np.uint8) if given_text else _EMPTY_U8
         given_ends = np.cumsum([len(t) for t in given_text], dtype=np.int64) if given_text else _EMPTY_I8
         n = format_table(values, codes, precs, table_bytes, table_ends, given, given_bytes, given_ends,
-                         ord(col_sep), ord(row_sep), out, undecided)
+                         ord(col_sep) if col_sep else -1, ord(row_sep), out, undecided)
         if n >= 0:
             return out[:n].tobytes().decode("utf-8")
         if -1 - n > _MAX_UNDECIDED or given.size:
@@ -80,9 +80,11 @@ def _parse(formats: Sequence[str], cols: int) -> tuple[np.ndarray, np.ndarray]:
     codes, precs = [], []
     for fmt in formats:
         m = _FORMAT.match(fmt)
-        if m is None or (m.group(2) in "fgj") != (m.group(1) is not None) or (m.group(1) and int(m.group(1)) > 15):
-            raise ValueError(f"unsupported column format {fmt!r} (%d, %.Nf, %.Ng or %.Nj with N <= 15, or %s)")
-        codes.append({"d": INT, "f": FIXED, "g": GENERAL, "s": TEXT, "j": JSON_GENERAL}[m.group(2)])
+        if (m is None or (m.group(2) in "fgjr") != (m.group(1) is not None) or (m.group(1) and int(m.group(1)) > 15)
+                or (m.group(2) == "r" and int(m.group(1)) > 6)):
+            raise ValueError(f"unsupported column format {fmt!r} (%d, %.Nf, %.Ng or %.Nj with N <= 15, %.Nr with "
+                             "N <= 6, or %s)")
+        codes.append({"d": INT, "f": FIXED, "g": GENERAL, "s": TEXT, "j": JSON_GENERAL, "r": JSON_ROUND}[m.group(2)])
         precs.append(max(int(m.group(1) or 0), 1) if m.group(2) in "gj" else int(m.group(1) or 0))
     return np.array(codes, np.int64), np.array(precs, np.int64)
 
@@ -98,6 +100,8 @@ def _python_cell(x: float, fmt: str, texts: Sequence[str]) -> str:
     """One cell as Python writes it."""
     if fmt.endswith("j"):
         return repr(float((fmt[:-1] + "g") % x)) if np.isfinite(x) else "null"
+    if fmt.endswith("r"):
+        return repr(round(float(x), int(fmt[2:-1]))) if np.isfinite(x) else "null"
     if fmt == "%s":
         return texts[int(x)] if x >= 0 else ""
     if fmt == "%d":
