@@ -44,6 +44,16 @@ EXTENSION = "_kernels"  # mlaqc/_kernels<EXT_SUFFIX>, with its stamp in mlaqc/_k
 PACKAGE_DIR = Path(__file__).resolve().parent
 
 _LOCK = threading.RLock()
+
+
+def _after_fork() -> None:
+    """A forked child gets its own lock (one held by another thread at the fork would never be released)."""
+    global _LOCK
+    _LOCK = threading.RLock()
+
+
+if hasattr(os, "register_at_fork"):
+    os.register_at_fork(after_in_child=_after_fork)
 _STATE: dict[str, Any] = {"module": None, "loaded": False, "why": "", "compile_s": 0.0, "noticed": False,
                           "announced": set()}
 _ALL: list["Kernel"] = []
@@ -86,7 +96,8 @@ def _matches(keys: tuple, args: tuple) -> bool:
     for key, a in zip(keys, args):
         if key[0] == "a":
             if (type(a) is not np.ndarray and not isinstance(a, np.ndarray)) or a.dtype.char != key[1] \
-                    or a.ndim != key[2] or (key[3] and not a.flags.c_contiguous) or not a.flags.aligned:
+                    or a.ndim != key[2] or (key[3] and not a.flags.c_contiguous) or not a.flags.aligned \
+                    or not a.dtype.isnative:
                 return False
         elif key[1] == "b":
             if not isinstance(a, (bool, np.bool_)):
@@ -174,15 +185,17 @@ def _jit_module(module: types.ModuleType) -> None:
         if all(v._dispatcher is not None for v in kernels.values()):
             return
         jit_globals = dict(vars(module))
+        made = {}
         for name, k in kernels.items():
             f = k.py_func
             fresh = types.FunctionType(f.__code__, jit_globals, f.__name__, f.__defaults__, f.__closure__)
             fresh.__qualname__, fresh.__doc__ = f.__qualname__, f.__doc__
-            k._dispatcher = njit(**k.options)(fresh)
-            jit_globals[name] = k._dispatcher
+            made[name] = jit_globals[name] = njit(**k.options)(fresh)
         for name, v in list(jit_globals.items()):  # kernels imported from other modules
             if isinstance(v, Kernel) and v.__module__ != module.__name__:
                 jit_globals[name] = v.dispatcher
+        for name, k in kernels.items():  # published only now: no compile can see a half-made module
+            k._dispatcher = made[name]
 
 
 def _timed_jit(k: Kernel, args: tuple):
@@ -267,8 +280,22 @@ def current_stamp() -> str:
         h.update((PACKAGE_DIR.parent / (name.replace(".", "/") + ".py")).read_bytes())
     h.update(Path(__file__).read_bytes())
     h.update((PACKAGE_DIR / "compiled_build.py").read_bytes())
+    h.update(_compiler_identity())
     h.update(cpu_identity().encode())
     return h.hexdigest()[:20]
+
+
+def _compiler_identity() -> bytes:
+    """The Numba and llvmlite releases (their _version.py, read without importing them: the JIT that the
+    build must match) and NumPy's major version (its C ABI)."""
+    parts = [f"numpy {np.__version__.split('.')[0]}".encode()]
+    for name in ("numba", "llvmlite"):
+        try:
+            spec = importlib.util.find_spec(name)
+            parts.append((Path(spec.origin).parent / "_version.py").read_bytes() if spec and spec.origin else b"")
+        except (ImportError, OSError, ValueError):
+            parts.append(b"")
+    return b"\0".join(parts)
 
 
 def cpu_identity() -> str:
@@ -315,9 +342,16 @@ def extension():
             if not stamp_file.exists() or stamp_file.read_text().strip() != stamp:
                 why = f"the ahead-of-time build in {path.parent} is out of date"
                 continue
-            spec = importlib.util.spec_from_file_location(f"mlaqc.{EXTENSION}", path)
-            module = importlib.util.module_from_spec(spec)
-            spec.loader.exec_module(module)
+            try:
+                spec = importlib.util.spec_from_file_location(f"mlaqc.{EXTENSION}", path)
+                module = importlib.util.module_from_spec(spec)
+                spec.loader.exec_module(module)
+            except Exception as exc:  # noqa: BLE001 - a damaged or foreign build: the JIT does the work
+                why = f"the ahead-of-time build {path} does not load ({type(exc).__name__}: {exc})"
+                continue
+            if not hasattr(module, f"stamp_{stamp}"):  # the stamp file and the code disagree
+                why = f"the ahead-of-time build in {path.parent} is out of date"
+                continue
             _STATE["module"], _STATE["why"] = module, f"ahead-of-time build {path}"
             return module
         _STATE["why"] = why

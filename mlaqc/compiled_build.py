@@ -31,6 +31,7 @@ def build_extension(target: Path, *, log=print) -> Path:
         import numba.pycc.compiler as pycc_compiler
 
     target = Path(target).resolve()
+    stamp = compiled.current_stamp()  # once, before the minute of compiling: a source edited meanwhile is stale
     kernels = compiled.declared_kernels()
     start = time.perf_counter()
     options: dict[object, dict] = {}
@@ -44,7 +45,7 @@ def build_extension(target: Path, *, log=print) -> Path:
                 fn = _function_with_jit_globals(k)
                 options[fn] = k.options
                 cc.export(name, _full_signature(k, signature))(fn)
-        cc.export(f"stamp_{compiled.current_stamp()}", "i8()")(lambda: 0)
+        cc.export(f"stamp_{stamp}", "i8()")(lambda: 0)
         patches = _patch_numba(pycc_compiler, numba_compiler, CPUTargetOptions, AOTCPUCodegen, options)
         try:
             cc.compile()
@@ -57,7 +58,7 @@ def build_extension(target: Path, *, log=print) -> Path:
         shutil.copyfile(built, part)
         os.chmod(part, 0o755)
         os.replace(part, target)
-    (target.parent / f"{compiled.EXTENSION}.stamp").write_text(compiled.current_stamp() + "\n")
+    (target.parent / f"{compiled.EXTENSION}.stamp").write_text(stamp + "\n")
     log(f"mlaqc: compiled {sum(len(k.signatures) for k in kernels)} kernel variants ahead of time into {target} "
         f"({time.perf_counter() - start:.0f} s)")
     return target

@@ -53,6 +53,7 @@ def test_argument_types_must_match_exactly():
     assert not compiled._matches(keys, (img, True, 2.5, True))  # bool for an int
     assert not compiled._matches(keys, (img, 3, 2.5, 1))  # int for a bool
     assert not compiled._matches(keys, (img, 3, 2.5))  # count
+    assert not compiled._matches(keys, (img.astype(">f4"), 3, 2.5, True))  # byte order
 
 
 def test_other_types_go_to_the_jit_and_give_its_answer():
@@ -130,6 +131,18 @@ def test_a_stale_build_is_never_loaded(tmp_path, monkeypatch):
     monkeypatch.setattr(compiled, "_STATE", {**compiled._STATE, "loaded": False, "module": None})
     assert compiled.extension() is None
     assert "out of date" in compiled.aot_status()[1]
+
+
+def test_a_build_that_does_not_load_leaves_the_jit(tmp_path, monkeypatch):
+    """A damaged (or foreign) extension with a current stamp file: no crash, the JIT does the work."""
+    suffix = compiled.importlib.machinery.EXTENSION_SUFFIXES[0]
+    broken = tmp_path / f"_kernels{suffix}"
+    broken.write_bytes(b"\x7fELF truncated")
+    (tmp_path / "_kernels.stamp").write_text(compiled.current_stamp() + "\n")
+    monkeypatch.setattr(compiled, "extension_paths", lambda: [broken])
+    monkeypatch.setattr(compiled, "_STATE", {**compiled._STATE, "loaded": False, "module": None})
+    assert compiled.extension() is None
+    assert "does not load" in compiled.aot_status()[1]
 
 
 def test_mlaqc_aot_0_turns_the_extension_off(monkeypatch):

@@ -52,6 +52,19 @@ def test_tie_laden_data_still_comes_out_right():
     assert format_rows(values, ["%.3f"]) == "".join("%.3f\n" % x for x in values[:, 0])
 
 
+def test_edge_tables():
+    """No columns (only row ends), ints past int64 (Python's digits), a NaN for %d (Python's error)."""
+    assert format_rows(np.zeros((5, 0)), []) == "\n" * 5
+    assert format_rows(np.zeros((300_000, 0)), []) == "\n" * 300_000  # (the buffer once held no row ends)
+    big = np.array([[1e20], [-2.0 ** 63], [2.0 ** 62]])
+    assert format_rows(big, ["%d"]) == "".join("%d\n" % int(x) for x in big[:, 0])
+    with pytest.raises(ValueError):
+        format_rows(np.array([[np.nan]]), ["%d"])
+    for seps in ({"col_sep": ", "}, {"row_sep": ""}, {"col_sep": "\u00e9"}):
+        with pytest.raises(ValueError):
+            format_rows(np.zeros((1, 2)), ["%d", "%d"], **seps)
+
+
 def test_bad_formats_are_refused():
     for fmt in ("%e", "%.16g", "%f5", "%.3s"):
         with pytest.raises(ValueError):

@@ -44,6 +44,7 @@ def test_zlib_alone_gives_the_same_pixels(monkeypatch):
 
 
 def test_bad_images_are_refused():
-    for bad in (np.zeros((4, 4), np.float32), np.zeros((4, 4, 4), np.uint8), np.zeros(4, np.uint8)):
+    for bad in (np.zeros((4, 4), np.float32), np.zeros((4, 4, 4), np.uint8), np.zeros(4, np.uint8),
+                np.zeros((0, 5), np.uint8), np.zeros((3, 0, 3), np.uint8)):
         with pytest.raises(ValueError):
             png.encode_png(bad)

@@ -1,6 +1,7 @@
 """Small exact maximum filters over per-lens maps, in NumPy (scipy.ndimage's import alone cost 0.13 s of
 every `mlaqc inspect`; these maps are ~10^4 values). A maximum is exact whatever the order, so these give
-scipy.ndimage.maximum_filter's result bit for bit (tests/test_filters.py)."""
+scipy.ndimage.maximum_filter's result bit for bit (tests/test_filters.py) on maps without NaN (the callers'
+boolean maps and finite scores; np.maximum spreads a NaN, scipy does not)."""
 
 from __future__ import annotations
 

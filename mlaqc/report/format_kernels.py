@@ -271,6 +271,11 @@ def format_table(values, codes, precs, table, table_ends, given, given_table, gi
                 if j >= 0:
                     pos = _put_entry(out, pos, table, table_ends, j)
             elif code == INT:
+                if not abs(x) < 9.2e18:  # past int64, or not a number: Python says what it is
+                    if n_undecided < undecided.size:
+                        undecided[n_undecided] = flat
+                    n_undecided += 1
+                    continue
                 v = np.int64(x)
                 if v < 0:
                     out[pos] = 45

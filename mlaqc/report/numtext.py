@@ -31,6 +31,8 @@ def format_rows(values: np.ndarray, formats: Sequence[str], texts: Sequence[str]
     values = np.ascontiguousarray(values, dtype=np.float64)
     if values.ndim != 2:
         raise ValueError(f"format_rows takes a (rows, columns) array, not shape {values.shape}")
+    if len(col_sep) > 1 or len(row_sep) != 1 or not (col_sep + row_sep).isascii():
+        raise ValueError("format_rows separates cells by at most one and rows by one ASCII character")
     codes, _ = _parse(formats, values.shape[1])
     index = values[:, codes == TEXT]
     if index.size and not (np.all(index == np.floor(index)) and index.max() < len(texts)):
@@ -54,7 +56,7 @@ def _format_block(values: np.ndarray, formats: Sequence[str], texts: Sequence[st
     given, given_text = _EMPTY_I8, []
     while True:
         extra = sum(len(t) for t in given_text)
-        out = np.empty(rows * int(widths.sum() + cols) + extra, np.uint8)
+        out = np.empty(rows * int(widths.sum() + cols + 1) + extra, np.uint8)  # cells, separators, row ends
         undecided = np.empty(_MAX_UNDECIDED, np.int64)
         given_bytes = np.frombuffer(b"".join(given_text), np.uint8) if given_text else _EMPTY_U8
         given_ends = np.cumsum([len(t) for t in given_text], dtype=np.int64) if given_text else _EMPTY_I8

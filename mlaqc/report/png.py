@@ -43,8 +43,9 @@ class PendingPng:
 
     def __init__(self, img: np.ndarray, level: int):
         img = np.asarray(img)
-        if img.dtype != np.uint8 or not (img.ndim == 2 or (img.ndim == 3 and img.shape[2] == 3)):
-            raise ValueError(f"a PNG is made of a (H, W) or (H, W, 3) uint8 image, not {img.dtype} {img.shape}")
+        if img.dtype != np.uint8 or not (img.ndim == 2 or (img.ndim == 3 and img.shape[2] == 3)) or 0 in img.shape:
+            raise ValueError(f"a PNG is made of a non-empty (H, W) or (H, W, 3) uint8 image, not {img.dtype} "
+                             f"{img.shape}")
         h, w = img.shape[:2]
         self._head = _header(w, h, 2 if img.ndim == 3 else 0)
         rows = np.empty((h, 1 + img[0].size), np.uint8)  # each row: filter byte 0, then its pixels
