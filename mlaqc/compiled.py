@@ -10,8 +10,9 @@ else (no extension built, a kernel source edited since, other argument types, ke
 signature) goes to Numba's JIT as before, with its on-disk cache; the first compile in a process says so
 once on stderr, and the time it takes is kept apart (`compile_seconds`) so stage timings do not carry it.
 
-The extension is used only while its stamp (the kernel sources and this CPU) matches: a stale one is never
-called, and `mlaqc kernels` rebuilds it.
+The extension is used only while its stamp (the kernel sources, the Numba and llvmlite releases, NumPy's
+major version and this CPU's flags) matches, and only if it loads: a stale or damaged one is never called,
+and `mlaqc kernels` rebuilds it.
 """
 
 from __future__ import annotations
