@@ -787,12 +787,6 @@ def build_view(result: Any, cfg: Any, source: str, elapsed_s: float, *, frames: 
                 f"{g.lenses_missing} missing")
     detail = (f"{kinds}; {detection_limit_text(result.detection_limit)}; grid pitch {g.pitch_px[0]:.3f} × "
               f"{g.pitch_px[1]:.3f} px, rotation {g.rotation_deg:+.3f}°, RMS residual {g.rms_residual_px:.3f} px")
-    asm = getattr(result, "assembly", None)
-    if asm is not None:  # the MLA's placement in µm and degrees; an out-of-bounds reading on its own line
-        detail += ";" + asm.summary_line().replace("  assembly:", " assembly:")
-        bad = [n for n in result.notes if n.startswith("assembly ")]
-        if bad:
-            headline += " · " + "; ".join(bad)
     tf = getattr(result, "through_focus", None)
     summary = f"{headline} ({detail}{'; ' + through_focus_summary(tf) if tf is not None else ''})"
     ok_grid = np.isfinite(gx) & np.isfinite(gy)

@@ -1,6 +1,8 @@
-"""Assembly readings (mlaqc/inspection/assembly.py) on rendered small-camera frames with known global errors."""
+"""Assembly readings (mlaqc/inspection/assembly.py) on rendered small-camera frames with known global errors.
 
-import json
+Not yet in the report: on the Table 1 camera the distance reads +2.3 µm with no global error (122 sigma;
+bench/assembly.py), so the readings stay out of report.json and the verdict until that bias is modelled."""
+
 from pathlib import Path
 
 import numpy as np
@@ -13,7 +15,7 @@ from mlaqc.optics.errormap import ErrorMap
 from mlaqc.optics.sensor import white_level
 from mlaqc.optics.simulate import simulate
 
-CFG = load_config("fixtures/small_camera.toml")
+CFG = load_config(Path(__file__).resolve().parent.parent / "fixtures" / "small_camera.toml")
 # per-field tolerance on the 24 x 24 camera (tilts are poorly conditioned on a 3.4 mm array)
 TOL = {"mla_sensor_distance_um": 4.0, "mla_rotation_deg": 0.01, "mla_tilt_x_deg": 0.25, "mla_tilt_y_deg": 0.25,
        "mla_shift_x_um": 1.0, "mla_shift_y_um": 1.0}
@@ -60,59 +62,3 @@ def test_json_and_bounds():
         assembly_rotation_deg = 0.1
     lines = a.out_of_bounds(QC())
     assert len(lines) == 1 and "mla_rotation_deg" in lines[0]
-
-
-# ---- the report set and the verdict (mlaqc inspect) ----
-
-from mlaqc.cli import main  # noqa: E402
-
-SMALL = Path("fixtures/small_camera.toml").read_text()
-
-
-@pytest.fixture(scope="module")
-def rotated_frame(tmp_path_factory):
-    d = tmp_path_factory.mktemp("asm")
-    emap = ErrorMap.zeros(CFG.mla.count_h, CFG.mla.count_w).with_globals(mla_rotation_deg=0.3)
-    emap.save(d / "rot.json")
-    assert main(["simulate", "-c", "fixtures/small_camera.toml", "--errors", str(d / "rot.json"),
-                 "--rays-per-pixel", "20", "--out", str(d / "rot.tiff")]) == 0
-    return d
-
-
-def _config(d, extra):
-    p = d / f"cam{abs(hash(extra))}.toml"
-    p.write_text(SMALL + "\n[qc]\n" + extra + "\n")
-    return str(p)
-
-
-def test_report_has_assembly_and_passes_unbounded(rotated_frame, capsys):
-    d = rotated_frame
-    assert main(["inspect", str(d / "rot.tiff"), "-c", "fixtures/small_camera.toml", "--out", str(d / "r0")]) == 0
-    rep = json.loads((d / "r0" / "report.json").read_text())
-    asm = rep["assembly"]
-    assert set(FIELDS) <= set(asm) and asm["assumptions"]
-    assert abs(asm["mla_rotation_deg"]["value"] - 0.3) < 0.01 and asm["mla_rotation_deg"]["sigma"] > 0
-    assert "Assembly" in (d / "r0" / "report.html").read_text()
-    assert "assembly: distance" in capsys.readouterr().err  # the console summary (stderr)
-
-
-def test_qc_bound_fails_the_verdict_with_its_own_line(rotated_frame, capsys):
-    d = rotated_frame
-    cfg = _config(d, "assembly_rotation_deg = 0.1\nassembly_shift_um = 50")
-    assert main(["inspect", str(d / "rot.tiff"), "-c", cfg, "--out", str(d / "r1")]) == 1
-    out = capsys.readouterr().err
-    assert out.startswith("FAIL")
-    fail_lines = [ln for ln in out.splitlines() if ln.strip().startswith("FAIL: assembly")]
-    assert len(fail_lines) == 1 and "mla_rotation_deg" in fail_lines[0]
-    rep = json.loads((d / "r1" / "report.json").read_text())
-    assert rep["verdict"] == "FAIL" and any("qc.assembly_rotation_deg" in n for n in rep["notes"])
-
-
-@pytest.mark.parametrize("extra", ['assembly_tilt_deg = "wide"', "assembly_tilt_deg = -1", "assembly_distance_um = 0"])
-def test_malformed_bound_is_one_sentence_exit_2(rotated_frame, capsys, extra):
-    d = rotated_frame
-    cfg = _config(d, extra)
-    assert main(["inspect", str(d / "rot.tiff"), "-c", cfg, "--out", str(d / "bad")]) == 2
-    err = capsys.readouterr().err.strip()
-    assert "qc.assembly_" in err and len(err.splitlines()) == 1
-    assert not (d / "bad" / "report.json").exists()

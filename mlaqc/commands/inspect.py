@@ -109,8 +109,6 @@ def summary(result) -> str:
     lines = [f"{result.verdict}: {len(result.defects)} flagged lenses ({out_tol} out of tolerance) of {g.rows}x{g.cols}",
              f"  grid: pitch {g.pitch_px[0]:.3f} x {g.pitch_px[1]:.3f} px, rotation {g.rotation_deg:+.3f} deg, "
              f"RMS residual {g.rms_residual_px:.3f} px",
-             *([result.assembly.summary_line()] if getattr(result, "assembly", None) is not None else []),
-             *(f"  FAIL: {n}" for n in result.notes if n.startswith("assembly ")),  # out-of-bounds readings
              "  by type: " + (", ".join(f"{k} {v}" for k, v in sorted(kinds.items())) or "none"),
              f"  this frame {detection_limit_text(result.detection_limit)}",
              *([through_focus_text(result.through_focus)] if getattr(result, "through_focus", None) is not None else []),

@@ -102,11 +102,7 @@ def inspect_image(img: np.ndarray, cfg: CameraConfig, *, grid: Grid | None = Non
     measured = measure_lenses(found, table, cfg, (grid.residual_x_px, grid.residual_y_px) if own_grid else None)
     lap("measure")
     qc = cfg.qc
-    from mlaqc.inspection.assembly import measure_assembly
-
-    assembly = measure_assembly(grid, cfg)
-    notes = [*notes, *assembly.out_of_bounds(qc)]  # an out-of-bounds assembly: its own line
-    verdict = overall_verdict(defects, qc, assembly)
+    verdict = overall_verdict(defects, qc)
     # every lens' reference is for the report, which shows a few: computed when (and as far as) it is read
     side = 2 * half + 1
     ref = LazyReferences(lambda x, y: reference_images(model, x, y, side, side), cx, cy, (side, side))
@@ -115,7 +111,7 @@ def inspect_image(img: np.ndarray, cfg: CameraConfig, *, grid: Grid | None = Non
                             sub, ref, source, _tolerance_dict(cfg), t,
                             notes=tuple(notes), detection_limit=found.detection_limit,
                             below_reportable=found.below_reportable, not_inspected=found.not_inspected,
-                            measurements=measured, assembly=assembly)
+                            measurements=measured)
 
 
 _MODELS: dict[tuple[str, str], tuple[ReferenceModel, SignatureSet]] = {}

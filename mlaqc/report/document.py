@@ -99,7 +99,6 @@ def build_report_dict(result: InspectionResult, *, config_dict: dict | None = No
         "grid_summary": grid_summary,
         "grid": grid_json,
         "tolerances": dict(result.tolerances),
-        "assembly": result.assembly.to_json_dict() if getattr(result, "assembly", None) is not None else None,
         # what a PASS means: per error type the smallest magnitude this frame flags (inner lenses, at the
         # configured detect_sigma and minimum reportable size); null where nothing rendered is detectable
         "detection_limit": dict(getattr(result, "detection_limit", {}) or {}),

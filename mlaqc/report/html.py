@@ -206,7 +206,6 @@ def _html(v: View, report: dict[str, Any], small_png: bytes, lens_png: bytes | N
             w(_lens_card(v, d, medians))
         w("</div>\n")
 
-    _assembly_section(w, report.get("assembly"))
     w("<h2>Grid, tolerances, timings</h2>\n<table>\n")
     rows = [(f"grid {k}", _num(val, 6) if isinstance(val, float) else str(val)) for k, val in g.items()]
     rows += [(f"tolerance {k}", _num(val, 6) if isinstance(val, float) else str(val))
@@ -222,23 +221,6 @@ def _html(v: View, report: dict[str, Any], small_png: bytes, lens_png: bytes | N
         w("</pre></details>\n")
     w(f"</main>\n<script>{_JS}</script>\n</body>\n</html>\n")
     return "".join(out)
-
-
-def _assembly_section(w, asm: dict[str, Any] | None) -> None:
-    """The MLA's placement in the camera (mlaqc.inspection.assembly): six readings ± 1 sigma, assumptions once."""
-    if not asm:
-        return
-    units = {"um": "µm", "deg": "deg"}
-    w("<h2>Assembly</h2>\n<table id=\"assembly\">\n")
-    for k, val in asm.items():
-        if not isinstance(val, dict):
-            continue
-        v, sg = val.get("value"), val.get("sigma")
-        text = "–" if v is None else f"{v:+.4g} ± {'–' if sg is None else f'{sg:.2g}'} {units.get(k.rsplit('_', 1)[-1], '')}"
-        w(f"<tr><td>{_E(k)}</td><td class=\"num\">{_E(text)}</td></tr>\n")
-    w("</table>\n")
-    if asm.get("assumptions"):
-        w(f"<p>Assumptions: {_E(asm['assumptions'])}</p>\n")
 
 
 def _measurement_section(w, measured: dict[str, Any] | None, lens_png: bytes | None) -> None:
