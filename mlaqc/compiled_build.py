@@ -13,7 +13,6 @@ import os
 import shutil
 import tempfile
 import time
-import types
 import warnings
 from pathlib import Path
 
@@ -42,7 +41,7 @@ def build_extension(target: Path, *, log=print) -> Path:
         cc.verbose = False
         for k in kernels:
             for name, signature in zip(k.export_names, k.signatures):
-                fn = _function_with_jit_globals(k)
+                fn = k.dispatcher.py_func  # over globals where its fellow kernels are JIT dispatchers
                 options[fn] = k.options
                 cc.export(name, _full_signature(k, signature))(fn)
         cc.export(f"stamp_{stamp}", "i8()")(lambda: 0)
@@ -69,12 +68,6 @@ def default_target() -> Path:
     from mlaqc import compiled
 
     return compiled.PACKAGE_DIR / f"{compiled.EXTENSION}{importlib.machinery.EXTENSION_SUFFIXES[0]}"
-
-
-def _function_with_jit_globals(k) -> types.FunctionType:
-    """The kernel's Python function over globals where its fellow kernels are JIT dispatchers (pycc
-    compiles a plain function, and the kernels it calls must be Numba functions)."""
-    return k.dispatcher.py_func
 
 
 def _full_signature(k, signature: str):

@@ -178,3 +178,19 @@ def pytest_runtest_protocol(item, nextitem):
         return
     with _run_lock(folder, item.path.name.startswith(EXCLUSIVE_MODULES)):
         yield
+
+
+@pytest.fixture
+def offline_window(qtbot):
+    """The app on the small camera with its devices not connected; on close every worker thread has ended."""
+    from pathlib import Path
+
+    from gui.app import MainWindow
+
+    w = MainWindow("mock://", "mock://", str(Path(__file__).resolve().parent.parent / "fixtures" / "small_camera.toml"),
+                   connect=False)
+    w.show()
+    yield w
+    w.close()
+    assert all(t.thread.isFinished() for t in w.threads.values()), \
+        [n for n, t in w.threads.items() if not t.thread.isFinished()]

@@ -15,7 +15,6 @@ pytest.importorskip("pyqtgraph")
 pytest.importorskip("pytestqt")
 
 import analytic_frames as am  # noqa: E402
-from gui.app import MainWindow  # noqa: E402
 from mlaqc.inspection.rawio import write_raw  # noqa: E402
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -23,11 +22,8 @@ SMALL = str(ROOT / "fixtures" / "small_camera.toml")
 
 
 @pytest.fixture
-def window(qtbot):
-    w = MainWindow("mock://", "mock://", SMALL, connect=False)
-    w.show()
-    yield w
-    w.close()
+def window(offline_window):
+    return offline_window
 
 
 def test_dark_frames_in_the_app(qtbot, window, tmp_path):

@@ -64,13 +64,8 @@ def frames(tmp_path_factory):
 
 
 @pytest.fixture
-def window(qtbot):
-    w = MainWindow("mock://", "mock://", SMALL, connect=False)
-    w.show()
-    yield w
-    w.close()
-    assert all(t.thread.isFinished() for t in w.threads.values()), \
-        [n for n, t in w.threads.items() if not t.thread.isFinished()]
+def window(offline_window):
+    return offline_window
 
 
 def choose_frames(qtbot, w: MainWindow, paths) -> None:

@@ -66,17 +66,40 @@ def _round_scaled(s):
 
 
 @_jit
-def _put_fixed(out, pos, x, prec):
-    """"%.{prec}f" % x at out[pos:]; (new position, ok)."""
+def _signed_decimals(out, pos, x, decimals, limit):
+    """|x| * 10**decimals rounded to an integer m, and x's sign written at out[pos:] (a minus on negative
+    zero too, as Python writes it); (m, new position, ok): not ok for |x| >= limit or a near-tie."""
     ax = abs(x)
-    if ax >= 1e15 / _P10[prec]:
-        return pos, False
-    m, ok = _round_scaled(_scaled(ax, prec))
+    if ax >= limit:
+        return np.int64(0), pos, False
+    m, ok = _round_scaled(_scaled(ax, decimals))
     if not ok:
-        return pos, False
+        return m, pos, False
     if math.copysign(1.0, x) < 0:
         out[pos] = 45
         pos += 1
+    return m, pos, True
+
+
+@_jit
+def _put_exponent(out, pos, e):
+    """"e+XX" / "e-XX" (at least two digits) at out[pos:]; the new position."""
+    out[pos] = 101
+    out[pos + 1] = 45 if e < 0 else 43
+    pos += 2
+    ae = -e if e < 0 else e
+    if ae < 10:
+        out[pos] = 48
+        pos += 1
+    return _put_uint(out, pos, ae)
+
+
+@_jit
+def _put_fixed(out, pos, x, prec):
+    """"%.{prec}f" % x at out[pos:]; (new position, ok)."""
+    m, pos, ok = _signed_decimals(out, pos, x, prec, 1e15 / _P10[prec])
+    if not ok:
+        return pos, False
     p10 = np.int64(_P10[prec])
     pos = _put_uint(out, pos, m // p10)
     if prec > 0:
@@ -139,14 +162,7 @@ def _put_general(out, pos, x, prec, digits, as_json):
             for i in range(1, nd):
                 out[pos] = 48 + digits[i]
                 pos += 1
-        out[pos] = 101
-        out[pos + 1] = 45 if e < 0 else 43
-        pos += 2
-        ae = -e if e < 0 else e
-        if ae < 10:
-            out[pos] = 48
-            pos += 1
-        return _put_uint(out, pos, ae), True
+        return _put_exponent(out, pos, e), True
     if e >= 0:
         for i in range(e + 1):
             out[pos] = 48 + (digits[i] if i < nd and i < prec else 0)
@@ -178,15 +194,9 @@ def _put_general(out, pos, x, prec, digits, as_json):
 def _put_round(out, pos, x, n_dec):
     """repr(round(x, n_dec)) at out[pos:] (n_dec <= 6, |x| < 1e9: the shortest repr of that double is the
     decimal itself, trailing zeros dropped, ".0" on whole numbers, d.de-XX below 1e-4); (position, ok)."""
-    ax = abs(x)
-    if ax >= 1e9:
-        return pos, False
-    m, ok = _round_scaled(_scaled(ax, n_dec))
+    m, pos, ok = _signed_decimals(out, pos, x, n_dec, 1e9)
     if not ok:
         return pos, False
-    if math.copysign(1.0, x) < 0:
-        out[pos] = 45
-        pos += 1
     p10 = np.int64(_P10[n_dec])
     if n_dec >= 4 and 0 < m < np.int64(_P10[n_dec - 4]):  # below 1e-4: d.ddde-XX
         nd = 0
@@ -194,7 +204,7 @@ def _put_round(out, pos, x, n_dec):
         while t > 0:
             nd += 1
             t //= 10
-        ae = n_dec + 1 - nd  # the value is m / 10**n_dec = d.ddd x 10**-ae
+        e = nd - 1 - n_dec  # the value is m / 10**n_dec = d.ddd x 10**e
         while m % 10 == 0:
             m //= 10
         start = pos
@@ -204,13 +214,7 @@ def _put_round(out, pos, x, n_dec):
                 out[q] = out[q - 1]
             out[start + 1] = 46
             pos += 1
-        out[pos] = 101
-        out[pos + 1] = 45
-        pos += 2
-        if ae < 10:
-            out[pos] = 48
-            pos += 1
-        return _put_uint(out, pos, ae), True
+        return _put_exponent(out, pos, e), True
     pos = _put_uint(out, pos, m // p10)
     out[pos] = 46
     pos += 1
