@@ -7,6 +7,7 @@ import numpy as np
 
 from mlaqc.inspection.assembly import FIELDS, measure_assembly
 from mlaqc.inspection.calibrate import calibrate
+from mlaqc.models.assembly_model import assembly_model
 from mlaqc.optics.config import load_config
 from mlaqc.optics.errormap import ErrorMap
 from mlaqc.optics.sensor import white_level
@@ -38,6 +39,8 @@ def show(name, glob, a):
         ok &= good
         print(f"  {k:24s} true {t:+9.4f} read {a.value(k):+9.4f} ± {a.sigma[k]:.4f}  err {err:+.4f} ({z:+.1f} σ)  "
               f"{'ok' if good else 'MISS'}")
+    print(f"  distance from focus: {a.distance_from_focus_um:+.3f} ± {a.distance_from_focus_sigma_um:.3f} µm "
+          f"(true {glob.get('mla_sensor_distance_um', 0.0):+.1f})")
     return ok
 
 
@@ -49,6 +52,9 @@ def main():
     args = ap.parse_args()
     cfg = load_config(args.config)
     t = time.time()
+    model = assembly_model(cfg)
+    print(f"assembly model {model.key}: ready in {time.time() - t:.0f} s (pupil {model.pupil_mm:.2f} mm; "
+          f"systematic floor {', '.join(f'{v:.2g}' for v in model.systematic)})")
     results = {"all together": show("all together", ALL, read(cfg, args.rays_per_pixel, 1, ALL))}
     results["no global error"] = show("no global error", {}, read(cfg, args.rays_per_pixel, 2, {}))
     for k, v in ALL.items():

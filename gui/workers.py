@@ -787,6 +787,11 @@ def build_view(result: Any, cfg: Any, source: str, elapsed_s: float, *, frames: 
                 f"{g.lenses_missing} missing")
     detail = (f"{kinds}; {detection_limit_text(result.detection_limit)}; grid pitch {g.pitch_px[0]:.3f} × "
               f"{g.pitch_px[1]:.3f} px, rotation {g.rotation_deg:+.3f}°, RMS residual {g.rms_residual_px:.3f} px")
+    assembly = getattr(result, "assembly", None)
+    if assembly is not None:  # the array's placement; a bound it exceeds is what failed the verdict
+        detail += "; " + assembly.summary_line().strip()
+        if assembly.exceeded:
+            headline += " · assembly out of bounds: " + "; ".join(assembly.exceeded)
     tf = getattr(result, "through_focus", None)
     summary = f"{headline} ({detail}{'; ' + through_focus_summary(tf) if tf is not None else ''})"
     ok_grid = np.isfinite(gx) & np.isfinite(gy)

@@ -26,7 +26,7 @@ COMMANDS = {
     "calibrate": ("mlaqc.commands.calibrate", "find every microlens in a white image and write grid.json"),
     "inspect": ("mlaqc.commands.inspect", "inspect raw images: defective lenses, type, size, PASS/FAIL"),
     "models": ("mlaqc.commands.models",
-               "build (or rebuild) a camera's reference model, signature tables and through-focus model"),
+               "build (or rebuild) a camera's reference model, signature tables, through-focus model and assembly calibration"),
     "kernels": ("mlaqc.commands.kernels", "compile the inspection kernels ahead of time for this machine (or check them)"),
     "demo": ("mlaqc.commands.demo", "simulate an MLA with seeded defects, inspect it, report found vs seeded"),
     "capture": ("drivers.commands", "capture raw frames (or averages) from a camera with provenance sidecars"),

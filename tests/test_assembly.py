@@ -1,8 +1,9 @@
-"""Assembly readings (mlaqc/inspection/assembly.py) on rendered small-camera frames with known global errors.
+"""Assembly readings (mlaqc/inspection/assembly.py) on rendered small-camera frames with known global errors,
+read through the shipped assembly calibration (mlaqc/models/assembly_model.py), and in the report."""
 
-Not yet in the report: on the Table 1 camera the distance reads +2.3 µm with no global error (122 sigma;
-bench/assembly.py), so the readings stay out of report.json and the verdict until that bias is modelled."""
-
+import json
+import subprocess
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -10,55 +11,121 @@ import pytest
 
 from mlaqc.inspection.assembly import FIELDS, measure_assembly
 from mlaqc.inspection.calibrate import calibrate
+from mlaqc.models.assembly_model import AssemblyModel, _nested, assembly_key, assembly_model
 from mlaqc.optics.config import load_config
 from mlaqc.optics.errormap import ErrorMap
 from mlaqc.optics.sensor import white_level
 from mlaqc.optics.simulate import simulate
 
-CFG = load_config(Path(__file__).resolve().parent.parent / "fixtures" / "small_camera.toml")
-# per-field tolerance on the 24 x 24 camera (tilts are poorly conditioned on a 3.4 mm array)
-TOL = {"mla_sensor_distance_um": 4.0, "mla_rotation_deg": 0.01, "mla_tilt_x_deg": 0.25, "mla_tilt_y_deg": 0.25,
-       "mla_shift_x_um": 1.0, "mla_shift_y_um": 1.0}
+FIXTURE = Path(__file__).resolve().parent.parent / "fixtures" / "small_camera.toml"
+CFG = load_config(FIXTURE)
+# the issue's bars for a whole Table 1 array; the 24 x 24 array (2.4 mm) reads tilts 4x less well
+TOL = {"mla_sensor_distance_um": 3.0, "mla_rotation_deg": 0.01, "mla_tilt_x_deg": 0.4, "mla_tilt_y_deg": 0.4,
+       "mla_shift_x_um": 3.0, "mla_shift_y_um": 3.0}
+ALL = {"mla_sensor_distance_um": 15.0, "mla_rotation_deg": 0.3, "mla_tilt_x_deg": 0.3, "mla_tilt_y_deg": -0.2,
+       "mla_shift_x_um": 20.0, "mla_shift_y_um": -12.0}
 
 
-def _read(seed=3, **glob):
+def _grid(seed: int, rpp: float = 20, **glob):
     em = ErrorMap.zeros(CFG.mla.count_h, CFG.mla.count_w).with_globals(**glob)
-    sim = simulate(CFG, errors=em, rays_per_pixel=20, seed=seed)
+    sim = simulate(CFG, errors=em, rays_per_pixel=rpp, seed=seed)
     blk = CFG.sensor.black_level_dn
     img = (sim.raw.astype(np.float32) - blk) / (white_level(CFG.sensor) - blk)
-    grid = calibrate(img, expected_pitch_px=CFG.layout.subimage_pitch_px,
+    return calibrate(img, expected_pitch_px=CFG.layout.subimage_pitch_px,
                      expected_shape=(CFG.mla.count_h, CFG.mla.count_w))
-    return measure_assembly(grid, CFG)
 
 
-CASES = [{"mla_sensor_distance_um": 15.0}, {"mla_rotation_deg": 0.3}, {"mla_tilt_x_deg": 0.3},
-         {"mla_tilt_y_deg": -0.2}, {"mla_shift_x_um": 20.0, "mla_shift_y_um": -12.0},
-         {"mla_sensor_distance_um": 15.0, "mla_rotation_deg": 0.3, "mla_tilt_x_deg": 0.3, "mla_tilt_y_deg": -0.2,
-          "mla_shift_x_um": 20.0, "mla_shift_y_um": -12.0}]
+def test_the_small_cameras_calibration_is_shipped():
+    model = assembly_model(CFG, build_if_missing=False)  # FileNotFoundError if a first inspection had to render it
+    assert model.key == assembly_key(CFG) and 170 < model.pupil_mm < 190  # the main lens' rear principal plane: 179 mm
 
 
-@pytest.mark.parametrize("glob", CASES)
+CASES = [{k: v} for k, v in ALL.items()] + [ALL]
+
+
+@pytest.mark.parametrize("glob", CASES, ids=["distance", "rotation", "tilt_x", "tilt_y", "shift_x", "shift_y", "all"])
 def test_readings_match_known_global_errors(glob):
-    a = _read(**glob)
+    a = measure_assembly(_grid(3, **glob), CFG)
+    assert a.read and a.lenses_used == CFG.mla.count_w * CFG.mla.count_h
     for k in FIELDS:
-        truth = glob.get(k, 0.0)
-        assert abs(a.value(k) - truth) <= max(TOL[k], 3 * a.sigma[k]), (k, a.value(k), truth, a.sigma[k])
+        err = a.value(k) - glob.get(k, 0.0)
+        assert abs(err) <= TOL[k], (k, a.value(k), glob.get(k, 0.0))
+        assert abs(err) <= 3.5 * a.sigma[k], (k, err, a.sigma[k])
 
 
-@pytest.mark.xfail(strict=False, reason="model bias (exit-pupil aberration) ~2-3 µm in distance not yet in sigma")
-def test_zero_error_frame_reads_zero_within_3_sigma():
-    a = _read(seed=11)
-    for k in ("mla_sensor_distance_um", "mla_rotation_deg", "mla_tilt_x_deg", "mla_shift_x_um", "mla_shift_y_um"):
-        assert abs(a.value(k)) <= 3 * a.sigma[k] + 1e-9, (k, a.value(k), a.sigma[k])
+@pytest.mark.parametrize("seed", [11, 12])
+def test_a_frame_with_no_global_error_reads_zero_within_3_sigma(seed):
+    a = measure_assembly(_grid(seed), CFG)
+    for k in FIELDS:
+        assert abs(a.value(k)) <= 3 * a.sigma[k], (k, a.value(k), a.sigma[k])
+    assert abs(a.distance_from_focus_um) <= 3 * a.distance_from_focus_sigma_um + 0.5
 
 
-def test_json_and_bounds():
-    a = _read(mla_rotation_deg=0.3)
+def test_distance_from_focus_agrees_with_the_grids():
+    a = measure_assembly(_grid(5, mla_sensor_distance_um=-25.0), CFG)
+    assert a.value("mla_sensor_distance_um") == pytest.approx(-25.0, abs=3.0)
+    assert a.distance_from_focus_um == pytest.approx(-25.0, abs=3.0)
+
+
+def test_a_partial_grid_is_not_read_and_says_why():
+    grid = _grid(3)
+    cut = type(grid)(**{**grid.__dict__, "rows": 10, "cols": 10})
+    a = measure_assembly(cut, CFG)
+    assert not a.read and "whole array" in a.reason
     d = a.to_json_dict()
-    assert set(FIELDS) <= set(d) and "assumptions" in d
-    assert all(set(d[k]) == {"value", "sigma"} for k in FIELDS)
+    assert d["mla_rotation_deg"] == {"value": None, "sigma": None} and "not_read" in d
 
-    class QC:
-        assembly_rotation_deg = 0.1
-    lines = a.out_of_bounds(QC())
-    assert len(lines) == 1 and "mla_rotation_deg" in lines[0]
+
+def test_a_damaged_model_file_is_refused():
+    good = assembly_model(CFG, build_if_missing=False).to_json_dict()
+    with pytest.raises(ValueError):
+        AssemblyModel.from_json_dict(good | {"poly": [[0.0]]})
+    with pytest.raises(ValueError):
+        AssemblyModel.from_json_dict(good | {"version": 0})
+
+
+def test_bounds_fail_the_verdict_with_their_own_line_in_every_output(tmp_path):
+    em = ErrorMap.zeros(CFG.mla.count_h, CFG.mla.count_w).with_globals(mla_rotation_deg=0.3)
+    raw = tmp_path / "frame.npy"
+    np.save(raw, simulate(CFG, errors=em, rays_per_pixel=20, seed=4).raw)
+    cfg_path = tmp_path / "cam.toml"
+    cfg_path.write_text(FIXTURE.read_text() + "\n[qc]\nassembly_rotation_deg = 0.1\nassembly_distance_um = 10\n")
+    out = tmp_path / "rep"
+    run = subprocess.run([sys.executable, "-m", "mlaqc", "inspect", str(raw), "--config", str(cfg_path),
+                          "--out", str(out)], capture_output=True, text=True)
+    assert run.returncode == 1, run.stderr
+    said = run.stderr  # the bench summary
+    assert "FAIL: assembly mla_rotation_deg = +0.3" in said and "qc.assembly_rotation_deg = 0.1" in said
+    assert said.count("FAIL: assembly") == 1 and "  assembly: distance" in said
+    report = json.loads((out / "report.json").read_text())
+    asm = report["assembly"]
+    assert report["verdict"] == "FAIL" and len(asm["out_of_bounds"]) == 1
+    assert asm["mla_rotation_deg"]["value"] == pytest.approx(0.3, abs=0.01)
+    assert set(FIELDS) <= set(asm) and "assumptions" in asm
+    html = (out / "report.html").read_text()
+    assert 'id="assembly"' in html and "exceeds qc.assembly_rotation_deg" in html
+
+
+def test_a_negative_bound_is_a_config_error(tmp_path):
+    cfg_path = tmp_path / "cam.toml"
+    cfg_path.write_text(FIXTURE.read_text() + "\n[qc]\nassembly_tilt_deg = -1\n")
+    run = subprocess.run([sys.executable, "-m", "mlaqc", "inspect", "none.npy", "--config", str(cfg_path),
+                          "--out", str(tmp_path / "rep")], capture_output=True, text=True)
+    assert run.returncode == 2 and "qc.assembly_tilt_deg" in run.stderr and not (tmp_path / "rep").exists()
+
+
+def test_the_model_is_inverted_exactly_and_its_slopes_are_its_derivative():
+    rng = np.random.default_rng(0)
+    poly = np.zeros((6, 7, 3))
+    poly[:, :6, 0] = np.eye(6) + 0.05 * rng.standard_normal((6, 6))
+    poly[:, :, 1:] = 0.01 * rng.standard_normal((6, 7, 2))
+    cross = 0.01 * np.triu(np.ones((6, 6)), 1)[None, :, :, None] * rng.standard_normal((2, 6, 6, 7))
+    model = AssemblyModel(179.0, tuple(rng.standard_normal(7)), (0.0,) * 7, _nested(poly), (0.0,) * 6, 40.0, "k",
+                          _nested(cross))
+    true = np.array([3.0, 0.2, -0.3, 0.1, 1.5, -2.0])
+    got, _ = model.solve(model.raw(true))
+    assert np.allclose(got, true, atol=1e-9)
+    h = 1e-6
+    numeric = np.stack([(model.raw(true + h * e) - model.raw(true - h * e)) / (2 * h) for e in np.eye(6)], axis=1)
+    assert np.allclose(model.slopes(true), numeric, atol=1e-6)
+    assert AssemblyModel.from_json_dict(model.to_json_dict()) == model

@@ -112,8 +112,16 @@ def summary(result) -> str:
              "  by type: " + (", ".join(f"{k} {v}" for k, v in sorted(kinds.items())) or "none"),
              f"  this frame {detection_limit_text(result.detection_limit)}",
              *([through_focus_text(result.through_focus)] if getattr(result, "through_focus", None) is not None else []),
+             *_assembly_lines(getattr(result, "assembly", None)),
              "  time: " + ", ".join(f"{k} {v:.2f} s" for k, v in result.timings_s.items())]
     return "\n".join(lines)
+
+
+def _assembly_lines(assembly) -> list[str]:
+    """The array's placement readings, and one FAIL line per `[qc]` bound they exceed."""
+    if assembly is None:
+        return []
+    return [assembly.summary_line(), *(f"  FAIL: {line}" for line in assembly.exceeded)]
 
 
 def through_focus_text(tf) -> str:

@@ -21,10 +21,11 @@ from mlaqc.progress import ProgressBar
 
 def register(sub: argparse._SubParsersAction) -> None:
     """Add the `models` subcommand."""
-    p = sub.add_parser("models", help="build (or rebuild) a camera's reference model, signature tables and "
-                                      "through-focus model",
+    p = sub.add_parser("models", help="build (or rebuild) a camera's reference model, signature tables, "
+                                      "through-focus model and assembly calibration",
                        description="Render the reference sub-image model and the signature tables that inspection "
-                                   "compares every lens with, and the shipped through-focus protocol's model, for the "
+                                   "compares every lens with, the shipped through-focus protocol's model, and the "
+                                   "assembly readings' calibration (rendered frames of the array's placement), for the "
                                    "camera's optics, and store them in the cache "
                                    "($MLAQC_CACHE or ~/.cache/mlaqc). Tables already stored are kept unless --rebuild.")
     p.add_argument("--config", "-c", help="camera config TOML (default: the paper's Table 1 camera)")
@@ -36,6 +37,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 def run(args: argparse.Namespace) -> int:
     """Build what is missing (or everything with --rebuild); 0 on success."""
+    from mlaqc.models.assembly_model import assembly_model
     from mlaqc.models.reference import config_key, reference_model
     from mlaqc.models.store import cache_dir
     from mlaqc.models.signatures import signature_key, signature_table
@@ -52,9 +54,14 @@ def run(args: argparse.Namespace) -> int:
         finally:
             bar.close()
     tf_key = _through_focus_model(cfg, args.rebuild)
+    asm_bar = ProgressBar("assembly renders", enabled=False if args.quiet else None)
+    try:
+        asm_key = assembly_model(cfg, rebuild=args.rebuild, progress=asm_bar).key
+    finally:
+        asm_bar.close()
     if not args.quiet:
-        print(f"reference model {config_key(cfg)}, signature tables {signature_key(cfg)} and through-focus model "
-              f"{tf_key} ready ({time.perf_counter() - t0:.1f} s); cache: {cache_dir()}", file=sys.stderr)
+        print(f"reference model {config_key(cfg)}, signature tables {signature_key(cfg)}, through-focus model "
+              f"{tf_key} and assembly model {asm_key} ready ({time.perf_counter() - t0:.1f} s); cache: {cache_dir()}", file=sys.stderr)
     return 0
 
 

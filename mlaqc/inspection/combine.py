@@ -27,11 +27,13 @@ SOURCE_KEY = "through_focus_z"  # added to a defect's indexes when the pairs rea
 SIGN_Z = 3.0  # the pairs settle a radius error's sign from this significance on
 
 
-def verdict(defects: tuple[Defect, ...], qc: QC) -> str:
-    """PASS or FAIL by the QC limits: out-of-tolerance lenses and missing lenses, each against its maximum."""
+def verdict(defects: tuple[Defect, ...], qc: QC, assembly=None) -> str:
+    """PASS or FAIL by the QC limits: out-of-tolerance lenses and missing lenses, each against its maximum,
+    and the array's assembly readings (mlaqc.inspection.assembly.Assembly): a `[qc]` bound they exceed."""
     out_of_tol = sum(1 for d in defects if d.error_type != "missing" and not d.within_tolerance)
     missing = sum(1 for d in defects if d.error_type == "missing")
-    return "FAIL" if (out_of_tol > qc.max_out_of_tolerance or missing > qc.max_missing) else "PASS"
+    misplaced = bool(assembly.exceeded) if assembly is not None else False
+    return "FAIL" if (out_of_tol > qc.max_out_of_tolerance or missing > qc.max_missing or misplaced) else "PASS"
 
 
 def combine_through_focus(result: InspectionResult, tf, qc: QC) -> InspectionResult:
@@ -60,7 +62,7 @@ def combine_through_focus(result: InspectionResult, tf, qc: QC) -> InspectionRes
     defects.sort(key=lambda d: (d.m, d.n))
     defects = tuple(defects)
     return dataclasses.replace(result, defects=defects, flagged=flagged, error_type=error_type,
-                               verdict=verdict(defects, qc), through_focus=tf)
+                               verdict=verdict(defects, qc, result.assembly), through_focus=tf)
 
 
 def _white_focal_sigma(result: InspectionResult) -> np.ndarray:

@@ -11,6 +11,7 @@ import numpy as np
 
 from mlaqc.compiled import net_clock
 from mlaqc.errors import InputError
+from mlaqc.inspection.assembly import measure_assembly
 from mlaqc.inspection.calibrate import Grid, calibrate
 from mlaqc.inspection.combine import SOURCE_KEY
 from mlaqc.inspection.combine import verdict as overall_verdict
@@ -102,7 +103,9 @@ def inspect_image(img: np.ndarray, cfg: CameraConfig, *, grid: Grid | None = Non
     measured = measure_lenses(found, table, cfg, (grid.residual_x_px, grid.residual_y_px) if own_grid else None)
     lap("measure")
     qc = cfg.qc
-    verdict = overall_verdict(defects, qc)
+    assembly = measure_assembly(grid, cfg).checked(qc)
+    lap("assembly")
+    verdict = overall_verdict(defects, qc, assembly)
     # every lens' reference is for the report, which shows a few: computed when (and as far as) it is read
     side = 2 * half + 1
     ref = LazyReferences(lambda x, y: reference_images(model, x, y, side, side), cx, cy, (side, side))
@@ -111,7 +114,7 @@ def inspect_image(img: np.ndarray, cfg: CameraConfig, *, grid: Grid | None = Non
                             sub, ref, source, _tolerance_dict(cfg), t,
                             notes=tuple(notes), detection_limit=found.detection_limit,
                             below_reportable=found.below_reportable, not_inspected=found.not_inspected,
-                            measurements=measured)
+                            measurements=measured, assembly=assembly)
 
 
 _MODELS: dict[tuple[str, str], tuple[ReferenceModel, SignatureSet]] = {}
@@ -221,6 +224,7 @@ def scan_frame_hook(frame) -> dict:
                        for d in result.defects],
            "grid": {"pitch_px": list(result.grid.pitch_px), "rotation_deg": result.grid.rotation_deg,
                     "rms_residual_px": result.grid.rms_residual_px},
+           "assembly": _plain(result.assembly.to_json_dict()) if result.assembly is not None else None,
            "timings_s": result.timings_s}
     tf = getattr(result, "through_focus", None)
     if tf is not None:

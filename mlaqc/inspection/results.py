@@ -157,6 +157,7 @@ class InspectionResult:
     not_inspected: int = 0  # lenses whose sub-image leaves the sensor
     measurements: Any = None  # mlaqc.inspection.measure.LensMeasurements: every lens' centre and focal error
     through_focus: Any = None  # mlaqc.inspection.throughfocus.ThroughFocusResult when pinhole frames were given
+    assembly: Any = None  # mlaqc.inspection.assembly.Assembly: the array's placement in the camera
 
     @property
     def failed(self) -> bool:

@@ -132,6 +132,11 @@ class QC:
     max_out_of_tolerance: int = 0  # more than this many out-of-tolerance lenses fails the array
     max_missing: int = 0  # more than this many missing lenses fails the array
     report_fraction: float = 0.4  # the smallest error reported, as a fraction of its tolerance (physical floor)
+    # bounds on the array's assembly readings (mlaqc.inspection.assembly), absolute values; None: not bounded
+    assembly_distance_um: float | None = None  # MLA-sensor gap change from design
+    assembly_rotation_deg: float | None = None  # MLA rotation about the optical axis
+    assembly_tilt_deg: float | None = None  # each of the MLA's two tilts
+    assembly_shift_um: float | None = None  # each component of the MLA centre's offset from the sensor centre
 
 
 @dataclass(frozen=True)
@@ -342,6 +347,9 @@ def validate(cfg: CameraConfig, source: str = "config") -> None:
     fm = cfg.formation
     _require(math.isfinite(fm.crosstalk) and 0 <= fm.crosstalk < 0.2, source, "formation.crosstalk", "must be in [0, 0.2)", fm.crosstalk)
     _require(math.isfinite(fm.prnu_rms) and 0 <= fm.prnu_rms < 0.2, source, "formation.prnu_rms", "must be in [0, 0.2)", fm.prnu_rms)
+    for key in ("assembly_distance_um", "assembly_rotation_deg", "assembly_tilt_deg", "assembly_shift_um"):
+        v = getattr(cfg.qc, key)
+        _require(v is None or (math.isfinite(v) and v > 0), source, f"qc.{key}", "must be positive", v)
     for key in ("max_out_of_tolerance", "max_missing"):
         _require(getattr(cfg.qc, key) >= 0, source, f"qc.{key}", "must not be negative", getattr(cfg.qc, key))
     _require(t.rays_per_pixel > 0, source, "trace.rays_per_pixel", "must be positive", t.rays_per_pixel)

@@ -112,6 +112,9 @@ def build_report_dict(result: InspectionResult, *, config_dict: dict | None = No
         "measurements": _measurements_json(v),
         # the through-focus pinhole pairs' per-lens readings (mlaqc.inspection.throughfocus), null without them
         "through_focus": _through_focus_json(v),
+        # the array's placement in the camera: the error map's global fields, each {value, sigma}
+        # (mlaqc.inspection.assembly), with what they assume; null when not read
+        "assembly": result.assembly.to_json_dict() if getattr(result, "assembly", None) is not None else None,
     }
     return _jsonable(report)
 

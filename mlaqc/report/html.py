@@ -168,6 +168,7 @@ def _html(v: View, report: dict[str, Any], small_png: bytes, lens_png: bytes | N
       f"{_E(REPORT_FILES['defect_map'])}</a>; every lens: <a href=\"{_E(REPORT_FILES['csv'])}\">"
       f"{_E(REPORT_FILES['csv'])}</a>.</p>\n")
 
+    _assembly_section(w, report.get("assembly"))
     _measurement_section(w, report.get("measurements"), lens_png)
     _through_focus_section(w, report.get("through_focus"))
 
@@ -221,6 +222,37 @@ def _html(v: View, report: dict[str, Any], small_png: bytes, lens_png: bytes | N
         w("</pre></details>\n")
     w(f"</main>\n<script>{_JS}</script>\n</body>\n</html>\n")
     return "".join(out)
+
+
+ASSEMBLY_ROWS = (("mla_sensor_distance_um", "MLA–sensor distance (change from design)", "µm", 2),
+                 ("distance_from_focus_um", "the same, from the sub-images' focus", "µm", 2),
+                 ("mla_rotation_deg", "rotation about the optical axis", "°", 4),
+                 ("mla_tilt_x_deg", "tilt about x", "°", 3), ("mla_tilt_y_deg", "tilt about y", "°", 3),
+                 ("mla_shift_x_um", "shift x", "µm", 2), ("mla_shift_y_um", "shift y", "µm", 2))
+
+
+def _assembly_section(w, a: dict[str, Any] | None) -> None:
+    """The array's placement in the camera: each reading ± 1σ, the bounds it exceeds, what it assumes."""
+    if not a:
+        return
+    w("<h2>Assembly</h2>\n")
+    if a.get("not_read"):
+        w(f"<p id=\"assembly\">Not read: {_E(a['not_read'])}.</p>\n")
+        return
+    w("<table id=\"assembly\">\n<thead><tr><th scope=\"col\">reading</th><th scope=\"col\">value</th>"
+      "<th scope=\"col\">1σ</th></tr></thead>\n<tbody>\n")
+    for key, label, unit, digits in ASSEMBLY_ROWS:
+        item = a.get(key) or {}
+        value, sigma = item.get("value"), item.get("sigma")
+        w(f"<tr><td>{_E(label)} <span class=\"note\">{_E(key)}</span></td>"
+          f"<td class=\"num\">{'–' if value is None else _E(f'{value:+.{digits}f}')} {_E(unit)}</td>"
+          f"<td class=\"num\">{'–' if sigma is None else _E(f'{sigma:.{digits}f}')}</td></tr>\n")
+    w("</tbody>\n</table>\n")
+    if a.get("note"):
+        w(f"<p class=\"note\">{_E(a['note'])}.</p>\n")
+    for line in a.get("out_of_bounds") or ():
+        w(f"<p class=\"out\"><b>FAIL:</b> {_E(line)}</p>\n")
+    w(f"<p class=\"note\">{a.get('lenses_used', 0)} lenses; {_E(a.get('assumptions', ''))}.</p>\n")
 
 
 def _measurement_section(w, measured: dict[str, Any] | None, lens_png: bytes | None) -> None:
