@@ -56,8 +56,10 @@ def test_typing_rule_types_only_what_the_noise_separates():
 
 
 def test_grid_boundaries_cannot_split_and_the_table_1_split_ships():
-    assert position_split(default_config()) is None  # no boundary moves: no neighbour sees either error
-    split = position_split(with_boundaries(default_config(), SAG))
+    # no boundary moves: no neighbour sees either error
+    assert position_split(with_boundaries(default_config(), "grid")) is None
+    split = position_split(default_config())  # the default is sag-intersection: its split ships
+    assert split is not None and split is position_split(with_boundaries(default_config(), SAG))
     # a decenter's contrast per px of own shift is several times a pitch error's (measured: 3.5 x)
     assert split.contrast_per_px["decenter"] > 2.5 * split.contrast_per_px["pitch"] > 0
     # own sub-image shift per µm: a whole-lens shift moves it about twice as far as a rear-surface decenter

@@ -111,7 +111,7 @@ def inspect_image(img: np.ndarray, cfg: CameraConfig, *, grid: Grid | None = Non
                             sub, ref, source, _tolerance_dict(cfg), t,
                             notes=tuple(notes), detection_limit=found.detection_limit,
                             below_reportable=found.below_reportable, not_inspected=found.not_inspected,
-                            measurements=measured)
+                            measurements=measured, lens_boundaries=cfg.mla.boundaries)
 
 
 _MODELS: dict[tuple[str, str], tuple[ReferenceModel, SignatureSet]] = {}

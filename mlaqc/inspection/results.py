@@ -157,6 +157,7 @@ class InspectionResult:
     not_inspected: int = 0  # lenses whose sub-image leaves the sensor
     measurements: Any = None  # mlaqc.inspection.measure.LensMeasurements: every lens' centre and focal error
     through_focus: Any = None  # mlaqc.inspection.throughfocus.ThroughFocusResult when pinhole frames were given
+    lens_boundaries: str = ""  # the config's mla.boundaries the frame was inspected with ('' if not known)
 
     @property
     def failed(self) -> bool:
@@ -181,7 +182,8 @@ def detection_limit_text(limit: dict[str, Any]) -> str:
     split = limit["pitch_vs_decenter"]
     if split is None:
         return text + "; pitch vs decenter: not told apart (grid lens boundaries: reported as 'position')"
-    return text + f"; tells pitch from decenter from {split['pitch_um']:.3g} µm pitch / {split['decenter_um']:.3g} µm decenter"
+    return text + (f"; tells pitch from decenter from {split['pitch_um']:.3g} µm pitch / {split['decenter_um']:.3g} µm "
+                   "decenter (sag-intersection lens boundaries)")
 
 
 def _noise_text(noise: Any) -> str:
