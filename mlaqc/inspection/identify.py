@@ -800,8 +800,13 @@ def _split_reading(split: PositionSplit, dev: dict[str, np.ndarray], m: int, n: 
 
 def _readings(detect_dev: dict[str, np.ndarray], rings: RingNoise, trend: dict[str, np.ndarray]) -> dict:
     """Per-lens values against the array's typical lens: local deviation (phase pattern removed) plus its
-    neighbourhood's trend; what `measure.measure_lenses` reads centres and focus from."""
-    out = {k: detect_dev[k] + trend[k] for k in ("offset_x_px", "offset_y_px", "blur", "flux", "ssim", "sharpness")}
+    neighbourhood's trend; what `measure.measure_lenses` reads centres and focus from. Flux is the
+    exception: its local deviation alone. A slow flux trend over the array is the illumination's and the
+    vignetting's (a white target is never quite even, a camera's fall-off never quite the model's), not
+    the lenses'; with sag-intersection boundaries a radius error changes its lens' aperture (+10 %: +6 %
+    flux), so a +6 % brighter field centre would read as +8 % focal errors there."""
+    out = {k: detect_dev[k] + trend[k] for k in ("offset_x_px", "offset_y_px", "blur", "ssim", "sharpness")}
+    out["flux"] = detect_dev["flux"]
     out.update({r: rings.dev[..., j] + trend[r] for j, r in enumerate(RINGS)})
     return out
 
