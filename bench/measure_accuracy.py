@@ -3,7 +3,7 @@ bars): render the frame at a budget whose Monte-Carlo noise is below the sensor'
 sensor model (shot + read noise at the config's exposure), inspect it, and compare every lens' reading with
 the error map that made it.
 
-    python bench/measure_accuracy.py [--rays-per-pixel 1000] [--boundaries grid] [--seed 5] [--defects 120]
+    python bench/measure_accuracy.py [--rays-per-pixel 1000] [--boundaries sag-intersection|grid] [--seed 5] [--defects 120]
 
 Prints, per error kind: flagged and typed right, radius sign and magnitude (within 15 %), the optical-centre
 reading against Δp (pitch) and δ/2 (decenter), and the healthy lenses flagged. Frames are cached in /tmp.
@@ -62,7 +62,7 @@ def with_paper_examples(em: ErrorMap) -> ErrorMap:
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--rays-per-pixel", type=float, default=1000.0)
-    ap.add_argument("--boundaries", default="grid", choices=("grid", "sag-intersection"))
+    ap.add_argument("--boundaries", default=default_config().mla.boundaries, choices=("grid", "sag-intersection"))
     ap.add_argument("--seed", type=int, default=5)
     ap.add_argument("--defects", type=int, default=120)
     args = ap.parse_args()

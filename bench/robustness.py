@@ -193,7 +193,9 @@ def tracer_frame(rpp: float, seed: int) -> tuple[Path, dict]:
     Monte-Carlo: 14 / 4.9 / 2.2 %), on top of the sensor's own."""
     cfg = default_config()
     errors, truth = seeded(seed)
-    path = CACHE / f"robust_rpp{int(rpp)}_seed{seed}_{cfg.trace.sampler}.dng"  # the default sampler renders it
+    # the default sampler and lens-boundary model render it (grid frames keep the name they had before the key)
+    bound = "" if cfg.mla.boundaries == "grid" else f"_{cfg.mla.boundaries}"
+    path = CACHE / f"robust_rpp{int(rpp)}_seed{seed}_{cfg.trace.sampler}{bound}.dng"
     if not path.is_file():
         CACHE.mkdir(parents=True, exist_ok=True)
         t0 = time.perf_counter()

@@ -4,6 +4,7 @@ peak memory on the default camera, for each engine and thread count; then the is
     python bench/trace.py            # all figures (about a minute on 2 idle cores)
     python bench/trace.py --quick    # fewer rays
     python bench/trace.py --huge     # also 10^9 rays in the memory table
+    python bench/trace.py --boundaries   # only: sag-intersection vs grid lens boundaries, interleaved runs
 
 Wall-clock rates depend on what else runs on the machine; the CPU time per ray (single thread) does not
 much, so it is printed too: compare that between revisions on a shared machine.
@@ -12,6 +13,7 @@ much, so it is printed too: compare that between revisions on a shared machine.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import os
 import resource
@@ -38,6 +40,36 @@ def rate(renderer: Renderer, rays: int, threads: int | None, seed: int = 1) -> t
     renderer.render(WhiteScene(), rays=rays, seed=seed, threads=threads)
     dt, dc = time.perf_counter() - t, time.process_time() - c
     return rays / dt / 1e6, dt, dc / rays * 1e9
+
+
+def compare_boundaries(rays: int, repeats: int) -> None:
+    """The default camera's rays/s with sag-intersection and with grid lens boundaries (numba, one thread
+    and all cores), runs interleaved so that the machine's load hits both alike; medians and their ratio."""
+    cfg, errors = camera()
+    models = ("sag-intersection", "grid")
+    renderers = {b: Renderer(dataclasses.replace(cfg, mla=dataclasses.replace(cfg.mla, boundaries=b)), errors,
+                             engine="numba") for b in models}
+    for r in renderers.values():
+        r.render(WhiteScene(), rays=200_000, seed=0)  # compile / warm up
+    cores = os.cpu_count() or 1
+    print(f"lens boundaries, numba, {rays:,} rays a run, {repeats} interleaved runs each (median; CPU ns/ray "
+          "single-threaded is the load-independent figure)")
+    for threads in sorted({1, cores}):
+        got = {b: [] for b in models}
+        for k in range(repeats):
+            for b in (models if k % 2 == 0 else models[::-1]):
+                got[b].append(rate(renderers[b], rays, threads, seed=10 + k))
+        med = {b: (float(np_median([g[0] for g in got[b]])), float(np_median([g[2] for g in got[b]]))) for b in models}
+        for b in models:
+            print(f"  {b:16s} {threads} thread(s): {med[b][0]:6.2f} M rays/s, {med[b][1]:6.1f} CPU ns/ray")
+        print(f"  sag / grid: rays/s x{med['sag-intersection'][0] / med['grid'][0]:.2f}, "
+              f"CPU per ray x{med['sag-intersection'][1] / med['grid'][1]:.2f}")
+
+
+def np_median(values: list[float]) -> float:
+    v = sorted(values)
+    n = len(v)
+    return v[n // 2] if n % 2 else 0.5 * (v[n // 2 - 1] + v[n // 2])
 
 
 def _status_mib(field: str) -> float:
@@ -71,14 +103,18 @@ def main() -> int:
     ap.add_argument("--quick", action="store_true", help="fewer rays everywhere")
     ap.add_argument("--huge", action="store_true", help="add 10^9 rays to the memory table")
     ap.add_argument("--memory-child", type=int, help=argparse.SUPPRESS)
+    ap.add_argument("--boundaries", action="store_true", help="only sag-intersection vs grid boundaries' rays/s")
     args = ap.parse_args()
     if args.memory_child:
         memory_child(args.memory_child)
         return 0
+    if args.boundaries:
+        compare_boundaries(10_000_000 if args.quick else 40_000_000, 3 if args.quick else 5)
+        return 0
     cfg, errors = camera()
     cores = os.cpu_count() or 1
     print(f"machine: {cores} cores, load average {os.getloadavg()[0]:.1f}; camera: Table 1 (102x102 lenses, "
-          f"2048x2048 px), 200 defective lenses, Fresnel on")
+          f"2048x2048 px), 200 defective lenses, Fresnel on, {cfg.mla.boundaries} lens boundaries")
     print(f"{'engine':8s} {'threads':>7s} {'rays':>12s} {'M rays/s':>9s} {'seconds':>8s} {'CPU ns/ray':>11s}")
     rays = 10_000_000 if args.quick else 40_000_000
     for engine in ("numba", "numpy"):

@@ -389,10 +389,13 @@ def test_boundary_settings_round_trip_through_toml_and_set_the_model_hashes():
     cfg = camera(SAG, black_matrix_um=4.5)
     back = config_from_dict(tomllib.loads(config_to_toml(cfg)))
     assert back == cfg
-    assert default_config().mla.boundaries == "grid" and default_config().mla.black_matrix_um == 0.0
+    # the physical model is the default (issue #22); 'grid' stays an option for idealised studies
+    assert default_config().mla.boundaries == SAG and default_config().mla.black_matrix_um == 0.0
     # the reference is an error-free array, whose sag-intersection boundaries lie on the grid: one key
     assert config_key(cfg) == config_key(camera("grid", black_matrix_um=4.5)) != config_key(camera(SAG))
     assert config_key(camera(SAG)) == config_key(camera("grid"))
     assert signature_key(cfg) != signature_key(camera("grid", black_matrix_um=4.5)) != signature_key(camera(SAG))
-    # the defaults leave the keys of the shipped tables as they were
-    assert (config_key(default_config()), signature_key(default_config())) == ("ce27af037735c6e4", "9a13b08d514d6ed1")
+    # grid keys are those of the tables shipped before the boundary key existed; the default's (sag) are shipped too
+    table1_grid = dataclasses.replace(default_config(), mla=dataclasses.replace(default_config().mla, boundaries="grid"))
+    assert (config_key(table1_grid), signature_key(table1_grid)) == ("ce27af037735c6e4", "9a13b08d514d6ed1")
+    assert (config_key(default_config()), signature_key(default_config())) == ("ce27af037735c6e4", "be9e3ce72b170780")

@@ -56,8 +56,10 @@ def test_typing_rule_types_only_what_the_noise_separates():
 
 
 def test_grid_boundaries_cannot_split_and_the_table_1_split_ships():
-    assert position_split(default_config()) is None  # no boundary moves: no neighbour sees either error
-    split = position_split(with_boundaries(default_config(), SAG))
+    # no boundary moves: no neighbour sees either error
+    assert position_split(with_boundaries(default_config(), "grid")) is None
+    split = position_split(default_config())  # the default is sag-intersection: its split ships
+    assert split is not None and split is position_split(with_boundaries(default_config(), SAG))
     # a decenter's contrast per px of own shift is several times a pitch error's (measured: 3.5 x)
     assert split.contrast_per_px["decenter"] > 2.5 * split.contrast_per_px["pitch"] > 0
     # own sub-image shift per µm: a whole-lens shift moves it about twice as far as a rear-surface decenter
@@ -126,3 +128,24 @@ def test_inspection_types_pitch_and_decenter_on_a_sag_boundary_frame(boundaries)
         else:
             assert got.error_type in (kind, "position"), (lens, got)
     assert sum(found[lens].error_type != "position" for lens in seeded) >= 2  # at 400 rays/pixel: 8 µm decenter, 3.5 µm pitch
+
+
+def test_a_replicated_arrays_frame_inspected_with_grid_boundaries_is_inspected_as_one():
+    """Issue #22: whatever the config says, a sag-intersection frame must not come out as 'position' with
+    its decenters read at half their size. The decenters tilt their neighbours (a moved boundary), which
+    grid apertures cannot do: the frame is inspected with sag-intersection boundaries and a note says so.
+    A grid frame with the same errors keeps the grid model (tested above: every shift stays 'position')."""
+    seeded = {(7, 7): ("pitch", 2.0, 30.0), (7, 17): ("decenter", 8.0, 200.0), (17, 17): ("pitch", 3.5, 300.0)}
+    em = ErrorMap.zeros(24, 24)
+    for (m, n), (kind, mag, d) in seeded.items():
+        em = em.with_lens(m, n, **{f"{kind}_um": mag, f"{kind}_dir_deg": d})
+    grid_cfg = with_boundaries(SMALL, "grid")
+    result = inspect_image(_frame(with_boundaries(SMALL, SAG), em, 400, 7), grid_cfg)
+    assert result.lens_boundaries == SAG
+    assert any("replicated (sag-intersection)" in n for n in result.notes)
+    found = {(d.m, d.n): d for d in result.defects}
+    assert set(found) == set(seeded)
+    assert found[(7, 17)].error_type == "decenter" and found[(7, 17)].magnitude == pytest.approx(8.0, rel=0.3)
+    plain = inspect_image(_frame(grid_cfg, em, 400, 7), grid_cfg)
+    assert plain.lens_boundaries == "grid" and not plain.notes
+    assert {d.error_type for d in plain.defects} == {"position"}

@@ -143,11 +143,18 @@ def test_white_level_falls_off_towards_the_corners_as_cos4(full_white):
 
 
 @pytest.mark.parametrize("alpha", [0.0, 90.0, 225.0])
-def test_pitch_error_moves_its_subimage_by_dp_b_plus_f_over_b(small_base, alpha):
+def test_pitch_error_moves_its_subimage_by_dp_b_plus_f_over_b(alpha):
+    """With grid lens boundaries, set explicitly: there the whole lens' optics move and its square aperture
+    stays on the grid, so its light moves by Δp·(b+f)/b and no neighbour's light changes. With the default
+    sag-intersection boundaries the aperture moves by about Δp/2 and the neighbours' light changes (see
+    tests/test_boundaries.py)."""
+    grid = dataclasses.replace(SMALL, mla=dataclasses.replace(SMALL.mla, boundaries="grid"))
+    small_base = Renderer(grid).render(WhiteScene(), rays_per_pixel=40, seed=7).photons
     lay = SMALL.layout
     gain = (lay.pupil_to_mla_mm + lay.z_sensor_mm - lay.z_mla_mm) / lay.pupil_to_mla_mm
     dp_um = 2.0
-    img = render_small(pitch_um=dp_um, pitch_dir_deg=alpha)
+    em = ErrorMap.zeros(24, 24).with_lens(*LENS, pitch_um=dp_um, pitch_dir_deg=alpha)
+    img = Renderer(grid, em).render(WhiteScene(), rays_per_pixel=40, seed=7).photons
     dx, dy = lens_shift_px(img, small_base)
     expect = dp_um * gain / SMALL.sensor.pixel_um
     a = math.radians(alpha)

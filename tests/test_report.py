@@ -557,3 +557,19 @@ def test_the_detection_limit_is_reported_in_json_and_html(tmp_path):
     para = page[page.index('id="detection-limit"'):].split("</p>")[0]
     assert "pitch 0.55 µm" in para and "decenter 2 µm" in para and "+11.2 %" in para
     assert "not detectable" in para  # the radius' negative side has no limit in this frame
+
+
+def test_report_json_says_which_lens_boundary_model_was_used(tmp_path):
+    """Issue #22: the report says whether the frame was inspected with sag-intersection (physical, the
+    default) or grid (idealised) lens boundaries; null for a result that does not say."""
+    from dataclasses import replace
+
+    from mlaqc.inspection.results import detection_limit_text
+
+    write_report(replace(make_result(), lens_boundaries="sag-intersection"), tmp_path / "s")
+    assert load_report(tmp_path / "s")["lens_boundaries"] == "sag-intersection"
+    write_report(make_result(), tmp_path / "n")
+    assert load_report(tmp_path / "n")["lens_boundaries"] is None
+    split = {"pitch_vs_decenter": {"pitch_um": 0.6, "decenter_um": 1.2}}
+    assert "(sag-intersection lens boundaries)" in detection_limit_text(split)
+    assert "grid lens boundaries" in detection_limit_text({"pitch_vs_decenter": None})

@@ -158,6 +158,7 @@ class InspectionResult:
     measurements: Any = None  # mlaqc.inspection.measure.LensMeasurements: every lens' centre and focal error
     through_focus: Any = None  # mlaqc.inspection.throughfocus.ThroughFocusResult when pinhole frames were given
     assembly: Any = None  # mlaqc.inspection.assembly.Assembly: the array's placement in the camera
+    lens_boundaries: str = ""  # the config's mla.boundaries the frame was inspected with ('' if not known)
 
     @property
     def failed(self) -> bool:
@@ -182,7 +183,8 @@ def detection_limit_text(limit: dict[str, Any]) -> str:
     split = limit["pitch_vs_decenter"]
     if split is None:
         return text + "; pitch vs decenter: not told apart (grid lens boundaries: reported as 'position')"
-    return text + f"; tells pitch from decenter from {split['pitch_um']:.3g} µm pitch / {split['decenter_um']:.3g} µm decenter"
+    return text + (f"; tells pitch from decenter from {split['pitch_um']:.3g} µm pitch / {split['decenter_um']:.3g} µm "
+                   "decenter (sag-intersection lens boundaries)")
 
 
 def _noise_text(noise: Any) -> str:

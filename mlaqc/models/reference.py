@@ -47,9 +47,10 @@ class ReferenceModel:
 
 
 def mla_hash_view(mla: dict, *, design: bool = False) -> dict:
-    """The MLA keys that shape the images, for a content hash: the lens-boundary model and the black matrix
-    only when they differ from the defaults (so that the keys of the shipped tables stay valid), and the
-    boundary model never for `design` (an error-free array: sag-intersection boundaries lie on the grid)."""
+    """The MLA keys that shape the images, for a content hash: the lens-boundary model only when it is not
+    'grid' and the black matrix only when set (so that the keys of the tables shipped before either key
+    existed, which were grid tables, stay valid), and the boundary model never for `design` (an error-free
+    array: sag-intersection boundaries lie on the grid)."""
     out = dict(mla)
     if design or out.get("boundaries") == "grid":
         out.pop("boundaries", None)

@@ -42,10 +42,12 @@ class MLA:
     `corners`: where the two spherical surfaces would cross (beyond r ≈ 68 µm for Table 1) there is no
     lens. 'opaque' blocks those rays (a black matrix); 'clear' lets them pass undeviated.
 
-    `boundaries`: which lens a ray belongs to. 'grid': the lens of the design-grid cell its hit point lies
-    in (a pitch error moves the surfaces, not the square aperture). 'sag-intersection': a replicated
-    100 %-fill array, where each lens ends where its sag meets its neighbours' sags (a ray enters the
-    front sphere it meets first and leaves the rear sphere it meets last; see mlaqc.optics.raytrace).
+    `boundaries`: which lens a ray belongs to. 'sag-intersection' (default, the physical model): a
+    replicated 100 %-fill array, where each lens ends where its sag meets its neighbours' sags (a ray
+    enters the front sphere it meets first and leaves the rear sphere it meets last; see
+    mlaqc.optics.raytrace). 'grid': an idealised array whose lens is that of the design-grid cell a hit
+    point lies in (a pitch error moves the surfaces, not the square aperture), for idealised studies; on
+    it a pitch error and a decenter cannot be told apart (inspection reports them as 'position').
 
     `black_matrix_um`: width of an opaque mask centred on the design grid lines in the front vertex
     plane (0 = none); rays crossing that plane within half the width of a grid line are absorbed.
@@ -59,7 +61,7 @@ class MLA:
     thickness_um: float = 10.0
     refractive_index: float = 1.56
     corners: str = "opaque"
-    boundaries: str = "grid"
+    boundaries: str = "sag-intersection"
     black_matrix_um: float = 0.0
 
 

@@ -99,6 +99,9 @@ def build_report_dict(result: InspectionResult, *, config_dict: dict | None = No
         "grid_summary": grid_summary,
         "grid": grid_json,
         "tolerances": dict(result.tolerances),
+        # the lens-boundary model the frame was inspected with (mla.boundaries): 'sag-intersection' (physical,
+        # types pitch and decenter apart) or 'grid' (idealised: both reported as 'position'); null if not known
+        "lens_boundaries": getattr(result, "lens_boundaries", "") or None,
         # what a PASS means: per error type the smallest magnitude this frame flags (inner lenses, at the
         # configured detect_sigma and minimum reportable size); null where nothing rendered is detectable
         "detection_limit": dict(getattr(result, "detection_limit", {}) or {}),

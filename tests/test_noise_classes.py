@@ -1,0 +1,34 @@
+"""The frame's own noise per lens class (mlaqc.inspection.identify.class_sigmas): a small array's few
+defects must not set it (issue #22: 9 defects among a 24 x 24 array's 384 inner lenses read its spreads
+10-20 times the noise), while a wide systematic tail still widens it."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from mlaqc.inspection.identify import class_sigmas, noise_classes
+
+
+def _noise(shape=(24, 24), seed=3) -> np.ndarray:
+    return np.random.default_rng(seed).standard_normal(shape)
+
+
+def test_a_few_strong_defects_among_the_inner_lenses_do_not_set_their_spread():
+    dev = _noise()
+    for m in (5, 11, 17):
+        for n in (5, 11, 17):
+            dev[m, n] = 60.0 * (-1) ** (m + n)  # 9 defects: 2.3 % of the 384 inner lenses
+    inner = noise_classes(dev.shape) == 2
+    assert class_sigmas(dev)[inner].max() < 1.4  # the Gaussian noise's own (1), not the defects'
+    assert class_sigmas(_noise())[inner].max() < 1.4
+
+
+def test_a_wide_systematic_tail_still_widens_the_spread():
+    """3 % of the inner lenses at 5 sigma (within TAIL_OUTLIER: a pattern, not defects): the 99th
+    percentile follows them, so that they do not cross a 6-sigma threshold."""
+    dev = _noise()
+    inner = np.flatnonzero((noise_classes(dev.shape) == 2).ravel())
+    dev.ravel()[inner[::33]] = 5.0
+    sig = class_sigmas(dev)[noise_classes(dev.shape) == 2].max()
+    assert sig > 5.0 / 6.0 * 1.2 and 5.0 / sig < 6.0
+
