@@ -3,15 +3,9 @@
 import argparse
 import time
 
-import numpy as np
-
 from mlaqc.inspection.assembly import FIELDS, measure_assembly
-from mlaqc.inspection.calibrate import calibrate
-from mlaqc.models.assembly_model import assembly_model
+from mlaqc.models.assembly_model import assembly_model, render_grid
 from mlaqc.optics.config import load_config
-from mlaqc.optics.errormap import ErrorMap
-from mlaqc.optics.sensor import white_level
-from mlaqc.optics.simulate import simulate
 
 BARS = {"mla_sensor_distance_um": 3.0, "mla_rotation_deg": 0.01, "mla_tilt_x_deg": 0.1, "mla_tilt_y_deg": 0.1,
         "mla_shift_x_um": 3.0, "mla_shift_y_um": 3.0}
@@ -20,12 +14,7 @@ ALL = {"mla_sensor_distance_um": 15.0, "mla_rotation_deg": 0.3, "mla_tilt_x_deg"
 
 
 def read(cfg, rpp, seed, glob):
-    em = ErrorMap.zeros(cfg.mla.count_h, cfg.mla.count_w).with_globals(**glob)
-    sim = simulate(cfg, errors=em, rays_per_pixel=rpp, seed=seed)
-    blk = cfg.sensor.black_level_dn
-    img = (sim.raw.astype(np.float32) - blk) / (white_level(cfg.sensor) - blk)
-    grid = calibrate(img, expected_pitch_px=cfg.layout.subimage_pitch_px, expected_shape=(cfg.mla.count_h, cfg.mla.count_w))
-    return measure_assembly(grid, cfg)
+    return measure_assembly(render_grid(cfg, glob, rays_per_pixel=rpp, seed=seed), cfg)
 
 
 def show(name, glob, a):

@@ -109,7 +109,7 @@ def test_signature_tables_built_on_the_cluster_equal_the_local_build(client):
 
 
 def test_models_command_builds_into_the_cache_on_the_cluster(dask_cluster, tmp_path, monkeypatch, capsys):
-    from mlaqc.models import signatures
+    from mlaqc.models import assembly_model, signatures
     from mlaqc.models.reference import config_key
     from mlaqc.models.signatures import signature_key
 
@@ -117,6 +117,9 @@ def test_models_command_builds_into_the_cache_on_the_cluster(dask_cluster, tmp_p
     # per pixel, not the tables' 400: the table a cluster builds is the local one (the test above).
     build = signatures.build_signature_set
     monkeypatch.setattr(signatures, "build_signature_set", lambda cfg, **kw: build(cfg, **kw, rays_per_pixel=10))
+    build_assembly = assembly_model.build_assembly_model
+    monkeypatch.setattr(assembly_model, "build_assembly_model",
+                        lambda cfg, **kw: build_assembly(cfg, **kw, rays_per_pixel=10))
     monkeypatch.setenv("MLAQC_CACHE", str(tmp_path))
     monkeypatch.setenv("MLAQC_SCHEDULER", dask_cluster.scheduler_address)
     assert main(["models", "-c", str(SMALL_TOML), "--rebuild"]) == 0
@@ -125,3 +128,4 @@ def test_models_command_builds_into_the_cache_on_the_cluster(dask_cluster, tmp_p
     assert (tmp_path / f"reference_{config_key(SMALL)}.npz").is_file()
     assert (tmp_path / f"signatures_{signature_key(SMALL)}.json").is_file()
     assert len(list(tmp_path.glob("throughfocus_*.npz"))) == 1  # the shipped protocol's model
+    assert (tmp_path / f"assembly_{assembly_model.assembly_key(SMALL)}.json").is_file()

@@ -93,7 +93,7 @@ class Assembly:
             return f"  assembly: not read ({self.reason})"
         v, s = self.values, self.sigma
         return (f"  assembly: distance {v['mla_sensor_distance_um']:+.2f} ± {s['mla_sensor_distance_um']:.2f} µm "
-                f"(focus {self.distance_from_focus_um:+.1f} ± {self.distance_from_focus_sigma_um:.1f}), "
+                f"(focus {self.distance_from_focus_um:+.2f} ± {self.distance_from_focus_sigma_um:.2f}), "
                 f"rotation {v['mla_rotation_deg']:+.4f} ± {s['mla_rotation_deg']:.4f} deg, "
                 f"tilt x/y {v['mla_tilt_x_deg']:+.3f} ± {s['mla_tilt_x_deg']:.3f} / "
                 f"{v['mla_tilt_y_deg']:+.3f} ± {s['mla_tilt_y_deg']:.3f} deg, "
