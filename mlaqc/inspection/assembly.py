@@ -19,7 +19,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from mlaqc.inspection.projection import FIELDS, MIN_LENSES, raw_components
+from mlaqc.inspection.projection import FIELDS, raw_components
 
 UNITS = {"mla_sensor_distance_um": "µm", "mla_rotation_deg": "deg", "mla_tilt_x_deg": "deg",
          "mla_tilt_y_deg": "deg", "mla_shift_x_um": "µm", "mla_shift_y_um": "µm"}
@@ -33,6 +33,9 @@ ASSUMPTIONS = ("read from the calibrated lens centres through the camera model (
                "distance_from_focus_um: the same gap from the sub-images' radius, which assumes the main lens' "
                "aperture at its design value")
 # QC keys ([qc]) bounding each reading (absolute value; tilt and shift bound both components)
+COVERAGE = 0.5  # the share of the array's lenses the readings need (a corner of it cannot place the array)
+RANGE_MARGIN = 1.25  # readings up to this much beyond the rendered range are extrapolated, further ones are not
+UNCALIBRATED = 0.10  # relative uncertainty of an uncalibrated reading
 QC_KEYS = {"mla_sensor_distance_um": "assembly_distance_um", "mla_rotation_deg": "assembly_rotation_deg",
            "mla_tilt_x_deg": "assembly_tilt_deg", "mla_tilt_y_deg": "assembly_tilt_deg",
            "mla_shift_x_um": "assembly_shift_um", "mla_shift_y_um": "assembly_shift_um"}
@@ -64,7 +67,8 @@ class Assembly:
         out = {k: {"value": _num(self.value(k)), "sigma": _num(self.sigma[k])} for k in FIELDS}
         out["distance_from_focus_um"] = {"value": _num(self.distance_from_focus_um),
                                          "sigma": _num(self.distance_from_focus_sigma_um)}
-        out["assumptions"] = ASSUMPTIONS.format(ppm_um=self.ppm_um)
+        out["assumptions"] = ASSUMPTIONS.format(ppm_um=self.ppm_um) if math.isfinite(self.ppm_um) else \
+            ASSUMPTIONS.replace(" (a pitch scale error of 1 ppm reads as {ppm_um:.2f} µm of distance)", "")
         out["lenses_used"] = int(self.lenses_used)
         out["rms_residual_px"] = _num(self.rms_residual_px)
         out["out_of_bounds"] = list(self.exceeded)
@@ -85,15 +89,20 @@ class Assembly:
         return lines
 
     def checked(self, qc) -> Assembly:
-        """This reading with the `[qc]` bounds it exceeds recorded (they fail the verdict)."""
+        """This reading with the `[qc]` bounds it exceeds recorded (they fail the verdict); unread, with
+        bounds set, it says they were not checked."""
+        if self.reason and any(getattr(qc, key, None) is not None for key in set(QC_KEYS.values())):
+            return dataclasses.replace(self, note="its [qc] assembly bounds were not checked")
         return dataclasses.replace(self, exceeded=tuple(self.out_of_bounds(qc)))
 
     def summary_line(self) -> str:
         if self.reason:
-            return f"  assembly: not read ({self.reason})"
+            return f"  assembly: not read ({self.reason})" + (f"; {self.note}" if self.note else "")
         v, s = self.values, self.sigma
-        return (f"  assembly: distance {v['mla_sensor_distance_um']:+.2f} ± {s['mla_sensor_distance_um']:.2f} µm "
-                f"(focus {self.distance_from_focus_um:+.2f} ± {self.distance_from_focus_sigma_um:.2f}), "
+        focus = (f" (focus {self.distance_from_focus_um:+.2f} ± {self.distance_from_focus_sigma_um:.2f})"
+                 if math.isfinite(self.distance_from_focus_um) else "")
+        return (f"  assembly: distance {v['mla_sensor_distance_um']:+.2f} ± {s['mla_sensor_distance_um']:.2f} µm"
+                f"{focus}, "
                 f"rotation {v['mla_rotation_deg']:+.4f} ± {s['mla_rotation_deg']:.4f} deg, "
                 f"tilt x/y {v['mla_tilt_x_deg']:+.3f} ± {s['mla_tilt_x_deg']:.3f} / "
                 f"{v['mla_tilt_y_deg']:+.3f} ± {s['mla_tilt_y_deg']:.3f} deg, "
@@ -128,7 +137,9 @@ def _focus_distance(model, true: np.ndarray, radius_px: float) -> tuple[float, f
 
 def measure_assembly(grid, cfg, model=None) -> Assembly:
     """The six assembly readings from a calibrated `grid` (mlaqc.inspection.calibrate.Grid) of `cfg`'s
-    camera, through its assembly model (mlaqc.models.assembly_model; looked up, or built, when None)."""
+    camera, through its assembly model (mlaqc.models.assembly_model; looked up when None: shipped or
+    cached, never rendered here — `mlaqc models` renders it once for new optics)."""
+    count = cfg.mla.count_h * cfg.mla.count_w
     if grid.shape != (cfg.mla.count_h, cfg.mla.count_w):
         return not_read(f"the grid has {grid.cols} x {grid.rows} lenses, the camera's MLA "
                         f"{cfg.mla.count_w} x {cfg.mla.count_h}: the array's placement needs the whole array")
@@ -136,12 +147,17 @@ def measure_assembly(grid, cfg, model=None) -> Assembly:
         from mlaqc.models.assembly_model import assembly_model
 
         try:
-            model = assembly_model(cfg)
-        except ValueError as exc:
-            return not_read(f"the assembly calibration could not be built ({exc})")
+            model = assembly_model(cfg, build_if_missing=False)
+        except FileNotFoundError:
+            return not_read("no assembly calibration for these optics yet: `mlaqc models --config CONFIG` renders "
+                            "it once")
+        except (ValueError, TypeError, KeyError, OSError) as exc:
+            return not_read(f"the assembly calibration could not be read ({exc})")
     comps = raw_components(grid, cfg, model.pupil_mm)
-    if comps is None:
-        return not_read(f"fewer than {MIN_LENSES} whole sub-images were found")
+    if comps is None or comps[2] < COVERAGE * count:
+        used = 0 if comps is None else comps[2]
+        return not_read(f"{used} of the {count} lenses were read whole: the array's placement needs at least "
+                        f"{COVERAGE:.0%} of them")
     raw, cov, used, rms = comps
     if not np.all(np.isfinite(raw[:6])):
         return not_read("the lens centres could not be fitted")
@@ -149,24 +165,30 @@ def measure_assembly(grid, cfg, model=None) -> Assembly:
         true, slopes = model.solve(raw)
         inv = np.linalg.inv(slopes)
     except np.linalg.LinAlgError:
-        return not_read("the readings could not be solved through the assembly calibration")
-    if not np.all(np.isfinite(true)):
-        return not_read("the readings could not be solved through the assembly calibration")
+        return _uncalibrated(model, raw, cov, used, rms)
+    matched = np.all(np.abs(model.raw(true)[:6] - raw[:6]) <= 1e-6 * (1.0 + np.abs(raw[:6])))
+    if not (matched and np.all(np.abs(true) <= RANGE_MARGIN * model.extent())):
+        return _uncalibrated(model, raw, cov, used, rms)
     cov_true = inv @ (cov[:6, :6] + np.diag(np.square(model.zero_sigma[:6]))) @ inv.T
     sig = np.hypot(np.sqrt(np.clip(np.diag(cov_true), 0, None)), model.systematic_at(true))
     focus, r_slope = _focus_distance(model, true, float(raw[6]))
     focus_sigma = math.hypot(math.sqrt(cov[6, 6]), model.zero_sigma[6]) / abs(r_slope) if r_slope else float("nan")
     gap_mm = cfg.layout.z_sensor_mm - cfg.layout.z_mla_mm
     ppm_um = 1e-3 * (model.pupil_mm + gap_mm) / slopes[0, 0]
+    over = [f"{k} {v:+.3g}" for k, v, lim in zip(FIELDS, true, model.extent()) if abs(v) > lim]
+    note = f"beyond the rendered range, extrapolated: {', '.join(over)}" if over else ""
     return Assembly(dict(zip(FIELDS, (float(v) for v in true))), dict(zip(FIELDS, (float(v) for v in sig))),
-                    focus, float(focus_sigma), used, rms, float(ppm_um), note=_range_note(model, true))
+                    focus, float(focus_sigma), used, rms, float(ppm_um), note=note)
 
 
-def _range_note(model, true: np.ndarray) -> str:
-    """A note when a reading lies beyond what the calibration rendered (it is then extrapolated)."""
-    from mlaqc.models.assembly_model import VALIDATION_SIZE
-
-    limits = 2 * VALIDATION_SIZE
-    limits[0] = model.distance_range_um
-    over = [f"{k} {v:+.3g}" for k, v, lim in zip(FIELDS, true, limits) if abs(v) > lim]
-    return ("beyond the calibrated range (extrapolated, the sigma grows with it): " + ", ".join(over)) if over else ""
+def _uncalibrated(model, raw: np.ndarray, cov: np.ndarray, used: int, rms: float) -> Assembly:
+    """Readings beyond what the calibration rendered (or that its model cannot reach): the projection
+    fit's own, its zero point taken off, with UNCALIBRATED of each value in the sigma (on Table 1 the fit
+    reads a tilt 4 % large and the distance's slope is 0.9-1.08) and the validation frames' error."""
+    values = raw[:6] - np.asarray(model.zero[:6], float)
+    sig = np.sqrt(np.clip(np.diag(cov[:6, :6]), 0, None) + np.square(UNCALIBRATED * values)
+                  + np.square(model.systematic))
+    extent = ", ".join(f"{k} ±{v:g}" for k, v in zip(FIELDS, model.extent()))
+    return Assembly(dict(zip(FIELDS, map(float, values))), dict(zip(FIELDS, map(float, sig))), lenses_used=used,
+                    rms_residual_px=rms, note=f"beyond the calibrated range ({extent}): the projection fit's own "
+                                              f"readings, good to about {UNCALIBRATED:.0%}")

@@ -373,20 +373,23 @@ TAIL_OUTLIER = 10.0  # tail spreads leave out deviations beyond this many robust
 _NAMES = ("offset_x_px", "offset_y_px", "asym_x", "asym_y", "blur", "flux", "ssim", "sharpness")
 
 
-def tail_sigma(dev: np.ndarray) -> float:
+def tail_sigma(dev: np.ndarray, floor: float = 0.0) -> float:
     """A spread that also answers to heavy tails: the larger of 1.4826 MAD and the 99th percentile of
     |dev - median| over its Gaussian value (2.576 sigma). For Gaussian noise both agree; where
     systematic errors (a profile the reference does not share, an edge) leave more lenses far out than
     noise would, the spread follows them, so that they do not cross the threshold. A defect rate under
     1 % of a class does not move it, nor do lenses beyond TAIL_OUTLIER robust sigma (defects: in a small
     array a few are more than 1 % of a class, and 9 among a 24 x 24 array's 384 inner lenses made its
-    spreads 10-20 times the noise and its detection limits 5 times the large array's)."""
+    spreads 10-20 times the noise and its detection limits 5 times the large array's). `floor`: the
+    smallest spread the cut assumes (the noise a noise-free frame is judged by), so that how much is cut
+    does not depend on whether the frame has noise."""
     d = dev[np.isfinite(dev)]
     if d.size < 20:
         return robust_sigma(dev)
     a = np.abs(d - np.median(d))
     mad = float(np.median(a))
-    p99 = float(np.percentile(a[a <= TAIL_OUTLIER * 1.4826 * mad], 99.0)) if mad > 0 else float(np.percentile(a, 99.0))
+    cut = TAIL_OUTLIER * max(1.4826 * mad, floor)
+    p99 = float(np.percentile(a[a <= cut], 99.0)) if cut > 0 else float(np.percentile(a, 99.0))
     return max(1.4826 * mad, 1e-9, p99 / 2.576)
 
 
@@ -451,7 +454,9 @@ def ring_noise(metrics: LensMetrics, phase: PhaseModel | None = None, floor: np.
     cls = noise_classes(dev.shape[:2])
     # edge classes by their tail-aware spread, against the inner lenses' plain robust one (which a few
     # defects among the inner lenses do not inflate, while their tails would in a small array)
-    spread = {c: (robust_sigma if c == 2 else tail_sigma)((dev[(cls == c) & finite] @ whiten).ravel()) for c in range(4)}
+    # (whitened: unit noise, the floor included, so the tail's outlier cut assumes at least that)
+    spread = {c: robust_sigma(w) if c == 2 else tail_sigma(w, 1.0)
+              for c, w in ((c, (dev[(cls == c) & finite] @ whiten).ravel()) for c in range(4))}
     for c in (0, 1, 3):  # (never sharpened: fewer lenses, a less sure spread)
         if np.isfinite(spread[c]) and np.isfinite(spread[2]) and spread[c] > spread[2]:
             dev[cls == c] *= spread[2] / spread[c]
@@ -480,7 +485,7 @@ def focus_score(rings: RingNoise, table: SignatureTable) -> np.ndarray:
     for c in (0, 1, 3):
         sel = cls == c
         if inner is not None and sel.sum() > 20:
-            z[sel] /= np.maximum(_column_tail_sigmas(z[sel]) / inner, 1.0)
+            z[sel] /= np.maximum(_column_tail_sigmas(z[sel], 1.0) / inner, 1.0)  # unit-noise z: cut from 10
     return z.max(axis=-1)
 
 
@@ -834,7 +839,11 @@ def _beyond_reportable(table: SignatureTable, kind: str, mag: float, power: floa
         return False
     r = response(table, name, (-1.0 if mag < 0 else 1.0) * mins[kind])
     t = _unit_noise(r, sigmas, whiten)
-    return power - dof > float(t @ t) + 4.0 * np.sqrt(2.0 * dof)
+    tt = float(t @ t)
+    if not tt > 0.0:  # the reportable size lies outside the table's rendered range: no prediction to exceed
+        return False
+    # 4 sigma of the non-central chi-square an error of that size gives (variance 2 dof + 4 lambda)
+    return power - dof > tt + 4.0 * np.sqrt(2.0 * dof + 4.0 * tt)
 
 
 def identify(metrics: LensMetrics, missing: np.ndarray, qc: QC, table: SignatureTable, position=None,

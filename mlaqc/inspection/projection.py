@@ -1,7 +1,7 @@
 """The projection fit behind the assembly readings: every found lens' measured sub-image centre against
 its design centre projected through the camera's geometry.
 
-Projection fit (the tracer's geometry, mlaqc/optics/raytrace.py `Camera`): lens U(m,n)'s design centre
+The geometry (the tracer's, mlaqc/optics/raytrace.py `Camera`): lens U(m,n)'s design centre
 on the MLA is (x_l, y_l) = ((n - 1/2) p - N_W p / 2, (m - 1/2) p - N_H p / 2) about the optical axis. The
 MLA is turned by R = Rz(-rotation) Ry(tilt_y) Rx(tilt_x) about its centre and shifted by (shift_x,
 shift_y); the sensor sits f' + distance behind the MLA mid-plane (f' the design gap). A white sub-image's
@@ -24,6 +24,7 @@ from mlaqc.optics.raytrace import _rotation
 FIELDS = ("mla_sensor_distance_um", "mla_rotation_deg", "mla_tilt_x_deg", "mla_tilt_y_deg",
           "mla_shift_x_um", "mla_shift_y_um")
 MIN_LENSES = 12
+OUTLIER_FLOOR_PX = 1e-3  # the outlier cut's smallest spread: a noise-free frame keeps its lenses
 
 
 @dataclass(frozen=True)
@@ -98,8 +99,9 @@ def lens_centres(grid, cfg, pupil_mm: float) -> tuple[Lenses, np.ndarray, np.nda
 
 
 def fit_projection(grid, cfg, pupil_mm: float):
-    """Raw readings (6, FIELDS order), their covariance (6 x 6), lenses used and rms residual (px) of the
-    projection fit to `grid`'s measured centres; None when too few lenses were found."""
+    """Raw readings (6, FIELDS order), their covariance (6 x 6), lenses used (both coordinates within the
+    outlier cut) and rms residual (px) of the projection fit to `grid`'s measured centres; None when too
+    few lenses were found."""
     lenses, mx, my = lens_centres(grid, cfg, pupil_mm)
     if mx.size < MIN_LENSES:
         return None
@@ -120,11 +122,11 @@ def fit_projection(grid, cfg, pupil_mm: float):
         if it >= 2:
             r = measured - np.concatenate(_project(params, lenses))
             mad = 1.4826 * np.median(np.abs(r[keep] - np.median(r[keep])))
-            keep = np.abs(r) < 5 * max(mad, 1e-6)
+            keep = np.abs(r) < 5 * max(mad, OUTLIER_FLOOR_PX)
     r = (measured - np.concatenate(_project(params, lenses)))[keep]
     var = float(r @ r) / max(r.size - 6, 1)
     cov = np.linalg.pinv(jac[keep].T @ jac[keep]) * var
-    return params, cov, int(mx.size), math.sqrt(var)
+    return params, cov, int((keep[:mx.size] & keep[mx.size:]).sum()), math.sqrt(var)
 
 
 def focus_radius(grid) -> tuple[float, float]:

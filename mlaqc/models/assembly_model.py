@@ -1,7 +1,7 @@
 """The assembly readings' calibration through the camera model: what the projection fit reads on the
 tracer's own frames of this camera.
 
-The projection fit (mlaqc.inspection.assembly) models a sub-image's centre as the lens centre seen from
+The projection fit (mlaqc.inspection.projection) models a sub-image's centre as the lens centre seen from
 one exit-pupil point. A real sub-image is a vignetted, aberrated image of the main lens' pupil, and the
 calibration's disc centre of it is not exactly that point: on the Table 1 camera the design frame reads
 +2.3 µm of distance, a tilt reads 4 % large and 10 % larger still with the sensor 15 µm further back, and
@@ -33,7 +33,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from mlaqc.inspection.projection import FIELDS
+from mlaqc.inspection.projection import FIELDS, raw_components
 from mlaqc.models.reference import mla_hash_view
 from mlaqc.models.store import stored_json
 from mlaqc.optics.config import CameraConfig
@@ -78,7 +78,10 @@ class AssemblyModel:
         scale = u[0] * u[1] + max(u[0] - 1.0, 0.0) ** 2
         out = np.asarray(self.systematic, float) * scale
         return np.hypot(out, self.single_fit)
-        return out
+
+    def extent(self) -> np.ndarray:
+        """How far each error was rendered alone (FIELDS order): beyond it readings are extrapolated."""
+        return np.array([self.distance_range_um] + [max(map(abs, SINGLE_NODES)) * STEPS[k] for k in FIELDS[1:]])
 
     def raw(self, true: np.ndarray) -> np.ndarray:
         """Predicted raw components for true readings `true` (6,)."""
@@ -117,17 +120,19 @@ class AssemblyModel:
 
     @classmethod
     def from_json_dict(cls, d: dict) -> AssemblyModel:
-        if d.get("format") != "mlaqc-assembly-model" or d.get("version") != FORMAT_VERSION:
+        if not isinstance(d, dict) or d.get("format") != "mlaqc-assembly-model" or d.get("version") != FORMAT_VERSION:
             raise ValueError("not an mlaqc assembly model of this version")
-        poly = np.asarray(d["poly"], float)
-        if poly.shape != (6, COMPONENTS, 3) or len(d["zero"]) != COMPONENTS or len(d["systematic"]) != 6:
-            raise ValueError("assembly model tables have the wrong shape")
-        cross = np.asarray(d["cross"], float)
-        if cross.shape != (2, 6, 6, COMPONENTS):
-            raise ValueError("assembly model cross terms have the wrong shape")
-        return cls(float(d["pupil_mm"]), tuple(float(v) for v in d["zero"]), tuple(float(v) for v in d["zero_sigma"]),
-                   _nested(poly), tuple(float(v) for v in d["systematic"]), float(d["distance_range_um"]),
-                   str(d["key"]), _nested(cross), tuple(float(v) for v in d["single_fit"]))
+        shapes = {"zero": (COMPONENTS,), "zero_sigma": (COMPONENTS,), "poly": (6, COMPONENTS, 3),
+                  "systematic": (6,), "cross": (2, 6, 6, COMPONENTS), "single_fit": (6,)}
+        arrays = {k: np.asarray(d[k], float) for k in shapes}
+        for k, shape in shapes.items():
+            if arrays[k].shape != shape or not np.all(np.isfinite(arrays[k])):
+                raise ValueError(f"assembly model {k} is not {' x '.join(map(str, shape))} finite numbers")
+        if not (np.isfinite(float(d["pupil_mm"])) and float(d["distance_range_um"]) > 0):
+            raise ValueError("assembly model pupil or range is not a number")
+        return cls(float(d["pupil_mm"]), _nested(arrays["zero"]), _nested(arrays["zero_sigma"]), _nested(arrays["poly"]),
+                   _nested(arrays["systematic"]), float(d["distance_range_um"]), str(d["key"]),
+                   _nested(arrays["cross"]), _nested(arrays["single_fit"]))
 
 
 def _nested(a: np.ndarray) -> tuple:
@@ -150,18 +155,23 @@ def assembly_key(cfg: CameraConfig) -> str:
 
 def assembly_model(cfg: CameraConfig, *, build_if_missing: bool = True, rebuild: bool = False,
                    progress=None) -> AssemblyModel:
-    """The calibration for `cfg`: shipped, cached, or rendered now (60 full frames: about eight minutes
+    """The calibration for `cfg`: shipped, cached, or rendered now (59 full frames: about seven minutes
     for Table 1) and cached."""
     key = assembly_key(cfg)
 
     def build() -> AssemblyModel:
         if progress is None:
-            print(f"mlaqc: calibrating the assembly readings for these optics ({assembly_key(cfg)}): 60 rendered "
+            print(f"mlaqc: calibrating the assembly readings for these optics ({assembly_key(cfg)}): 59 rendered "
                   "frames, once (`mlaqc models` builds it ahead)", file=sys.stderr, flush=True)
         return build_assembly_model(cfg, progress=progress)
 
-    return stored_json(f"assembly_{key}.json", build,
-                       AssemblyModel.to_json_dict, AssemblyModel.from_json_dict, rebuild=rebuild,
+    def checked(d: dict) -> AssemblyModel:
+        model = AssemblyModel.from_json_dict(d)
+        if model.key != key:
+            raise ValueError(f"assembly model {model.key} stored as {key}")
+        return model
+
+    return stored_json(f"assembly_{key}.json", build, AssemblyModel.to_json_dict, checked, rebuild=rebuild,
                        build_if_missing=build_if_missing)
 
 
@@ -182,8 +192,6 @@ def render_grid(cfg: CameraConfig, glob: dict[str, float], *, rays_per_pixel: fl
 
 def read_grid(grid, cfg: CameraConfig, pupil_mm: float) -> tuple[np.ndarray, np.ndarray]:
     """A calibrated frame's raw components (COMPONENTS,) and their statistical 1-sigma."""
-    from mlaqc.inspection.projection import raw_components
-
     out = raw_components(grid, cfg, pupil_mm)
     if out is None:
         raise ValueError("a rendered frame of the camera could not be read for its assembly calibration")
@@ -192,7 +200,7 @@ def read_grid(grid, cfg: CameraConfig, pupil_mm: float) -> tuple[np.ndarray, np.
 
 def build_assembly_model(cfg: CameraConfig, *, rays_per_pixel: float = RAYS_PER_PIXEL, seed: int = SEED,
                          progress=None) -> AssemblyModel:
-    """Render and read the frames of the module docstring (60) and fit the model to them."""
+    """Render and read the frames of the module docstring (59) and fit the model to them."""
     from mlaqc.inspection.projection import pupil_distance_mm
 
     b = pupil_distance_mm(cfg)
