@@ -772,7 +772,10 @@ class MainWindow(QMainWindow):
         self._restore_banner()
         self.inspection_panel.export.setEnabled(True)
         t = ", ".join(f"{k} {v:.2f} s" for k, v in r.timings_s.items())
-        self.inspection_panel.status.setText(f"Done in {view.elapsed_s:.2f} s ({t}).")
+        assembly = getattr(r, "assembly", None)  # the array's placement, on its own line
+        placed = f"\n{assembly.short_text()}" if assembly is not None else ""
+        self.inspection_panel.status.setText(f"Done in {view.elapsed_s:.2f} s ({t}).{placed}")
+        self.inspection_panel.status.setToolTip(assembly.summary_line().strip() if assembly is not None else "")
         self.lens_detail.clear()
         if r.defects:
             first = self.table_model.defects[0]

@@ -457,7 +457,7 @@ class InspectionPanel(QWidget):
         self.progress.setFormat("%p%")
         self.status = QLabel("")
         self.status.setWordWrap(True)
-        self.status.setFixedHeight(2 * self.status.fontMetrics().lineSpacing() + 4)  # no relayout per update
+        self.status.setFixedHeight(4 * self.status.fontMetrics().lineSpacing() + 4)  # no relayout per update
         self.status.setAlignment(Qt.AlignmentFlag.AlignLeft | Qt.AlignmentFlag.AlignTop)
         self.status.setSizePolicy(QSizePolicy.Policy.Ignored, QSizePolicy.Policy.Fixed)
         lay.addWidget(self.progress)

@@ -199,6 +199,7 @@ def test_capture_and_inspect_seeded_defects(qtbot, window, seeded_raw, tmp_path)
     assert job == w.job and w.view is view
     assert w.banner.verdict == "FAIL" and w.banner.word.text() == "FAIL"
     assert "assembly: distance" in view.detail and view.result.assembly.read  # the array's placement is shown
+    assert "Assembly: distance" in w.inspection_panel.status.text()
     assert longest < 5.0  # loose: the GUI thread never waits for the computation
 
     # every seeded lens is in the table and on the map, in its type's colour

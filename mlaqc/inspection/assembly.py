@@ -95,6 +95,15 @@ class Assembly:
             return dataclasses.replace(self, note="its [qc] assembly bounds were not checked")
         return dataclasses.replace(self, exceeded=tuple(self.out_of_bounds(qc)))
 
+    def short_text(self) -> str:
+        """The readings in a line of about 90 characters (the app's status), sigmas left out."""
+        if self.reason:
+            return "Assembly: not read"
+        v = self.values
+        return (f"Assembly: distance {v['mla_sensor_distance_um']:+.2f} µm, rotation {v['mla_rotation_deg']:+.4f}°, "
+                f"tilt {v['mla_tilt_x_deg']:+.3f} / {v['mla_tilt_y_deg']:+.3f}°, shift "
+                f"{v['mla_shift_x_um']:+.2f} / {v['mla_shift_y_um']:+.2f} µm" + (" (out of bounds)" if self.exceeded else ""))
+
     def summary_line(self) -> str:
         if self.reason:
             return f"  assembly: not read ({self.reason})" + (f"; {self.note}" if self.note else "")
