@@ -105,6 +105,7 @@ class Assembly:
                 f"{v['mla_shift_x_um']:+.2f} / {v['mla_shift_y_um']:+.2f} µm" + (" (out of bounds)" if self.exceeded else ""))
 
     def summary_line(self) -> str:
+        """The console's `assembly:` line: every reading with its 1-sigma, and the note."""
         if self.reason:
             return f"  assembly: not read ({self.reason})" + (f"; {self.note}" if self.note else "")
         v, s = self.values, self.sigma
