@@ -17,7 +17,7 @@ import numpy as np
 from mlaqc.inspection.pipeline import inspect_image, prepare
 from mlaqc.inspection.rawio import RawFrame
 from mlaqc.optics.config import Formation, default_config
-from mlaqc.optics.errormap import ErrorMap
+from mlaqc.optics.errormap import ErrorMap, lens_error_fields
 from mlaqc.optics.sensor import white_level
 from mlaqc.optics.simulate import simulate
 
@@ -39,12 +39,7 @@ def seeded(seed: int) -> tuple[ErrorMap, dict]:
                 m, n = cells[order[k]]
                 k += 1
                 d = float(rng.uniform(0, 360))
-                if kind == "pitch":
-                    em = em.with_lens(m, n, pitch_um=mag, pitch_dir_deg=d)
-                elif kind == "decenter":
-                    em = em.with_lens(m, n, decenter_um=mag, decenter_dir_deg=d)
-                else:
-                    em = em.with_lens(m, n, radius_front_rel=mag, radius_back_rel=mag)
+                em = em.with_lens(m, n, **lens_error_fields(kind, mag, d))
                 truth[(m, n)] = (kind, mag, d)
     return em, truth
 

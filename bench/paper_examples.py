@@ -27,7 +27,7 @@ from mlaqc.inspection.pipeline import inspect_image, load_frame
 from mlaqc.inspection.results import detection_limit_text
 from mlaqc.models.reference import config_key
 from mlaqc.optics.config import BOUNDARY_CHOICES, load_config
-from mlaqc.optics.errormap import ErrorMap
+from mlaqc.optics.errormap import ErrorMap, lens_error_fields
 from mlaqc.optics.simulate import simulate, write_simulation
 
 # (kind, magnitude, direction deg): the paper's nine; directions spread over the circle (the paper's
@@ -52,12 +52,7 @@ def error_map(rows: int, cols: int, which: range = range(9)) -> tuple[ErrorMap, 
     for k, ((m, n), (kind, mag, d)) in enumerate(zip(placements(rows, cols), NINE)):
         if k not in which:
             continue
-        if kind == "pitch":
-            em = em.with_lens(m, n, pitch_um=mag, pitch_dir_deg=d)
-        elif kind == "decenter":
-            em = em.with_lens(m, n, decenter_um=mag, decenter_dir_deg=d)
-        else:
-            em = em.with_lens(m, n, radius_front_rel=mag, radius_back_rel=mag)
+        em = em.with_lens(m, n, **lens_error_fields(kind, mag, d))
         truth[(m, n)] = (kind, mag, d)
     return em, truth
 

@@ -39,6 +39,13 @@ def _fit_text(button: QPushButton, other_text: str = "") -> None:
     button.setMinimumWidth(width)
 
 
+def _clear_button(tip: str) -> QPushButton:
+    """The narrow "✕" that drops one input of the inspection."""
+    b = _button("✕", tip)
+    b.setMaximumWidth(28)
+    return b
+
+
 def _readback() -> QLabel:
     label = QLabel("—")
     label.setFont(MONO)
@@ -414,9 +421,7 @@ class InspectionPanel(QWidget):
         row = QHBoxLayout()
         self.open_raw = QPushButton("Open raw…")
         self.open_white = QPushButton("White…")
-        self.clear_white = QPushButton("✕")
-        self.clear_white.setToolTip("calibrate on the image itself")
-        self.clear_white.setMaximumWidth(28)
+        self.clear_white = _clear_button("calibrate on the image itself")
         self.use_frame = QPushButton("Last frame")
         self.use_frame.setToolTip("inspect the last captured frame")
         self.open_config = QPushButton("Config…")
@@ -424,18 +429,12 @@ class InspectionPanel(QWidget):
             row.addWidget(w)
         lay.addLayout(row)
         tf_row = QHBoxLayout()
-        self.open_tf = QPushButton("Through-focus frames…")
-        self.open_tf.setToolTip("choose the +u / −u pinhole frames of the same array (several files at once); "
-                                "each needs its .sim.json or .meta.json record")
-        self.clear_tf = QPushButton("✕")
-        self.clear_tf.setToolTip("inspect without through-focus frames")
-        self.clear_tf.setMaximumWidth(28)
-        self.open_darks = QPushButton("Dark frames…")
-        self.open_darks.setToolTip("dark frames (lens covered, the frames' exposure and gain): their master dark is "
-                                   "subtracted first and its hot and dead pixels replaced")
-        self.clear_darks = QPushButton("✕")
-        self.clear_darks.setToolTip("inspect without dark frames")
-        self.clear_darks.setMaximumWidth(28)
+        self.open_tf = _button("Through-focus frames…", "choose the +u / −u pinhole frames of the same array (several "
+                               "files at once); each needs its .sim.json or .meta.json record")
+        self.clear_tf = _clear_button("inspect without through-focus frames")
+        self.open_darks = _button("Dark frames…", "dark frames (lens covered, the frames' exposure and gain): their "
+                                  "master dark is subtracted first and its hot and dead pixels replaced")
+        self.clear_darks = _clear_button("inspect without dark frames")
         tf_row.addWidget(self.open_tf)
         tf_row.addWidget(self.clear_tf)
         tf_row.addWidget(self.open_darks)

@@ -383,14 +383,9 @@ def tail_sigma(dev: np.ndarray, floor: float = 0.0) -> float:
     spreads 10-20 times the noise and its detection limits 5 times the large array's). `floor`: the
     smallest spread the cut assumes (the noise a noise-free frame is judged by), so that how much is cut
     does not depend on whether the frame has noise."""
-    d = dev[np.isfinite(dev)]
-    if d.size < 20:
-        return robust_sigma(dev)
-    a = np.abs(d - np.median(d))
-    mad = float(np.median(a))
-    cut = TAIL_OUTLIER * max(1.4826 * mad, floor)
-    p99 = float(np.percentile(a[a <= cut], 99.0)) if cut > 0 else float(np.percentile(a, 99.0))
-    return max(1.4826 * mad, 1e-9, p99 / 2.576)
+    d = np.asarray(dev, float).reshape(-1, 1)
+    d = d[np.isfinite(d[:, 0])]
+    return float(_column_tail_sigmas(d, floor)[0]) if d.size else np.inf
 
 
 _AXES = [k.split("_")[1][0] if k in ("offset_x_px", "offset_y_px", "asym_x", "asym_y") else "" for k in _NAMES]

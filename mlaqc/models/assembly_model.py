@@ -25,6 +25,7 @@ the optics' key.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import hashlib
 import itertools
 import json
@@ -83,19 +84,24 @@ class AssemblyModel:
         """How far each error was rendered alone (FIELDS order): beyond it readings are extrapolated."""
         return np.array([self.distance_range_um] + [max(map(abs, SINGLE_NODES)) * STEPS[k] for k in FIELDS[1:]])
 
+    @functools.cached_property
+    def _tables(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """zero (COMPONENTS,), poly (6, COMPONENTS, 3) and the cross terms X, Y (6, 6, COMPONENTS) as arrays,
+        made once (the Newton solves evaluate the model many times)."""
+        x, y = np.asarray(self.cross, float)
+        return np.asarray(self.zero, float), np.asarray(self.poly, float), x, y
+
     def raw(self, true: np.ndarray) -> np.ndarray:
         """Predicted raw components for true readings `true` (6,)."""
-        c = np.asarray(self.poly, float)  # (6, COMPONENTS, 3)
+        zero, c, x, y = self._tables
         powers = np.stack([true, true ** 2, true ** 3], axis=-1)  # (6, 3)
-        x, y = np.asarray(self.cross, float)  # (6, 6, COMPONENTS) each, upper triangles
-        return (np.asarray(self.zero, float) + np.einsum("jic,jc->i", c, powers)
+        return (zero + np.einsum("jic,jc->i", c, powers)
                 + np.einsum("jki,j,k->i", x, true, true) + np.einsum("jki,j,k->i", y, true, true ** 2))
 
     def slopes(self, true: np.ndarray) -> np.ndarray:
         """d raw_i / d true_j at `true`: (COMPONENTS, 6)."""
-        c = np.asarray(self.poly, float)
+        _, c, x, y = self._tables
         d = np.stack([np.ones_like(true), 2 * true, 3 * true ** 2], axis=-1)
-        x, y = np.asarray(self.cross, float)
         return (np.einsum("jic,jc->ij", c, d) + np.einsum("jki,k->ij", x, true) + np.einsum("kji,k->ij", x, true)
                 + np.einsum("jki,k->ij", y, true ** 2) + 2 * np.einsum("kji,k,j->ij", y, true, true))
 
@@ -156,12 +162,14 @@ def assembly_key(cfg: CameraConfig) -> str:
 def assembly_model(cfg: CameraConfig, *, build_if_missing: bool = True, rebuild: bool = False,
                    progress=None) -> AssemblyModel:
     """The calibration for `cfg`: shipped, cached, or rendered now (59 full frames: about seven minutes
-    for Table 1) and cached."""
+    for Table 1) and cached; kept in memory once read (a batch or a scan reads it for every frame)."""
     key = assembly_key(cfg)
+    if not rebuild and key in _LOADED:
+        return _LOADED[key]
 
     def build() -> AssemblyModel:
         if progress is None:
-            print(f"mlaqc: calibrating the assembly readings for these optics ({assembly_key(cfg)}): 59 rendered "
+            print(f"mlaqc: calibrating the assembly readings for these optics ({key}): 59 rendered "
                   "frames, once (`mlaqc models` builds it ahead)", file=sys.stderr, flush=True)
         return build_assembly_model(cfg, progress=progress)
 
@@ -171,8 +179,13 @@ def assembly_model(cfg: CameraConfig, *, build_if_missing: bool = True, rebuild:
             raise ValueError(f"assembly model {model.key} stored as {key}")
         return model
 
-    return stored_json(f"assembly_{key}.json", build, AssemblyModel.to_json_dict, checked, rebuild=rebuild,
-                       build_if_missing=build_if_missing)
+    model = stored_json(f"assembly_{key}.json", build, AssemblyModel.to_json_dict, checked, rebuild=rebuild,
+                        build_if_missing=build_if_missing)
+    _LOADED[key] = model
+    return model
+
+
+_LOADED: dict[str, AssemblyModel] = {}
 
 
 def render_grid(cfg: CameraConfig, glob: dict[str, float], *, rays_per_pixel: float, seed: int):

@@ -265,22 +265,30 @@ def random_defects(count_h: int, count_w: int, n_defects: int, seed: int,
     return emap
 
 
+def lens_error_fields(kind: str, magnitude: float, direction_deg: float = 0.0) -> dict[str, float]:
+    """The per-lens fields (`ErrorMap.with_lens` keywords) of one basic error of `kind`: pitch and decenter
+    in µm along `direction_deg`, radius (both surfaces alike) and thickness signed, tilt in degrees."""
+    if kind == "pitch":
+        return {"pitch_um": magnitude, "pitch_dir_deg": direction_deg}
+    if kind == "decenter":
+        return {"decenter_um": magnitude, "decenter_dir_deg": direction_deg}
+    if kind == "radius":
+        return {"radius_front_rel": magnitude, "radius_back_rel": magnitude}
+    if kind == "tilt":
+        mag, a = math.radians(magnitude), math.radians(direction_deg)
+        return {"tilt_x_deg": math.degrees(mag * math.cos(a)), "tilt_y_deg": math.degrees(mag * math.sin(a))}
+    if kind == "thickness":
+        return {"thickness_um": magnitude}
+    raise InputError(f"unknown error kind {kind!r}; expected pitch, decenter, radius, tilt or thickness")
+
+
 def _seed_one(emap: ErrorMap, m: int, n: int, kind: str, spec: DefectSpec, rng: np.random.Generator) -> None:
     """Give lens (m, n) (0-based) one random error of `kind`."""
     direction = float(rng.uniform(0.0, 360.0))
-    if kind == "pitch":
-        emap.lens["pitch_um"][m, n] = rng.uniform(*spec.pitch_um)
-        emap.lens["pitch_dir_deg"][m, n] = direction
-    elif kind == "decenter":
-        emap.lens["decenter_um"][m, n] = rng.uniform(*spec.decenter_um)
-        emap.lens["decenter_dir_deg"][m, n] = direction
-    elif kind == "radius":
-        eps = rng.uniform(*spec.radius_rel) * rng.choice([-1.0, 1.0])
-        emap.lens["radius_front_rel"][m, n] = eps
-        emap.lens["radius_back_rel"][m, n] = eps
-    elif kind == "tilt":
-        mag = math.radians(rng.uniform(*spec.tilt_deg))
-        emap.lens["tilt_x_deg"][m, n] = math.degrees(mag * math.cos(math.radians(direction)))
-        emap.lens["tilt_y_deg"][m, n] = math.degrees(mag * math.sin(math.radians(direction)))
-    elif kind == "thickness":
-        emap.lens["thickness_um"][m, n] = rng.uniform(*spec.thickness_um) * rng.choice([-1.0, 1.0])
+    if kind in ("pitch", "decenter", "tilt"):
+        magnitude = rng.uniform(*getattr(spec, {"pitch": "pitch_um", "decenter": "decenter_um", "tilt": "tilt_deg"}[kind]))
+    else:  # radius, thickness: either sign
+        magnitude = rng.uniform(*getattr(spec, {"radius": "radius_rel", "thickness": "thickness_um"}[kind])) \
+            * rng.choice([-1.0, 1.0])
+    for key, value in lens_error_fields(kind, float(magnitude), direction).items():
+        emap.lens[key][m, n] = value
