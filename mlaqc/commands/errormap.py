@@ -34,11 +34,11 @@ def run(args: argparse.Namespace) -> int:
         if args.count < 0:
             raise InputError("the defect count must not be negative")
         types = tuple(t.strip() for t in args.types.split(",") if t.strip())
-        emap = random_defects(*shape, args.count, args.seed, types=types)
+        emap = random_defects(*shape, args.count, args.seed, types=types, packing=cfg.mla.packing)
         emap.save(args.out)
-        print(f"wrote {args.out}: {args.count} defects on a {shape[0]}x{shape[1]} MLA (seed {args.seed})", file=sys.stderr)
+        print(f"wrote {args.out}: {args.count} defects on a {shape[0]}x{shape[1]} {cfg.mla.packing} MLA (seed {args.seed})", file=sys.stderr)
         return 0
-    emap = load_error_map(args.map, shape)
+    emap = load_error_map(args.map, shape, cfg.mla.packing)
     kinds = emap.lens_type()
     for m, n in zip(*emap.defective().nonzero()):
         print(f"U({m + 1},{n + 1})\t{kinds[m, n]}")

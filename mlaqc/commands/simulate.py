@@ -129,16 +129,16 @@ def build_scene(args: argparse.Namespace) -> Scene:
     return WhiteScene()
 
 
-def build_errors(args: argparse.Namespace, rows: int, cols: int) -> ErrorMap:
-    """The error map from --errors, --random-defects, or a perfect array."""
+def build_errors(args: argparse.Namespace, rows: int, cols: int, packing: str = "square") -> ErrorMap:
+    """The error map from --errors, --random-defects, or a perfect array, on the camera's lattice."""
     if args.errors:
-        return load_error_map(args.errors, (rows, cols))
+        return load_error_map(args.errors, (rows, cols), packing)
     if args.random_defects is not None:
         if args.random_defects < 0:
             raise InputError("--random-defects must not be negative")
         types = tuple(t.strip() for t in args.defect_types.split(",") if t.strip())
-        return random_defects(rows, cols, args.random_defects, args.seed, types=types)
-    return ErrorMap.zeros(rows, cols)
+        return random_defects(rows, cols, args.random_defects, args.seed, types=types, packing=packing)
+    return ErrorMap.zeros(rows, cols, packing)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -154,7 +154,7 @@ def run(args: argparse.Namespace) -> int:
             raise InputError("the through-focus lattice puts no pinhole on the array; choose a smaller --pinhole-offset")
     else:
         render_cfg, scene = cfg, build_scene(args)
-    errors = build_errors(args, cfg.mla.count_h, cfg.mla.count_w)
+    errors = build_errors(args, cfg.mla.count_h, cfg.mla.count_w, cfg.mla.packing)
     from mlaqc.optics.render import Renderer
 
     renderer = Renderer(render_cfg, errors, engine=args.engine, sampler=args.sampler)

@@ -121,6 +121,7 @@ class Grid:
     missing: np.ndarray  # bool: predicted by the grid, not found (dark, dim or out of frame)
     clipped: np.ndarray  # bool: part of the sub-image lies outside the frame
     rms_residual_px: float  # over the lenses used in the fit
+    packing: str = "square"  # the lattice U(m,n) indexes (mlaqc.optics.lattice)
 
     @property
     def shape(self) -> tuple[int, int]:

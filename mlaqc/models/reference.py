@@ -50,8 +50,14 @@ def mla_hash_view(mla: dict, *, design: bool = False) -> dict:
     """The MLA keys that shape the images, for a content hash: the lens-boundary model only when it is not
     'grid' and the black matrix only when set (so that the keys of the tables shipped before either key
     existed, which were grid tables, stay valid), and the boundary model never for `design` (an error-free
-    array: sag-intersection boundaries lie on the grid)."""
+    array: sag-intersection boundaries lie on the grid). The packing and aperture keys likewise only when
+    they are not the square, cell-filling array that every table shipped before them was made for."""
     out = dict(mla)
+    if out.get("packing", "square") == "square":
+        out.pop("packing", None)
+    if out.get("aperture", "cell") == "cell":
+        for key in ("aperture", "aperture_diameter_um", "gap"):
+            out.pop(key, None)
     if design or out.get("boundaries") == "grid":
         out.pop("boundaries", None)
     if not out.get("black_matrix_um"):

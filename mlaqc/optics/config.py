@@ -15,11 +15,14 @@ from pathlib import Path
 from typing import Any
 
 from mlaqc.errors import InputError
+from mlaqc.optics.lattice import PACKINGS, Lattice
 from mlaqc.optics.paraxial import ThickLens, image_distance, thick_lens
 
 CFA_CHOICES = ("none", "RGGB", "BGGR", "GRBG", "GBRG")
 CORNER_CHOICES = ("opaque", "clear")
 BOUNDARY_CHOICES = ("grid", "sag-intersection")
+APERTURE_CHOICES = ("cell", "circle")
+GAP_CHOICES = ("opaque", "clear")
 ENGINE_CHOICES = ("auto", "numba", "numpy")
 SAMPLER_CHOICES = ("sobol", "random")
 
@@ -37,7 +40,14 @@ class MainLens:
 
 @dataclass(frozen=True)
 class MLA:
-    """Square-aperture microlens array, 100 % fill; radii follow the optical sign convention.
+    """The microlens array; radii follow the optical sign convention.
+
+    `packing`: 'square' or 'hex' (mlaqc.optics.lattice: U(m,n) row m from the top, column n from the
+    left; on hex, rows are pitch*sqrt(3)/2 apart and even rows m = 2, 4, ... are shifted +pitch/2).
+
+    `aperture`: 'cell' (100 % fill: each lens fills its square or hexagonal cell) or 'circle' (a round
+    lens of `aperture_diameter_um` centred on its front vertex, moving with it; between the circles is
+    flat substrate, `gap` 'opaque' (a black mask) or 'clear' (light passes undeviated)).
 
     `corners`: where the two spherical surfaces would cross (beyond r ≈ 68 µm for Table 1) there is no
     lens. 'opaque' blocks those rays (a black matrix); 'clear' lets them pass undeviated.
@@ -56,6 +66,10 @@ class MLA:
     count_w: int = 102
     count_h: int = 102
     pitch_um: float = 100.0
+    packing: str = "square"
+    aperture: str = "cell"
+    aperture_diameter_um: float | None = None  # required with aperture = 'circle'
+    gap: str = "opaque"
     radius_front_um: float = 469.0
     radius_back_um: float = -469.0
     thickness_um: float = 10.0
@@ -319,11 +333,23 @@ def validate(cfg: CameraConfig, source: str = "config") -> None:
     for key in ("pitch_um", "thickness_um"):
         _require(getattr(mla, key) > 0, source, f"mla.{key}", "must be positive", getattr(mla, key))
     _require(mla.refractive_index > 1, source, "mla.refractive_index", "must be greater than 1", mla.refractive_index)
-    half_diag = mla.pitch_um / math.sqrt(2)
+    _require(mla.packing in PACKINGS, source, "mla.packing", f"must be one of {PACKINGS}", mla.packing)
+    _require(mla.aperture in APERTURE_CHOICES, source, "mla.aperture", f"must be one of {APERTURE_CHOICES}", mla.aperture)
+    _require(mla.gap in GAP_CHOICES, source, "mla.gap", f"must be one of {GAP_CHOICES}", mla.gap)
+    if mla.aperture == "circle":
+        d = mla.aperture_diameter_um
+        _require(d is not None and 0 < d <= mla.pitch_um, source, "mla.aperture_diameter_um",
+                 f"must be set, positive and at most the pitch {mla.pitch_um} µm with aperture = 'circle'", d)
+        reach, what = 0.5 * d, "the aperture's radius"
+    else:
+        _require(mla.aperture_diameter_um is None, source, "mla.aperture_diameter_um",
+                 "is only used with aperture = 'circle'", mla.aperture_diameter_um)
+        reach = mla.pitch_um / (math.sqrt(3) if mla.packing == "hex" else math.sqrt(2))
+        what = "the cell's circumradius" if mla.packing == "hex" else "the cell's half-diagonal"
     for key in ("radius_front_um", "radius_back_um"):
         r = getattr(mla, key)
-        _require(r != 0 and abs(r) > half_diag, source, f"mla.{key}",
-                 f"must exceed the cell's half-diagonal {half_diag:.1f} µm in magnitude so the surface covers the aperture", r)
+        _require(r != 0 and abs(r) > reach, source, f"mla.{key}",
+                 f"must exceed {what} {reach:.1f} µm in magnitude so the surface covers the aperture", r)
     _require(mla.corners in CORNER_CHOICES, source, "mla.corners", f"must be one of {CORNER_CHOICES}", mla.corners)
     _require(mla.boundaries in BOUNDARY_CHOICES, source, "mla.boundaries", f"must be one of {BOUNDARY_CHOICES}", mla.boundaries)
     _require(0 <= mla.black_matrix_um < mla.pitch_um, source, "mla.black_matrix_um",
@@ -334,8 +360,9 @@ def validate(cfg: CameraConfig, source: str = "config") -> None:
         _require(getattr(s, key) >= 8, source, f"sensor.{key}", "must be at least 8", getattr(s, key))
     _require(mla.count_w * mla.pitch_um <= s.width_px * s.pixel_um, source, "mla.count_w",
              f"makes the MLA ({mla.count_w * mla.pitch_um / 1000:.3f} mm) wider than the sensor ({s.width_px * s.pixel_um / 1000:.3f} mm)", mla.count_w)
-    _require(mla.count_h * mla.pitch_um <= s.height_px * s.pixel_um, source, "mla.count_h",
-             f"makes the MLA ({mla.count_h * mla.pitch_um / 1000:.3f} mm) taller than the sensor ({s.height_px * s.pixel_um / 1000:.3f} mm)", mla.count_h)
+    height_um = Lattice(mla.packing, mla.count_h, mla.count_w, mla.pitch_um).extent[1]
+    _require(height_um <= s.height_px * s.pixel_um, source, "mla.count_h",
+             f"makes the {mla.packing} MLA ({height_um / 1000:.3f} mm) taller than the sensor ({s.height_px * s.pixel_um / 1000:.3f} mm)", mla.count_h)
     _require(8 <= s.bit_depth <= 16, source, "sensor.bit_depth", "must be between 8 and 16", s.bit_depth)
     _require(0 < s.qe <= 1, source, "sensor.qe", "must be in (0, 1]", s.qe)
     _require(all(0 < q <= 1 for q in s.cfa_qe), source, "sensor.cfa_qe", "must hold three values in (0, 1]", s.cfa_qe)

@@ -29,6 +29,7 @@ import numpy as np
 
 from mlaqc.atomic import write_json_atomic
 from mlaqc.errors import InputError
+from mlaqc.optics.lattice import packing_of
 
 FORMAT = "mlaqc-error-map"
 VERSION = 1
@@ -74,11 +75,12 @@ class ErrorMap:
     shape: tuple[int, int]
     lens: dict[str, np.ndarray]
     globals: dict[str, float] = field(default_factory=lambda: {k: 0.0 for k in GLOBAL_FIELDS})
+    packing: str = "square"  # the lattice the tables index (mlaqc.optics.lattice)
 
     @classmethod
-    def zeros(cls, count_h: int, count_w: int) -> ErrorMap:
+    def zeros(cls, count_h: int, count_w: int, packing: str = "square") -> ErrorMap:
         """A perfect array of the given size."""
-        return cls((count_h, count_w), {k: np.zeros((count_h, count_w)) for k in LENS_FIELDS})
+        return cls((count_h, count_w), {k: np.zeros((count_h, count_w)) for k in LENS_FIELDS}, packing=packing)
 
     def with_lens(self, m: int, n: int, **values: float) -> ErrorMap:
         """A copy with lens U(m,n) (1-based) given the named error values."""
@@ -87,7 +89,7 @@ class ErrorMap:
             if key not in LENS_FIELDS:
                 raise InputError(f"unknown per-lens error field {key!r}; expected one of {list(LENS_FIELDS)}")
             lens[key][m - 1, n - 1] = value
-        out = ErrorMap(self.shape, lens, dict(self.globals))
+        out = ErrorMap(self.shape, lens, dict(self.globals), self.packing)
         out.validate("error map")
         return out
 
@@ -96,7 +98,7 @@ class ErrorMap:
         unknown = set(values) - set(GLOBAL_FIELDS)
         if unknown:
             raise InputError(f"unknown global error field {sorted(unknown)[0]!r}; expected one of {list(GLOBAL_FIELDS)}")
-        return ErrorMap(self.shape, {k: v.copy() for k, v in self.lens.items()}, {**self.globals, **values})
+        return ErrorMap(self.shape, {k: v.copy() for k, v in self.lens.items()}, {**self.globals, **values}, self.packing)
 
     def defective(self) -> np.ndarray:
         """Boolean (N_H, N_W): lenses with any non-zero error."""
@@ -150,6 +152,7 @@ class ErrorMap:
             "format": FORMAT,
             "version": VERSION,
             "shape": {"rows": self.shape[0], "cols": self.shape[1]},
+            "packing": self.packing,
             "units": {**LENS_FIELDS, **GLOBAL_FIELDS},
             "global": {k: float(v) for k, v in self.globals.items()},
             "lenses": lenses,
@@ -160,8 +163,9 @@ class ErrorMap:
         write_json_atomic(path, self.to_json_dict())
 
 
-def load_error_map(path: str | Path, shape: tuple[int, int] | None = None) -> ErrorMap:
-    """Read and validate a JSON error map; `shape` (N_H, N_W) must match the camera's MLA if given."""
+def load_error_map(path: str | Path, shape: tuple[int, int] | None = None, packing: str | None = None) -> ErrorMap:
+    """Read and validate a JSON error map; `shape` (N_H, N_W) and `packing` must match the camera's MLA
+    if given (a map without "packing" was written for a square array)."""
     p = Path(path)
     try:
         data = json.loads(p.read_text(encoding="utf-8"))
@@ -169,10 +173,11 @@ def load_error_map(path: str | Path, shape: tuple[int, int] | None = None) -> Er
         raise InputError(f"error map {str(p)!r} does not exist") from None
     except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
         raise InputError(f"error map {str(p)!r} is not readable JSON ({exc.__class__.__name__}: {exc})") from None
-    return error_map_from_dict(data, str(p), shape)
+    return error_map_from_dict(data, str(p), shape, packing)
 
 
-def error_map_from_dict(data: Any, source: str, shape: tuple[int, int] | None = None) -> ErrorMap:
+def error_map_from_dict(data: Any, source: str, shape: tuple[int, int] | None = None,
+                        packing: str | None = None) -> ErrorMap:
     """Build an ErrorMap from its JSON dict, naming the entry at fault in any error."""
     if not isinstance(data, dict) or data.get("format") != FORMAT:
         raise InputError(f"{source}: not an mlaqc error map (missing \"format\": \"{FORMAT}\")")
@@ -184,7 +189,11 @@ def error_map_from_dict(data: Any, source: str, shape: tuple[int, int] | None = 
     map_shape = (sh["rows"], sh["cols"])
     if shape is not None and tuple(shape) != map_shape:
         raise InputError(f"{source}: error map is for a {map_shape[0]}x{map_shape[1]} MLA but the camera has {shape[0]}x{shape[1]}")
-    emap = ErrorMap.zeros(*map_shape)
+    map_packing = packing_of(data, source)
+    if packing is not None and packing != map_packing:
+        raise InputError(f"{source}: error map is for a {map_packing} lattice but the camera's MLA is {packing} "
+                         f"(mla.packing)")
+    emap = ErrorMap.zeros(*map_shape, packing=map_packing)
     glob = data.get("global", {})
     if not isinstance(glob, dict):
         raise InputError(f"{source}: \"global\" must be an object")
@@ -236,17 +245,18 @@ class DefectSpec:
 
 def random_defects(count_h: int, count_w: int, n_defects: int, seed: int,
                    types: tuple[str, ...] = ("pitch", "decenter", "radius"),
-                   spec: DefectSpec = DefectSpec(), margin: int = 1) -> ErrorMap:
+                   spec: DefectSpec = DefectSpec(), margin: int = 1, packing: str = "square") -> ErrorMap:
     """A seeded map with `n_defects` lenses of random type, magnitude and direction.
 
-    Defective lenses are kept `margin` lenses from the border and never touch each other (8-neighbourhood),
-    so each defect's signature can be told apart.
+    Defective lenses are kept `margin` lenses from the border and never touch each other (the 3 x 3 index
+    box, which holds a square lens' 8 and a hex lens' 6 neighbours), so each defect's signature can be
+    told apart.
     """
     for t in types:
         if t not in ERROR_TYPES:
             raise InputError(f"unknown defect type {t!r}; expected some of {ERROR_TYPES}")
     rng = np.random.default_rng(seed)
-    emap = ErrorMap.zeros(count_h, count_w)
+    emap = ErrorMap.zeros(count_h, count_w, packing)
     taken = np.zeros((count_h, count_w), bool)
     inner = [(m, n) for m in range(margin, count_h - margin) for n in range(margin, count_w - margin)]
     order = rng.permutation(len(inner))
