@@ -171,3 +171,24 @@ def test_the_mock_wafer_holds_hex_arrays_of_the_hex_config():
         assert "hex" in cam.name and cam.cfg.mla.packing == "hex" and cam.cfg.mla.count_h == 28
         frame = cam.capture()
         assert frame.data.shape == (496, 496) and frame.extra["truth"]["error_map"]["packing"] == "hex"
+
+
+@pytest.mark.timeout(240)
+def test_a_scan_over_a_hex_wafer_records_each_arrays_hex_truth(tmp_path):
+    import json
+
+    from drivers.scan import load_plan, run_scan
+
+    plan = tmp_path / "plan.toml"
+    plan.write_text('[scan]\nsettle_s = 0.0\n[[positions]]\nx_mm = 10.0\ny_mm = 10.0\nlabel = "W(1,1)"\n'
+                    '[[positions]]\nx_mm = 15.0\ny_mm = 10.0\nlabel = "W(1,2)"\n')
+    camera = "mock://?config=hex_small&wafer=2x1&defects=3&seed=4&rpp=0.5"
+    run_scan(camera, "mock://", load_plan(plan), tmp_path / "scan")
+    lines = [json.loads(x) for x in (tmp_path / "scan" / "manifest.jsonl").read_text().splitlines()]
+    header, records = lines[0], [r for r in lines[1:] if r.get("type") != "header"]
+    assert header["truth"]["mla_packing"] == "hex" and header["truth"]["mla_shape"] == [28, 24]
+    assert [r["truth"]["array"] for r in records] == ["W(1,1)", "W(1,2)"]
+    assert all(a["error_map"]["packing"] == "hex" for a in header["truth"]["arrays"])
+    for rec in records:
+        assert rec["truth"]["in_view"]
+        assert (tmp_path / "scan" / rec["files"][0]["file"]).stat().st_size > 496 * 496
