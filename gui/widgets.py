@@ -4,7 +4,8 @@ Nothing here blocks or computes much: every widget draws data a worker prepared 
 Pixel coordinates follow the core's convention: (0, 0) is the centre of the top-left pixel, x right,
 y down; lens U(m,n) is row m from the top, column n from the left (1-based). On a hex array (even rows
 half a pitch right, mlaqc.optics.lattice) the grid overlay, the defect rings and the selection are the
-lenses' hexagonal cells, laid on the image by the worker (gui.workers.hex_cells).
+lenses' hexagonal cells, laid on the image by the worker (gui.workers.hex_overlay); circular lens
+apertures (mla.aperture = 'circle') are drawn in the grid overlay too, so the gaps between them show.
 """
 
 from __future__ import annotations
@@ -221,6 +222,10 @@ class ImagePanel(QWidget):
         self.cells_item = pg.PlotCurveItem(pen=pg.mkPen(80, 220, 255, 90, width=1), connect="finite")
         self.cells_item.setZValue(9)  # a hex grid's cells under its centres
         self.vb.addItem(self.cells_item)
+        self.apertures_item = pg.ScatterPlotItem(pxMode=False, symbol="o", brush=None,
+                                                 pen=pg.mkPen(255, 200, 80, 110, width=1))
+        self.apertures_item.setZValue(9)  # circular lens apertures (and the gaps between them)
+        self.vb.addItem(self.apertures_item)
         self.tick_items: list[pg.PlotCurveItem] = []
         for item in (self.grid_item, self.halo_item, self.ring_item, self.cross_item):
             item.setZValue(10)
@@ -389,7 +394,8 @@ class ImagePanel(QWidget):
     def clear_result(self) -> None:
         self.view = None
         self._grid_drawn = None
-        for item in (self.grid_item, self.halo_item, self.ring_item, self.cross_item, self.cells_item):
+        for item in (self.grid_item, self.halo_item, self.ring_item, self.cross_item, self.cells_item,
+                     self.apertures_item):
             item.setData(x=[], y=[])
         for item in self.tick_items:
             self.vb.removeItem(item)
@@ -404,9 +410,13 @@ class ImagePanel(QWidget):
             self.grid_item.setData(x=self.view.grid_x, y=self.view.grid_y)
             cells = getattr(self.view, "cells_x", None) is not None
             self.cells_item.setData(x=self.view.cells_x if cells else [], y=self.view.cells_y if cells else [])
+            d_ap = getattr(self.view, "aperture_px", None)
+            self.apertures_item.setData(x=self.view.grid_x if d_ap else [], y=self.view.grid_y if d_ap else [],
+                                        size=d_ap or 1.0)
             self._grid_drawn = self.view
         self.grid_item.setVisible(show_grid)
         self.cells_item.setVisible(show_grid)
+        self.apertures_item.setVisible(show_grid)
         rings = on_result and self.defects_box.isChecked()
         for item in (self.halo_item, self.ring_item, self.cross_item, *self.tick_items):
             item.setVisible(rings)

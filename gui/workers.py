@@ -668,6 +668,7 @@ class InspectionView:
     cell_px: np.ndarray | None = None
     cells_x: np.ndarray | None = None
     cells_y: np.ndarray | None = None
+    aperture_px: float | None = None  # circular lens apertures (mla.aperture = 'circle'): their diameter in px
 
     @property
     def hex(self) -> bool:
@@ -774,7 +775,7 @@ def build_view(result: Any, cfg: Any, source: str, elapsed_s: float, *, frames: 
     idx = np.flatnonzero(ok.ravel())
     tree = cKDTree(np.column_stack([cx.ravel()[idx], cy.ravel()[idx]])) if idx.size else None
     pitch = float(np.mean(g.pitch_px)) if np.all(np.isfinite(g.pitch_px)) else 20.0
-    cells = hex_cells(g, gx, gy) if getattr(g, "packing", "square") == "hex" else {}
+    cells = hex_overlay(g, gx, gy) if getattr(g, "packing", "square") == "hex" else {}
     if cells.get("affine") is not None:
         pitch = float(np.hypot(*cells["affine"][:, 0]))  # a row's lens spacing (rows are sqrt(3)/2 of it apart)
     img = np.asarray(result.image, np.float32)
@@ -824,10 +825,18 @@ def build_view(result: Any, cfg: Any, source: str, elapsed_s: float, *, frames: 
     return InspectionView(result, cfg, source, (float(lo), float(hi)), cx, cy, gx[ok_grid], gy[ok_grid], pitch, rings,
                           medians, summary, headline, detail, elapsed_s, tree, idx, frames=tuple(frames),
                           sources=defect_sources(result, white_flagged), packing=getattr(g, "packing", "square"),
-                          **cells)
+                          aperture_px=aperture_px(cfg, pitch), **cells)
 
 
-def hex_cells(grid: Any, gx: np.ndarray, gy: np.ndarray) -> dict[str, Any]:
+def aperture_px(cfg: Any, pitch_px: float) -> float | None:
+    """Diameter in pixels of the config's circular lens apertures (None for 100 %-fill cells)."""
+    mla = getattr(cfg, "mla", None)
+    if getattr(mla, "aperture", "cell") != "circle" or not getattr(mla, "aperture_diameter_um", None):
+        return None
+    return float(mla.aperture_diameter_um) / float(mla.pitch_um) * pitch_px
+
+
+def hex_overlay(grid: Any, gx: np.ndarray, gy: np.ndarray) -> dict[str, Any]:
     """A hex grid's cells for the overlay (runs in the worker): the lattice's affine fit to the predicted
     centres, one cell's corner offsets and every lens' hexagon as one NaN-separated polyline."""
     from mlaqc.optics.lattice import Lattice

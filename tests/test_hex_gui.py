@@ -192,3 +192,19 @@ def test_a_scan_over_a_hex_wafer_records_each_arrays_hex_truth(tmp_path):
     for rec in records:
         assert rec["truth"]["in_view"]
         assert (tmp_path / "scan" / rec["files"][0]["file"]).stat().st_size > 496 * 496
+
+
+def test_circular_apertures_are_drawn_in_the_grid_overlay(qtbot):
+    cfg = load_config(str(ROOT / "fixtures" / "hex_circle_camera.toml"))
+    v = build_view(make_hex_result(DEFECTS), cfg, "x", 0.0)
+    assert v.aperture_px == pytest.approx(0.9 * PITCH)  # 90 µm circles at a 100 µm pitch
+    w = MainWindow(connect=False)
+    qtbot.addWidget(w)
+    w.show_inspection(v)
+    w.image.grid_box.setChecked(True)
+    xs, ys = w.image.apertures_item.getData()
+    assert len(xs) == ROWS * COLS and w.image.apertures_item.isVisible()
+    assert w.image.apertures_item.opts["size"] == pytest.approx(0.9 * PITCH)
+    assert np.allclose(sorted(xs), sorted(np.ravel(centre_px(*np.meshgrid(np.arange(1, ROWS + 1),
+                                                                         np.arange(1, COLS + 1), indexing="ij"))[0])))
+    w.close()

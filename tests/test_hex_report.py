@@ -293,3 +293,9 @@ def test_an_unknown_packing_is_refused_in_one_sentence():
     object.__setattr__(result.grid, "packing", "triangle")
     with pytest.raises(InputError, match="packing is 'triangle'"):
         render_report(result)
+
+
+def test_html_states_circular_apertures_from_the_config():
+    files = render_report(make_hex_result(), {"mla": {"pitch_um": 100.0, "packing": "hex", "aperture": "circle",
+                                                      "aperture_diameter_um": 90.0, "gap": "opaque"}})
+    assert "Lattice: hex</b>, circular lenses 90 µm across, opaque gaps" in files["html"].decode()

@@ -160,8 +160,8 @@ def _html(v: View, report: dict[str, Any], small_png: bytes, lens_png: bytes | N
     for note in r.notes:
         w(f"<p class=\"note\">{_E(str(note))}</p>\n")
     lattice = report["conventions"].get("lattice") or {}
-    w(f"<p id=\"lattice\"><b>Lattice: {_E(str(lattice.get('packing', 'square')))}</b> <span class=\"note\">"
-      f"{_E(str(report['conventions'].get('lens', '')))}</span></p>\n")
+    w(f"<p id=\"lattice\"><b>Lattice: {_E(str(lattice.get('packing', 'square')))}</b>{_E(_aperture_text(report))} "
+      f"<span class=\"note\">{_E(str(report['conventions'].get('lens', '')))}</span></p>\n")
 
     w("<h2>Defect map</h2>\n<div class=\"map\">")
     w(f"<a href=\"{_E(REPORT_FILES['defect_map'])}\"><img id=\"defect-map\" alt=\"defect map\" "
@@ -307,6 +307,16 @@ def _through_focus_section(w, tf: dict[str, Any] | None) -> None:
       f"typical lens. A radius defect takes the pairs' sign and the more precise of the two readings; a lens the "
       f"white frame did not flag is flagged when its reading is significant. Per lens: the tf_ columns of "
       f"<a href=\"{_E(REPORT_FILES['csv'])}\">{_E(REPORT_FILES['csv'])}</a>.</p>\n")
+
+
+def _aperture_text(report: dict[str, Any]) -> str:
+    """', circular lenses 90 µm across, opaque gaps' when the config says the lenses are round; else ''."""
+    mla = (report.get("config") or {}).get("mla") or {}
+    if not isinstance(mla, dict) or mla.get("aperture") != "circle":
+        return ""
+    d = mla.get("aperture_diameter_um")
+    size = f" {_num(d, 4)} µm across" if isinstance(d, (int, float)) else ""
+    return f", circular lenses{size}, {mla.get('gap', 'opaque')} gaps"
 
 
 def _swatch(error_type: str) -> str:
