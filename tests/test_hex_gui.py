@@ -21,12 +21,22 @@ pytest.importorskip("pytestqt")
 sys.path.insert(0, str(Path(__file__).parent))
 
 from PySide6.QtCore import QPointF  # noqa: E402
+from test_hex_report import (  # noqa: E402
+    COLS,
+    PITCH,
+    ROT_DEG,
+    ROWS,
+    S3,
+    centre_px,
+    design_uv,
+    direction_px,
+    make_hex_result,
+)
 
 from gui.app import MainWindow  # noqa: E402
 from gui.workers import build_view  # noqa: E402
 from mlaqc.inspection.results import Defect  # noqa: E402
 from mlaqc.optics.config import load_config  # noqa: E402
-from test_hex_report import COLS, PITCH, ROT_DEG, ROWS, S3, centre_px, design_uv, direction_px, make_hex_result  # noqa: E402
 
 ROOT = Path(__file__).resolve().parent.parent
 HEX_SMALL = str(ROOT / "fixtures" / "hex_small_camera.toml")
@@ -202,7 +212,7 @@ def test_circular_apertures_are_drawn_in_the_grid_overlay(qtbot):
     qtbot.addWidget(w)
     w.show_inspection(v)
     w.image.grid_box.setChecked(True)
-    xs, ys = w.image.apertures_item.getData()
+    xs, _ = w.image.apertures_item.getData()
     assert len(xs) == ROWS * COLS and w.image.apertures_item.isVisible()
     assert w.image.apertures_item.opts["size"] == pytest.approx(0.9 * PITCH)
     assert np.allclose(sorted(xs), sorted(np.ravel(centre_px(*np.meshgrid(np.arange(1, ROWS + 1),

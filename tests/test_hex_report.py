@@ -63,8 +63,8 @@ def make_hex_result(defects: list[Defect] | None = None, rows: int = ROWS, cols:
     shape = (rows, cols)
     m, n = np.meshgrid(np.arange(1, rows + 1), np.arange(1, cols + 1), indexing="ij")
     gx, gy = centre_px(m, n, pitch, rot_deg)
-    h = int(math.ceil(gy.max() + ORIGIN[1]))
-    w = int(math.ceil(gx.max() + ORIGIN[0]))
+    h = math.ceil(gy.max() + ORIGIN[1])
+    w = math.ceil(gx.max() + ORIGIN[0])
     yy, xx = np.mgrid[0:h, 0:w].astype(np.float32)
     image = np.full((h, w), 0.05, np.float32)
     for x0, y0 in zip(gx.ravel(), gy.ravel()):
