@@ -218,3 +218,17 @@ def test_circular_apertures_are_drawn_in_the_grid_overlay(qtbot):
     assert np.allclose(sorted(xs), sorted(np.ravel(centre_px(*np.meshgrid(np.arange(1, ROWS + 1),
                                                                          np.arange(1, COLS + 1), indexing="ij"))[0])))
     w.close()
+
+
+def test_the_worker_calibrates_on_the_configs_lattice(monkeypatch):
+    from mlaqc.errors import InputError
+    from mlaqc.inspection import pipeline
+    from gui.workers import calibrate_white
+
+    cfg = load_config(HEX_SMALL)
+    seen = []
+    monkeypatch.setattr(pipeline, "calibrate_for", lambda img, c: seen.append(c.mla.packing) or "grid", raising=False)
+    assert calibrate_white(np.zeros((4, 4)), cfg, None) == "grid" and seen == ["hex"]
+    monkeypatch.delattr(pipeline, "calibrate_for")
+    with pytest.raises(InputError, match="square arrays only.*hex"):
+        calibrate_white(np.zeros((4, 4)), cfg, None)
