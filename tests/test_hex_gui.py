@@ -232,3 +232,30 @@ def test_the_worker_calibrates_on_the_configs_lattice(monkeypatch):
     monkeypatch.delattr(pipeline, "calibrate_for")
     with pytest.raises(InputError, match="square arrays only.*hex"):
         calibrate_white(np.zeros((4, 4)), cfg, None)
+
+
+@pytest.mark.timeout(300)
+def test_a_scan_with_inspection_finds_the_seeded_defects_of_each_hex_array(tmp_path):
+    """Needs the hex calibration (the pipeline's calibrate_for); skipped in a build without it."""
+    import json
+
+    from drivers.scan import default_inspect_hook, load_plan, run_scan
+    from mlaqc.inspection import pipeline
+
+    if not hasattr(pipeline, "calibrate_for"):
+        pytest.skip("this build's calibration handles square arrays only")
+    plan = tmp_path / "plan.toml"
+    plan.write_text('[scan]\nsettle_s = 0.0\n[[positions]]\nx_mm = 10.0\ny_mm = 10.0\nlabel = "W(1,1)"\n'
+                    '[[positions]]\nx_mm = 15.0\ny_mm = 10.0\nlabel = "W(1,2)"\n')
+    camera = "mock://?config=hex_small&wafer=2x1&defects=3&defect_types=decenter&seed=4&rpp=40"
+    run_scan(camera, "mock://", load_plan(plan), tmp_path / "scan", inspect=default_inspect_hook())
+    lines = [json.loads(x) for x in (tmp_path / "scan" / "manifest.jsonl").read_text().splitlines()]
+    header, records = lines[0], [r for r in lines[1:] if r.get("type") != "header"]
+    for rec in records:
+        raw = tmp_path / "scan" / rec["files"][0]["file"]
+        report = json.loads(raw.with_name(raw.name + ".inspect.json").read_text())
+        seeded = next({(lens["m"], lens["n"]) for lens in a["error_map"]["lenses"]}
+                      for a in header["truth"]["arrays"] if a["name"] == rec["truth"]["array"])
+        found = {(d["row"], d["col"]) for d in report["defects"] if d["error_type"] in ("decenter", "position")}
+        assert len(seeded) == 3 and seeded <= found, (rec["label"], found, seeded)
+        assert report["verdict"] == "FAIL"
