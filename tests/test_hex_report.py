@@ -160,6 +160,18 @@ def test_out_of_tolerance_hexagons_are_thicker_and_a_missing_lens_is_crossed():
     assert tuple(rgb[round(y), round(x)]) == ERROR_COLOURS["missing"]  # the cross through its centre
 
 
+def test_the_small_map_scales_the_hexagons_with_the_image():
+    lens = Defect(5, 6, "pitch", 3.0, "µm", None, 9.0, False, {})
+    result = make_hex_result([lens])
+    h, w = result.image.shape
+    rgb = render_defect_map(result, max_side=w // 2)
+    k = (w // 2) / max(h, w)
+    c = np.array(centre_px(5, 6)) * k
+    for j in range(6):
+        assert _colour_near(rgb, *(c + 0.5 * PITCH * k * direction_px(60.0 * j)), ERROR_COLOURS["pitch"]), j
+    assert not _colour_near(rgb, *c, ERROR_COLOURS["pitch"])
+
+
 # ------------------------------------------------------------------------------------------ lens maps
 
 

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from functools import cached_property
 from typing import Any
 
 import numpy as np
@@ -61,7 +62,6 @@ class View:
         packing = getattr(grid, "packing", "square") or "square"
         _check(packing in PACKINGS, f"its grid's packing is {packing!r}, not one of {list(PACKINGS)}")
         self.lattice = Lattice(packing, self.rows, self.cols)
-        self._affine: np.ndarray | None | bool = False  # not fitted yet
 
     @property
     def packing(self) -> str:
@@ -71,13 +71,11 @@ class View:
     def hex(self) -> bool:
         return self.lattice.hex
 
-    @property
+    @cached_property
     def affine(self) -> np.ndarray | None:
         """(2, 3) affine map from lattice units to pixels fitted to the grid's predicted centres (None when
         fewer than three non-collinear lenses are predicted)."""
-        if self._affine is False:
-            self._affine = lattice_affine(self.lattice, self.gx, self.gy)
-        return self._affine  # type: ignore[return-value]
+        return lattice_affine(self.lattice, self.gx, self.gy)
 
     def _grid_array(self, name: str) -> np.ndarray:
         arr = np.asarray(getattr(self.result.grid, name, None))
@@ -160,8 +158,8 @@ def lens_at_px(lattice: Lattice, affine: np.ndarray, grid_x_px: np.ndarray, grid
     u0, v0 = unit.centre_uv()
     inv = np.linalg.inv(affine[:, :2])
     px, py = np.asarray(x, float), np.asarray(y, float)
-    du, dv = _apply(inv, px - affine[0, 2], py - affine[1, 2])
-    r, c, inside = unit.nearest(du - u0, dv - v0)
+    u, v = _apply(inv, px - affine[0, 2], py - affine[1, 2])
+    r, c, inside = unit.nearest(u - u0, v - v0)
     rr, cc = np.clip(r, 0, lattice.rows - 1), np.clip(c, 0, lattice.cols - 1)
     gx, gy = np.asarray(grid_x_px, float)[rr, cc], np.asarray(grid_y_px, float)[rr, cc]
     anchored = inside & np.isfinite(gx) & np.isfinite(gy)
