@@ -4,7 +4,8 @@ A wafer holds `cols` x `rows` arrays on a square grid of `pitch_mm`. Array W(m,n
 column n (1 = left), like the lens numbering U(m,n); its centre is at stage coordinates
 ``x = origin_x + (n - 1) * pitch``, ``y = origin_y + (m - 1) * pitch`` (mm; x right, y down as in the
 raw image). Each array has its own seeded `ErrorMap` (`random_defects`), so a scan over the wafer can be
-checked found-vs-seeded array by array.
+checked found-vs-seeded array by array. The arrays are the camera config's MLA: square or hex packed
+(mla.packing; a hex array's outline is `Lattice.extent`, its error maps are made for the hex lattice).
 
 The camera looks at the wafer point under the optical axis, which is the stage position: an array
 whose centre is at C appears shifted by ``C - position`` (that is the ErrorMap's global
@@ -26,6 +27,7 @@ import numpy as np
 from mlaqc.errors import InputError
 from mlaqc.optics.config import CameraConfig
 from mlaqc.optics.errormap import ERROR_TYPES, ErrorMap, random_defects
+from mlaqc.optics.lattice import Lattice
 
 TRUTH_FORMAT = "mlaqc-mock-wafer"
 MAX_ARRAYS = 10_000
@@ -53,7 +55,10 @@ class WaferArray:
 
 
 def array_size_mm(cfg: CameraConfig) -> tuple[float, float]:
-    """Width and height of one array (mm)."""
+    """Width and height of one array (mm): its cells' outline (a hex array's rows are sqrt(3)/2 of a pitch
+    apart and every other one half a pitch longer)."""
+    if cfg.mla.packing == "hex":
+        return Lattice.of(cfg).extent
     return cfg.mla.count_w * cfg.mla.pitch_um * 1e-3, cfg.mla.count_h * cfg.mla.pitch_um * 1e-3
 
 
@@ -105,7 +110,8 @@ class Wafer:
         self._arrays: dict[tuple[int, int], WaferArray] = {}
 
     def __repr__(self) -> str:
-        return (f"<Wafer {self.cols}x{self.rows} arrays of {self.cfg.mla.count_w}x{self.cfg.mla.count_h} lenses, "
+        hex_ = " hex" if self.cfg.mla.packing == "hex" else ""
+        return (f"<Wafer {self.cols}x{self.rows} arrays of {self.cfg.mla.count_w}x{self.cfg.mla.count_h}{hex_} lenses, "
                 f"pitch {self.pitch_mm:g} mm, W(1,1) at {self.origin_mm} mm, {self.defects} defects each>")
 
     def centre_mm(self, m: int, n: int) -> tuple[float, float]:
@@ -122,9 +128,10 @@ class Wafer:
             seed = array_seed(self.seed, m, n)
             mla = self.cfg.mla
             if self.defects:
-                errors = random_defects(mla.count_h, mla.count_w, self.defects, seed, types=self.defect_types)
+                errors = random_defects(mla.count_h, mla.count_w, self.defects, seed, types=self.defect_types,
+                                        packing=mla.packing)
             else:
-                errors = ErrorMap.zeros(mla.count_h, mla.count_w)
+                errors = ErrorMap.zeros(mla.count_h, mla.count_w, mla.packing)
             found = self._arrays[key] = WaferArray(m, n, self.centre_mm(m, n), seed, errors)
         return found
 
@@ -153,7 +160,8 @@ class Wafer:
         """The wafer's geometry and seeding parameters (JSON)."""
         return {"cols": self.cols, "rows": self.rows, "pitch_mm": self.pitch_mm, "origin_mm": list(self.origin_mm),
                 "defects_per_array": self.defects, "defect_types": list(self.defect_types), "seed": self.seed,
-                "array_size_mm": list(array_size_mm(self.cfg)), "mla_shape": [self.cfg.mla.count_h, self.cfg.mla.count_w]}
+                "array_size_mm": list(array_size_mm(self.cfg)), "mla_shape": [self.cfg.mla.count_h, self.cfg.mla.count_w],
+                **({"mla_packing": "hex"} if self.cfg.mla.packing == "hex" else {})}
 
     def truth(self) -> dict[str, Any]:
         """Ground truth for the whole wafer (JSON): geometry, and per array its name, centre, seed and errors."""

@@ -387,7 +387,8 @@ class MainWindow(QMainWindow):
         c = self.cfg
         where = (Path(self.cfg_path).name if self.cfg_explicit is not None and self.cfg_path
                  else "from the camera" if self.camera_cfg is not None else "Table 1 (default)")
-        self.inspection_panel.config.setText(f"{where}: {c.mla.count_h}×{c.mla.count_w} lenses, "
+        packing = " hex" if getattr(c.mla, "packing", "square") == "hex" else ""
+        self.inspection_panel.config.setText(f"{where}: {c.mla.count_h}×{c.mla.count_w}{packing} lenses, "
                                              f"{c.sensor.width_px}×{c.sensor.height_px} px")
 
     def _ask_open(self, title: str, filt: str) -> str | None:

@@ -1,11 +1,12 @@
 """Regenerate docs/screenshot.png: the app on the paper's Table 1 camera (offscreen, no display needed).
 
-    QT_QPA_PLATFORM=offscreen python -m gui.screenshot [--out docs/screenshot.png] [--work DIR]
+    QT_QPA_PLATFORM=offscreen python -m gui.screenshot [--out docs/screenshot.png] [--work DIR] [--config TOML]
 
 It renders a Table 1 white image with seeded defects (as `mlaqc demo` does), runs a 3 x 3 wafer scan on
 the mock camera (one inspected frame per array), inspects the seeded image, selects the worst lens and
 grabs the window. Prints the inspection's GUI-thread stall and the live-view frame rate on the way.
-Takes a minute or two.
+Takes a minute or two. `--config` takes another camera (e.g. fixtures/hex_camera.toml: the same optics with
+a hex-packed MLA, drawn as hexagonal cells).
 """
 
 from __future__ import annotations
@@ -28,6 +29,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--seed", type=int, default=1)
     p.add_argument("--rays-per-pixel", type=float, default=30.0)
     p.add_argument("--no-scan", action="store_true")
+    p.add_argument("--config", default=str(ROOT / "fixtures" / "paper_table1.toml"),
+                   help="camera config TOML (default: the paper's Table 1 camera)")
     args = p.parse_args(argv)
     os.environ.setdefault("QT_QPA_PLATFORM", "offscreen")
 
@@ -37,13 +40,14 @@ def main(argv: list[str] | None = None) -> int:
 
     work = Path(args.work or tempfile.mkdtemp(prefix="mlaqc-shot-"))
     work.mkdir(parents=True, exist_ok=True)
-    table1 = ROOT / "fixtures" / "paper_table1.toml"
+    table1 = Path(args.config)
     cfg = load_config(table1)
-    raw = work / f"table1_defects{args.defects}_seed{args.seed}.dng"
+    raw = work / f"{table1.stem}_defects{args.defects}_seed{args.seed}.dng"
     if not raw.exists():
         t = time.perf_counter()
         spec = DefectSpec(pitch_um=(1.0, 4.0), decenter_um=(5.0, 12.0), radius_rel=(0.05, 0.2))
-        errors = random_defects(cfg.mla.count_h, cfg.mla.count_w, args.defects, args.seed, spec=spec)
+        errors = random_defects(cfg.mla.count_h, cfg.mla.count_w, args.defects, args.seed, spec=spec,
+                                packing=cfg.mla.packing)
         sim = simulate(cfg, None, errors, rays_per_pixel=args.rays_per_pixel, seed=args.seed)
         write_simulation(raw, sim, cfg)
         print(f"rendered {raw} in {time.perf_counter() - t:.1f} s")
@@ -66,7 +70,10 @@ def main(argv: list[str] | None = None) -> int:
             time.sleep(0.005)
         return False
 
-    w = MainWindow("mock://?config=table1&wafer=3x3&rpp=2", "sim+grbl://?speed_mm_s=200", str(table1))
+    from drivers.wafer import default_pitch_mm
+
+    step_mm = default_pitch_mm(cfg)  # the mock wafer's arrays sit this far apart (21 mm for Table 1)
+    w = MainWindow(f"mock://?config={table1}&wafer=3x3&rpp=2", "sim+grbl://?speed_mm_s=200", str(table1))
     w.resize(1760, 1080)
     w.show()
     assert wait(lambda: w.camera_obj is not None and w.stage_obj is not None, 20), w.errors
@@ -83,13 +90,13 @@ def main(argv: list[str] | None = None) -> int:
     fps = (w.image.displayed - n0) / (time.perf_counter() - t0)
     w.set_live(False)
     wait(lambda: not w.camera_panel.live.isChecked(), 10)
-    print(f"live view, 2048x2048 16-bit mock frames: {fps:.1f} frames/s displayed "
+    print(f"live view, {cfg.sensor.width_px}x{cfg.sensor.height_px} 16-bit mock frames: {fps:.1f} frames/s displayed "
           f"(the mock's sensor noise model, not the display, sets the pace)")
 
     if not args.no_scan:
         scan_out = work / time.strftime("scan-%H%M%S")
-        plan = work / "table1_wafer_plan.toml"  # Table 1 arrays sit 21 mm apart on the mock wafer
-        plan.write_text("[scan]\nsettle_s = 0.02\n\n[raster]\norigin_mm = [10.0, 10.0]\nstep_mm = [21.0, 21.0]\n"
+        plan = work / f"{table1.stem}_wafer_plan.toml"
+        plan.write_text(f"[scan]\nsettle_s = 0.02\n\n[raster]\norigin_mm = [10.0, 10.0]\nstep_mm = [{step_mm}, {step_mm}]\n"
                         "count = [3, 3]\nserpentine = true\n")
         w.load_plan(str(plan))
         w.start_scan(str(scan_out))
@@ -111,7 +118,7 @@ def main(argv: list[str] | None = None) -> int:
     timer.stop()
     gaps = np.diff(stamps)
     at = stamps[int(np.argmax(gaps))] - stamps[0]
-    print(f"inspection of 2048x2048: {w.view.elapsed_s:.1f} s in the worker; longest GUI-thread stall "
+    print(f"inspection of {cfg.sensor.width_px}x{cfg.sensor.height_px}: {w.view.elapsed_s:.1f} s in the worker; longest GUI-thread stall "
           f"{gaps.max() * 1000:.0f} ms at {at:.2f} s of {stamps[-1] - stamps[0]:.2f} s "
           f"({len(gaps)} ticks of a 10 ms timer)")
     print(w.view.summary)

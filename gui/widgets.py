@@ -2,7 +2,10 @@
 
 Nothing here blocks or computes much: every widget draws data a worker prepared (gui.workers).
 Pixel coordinates follow the core's convention: (0, 0) is the centre of the top-left pixel, x right,
-y down; lens U(m,n) is row m from the top, column n from the left (1-based).
+y down; lens U(m,n) is row m from the top, column n from the left (1-based). On a hex array (even rows
+half a pitch right, mlaqc.optics.lattice) the grid overlay, the defect rings and the selection are the
+lenses' hexagonal cells, laid on the image by the worker (gui.workers.hex_overlay); circular lens
+apertures (mla.aperture = 'circle') are drawn in the grid overlay too, so the gaps between them show.
 """
 
 from __future__ import annotations
@@ -14,9 +17,10 @@ from typing import Any
 import gui.qt  # noqa: F401 - first: the PySide6 reference-count guard
 import numpy as np
 import pyqtgraph as pg
-from PySide6.QtCore import QAbstractTableModel, QModelIndex, QRectF, QSortFilterProxyModel, Qt, Signal
-from PySide6.QtGui import QBrush, QColor, QFont, QPen, QTransform
-from PySide6.QtWidgets import (QCheckBox, QComboBox, QGraphicsRectItem, QHBoxLayout, QHeaderView, QLabel,
+from PySide6.QtCore import QAbstractTableModel, QModelIndex, QPointF, QRectF, QSortFilterProxyModel, Qt, Signal
+from PySide6.QtGui import QBrush, QColor, QFont, QPainterPath, QPen, QPolygonF, QTransform
+from PySide6.QtWidgets import (QCheckBox, QComboBox, QGraphicsPolygonItem, QGraphicsRectItem, QHBoxLayout,
+                               QHeaderView, QLabel,
                                QPlainTextEdit, QPushButton, QSizePolicy, QTableWidget, QTableWidgetItem, QVBoxLayout,
                                QWidget)
 
@@ -215,6 +219,13 @@ class ImagePanel(QWidget):
         self.ring_item = pg.ScatterPlotItem(pxMode=False, symbol="o", brush=None)
         self.cross_item = pg.ScatterPlotItem(pxMode=False, symbol="x", brush=pg.mkBrush(qcolor(ERROR_COLOURS["missing"])),
                                              pen=pg.mkPen(0, 0, 0, 200, width=1))
+        self.cells_item = pg.PlotCurveItem(pen=pg.mkPen(80, 220, 255, 90, width=1), connect="finite")
+        self.cells_item.setZValue(9)  # a hex grid's cells under its centres
+        self.vb.addItem(self.cells_item)
+        self.apertures_item = pg.ScatterPlotItem(pxMode=False, symbol="o", brush=None,
+                                                 pen=pg.mkPen(255, 200, 80, 110, width=1))
+        self.apertures_item.setZValue(9)  # circular lens apertures (and the gaps between them)
+        self.vb.addItem(self.apertures_item)
         self.tick_items: list[pg.PlotCurveItem] = []
         for item in (self.grid_item, self.halo_item, self.ring_item, self.cross_item):
             item.setZValue(10)
@@ -228,6 +239,11 @@ class ImagePanel(QWidget):
         self.select_item.setZValue(20)
         self.select_item.hide()
         self.vb.addItem(self.select_item)
+        self.select_hex = QGraphicsPolygonItem()  # the selection on a hex grid: the lens' cell
+        self.select_hex.setPen(pen)
+        self.select_hex.setZValue(20)
+        self.select_hex.hide()
+        self.vb.addItem(self.select_hex)
         lay.addWidget(self.glw, 1)
 
         self.view: Any = None  # gui.workers.InspectionView drawn now (None: a frame without result)
@@ -336,8 +352,10 @@ class ImagePanel(QWidget):
         xs = np.array([r.x for r in rings])
         ys = np.array([r.y for r in rings])
         widths = [3.5 if r.out_of_tolerance else 1.8 for r in rings]
-        self.halo_item.setData(x=xs, y=ys, size=d, pen=[pg.mkPen(0, 0, 0, 220, width=w + 2.5) for w in widths])
-        self.ring_item.setData(x=xs, y=ys, size=d,
+        symbol = ring_symbol(view)
+        self.halo_item.setData(x=xs, y=ys, size=d, symbol=symbol,
+                               pen=[pg.mkPen(0, 0, 0, 220, width=w + 2.5) for w in widths])
+        self.ring_item.setData(x=xs, y=ys, size=d, symbol=symbol,
                                pen=[pg.mkPen(qcolor(error_colour(r.error_type)), width=w) for r, w in zip(rings, widths)])
         miss = [r for r in rings if r.missing]
         self.cross_item.setData(x=[r.x for r in miss], y=[r.y for r in miss], size=0.5 * d)
@@ -376,24 +394,36 @@ class ImagePanel(QWidget):
     def clear_result(self) -> None:
         self.view = None
         self._grid_drawn = None
-        for item in (self.grid_item, self.halo_item, self.ring_item, self.cross_item):
+        for item in (self.grid_item, self.halo_item, self.ring_item, self.cross_item, self.cells_item,
+                     self.apertures_item):
             item.setData(x=[], y=[])
         for item in self.tick_items:
             self.vb.removeItem(item)
         self.tick_items = []
         self.select_item.hide()
+        self.select_hex.hide()
 
     def _update_visibility(self) -> None:
         on_result = self.mode == "result" and self.view is not None
         show_grid = on_result and self.grid_box.isChecked()
         if show_grid and self._grid_drawn is not self.view:  # 10k points: built only when asked for
             self.grid_item.setData(x=self.view.grid_x, y=self.view.grid_y)
+            cells = getattr(self.view, "cells_x", None) is not None
+            self.cells_item.setData(x=self.view.cells_x if cells else [], y=self.view.cells_y if cells else [])
+            d_ap = getattr(self.view, "aperture_px", None)
+            self.apertures_item.setData(x=self.view.grid_x if d_ap else [], y=self.view.grid_y if d_ap else [],
+                                        size=d_ap or 1.0)
             self._grid_drawn = self.view
         self.grid_item.setVisible(show_grid)
+        self.cells_item.setVisible(show_grid)
+        self.apertures_item.setVisible(show_grid)
         rings = on_result and self.defects_box.isChecked()
         for item in (self.halo_item, self.ring_item, self.cross_item, *self.tick_items):
             item.setVisible(rings)
-        self.select_item.setVisible(on_result and self.select_item.data(0) is not None)
+        selected = on_result and self.select_item.data(0) is not None
+        on_hex = selected and _cell_px(self.view) is not None
+        self.select_item.setVisible(selected and not on_hex)
+        self.select_hex.setVisible(on_hex)
 
     def _count_frame(self) -> None:
         self.displayed += 1
@@ -433,6 +463,9 @@ class ImagePanel(QWidget):
         p = self.view.pitch_px
         self.select_item.setRect(QRectF(x - 0.5 * p, y - 0.5 * p, p, p))
         self.select_item.setData(0, (m, n))
+        corners = _cell_px(self.view)
+        if corners is not None:
+            self.select_hex.setPolygon(QPolygonF([QPointF(x + a, y + b) for a, b in corners.tolist()]))
         self._update_visibility()
         if zoom:
             half = 4.5 * p
@@ -462,6 +495,26 @@ class ImagePanel(QWidget):
         xy = self._scene_to_image(ev.scenePos())
         if xy is not None:
             self.clicked.emit(*xy)
+
+
+def _cell_px(view: Any) -> np.ndarray | None:
+    """A hex view's cell corner offsets (6, 2) px, None on a square grid."""
+    return getattr(view, "cell_px", None) if getattr(view, "packing", "square") == "hex" else None
+
+
+def ring_symbol(view: Any) -> Any:
+    """The defect ring's scatter symbol: a circle, or on a hex grid the lens' hexagonal cell (a path one
+    pitch across its flats, as the circle is one pitch across, turned with the grid)."""
+    corners = _cell_px(view)
+    if corners is None or not view.pitch_px > 0:
+        return "o"
+    path = QPainterPath()
+    unit = corners / float(view.pitch_px)
+    path.moveTo(*unit[0])
+    for a, b in unit[1:].tolist():
+        path.lineTo(a, b)
+    path.closeSubpath()
+    return path
 
 
 def robust_levels(data: np.ndarray) -> tuple[float, float]:

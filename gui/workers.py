@@ -661,9 +661,24 @@ class InspectionView:
     _tree_index: np.ndarray | None = None
     frames: tuple[TfFrame, ...] = ()  # the through-focus frames read into `result` (frame selector order)
     sources: dict[tuple[int, int], str] = field(default_factory=dict)  # lens -> which measurement flagged/read it
+    packing: str = "square"  # the grid's lattice (mlaqc.optics.lattice)
+    # hex: the affine map lattice units -> pixels fitted to the grid's centres (None: too few lenses), a
+    # cell's corner offsets (6, 2) px from its centre, and every cell's outline (x, y; NaN between cells)
+    affine: np.ndarray | None = None
+    cell_px: np.ndarray | None = None
+    cells_x: np.ndarray | None = None
+    cells_y: np.ndarray | None = None
+    aperture_px: float | None = None  # circular lens apertures (mla.aperture = 'circle'): their diameter in px
+
+    @property
+    def hex(self) -> bool:
+        return self.packing == "hex"
 
     def lens_at(self, x: float, y: float) -> tuple[int, int] | None:
-        """U(m,n) of the lens whose centre is nearest to pixel (x, y), if within its cell."""
+        """U(m,n) of the lens whose cell holds pixel (x, y): on a hex grid the hexagon of the lattice laid
+        on the grid's centres (`Lattice.nearest`), on a square one the nearest centre within its cell."""
+        if self.hex and self.affine is not None:
+            return self._hex_lens_at(x, y)
         if self._tree is None:
             return None
         dist, i = self._tree.query((x, y))
@@ -675,6 +690,15 @@ class InspectionView:
 
     def centre(self, m: int, n: int) -> tuple[float, float]:
         return float(self.centres_x[m - 1, n - 1]), float(self.centres_y[m - 1, n - 1])
+
+    def _hex_lens_at(self, x: float, y: float) -> tuple[int, int] | None:
+        from mlaqc.optics.lattice import Lattice
+        from mlaqc.report.view import lens_at_px
+
+        g = self.result.grid
+        lattice = Lattice("hex", *self.centres_x.shape)
+        r, c, inside = lens_at_px(lattice, self.affine, g.grid_x_px, g.grid_y_px, x, y)
+        return (int(r) + 1, int(c) + 1) if bool(inside) else None
 
     def reference_of(self, m: int, n: int) -> np.ndarray:
         ref = np.asarray(self.result.reference)
@@ -751,6 +775,9 @@ def build_view(result: Any, cfg: Any, source: str, elapsed_s: float, *, frames: 
     idx = np.flatnonzero(ok.ravel())
     tree = cKDTree(np.column_stack([cx.ravel()[idx], cy.ravel()[idx]])) if idx.size else None
     pitch = float(np.mean(g.pitch_px)) if np.all(np.isfinite(g.pitch_px)) else 20.0
+    cells = hex_overlay(g, gx, gy) if getattr(g, "packing", "square") == "hex" else {}
+    if cells.get("affine") is not None:
+        pitch = float(np.hypot(*cells["affine"][:, 0]))  # a row's lens spacing (rows are sqrt(3)/2 of it apart)
     img = np.asarray(result.image, np.float32)
     step = max(1, int(math.sqrt(img.size / 250_000)))
     sample = img[::step, ::step]
@@ -797,7 +824,49 @@ def build_view(result: Any, cfg: Any, source: str, elapsed_s: float, *, frames: 
     ok_grid = np.isfinite(gx) & np.isfinite(gy)
     return InspectionView(result, cfg, source, (float(lo), float(hi)), cx, cy, gx[ok_grid], gy[ok_grid], pitch, rings,
                           medians, summary, headline, detail, elapsed_s, tree, idx, frames=tuple(frames),
-                          sources=defect_sources(result, white_flagged))
+                          sources=defect_sources(result, white_flagged), packing=getattr(g, "packing", "square"),
+                          aperture_px=aperture_px(cfg, pitch), **cells)
+
+
+def aperture_px(cfg: Any, pitch_px: float) -> float | None:
+    """Diameter in pixels of the config's circular lens apertures (None for 100 %-fill cells)."""
+    mla = getattr(cfg, "mla", None)
+    if getattr(mla, "aperture", "cell") != "circle" or not getattr(mla, "aperture_diameter_um", None):
+        return None
+    return float(mla.aperture_diameter_um) / float(mla.pitch_um) * pitch_px
+
+
+def calibrate_white(white: np.ndarray, cfg: Any, calibrate: Any) -> Any:
+    """The grid of a white frame on the config's lattice: the pipeline's `calibrate_for` (sub-image pitch,
+    lens count and packing) where it exists; else the square calibration as before (a hex config is then
+    refused in one sentence)."""
+    from mlaqc.inspection import pipeline
+
+    calibrate_for = getattr(pipeline, "calibrate_for", None)
+    if calibrate_for is not None:
+        return calibrate_for(white, cfg)
+    if getattr(cfg.mla, "packing", "square") != "square":
+        raise InputError(f"this build's calibration handles square arrays only, and the config's MLA is "
+                         f"{cfg.mla.packing} (mla.packing)")
+    return calibrate(white, expected_pitch_px=cfg.layout.subimage_pitch_px,
+                     expected_shape=(cfg.mla.count_h, cfg.mla.count_w))
+
+
+def hex_overlay(grid: Any, gx: np.ndarray, gy: np.ndarray) -> dict[str, Any]:
+    """A hex grid's cells for the overlay (runs in the worker): the lattice's affine fit to the predicted
+    centres, one cell's corner offsets and every lens' hexagon as one NaN-separated polyline."""
+    from mlaqc.optics.lattice import Lattice
+    from mlaqc.report.view import cell_outline_px, lattice_affine
+
+    affine = lattice_affine(Lattice("hex", int(grid.rows), int(grid.cols)), gx, gy)
+    if affine is None:
+        return {"affine": None}
+    corners = cell_outline_px("hex", affine)
+    ok = np.isfinite(gx) & np.isfinite(gy)
+    ring = np.vstack([corners, corners[:1], [[np.nan, np.nan]]])  # closed hexagon, then a break
+    xs = gx[ok][:, None] + ring[None, :, 0]
+    ys = gy[ok][:, None] + ring[None, :, 1]
+    return {"affine": affine, "cell_px": corners, "cells_x": xs.ravel(), "cells_y": ys.ravel()}
 
 
 class InspectionWorker(QObject):
@@ -870,8 +939,7 @@ class InspectionWorker(QObject):
                 stage(15, "loading the white image")
                 white = load_frame(req.white, cfg, dark=dark)
             stage(25, "calibrating the microlens grid")
-            grid = calibrate(white, expected_pitch_px=cfg.layout.subimage_pitch_px,
-                             expected_shape=(cfg.mla.count_h, cfg.mla.count_w))
+            grid = calibrate_white(white, cfg, calibrate)
             stage(60, "measuring and identifying every lens")
             result = inspect_image(img, cfg, grid=grid, source=source, notes=tuple(notes))
             if info is not None:

@@ -38,7 +38,7 @@ def test_core_packages_import_only_downwards():
         "models": {"optics", "models", "inspection.metrics", "inspection.metrics_kernels", "inspection.subimages",
                    "inspection.calibrate", "inspection.projection"},
         "inspection": {"optics", "models", "inspection"},
-        "report": {"inspection", "report"},
+        "report": {"inspection", "report", "optics.lattice"},  # the lattice: where each lens' cell is drawn
     }
     pattern = re.compile(r"^\s*(?:from|import)\s+mlaqc\.(\w+)(?:\.(\w+))?", re.M)
     bad = []

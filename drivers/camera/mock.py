@@ -8,7 +8,9 @@ URL (every parameter optional)::
            &z_white_mm=50&a_centre_mm=10&b_window_mm=0&field_pitch_mm=25&pinhole_photons=2.6e5
 
 - ``config``: camera config — ``small`` (default: the 24x24-lens, 496x496-px test camera, the same as
-  fixtures/small_camera.toml), ``table1`` (the paper's full camera) or a TOML path.
+  fixtures/small_camera.toml), ``hex_small`` (its hex-packed twin, 24 columns x 28 rows, the same as
+  fixtures/hex_small_camera.toml), ``table1`` (the paper's full camera) or a TOML path. The wafer's arrays
+  are the config's MLA, square or hex (mla.packing).
 - ``wafer=COLSxROWS``, ``pitch_mm``, ``origin_mm=X,Y``: the wafer of arrays (see drivers.wafer); default
   one array, W(1,1) centred at (10, 10) mm, pitch large enough that neighbours never enter the view.
 - ``defects`` per array (default 5), ``defect_types`` (comma list, default pitch,decenter,radius), ``seed``
@@ -109,6 +111,7 @@ GAIN_STEP = 0.01
 F_NUMBER_MAX = 64.0
 F_NUMBER_STEP = 0.01
 SMALL_CAMERA = {"mla": {"count_w": 24, "count_h": 24}, "sensor": {"width_px": 496, "height_px": 496}}
+HEX_SMALL_CAMERA = {"mla": {"packing": "hex", "count_w": 24, "count_h": 28}, "sensor": {"width_px": 496, "height_px": 496}}
 
 PositionSource = Callable[[], "tuple[float, float] | tuple[float, float, dict[str, float] | None] | None"]
 
@@ -270,7 +273,8 @@ class MockCamera(Camera):
     def name(self) -> str:
         """'mock camera (24x24 lenses, 3x3 wafer)'."""
         mla = self.cfg.mla
-        return f"mock camera ({mla.count_w}x{mla.count_h} lenses, {self.wafer.cols}x{self.wafer.rows} wafer)"
+        hex_ = " hex" if mla.packing == "hex" else ""
+        return f"mock camera ({mla.count_w}x{mla.count_h}{hex_} lenses, {self.wafer.cols}x{self.wafer.rows} wafer)"
 
     @property
     def is_open(self) -> bool:
@@ -653,9 +657,11 @@ def parse_faults(url: str, text: str) -> list[tuple[str, int | None, int]]:
 
 
 def _load_camera_config(url: str, name: str) -> CameraConfig:
-    """'small', 'table1' or a TOML path."""
+    """'small', 'hex_small', 'table1' or a TOML path."""
     if name == "small":
         return config_from_dict(SMALL_CAMERA, "small camera")
+    if name == "hex_small":
+        return config_from_dict(HEX_SMALL_CAMERA, "small hex camera")
     if name == "table1":
         return default_config()
     try:

@@ -1,7 +1,9 @@
 """report.json and lenses.csv: building them from an InspectionResult, and reading a report.json back.
 
 Conventions shared by every file (DESIGN.md §2):
-- lens U(m,n) is row m (1 = top), column n (1 = left); array element [m-1, n-1];
+- lens U(m,n) is row m (1 = top), column n (1 = left); array element [m-1, n-1]; on a hex array even rows
+  (m = 2, 4, ...) sit half a pitch right and rows are pitch*sqrt(3)/2 apart (mlaqc.optics.lattice.CONVENTIONS;
+  report.json's conventions.lattice, and lenses.csv's design_* columns give every lens' design centre);
 - pixel coordinates: (0, 0) is the centre of the top-left pixel, x to the right, y down;
 - directions are degrees counterclockwise from the image's +x axis towards its top;
 - JSON has no NaN (null instead); the CSV writes NaN as an empty field.
@@ -26,6 +28,7 @@ from mlaqc.errors import InputError
 from mlaqc.inspection.measure import MEASUREMENTS
 from mlaqc.inspection.throughfocus import TF_MEASUREMENTS
 from mlaqc.inspection.results import METRICS, InspectionResult
+from mlaqc.optics.lattice import CONVENTIONS
 from mlaqc.report.maps import _type_order
 from mlaqc.report.numtext import format_column, format_rows
 from mlaqc.report.view import View
@@ -48,6 +51,10 @@ GALLERY_MAX = 200
 CSV_COLUMNS: tuple[str, ...] = (
     "row", "col", "x_px", "y_px", "grid_x_px", "grid_y_px", "flagged", "error_type", *METRICS, *MEASUREMENTS,
     *TF_MEASUREMENTS)
+#: Columns a hex array's lenses.csv adds after CSV_COLUMNS: the lens' design centre in pitches from U(1,1)'s
+#: (u right, v down: the offset convention spelled out) and in µm from the array's centre (the MLA frame;
+#: empty when the report is written without the config's pitch).
+HEX_CSV_COLUMNS: tuple[str, ...] = ("design_u", "design_v", "design_x_um", "design_y_um")
 
 
 def build_report_dict(result: InspectionResult, *, config_dict: dict | None = None,
@@ -90,7 +97,9 @@ def build_report_dict(result: InspectionResult, *, config_dict: dict | None = No
         "source": str(result.source),
         "verdict": result.verdict,
         "conventions": {
-            "lens": "U(m,n): row m from 1 at the top, column n from 1 at the left",
+            "lens": (CONVENTIONS["hex"] if v.hex else "U(m,n): row m from 1 at the top, column n from 1 at the left"),
+            # the lattice U(m,n) indexes (mlaqc.optics.lattice): packing, shape, row step and its convention
+            "lattice": v.lattice.to_json_dict(),
             "pixel": "(0, 0) is the centre of the top-left pixel; x right, y down",
             "direction_deg": "counterclockwise from the image's +x axis towards its top",
         },
@@ -313,10 +322,17 @@ def _rounded_records(head: list[str], columns: list[list], decimals: int) -> lis
     return text.split("\0")[:-1]
 
 
-def lenses_csv(view: View | InspectionResult) -> str:
+def lenses_csv(view: View | InspectionResult, pitch_um: float | None = None) -> str:
     """lenses.csv: one row per lens, U(1,1), U(1,2), ... U(rows,cols); NaN written as empty. Every number is
-    written as Python's %-format writes it (mlaqc.report.numtext, compiled: 10,404 lenses in ~15 ms)."""
+    written as Python's %-format writes it (mlaqc.report.numtext, compiled: 10,404 lenses in ~15 ms). A hex
+    array's file adds HEX_CSV_COLUMNS (design centres; in µm with `pitch_um`, the config's mla.pitch_um)."""
     v = view if isinstance(view, View) else View(view)
+    text = _csv_text(v)
+    return _with_design_columns(v, text, pitch_um) if v.hex else text
+
+
+def _csv_text(v: View) -> str:
+    """lenses.csv's common columns (CSV_COLUMNS) for every lens."""
     m, n = np.meshgrid(np.arange(1, v.rows + 1), np.arange(1, v.cols + 1), indexing="ij")
     flagged = v.flagged.ravel()
     types = np.where(flagged, v.error_type.ravel(), "")
@@ -334,6 +350,25 @@ def lenses_csv(view: View | InspectionResult) -> str:
                *["%.5g"] * (len(MEASUREMENTS) + len(TF_MEASUREMENTS))]
     table_text = format_rows(np.column_stack(columns).astype(np.float64), formats, table, parallel=False)
     return ",".join(CSV_COLUMNS) + "\n" + table_text  # (on this thread: the pool deflates the report's PNGs)
+
+
+def _with_design_columns(v: View, text: str, pitch_um: float | None) -> str:
+    """`text` (lenses.csv) with HEX_CSV_COLUMNS appended to its header and every lens' row."""
+    r, c = np.divmod(np.arange(v.rows * v.cols), v.cols)
+    u, w = v.lattice.uv(r, c)
+    known = pitch_um is not None and math.isfinite(pitch_um) and pitch_um > 0
+    x, y = v.lattice.position(r, c) if known else (np.full(u.shape, np.nan),) * 2
+    scale = float(pitch_um) if known else 1.0
+    extra = format_rows(np.column_stack([u, w, x * scale, y * scale]), ["%.6g", "%.6g", "%.4f", "%.4f"],
+                        parallel=False).split("\n")[:-1]
+    if '"' in text:  # quoted fields (may hold newlines): through the csv module
+        head, *rows = list(csv.reader(io.StringIO(text)))
+        buf = io.StringIO()
+        csv.writer(buf, lineterminator="\n").writerows(
+            [head + list(HEX_CSV_COLUMNS)] + [row + e.split(",") for row, e in zip(rows, extra)])
+        return buf.getvalue()
+    head, *rows = text.split("\n")[:-1]
+    return "\n".join([head + "," + ",".join(HEX_CSV_COLUMNS)] + [a + "," + e for a, e in zip(rows, extra)]) + "\n"
 
 
 def _quoted_csv(v: View) -> str:

@@ -159,17 +159,21 @@ def _html(v: View, report: dict[str, Any], small_png: bytes, lens_png: bytes | N
       f"significant deviations below the minimum reportable size.)</span></p>\n")
     for note in r.notes:
         w(f"<p class=\"note\">{_E(str(note))}</p>\n")
+    lattice = report["conventions"].get("lattice") or {}
+    w(f"<p id=\"lattice\"><b>Lattice: {_E(str(lattice.get('packing', 'square')))}</b>{_E(_aperture_text(report))} "
+      f"<span class=\"note\">{_E(str(report['conventions'].get('lens', '')))}</span></p>\n")
 
     w("<h2>Defect map</h2>\n<div class=\"map\">")
     w(f"<a href=\"{_E(REPORT_FILES['defect_map'])}\"><img id=\"defect-map\" alt=\"defect map\" "
       f"src=\"{_data_uri(small_png)}\"></a></div>\n")
-    w(f"<p class=\"note\">Ring colour = error type, thick ring = out of tolerance, cross = missing lens, "
+    ring = "Hexagon (the lens' cell) colour" if v.hex else "Ring colour"
+    w(f"<p class=\"note\">{ring} = error type, thick ring = out of tolerance, cross = missing lens, "
       f"tick = direction. Full resolution: <a href=\"{_E(REPORT_FILES['defect_map'])}\">"
       f"{_E(REPORT_FILES['defect_map'])}</a>; every lens: <a href=\"{_E(REPORT_FILES['csv'])}\">"
       f"{_E(REPORT_FILES['csv'])}</a>.</p>\n")
 
     _assembly_section(w, report.get("assembly"))
-    _measurement_section(w, report.get("measurements"), lens_png)
+    _measurement_section(w, report.get("measurements"), lens_png, v.hex)
     _through_focus_section(w, report.get("through_focus"))
 
     w(f"<h2>Flagged lenses ({len(defects)})</h2>\n")
@@ -255,7 +259,7 @@ def _assembly_section(w, a: dict[str, Any] | None) -> None:
     w(f"<p class=\"note\">{a.get('lenses_used', 0)} lenses; {_E(a.get('assumptions', ''))}.</p>\n")
 
 
-def _measurement_section(w, measured: dict[str, Any] | None, lens_png: bytes | None) -> None:
+def _measurement_section(w, measured: dict[str, Any] | None, lens_png: bytes | None, hex_: bool = False) -> None:
     """Per-lens measurements: array-wide figures and the three maps (centre x, y; focal length)."""
     w("<h2>Measured per lens</h2>\n")
     if not measured:
@@ -275,7 +279,9 @@ def _measurement_section(w, measured: dict[str, Any] | None, lens_png: bytes | N
     if lens_png:
         w(f"<div class=\"map\"><a href=\"{_E(REPORT_FILES['lens_maps'])}\"><img id=\"lens-maps\" alt=\"per-lens maps\" "
           f"src=\"{_data_uri(lens_png)}\"></a></div>\n")
-    w(f"<p class=\"note\">One block per lens, U(1,1) top left. Centre: the optical centre's displacement in the MLA "
+    cells = ("One hexagonal cell per lens, U(1,1) top left, even rows (m = 2, 4, ...) half a pitch right"
+             if hex_ else "One block per lens, U(1,1) top left")
+    w(f"<p class=\"note\">{cells}. Centre: the optical centre's displacement in the MLA "
       f"plane against the array's typical lens (a white image alone cannot say whether pitch or a surface "
       f"decenter moved it); focal: Δf/f read from the lens' focus, f = {s['focal_length_um']:.1f} µm. Grey: not "
       f"measured (off the sensor, missing, or flagged as shifted/tilted for focal). Every value with its 1σ: "
@@ -301,6 +307,16 @@ def _through_focus_section(w, tf: dict[str, Any] | None) -> None:
       f"typical lens. A radius defect takes the pairs' sign and the more precise of the two readings; a lens the "
       f"white frame did not flag is flagged when its reading is significant. Per lens: the tf_ columns of "
       f"<a href=\"{_E(REPORT_FILES['csv'])}\">{_E(REPORT_FILES['csv'])}</a>.</p>\n")
+
+
+def _aperture_text(report: dict[str, Any]) -> str:
+    """', circular lenses 90 µm across, opaque gaps' when the config says the lenses are round; else ''."""
+    mla = (report.get("config") or {}).get("mla") or {}
+    if not isinstance(mla, dict) or mla.get("aperture") != "circle":
+        return ""
+    d = mla.get("aperture_diameter_um")
+    size = f" {_num(d, 4)} µm across" if isinstance(d, (int, float)) else ""
+    return f", circular lenses{size}, {mla.get('gap', 'opaque')} gaps"
 
 
 def _swatch(error_type: str) -> str:

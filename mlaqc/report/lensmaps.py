@@ -1,13 +1,22 @@
 """Per-lens measurement maps: one coloured block per lens, so array-wide trends (a pitch drift, form
 error growing along the diagonals) show at a glance. Three panels: optical-centre displacement along x
-and along y (µm, MLA plane) and focal-length error (%), each on a diverging scale symmetric about 0."""
+and along y (µm, MLA plane) and focal-length error (%), each on a diverging scale symmetric about 0.
+A square array is drawn as square blocks; a hex array as its hexagonal cells, each pixel coloured by the
+lens whose cell holds it (`Lattice.nearest`), so the cells tile the array's outline with no gap."""
 
 from __future__ import annotations
+
+import math
+from functools import lru_cache
 
 import cv2
 import numpy as np
 
+from mlaqc.optics.lattice import Lattice
+
 LENS_PX = 4  # block side per lens: 102 lenses -> 408 px
+HEX_LENS_PX = 6  # a hex cell's width (one pitch): at 4 px a hexagon does not read as one
+_BACKGROUND = 255
 _NAN_GREY = 128
 _PANELS = (("centre_dx_um", "centre shift x", "µm", 1.0, "centre_sigma_um"),
            ("centre_dy_um", "centre shift y (down)", "µm", 1.0, "centre_sigma_um"),
@@ -35,10 +44,43 @@ def _limit(v: np.ndarray, sigma: np.ndarray) -> float:
     return lim if lim > 0 else 1.0
 
 
-def _panel(values: np.ndarray, sigma: np.ndarray, title: str, unit: str) -> np.ndarray:
+def hex_cells(lattice: Lattice, px: int = HEX_LENS_PX) -> tuple[np.ndarray, np.ndarray]:
+    """(labels, inside) images of a hex array drawn `px` pixels per pitch: each pixel's 0-based flat lens
+    index (row * cols + col) and whether that lens is on the array (False: background round the ragged
+    outline). Pixel (i, j)'s centre is ((j + 0.5) / px, (i + 0.5) / px) pitches from the top-left corner of
+    the array's bounding box; U(1,1)'s centre lies half a pitch right of it and 1/sqrt(3) pitch down."""
+    return _hex_cells(lattice.packing, lattice.rows, lattice.cols, px)
+
+
+@lru_cache(maxsize=4)
+def _hex_cells(packing: str, rows: int, cols: int, px: int) -> tuple[np.ndarray, np.ndarray]:
+    """hex_cells, kept for the report's three panels (read-only arrays)."""
+    unit = Lattice(packing, rows, cols)
+    ext_w, ext_h = unit.extent
+    w, h = max(1, math.ceil(ext_w * px)), max(1, math.ceil(ext_h * px))
+    x = (np.arange(w) + 0.5) / px - 0.5 * ext_w
+    y = (np.arange(h) + 0.5) / px - 0.5 * ext_h
+    r, c, inside = unit.nearest(x[None, :], y[:, None])
+    labels = np.where(inside, r * cols + c, 0)
+    labels.setflags(write=False)
+    inside.setflags(write=False)
+    return labels, inside
+
+
+def _body(rgb: np.ndarray, packing: str) -> np.ndarray:
+    """The per-lens colours (rows, cols, 3) as a picture: square blocks, or hexagonal cells on white."""
+    if packing != "hex":
+        return np.repeat(np.repeat(rgb, LENS_PX, 0), LENS_PX, 1)
+    labels, inside = hex_cells(Lattice(packing, rgb.shape[0], rgb.shape[1]))
+    out = rgb.reshape(-1, 3)[labels]
+    out[~inside] = _BACKGROUND
+    return out
+
+
+def _panel(values: np.ndarray, sigma: np.ndarray, title: str, unit: str, packing: str = "square") -> np.ndarray:
     """One map with its title above and a colour bar with the scale's ends below."""
     lim = _limit(values, sigma)
-    body = np.repeat(np.repeat(diverging(values, lim), LENS_PX, 0), LENS_PX, 1)
+    body = _body(diverging(values, lim), packing)
     h, w = body.shape[:2]
     bar = diverging(np.linspace(-lim, lim, w)[None, :].repeat(10, 0), lim)
     out = np.full((h + 70, w, 3), 255, np.uint8)
@@ -54,15 +96,16 @@ def _panel(values: np.ndarray, sigma: np.ndarray, title: str, unit: str) -> np.n
     return out
 
 
-def render_lens_maps(measurements, shape: tuple[int, int]) -> np.ndarray:
-    """The three panels side by side as one RGB uint8 image; grey panels when nothing was measured."""
+def render_lens_maps(measurements, shape: tuple[int, int], packing: str = "square") -> np.ndarray:
+    """The three panels side by side as one RGB uint8 image; grey panels when nothing was measured.
+    `packing`: the array's lattice ('square' blocks or 'hex' cells, mlaqc.optics.lattice)."""
     panels = []
     for name, title, unit, scale, sigma in _PANELS:
         v, s = ((np.asarray(measurements[k], float) * scale for k in (name, sigma)) if measurements is not None
                 else (np.full(shape, np.nan),) * 2)
-        panels.append(_panel(v, s, title, unit))
+        panels.append(_panel(v, s, title, unit, packing))
     gap = np.full((panels[0].shape[0], 12, 3), 255, np.uint8)
     return np.concatenate([panels[0], gap, panels[1], gap, panels[2]], axis=1)
 
 
-__all__ = ["render_lens_maps", "diverging", "LENS_PX"]
+__all__ = ["render_lens_maps", "diverging", "hex_cells", "LENS_PX", "HEX_LENS_PX"]

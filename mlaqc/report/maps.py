@@ -15,7 +15,7 @@ import numpy as np
 
 from mlaqc.inspection.results import InspectionResult
 from mlaqc.report.png import encode_png
-from mlaqc.report.view import View
+from mlaqc.report.view import View, cell_outline_px
 
 #: Defect-map colour per error type, RGB. The seven Okabe & Ito "Color Universal Design" colours
 #: (distinguishable with the common colour-vision deficiencies) plus magenta for the ambiguous
@@ -56,7 +56,8 @@ def render_defect_map(result: InspectionResult | View, *, base: np.ndarray | Non
     Full image size, or scaled down so that its longer side is at most `max_side`. Rings are centred on
     the measured centre (grid centre if the lens was not found), diameter about one pitch, coloured by
     ERROR_COLOURS over a dark halo; out-of-tolerance rings are thicker; a directional defect gets a
-    tick from the centre towards its direction; missing lenses get a cross as well.
+    tick from the centre towards its direction; missing lenses get a cross as well. On a hex array the
+    ring is the lens' hexagonal cell (pointy top, as the grid's fitted lattice lays it on the image).
     """
     v = result if isinstance(result, View) else View(result)
     grey = v.tone_mapped() if base is None else base
@@ -71,6 +72,7 @@ def render_defect_map(result: InspectionResult | View, *, base: np.ndarray | Non
     radius = max(3, round(0.5 * pitch))
     thin = max(2, round(0.08 * pitch))  # under 2 px the dark halo swamps the colour
     thick = max(thin + 1, round(0.2 * pitch))
+    hexagon = _hexagon(v, scale)
 
     marks = [(d, d.error_type) for d in v.result.defects]
     flagged_pos = {(d.m, d.n) for d in v.result.defects}
@@ -96,8 +98,12 @@ def render_defect_map(result: InspectionResult | View, *, base: np.ndarray | Non
         if direction is not None and math.isfinite(direction) and not is_missing:
             a = math.radians(direction)
             tick = (round(c[0] + 0.8 * radius * math.cos(a)), round(c[1] - 0.8 * radius * math.sin(a)))
+        outline = None if hexagon is None else np.round((np.array([x, y]) * scale + hexagon) * _SUB).astype(np.int32)
         for col, extra in ((_OUTLINE, 2), (colour, 0)):  # halo, then colour
-            cv2.circle(bgr, c, radius, col, t + extra, cv2.LINE_8)
+            if outline is None:
+                cv2.circle(bgr, c, radius, col, t + extra, cv2.LINE_8)
+            else:
+                cv2.polylines(bgr, [outline], True, col, t + extra, cv2.LINE_8, _SUB_BITS)
             if is_missing:
                 cv2.line(bgr, (c[0] - arm, c[1] - arm), (c[0] + arm, c[1] + arm), col, thin + extra, cv2.LINE_8)
                 cv2.line(bgr, (c[0] - arm, c[1] + arm), (c[0] + arm, c[1] - arm), col, thin + extra, cv2.LINE_8)
@@ -105,6 +111,18 @@ def render_defect_map(result: InspectionResult | View, *, base: np.ndarray | Non
                 cv2.line(bgr, c, tick, col, thin + extra, cv2.LINE_8)
     _draw_legend(bgr, v, thin, thick)
     return cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)
+
+
+_SUB_BITS = 4  # polygon corners to 1/16 px (cv2's fixed-point `shift`)
+_SUB = 1 << _SUB_BITS
+
+
+def _hexagon(v: View, scale: float) -> np.ndarray | None:
+    """(6, 2) offsets (map pixels) of a lens' hexagonal cell corners from its centre on a hex array; None on a
+    square array (rings stay circles) or when the grid predicts too few lenses to lay the lattice."""
+    if not v.hex or v.affine is None:
+        return None
+    return cell_outline_px(v.packing, v.affine) * scale
 
 
 def _bgr(rgb: tuple[int, int, int]) -> tuple[int, int, int]:
@@ -141,6 +159,8 @@ def _draw_legend(bgr: np.ndarray, v: View, thin: int, thick: int) -> None:
     lines += [(f"{t}: {by_type[t]}", error_colour(t)) for t in _type_order(by_type)]
     if by_type:
         lines.append(("thick = out of tol.", None))
+        if v.hex:
+            lines.append(("ring = hex lens cell", None))
     big = fs * 1.6
     (vw, vh), _ = cv2.getTextSize(verdict, font, big, lw + 1)
     text_w = max([vw] + [cv2.getTextSize(s, font, fs, lw)[0][0] + (sw + pad if c else 0) for s, c in lines])

@@ -3,12 +3,14 @@
 from __future__ import annotations
 
 import math
+from functools import cached_property
 from typing import Any
 
 import numpy as np
 
 from mlaqc.errors import InputError
 from mlaqc.inspection.results import METRICS, InspectionResult, LazyReferences
+from mlaqc.optics.lattice import PACKINGS, Lattice
 from mlaqc.parallel import cores, thread_map
 
 
@@ -57,6 +59,23 @@ class View:
         _check(len(seen) == int(self.flagged.sum()),
                f"{int(self.flagged.sum())} lenses are flagged but {len(seen)} defects listed")
         self.pitch_x, self.pitch_y = _grid_pitch(grid)
+        packing = getattr(grid, "packing", "square") or "square"
+        _check(packing in PACKINGS, f"its grid's packing is {packing!r}, not one of {list(PACKINGS)}")
+        self.lattice = Lattice(packing, self.rows, self.cols)
+
+    @property
+    def packing(self) -> str:
+        return self.lattice.packing
+
+    @property
+    def hex(self) -> bool:
+        return self.lattice.hex
+
+    @cached_property
+    def affine(self) -> np.ndarray | None:
+        """(2, 3) affine map from lattice units to pixels fitted to the grid's predicted centres (None when
+        fewer than three non-collinear lenses are predicted)."""
+        return lattice_affine(self.lattice, self.gx, self.gy)
 
     def _grid_array(self, name: str) -> np.ndarray:
         arr = np.asarray(getattr(self.result.grid, name, None))
@@ -65,6 +84,10 @@ class View:
 
     @property
     def pitch(self) -> float:
+        """Lens pitch in pixels: the mean of the grid's x and y pitch; on a hex grid the spacing of a row's
+        lenses, read from the grid's centres (its rows are only sqrt(3)/2 of it apart)."""
+        if self.hex and self.affine is not None:
+            return float(np.hypot(*self.affine[:, 0]))
         return 0.5 * (self.pitch_x + self.pitch_y)
 
     def centre(self, m: int, n: int) -> tuple[float, float]:
@@ -100,6 +123,55 @@ class View:
         edges = np.linspace(0, img.shape[0], 2 * cores() + 1).astype(int) if img.ndim == 2 else [0, len(img)]
         thread_map(band, [slice(a, b) for a, b in zip(edges[:-1], edges[1:])])
         return out
+
+
+def lattice_affine(lattice: Lattice, x_px: np.ndarray, y_px: np.ndarray) -> np.ndarray | None:
+    """(2, 3) least-squares affine map [x, y] = A @ [u, v, 1] from lattice units (pitches from U(1,1)'s centre,
+    `Lattice.uv`) to the pixel centres (rows, cols) given (NaN ignored); None when fewer than three
+    non-collinear centres are finite. Its first column is a row's pitch vector in pixels: the report and
+    the app draw cells and find the lens under the cursor with it."""
+    x, y = np.asarray(x_px, float).ravel(), np.asarray(y_px, float).ravel()
+    r, c = np.divmod(np.arange(lattice.rows * lattice.cols), lattice.cols)
+    u, v = lattice.uv(r, c)
+    ok = np.isfinite(x) & np.isfinite(y)
+    if ok.sum() < 3:
+        return None
+    design = np.column_stack([u[ok], v[ok], np.ones(int(ok.sum()))])
+    coef, _, rank, _ = np.linalg.lstsq(design, np.column_stack([x[ok], y[ok]]), rcond=None)
+    return coef.T.copy() if rank == 3 else None
+
+
+def cell_outline_px(packing: str, affine: np.ndarray) -> np.ndarray:
+    """(k, 2) pixel offsets of a lens' cell corners from its centre (`cell_vertices` through the affine map)."""
+    from mlaqc.optics.lattice import cell_vertices
+
+    return cell_vertices(packing) @ affine[:, :2].T
+
+
+def lens_at_px(lattice: Lattice, affine: np.ndarray, grid_x_px: np.ndarray, grid_y_px: np.ndarray,
+               x: Any, y: Any) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """0-based (row, col) of the lens whose cell holds pixel (x, y) and whether it is a lens of the array:
+    `Lattice.nearest` (the square or hexagon round each lattice point) in the lattice units of the grid's
+    affine fit, then again in a frame anchored on that lens' own predicted centre, so that a grid's smooth
+    distortion (radial, keystone) does not move the cell boundaries."""
+    unit = Lattice(lattice.packing, lattice.rows, lattice.cols)
+    u0, v0 = unit.centre_uv()
+    inv = np.linalg.inv(affine[:, :2])
+    px, py = np.asarray(x, float), np.asarray(y, float)
+    u, v = _apply(inv, px - affine[0, 2], py - affine[1, 2])
+    r, c, inside = unit.nearest(u - u0, v - v0)
+    rr, cc = np.clip(r, 0, lattice.rows - 1), np.clip(c, 0, lattice.cols - 1)
+    gx, gy = np.asarray(grid_x_px, float)[rr, cc], np.asarray(grid_y_px, float)[rr, cc]
+    anchored = inside & np.isfinite(gx) & np.isfinite(gy)
+    uc, vc = unit.uv(rr, cc)
+    lu, lv = _apply(inv, np.where(anchored, px - gx, 0.0), np.where(anchored, py - gy, 0.0))
+    r2, c2, in2 = unit.nearest(uc + lu - u0, vc + lv - v0)
+    return np.where(anchored, r2, r), np.where(anchored, c2, c), np.where(anchored, in2, inside)
+
+
+def _apply(m: np.ndarray, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The 2x2 matrix `m` applied to points (x, y) (arrays broadcast)."""
+    return m[0, 0] * x + m[0, 1] * y, m[1, 0] * x + m[1, 1] * y
 
 
 def _check(ok: bool, what: str) -> None:

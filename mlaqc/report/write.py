@@ -110,11 +110,12 @@ def _render_all(view: View, config_dict: dict | None) -> dict[str, bytes]:
     """Every file's bytes, keyed like REPORT_FILES: lenses.csv (compiled formatting) and the PNGs' bands
     (deflate) run on the pool's threads, both releasing the GIL, while this thread draws the maps and
     builds the JSON and then the HTML."""
-    csv_text = _in_background(lenses_csv, view)  # first: queued before the PNGs' bands
+    csv_text = _in_background(lenses_csv, view, _pitch_um(config_dict))  # first: queued before the PNGs' bands
     base = view.tone_mapped()
     full = render_defect_map(view, base=base)
     small = render_defect_map(view, base=base, max_side=SMALL_MAP_MAX_PX)
-    lens_maps = render_lens_maps(getattr(view.result, "measurements", None), (view.rows, view.cols))
+    lens_maps = render_lens_maps(getattr(view.result, "measurements", None), (view.rows, view.cols),
+                                 view.packing)
     full_png = encode_png_async(full, level=_PNG_LEVEL)
     small_png = encode_png_async(small, level=3) if small.shape != full.shape else full_png
     lens_png = encode_png_async(lens_maps, level=6)
@@ -123,6 +124,15 @@ def _render_all(view: View, config_dict: dict | None) -> dict[str, bytes]:
     pngs = {"defect_map": full_png.result(), "defect_map_small": small_png.result(), "lens_maps": lens_png.result()}
     text["html"] = _html(view, report, pngs["defect_map_small"], pngs["lens_maps"])
     return {**{k: t.encode("utf-8") for k, t in text.items()}, **pngs}
+
+
+def _pitch_um(config_dict: dict | None) -> float | None:
+    """The config's mla.pitch_um (for a hex lenses.csv's design centres in µm), None if not given."""
+    try:
+        value = float(config_dict["mla"]["pitch_um"])  # type: ignore[index]
+    except (KeyError, TypeError, ValueError):
+        return None
+    return value
 
 
 def _in_background(fn, *args) -> Future:
