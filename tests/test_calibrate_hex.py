@@ -307,3 +307,13 @@ def test_cli_calibrate_uses_the_configs_packing(tmp_path, capsys):
     out2 = tmp_path / "grid2.json"
     assert main(["calibrate", str(raw), "--out", str(out2), "--config", str(square)]) == 2
     assert "hexagonal microlens lattice" in capsys.readouterr().err and not out2.exists()
+
+
+@pytest.mark.parametrize("rotation, phase", [(0.4, (0.3, 0.1)), (-1.2, (5.3, -7.9))])
+def test_blind_hex_calibration_finds_the_whole_array(rotation, phase):
+    """No expected pitch or shape: the lit lenses' extent (columns counted along the zig-zag) is the array."""
+    m = hex_model(shape=(560, 540), rotation_deg=rotation, phase_px=phase)
+    g = calibrate(frame(m), packing="hex")
+    x, y = m.centres()
+    assert g.shape == SHAPE and g.lenses_missing == 0
+    assert per_axis_rms(g, x, y, np.ones(SHAPE, bool)) < 0.01

@@ -6,7 +6,12 @@ Pipeline (DESIGN.md §6), vectorized over all lenses at once (no per-lens Python
 1. Lattice from the Fourier transform of the (Hann-windowed, for big frames 2x2- or 4x4-binned) white
    image: the two fundamental peaks give pitch and rotation (refined to ~0.01 bin with a local DTFT),
    their phases the lattice offset (the remaining half-period ambiguity is settled by where the cell
-   corners are dark).
+   corners are dark). Square: the peaks at |k| = 1/p, 90 degrees apart. Hex: two of the six at
+   |k| = 2/(sqrt(3) p), 60 degrees apart; the real basis is then a1 along the rows (~x) and a2 at +60
+   degrees (down-right as displayed), both a pitch long ("axial" lattice coordinates (j, i)); the cell
+   corners are the hexagon's six (hex discs may overlap up to a radius of ~0.56 p). A spectrum plainly of
+   the other packing than the config's (shells of equal peaks 60 rather than 90 degrees apart, or the
+   reverse) is refused by name.
 2. Every sub-image is measured by a joint least-squares fit of the frame by a sum of discs, one per lens:
    lens k adds (a_k + slope . (x - c_k)) * e((R_k - |x - c_k|) / s) to the model, e a logistic edge.
    Gauss-Newton on (a_k, c_k, R_k) of all lenses at once: one compiled pass per lens
@@ -20,7 +25,8 @@ Pipeline (DESIGN.md §6), vectorized over all lenses at once (no per-lens Python
    lens reads its full shift and its neighbours read ~2 % of it. Details that matter:
    - each lens is fitted on an annulus round its rim, tapered and centred on its current estimate (a
      window fixed to the pixel grid would pull a not-yet-right model off centre);
-   - red-black sweeps: side neighbours (whose discs overlap) never step together;
+   - red-black sweeps (hex: three colours, (j + 2 i) mod 3): side neighbours (whose discs overlap) never
+     step together;
    - noise weights ~ 1 / signal (Monte-Carlo and photon noise), except round lenses far off the lattice;
    - intensity slopes across each sub-image (illumination falloff, vignetting) come from the smooth
      field of the lens amplitudes and are held fixed (fitting them per lens costs precision);
@@ -31,9 +37,14 @@ Pipeline (DESIGN.md §6), vectorized over all lenses at once (no per-lens Python
      sweeps settle nearly every lens.
 3. Indexing: lattice rows/columns; with an expected MLA shape the window of N_H x N_W lattice lines with
    the most light (then the fewest lines seen dark, then nearest the frame centre) is U(1,1)..U(N_H,N_W).
+   Hex (mlaqc.optics.lattice's offset convention: rows 2, 4, ... shifted +p/2): the window's columns
+   zig-zag along a2 and a2 - a1, and which lattice row is U(1,n) decides which rows are the shifted ones,
+   so rows and columns are anchored together (`_anchor_hex`).
 4. Global model: a projective map of the lattice (pitch x/y, rotation, shear, offset, keystone from an
    MLA tilt) plus a radial term about the frame centre, fitted robustly (defective lenses are outliers)
-   by Gauss-Newton with the analytic Jacobian.
+   by Gauss-Newton with the analytic Jacobian. Its lattice coordinates are the design's, in pitches from
+   U(1,1) (`Lattice.uv`: square (n-1, m-1), hex (n-1 + [m even]/2, (m-1) sqrt(3)/2)), so pitch, rotation
+   and shear mean the same for both packings (a perfect hex array has shear 0).
    Lenses predicted by the model but dark or dim are reported in `missing`, never an error.
 
 Measured on the Table 1 camera (50 rays/pixel, noise on): per-lens centres 0.029 px RMS (0.021 px per
@@ -95,7 +106,8 @@ class Grid:
 
     Per-lens arrays have shape (rows, cols); [m-1, n-1] is lens U(m,n). `measured_*` and the per-lens
     measurements are NaN where `missing` (dark/dim, or mostly outside the frame). `grid_*` is the global
-    model's prediction for every lens. The model maps lattice coordinates (u, v) = (n-1, m-1) to pixels:
+    model's prediction for every lens. The model maps design coordinates (u, v) (`Lattice.uv` of
+    `packing`, in pitches from U(1,1): square (n-1, m-1), hex (n-1 + 0.5 [m even], (m-1) sqrt(3)/2)) to pixels:
     (x', y') = projective(homography, u, v), then a radial term about `radial_centre_px`:
     p = c + (p' - c) * (1 + radial_k * |p' - c|^2 / radial_scale_px^2).
     """
