@@ -82,6 +82,8 @@ MIN_VALID_FRACTION = 0.35  # lenses with less of their rim than this inside the 
 PITCH_TOLERANCE = 0.10  # the found pitch may differ from the expected one by 10 %
 MIN_LENSES = 9
 MIN_PITCH_PX = 4.0
+BACKGROUND_MIN = 0.05  # light at the cell corners above this fraction of the sub-images' is a background
+BACKGROUND_DEGREE = 4  # of the polynomial surface fitted to it
 
 # The disc fit (see _measure). Lengths in pixels.
 BLOCK_SWEEPS = 5  # sweeps on the central block that sets the edge width and typical radius
@@ -954,6 +956,7 @@ def calibrate(img: np.ndarray, *, expected_pitch_px: float | None = None,
     _check_levels(img)
     lattice = _fft_lattice(img, expected_pitch_px, packing)
     lat_j, lat_i, px, py = _candidates(img.shape, lattice)
+    img = _without_background(img, lattice, px, py)
     order = np.argsort(_colours(lat_j, lat_i, packing), kind="stable")  # sweep colours, each contiguous
     lat_j, lat_i, px, py = lat_j[order], lat_i[order], px[order], py[order]
     pitch = float(np.sqrt(abs(np.linalg.det(lattice.basis))))
@@ -968,6 +971,45 @@ def _colours(lat_j: np.ndarray, lat_i: np.ndarray, packing: str) -> np.ndarray:
     if packing == "hex":
         return (lat_j + 2 * lat_i) % 3
     return (lat_i + lat_j) % 2
+
+
+def _without_background(img: np.ndarray, lattice: _Lattice, px: np.ndarray, py: np.ndarray) -> np.ndarray:
+    """The frame less a smooth background, if its cell corners (the places farthest from every sub-image)
+    hold more than BACKGROUND_MIN of the sub-images' light: unfocused light through clear gaps between
+    circular lenses, or a black level set too low. The disc model has no background term, and a sloped one
+    (vignetting) pulls the centres. The background is a robust polynomial surface through the corners'
+    levels. Frames with dark corners (a full-fill array, opaque gaps) are returned as they are."""
+    h, w = img.shape
+    corners = np.array(_CORNERS[lattice.packing], dtype=float).T  # (2, k) lattice coordinates
+    cx = (px[:, None] + (lattice.basis @ corners)[0][None, :]).ravel()
+    cy = (py[:, None] + (lattice.basis @ corners)[1][None, :]).ravel()
+    inside = lambda x, y: (x >= 0) & (x <= w - 2) & (y >= 0) & (y <= h - 2)  # noqa: E731
+    keep = inside(cx, cy)
+    centre_in = inside(px, py)
+    if keep.sum() < 4 * (BACKGROUND_DEGREE + 1) ** 2 or not centre_in.any():
+        return img
+    cx, cy = cx[keep], cy[keep]
+    level = _bilinear(img, cx, cy)
+    plateau = float(np.median(_bilinear(img, px[centre_in], py[centre_in])))
+    if not float(np.median(level)) > BACKGROUND_MIN * plateau:
+        return img
+    sx, sy = 2.0 / w, 2.0 / h  # coordinates in [-1, 1]
+    terms = [(a, b) for a in range(BACKGROUND_DEGREE + 1) for b in range(BACKGROUND_DEGREE + 1 - a)]
+    xn, yn = cx * sx - 1.0, cy * sy - 1.0
+    design = np.stack([xn ** a * yn ** b for a, b in terms], axis=1)
+    used = np.ones(level.size, bool)
+    for _ in range(3):  # corners next to defects or the array's edge are outliers
+        coef = np.linalg.lstsq(design[used], level[used], rcond=None)[0]
+        resid = level - design @ coef
+        spread = 1.4826 * float(np.median(np.abs(resid[used]))) + 1e-12
+        used = np.abs(resid) <= 3.0 * spread
+    xs = (np.arange(w) * sx - 1.0)[None, :]
+    ys = (np.arange(h) * sy - 1.0)[:, None]
+    surface = np.zeros((h, w), np.float32)
+    for b in range(BACKGROUND_DEGREE + 1):
+        row = sum(c * xs ** a for (a, bb), c in zip(terms, coef) if bb == b)
+        surface += (ys ** b * row).astype(np.float32)
+    return img - surface
 
 
 def _candidates(shape: tuple[int, int], lattice: _Lattice):
