@@ -9,7 +9,7 @@ Pipeline (DESIGN.md §6), vectorized over all lenses at once (no per-lens Python
    corners are dark). Square: the peaks at |k| = 1/p, 90 degrees apart. Hex: two of the six at
    |k| = 2/(sqrt(3) p), 60 degrees apart; the real basis is then a1 along the rows (~x) and a2 at +60
    degrees (down-right as displayed), both a pitch long ("axial" lattice coordinates (j, i)); the cell
-   corners are the hexagon's six (hex discs may overlap up to a radius of ~0.56 p). A spectrum plainly of
+   offset is the half-period shift about which the frame is six-fold symmetric. A spectrum plainly of
    the other packing than the config's (shells of equal peaks 60 rather than 90 degrees apart, or the
    reverse) is refused by name.
 2. Every sub-image is measured by a joint least-squares fit of the frame by a sum of discs, one per lens:
@@ -34,7 +34,10 @@ Pipeline (DESIGN.md §6), vectorized over all lenses at once (no per-lens Python
      pull in (more than ~1.5 px off the lattice) are captured with a wide edge of their own;
    - pixels outside the frame are simply left out, so lenses cut by the frame are measured unbiased;
    - the first weighted sweep is not damped as an oscillation (it answers a new objective), so three
-     sweeps settle nearly every lens.
+     sweeps settle nearly every lens;
+   - the model has no background term: where the cell corners, well clear of the fitted rims, hold over
+     15 % of the sub-images' light (clear gaps between circular lenses, a low black level), a smooth
+     surface through them is taken off and every lens measured again (`_without_background`).
 3. Indexing: lattice rows/columns; with an expected MLA shape the window of N_H x N_W lattice lines with
    the most light (then the fewest lines seen dark, then nearest the frame centre) is U(1,1)..U(N_H,N_W).
    Hex (mlaqc.optics.lattice's offset convention: rows 2, 4, ... shifted +p/2): the window's columns
@@ -82,7 +85,9 @@ MIN_VALID_FRACTION = 0.35  # lenses with less of their rim than this inside the 
 PITCH_TOLERANCE = 0.10  # the found pitch may differ from the expected one by 10 %
 MIN_LENSES = 9
 MIN_PITCH_PX = 4.0
-BACKGROUND_MIN = 0.05  # light at the cell corners above this fraction of the sub-images' is a background
+# light at the cell corners above this fraction of the sub-images' is a background: less pulls the centres by
+# under 0.01 px even with strong vignetting, and blurred or Airy rims alone reach 5 - 12 % there (measured)
+BACKGROUND_MIN = 0.15
 BACKGROUND_DEGREE = 4  # of the polynomial surface fitted to it
 
 # The disc fit (see _measure). Lengths in pixels.
@@ -692,16 +697,12 @@ _CORNERS = {"square": [(cx, cy) for cx in (-0.5, 0.5) for cy in (-0.5, 0.5)],
             "hex": [(1 / 3, 1 / 3), (-1 / 3, 2 / 3), (-2 / 3, 1 / 3), (-1 / 3, -1 / 3), (1 / 3, -2 / 3), (2 / 3, -1 / 3)]}
 
 
-# hex: the corners weigh 10x: overlapping discs (radius > p / 2) light the wrong candidates' points (where
-# two discs overlap) twice and their corners (0.29 p from a centre) once, while the true corners, 0.577 p
-# from three centres, stay the darkest places of the frame up to a radius of ~0.56 p (measured: 11.2 px at
-# a 20.05 px pitch); with small discs every wrong corner is dark too and the points decide
-_CORNER_WEIGHT = {"square": 1.0, "hex": 10.0}
-
-
 def _resolve_half_period(img: np.ndarray, basis: np.ndarray, base: np.ndarray, packing: str = "square") -> np.ndarray:
     """The Fourier phase fixes the lattice up to half a period per axis (the sign of the sub-image's
-    transform); pick the shift whose points are bright with dark cell corners around them."""
+    transform); pick the shift whose points are bright with dark cell corners around them (hex: the
+    shift about whose points the frame has the lattice's six-fold symmetry, `_six_fold_origin`)."""
+    if packing == "hex":
+        return _six_fold_origin(img, basis, base)
     h, w = img.shape
     jj, ii = np.meshgrid(np.arange(-6, 7), np.arange(-6, 7))
     best, score_best = base, -np.inf
@@ -715,8 +716,38 @@ def _resolve_half_period(img: np.ndarray, basis: np.ndarray, base: np.ndarray, p
             if not ok.any():
                 continue
             sample = lambda p: _bilinear(img, p[0][ok], p[1][ok])  # noqa: E731
-            score = float(np.mean(sample(pts)) - _CORNER_WEIGHT[packing] * np.mean([sample(c) for c in corners]))
+            score = float(np.mean(sample(pts)) - np.mean([sample(c) for c in corners]))
             if score > score_best:
+                best, score_best = o, score
+    return best
+
+
+def _six_fold_origin(img: np.ndarray, basis: np.ndarray, base: np.ndarray) -> np.ndarray:
+    """Of the four half-period shifts of a hex lattice, the one whose points are centres of six-fold
+    symmetry: on rings round a sub-image centre the frame repeats every 60 degrees, round the other three
+    (midpoints between two neighbours) only every 180. Brightness tests fail here: discs larger than half
+    the pitch light their overlaps twice and, beyond ~0.56 p, the cell corners too. Measured on the
+    analytic model for radii 0.15 - 0.65 p, noise-free and at 15 % noise. Rings at 0.2, 0.3 and 0.4 p,
+    12 samples each, round 21 x 21 lattice points near the frame centre."""
+    h, w = img.shape
+    jj, ii = np.meshgrid(np.arange(-10, 11), np.arange(-10, 11))
+    pitch = float(np.hypot(*basis[:, 0]))
+    angle = math.atan2(basis[1, 0], basis[0, 0]) + np.radians(np.arange(12) * 30.0)
+    best, score_best = base, np.inf
+    for sx in (0.0, 0.5):
+        for sy in (0.0, 0.5):
+            o = base + basis @ np.array([sx, sy])
+            pts = o[:, None] + basis @ np.stack([jj.ravel(), ii.ravel()])
+            score = 0.0
+            for rho in (0.2 * pitch, 0.3 * pitch, 0.4 * pitch):
+                rx = pts[0][:, None] + rho * np.cos(angle)[None, :]
+                ry = pts[1][:, None] + rho * np.sin(angle)[None, :]
+                ok = np.all((rx > 1) & (rx < w - 2) & (ry > 1) & (ry < h - 2), axis=1)
+                if not ok.any():
+                    continue
+                f = _bilinear(img, rx[ok], ry[ok])
+                score += float(np.mean(np.abs(f - np.roll(f, -2, axis=1))) / (np.mean(np.abs(f)) + 1e-12))
+            if score < score_best:
                 best, score_best = o, score
     return best
 
@@ -956,12 +987,14 @@ def calibrate(img: np.ndarray, *, expected_pitch_px: float | None = None,
     _check_levels(img)
     lattice = _fft_lattice(img, expected_pitch_px, packing)
     lat_j, lat_i, px, py = _candidates(img.shape, lattice)
-    img = _without_background(img, lattice, px, py)
     order = np.argsort(_colours(lat_j, lat_i, packing), kind="stable")  # sweep colours, each contiguous
     lat_j, lat_i, px, py = lat_j[order], lat_i[order], px[order], py[order]
     pitch = float(np.sqrt(abs(np.linalg.det(lattice.basis))))
     radius0 = _radius_guess(img, pitch)
     discs, active = _measure(img, px, py, lat_j, lat_i, lattice.basis, radius0, packing)
+    clean = _without_background(img, lattice, discs, active)
+    if clean is not img:  # a background the discs do not explain: measured again without it
+        discs, active = _measure(clean, px, py, lat_j, lat_i, lattice.basis, radius0, packing)
     return _assemble(img.shape, lattice, lat_j, lat_i, discs, active, expected_shape)
 
 
@@ -973,24 +1006,34 @@ def _colours(lat_j: np.ndarray, lat_i: np.ndarray, packing: str) -> np.ndarray:
     return (lat_i + lat_j) % 2
 
 
-def _without_background(img: np.ndarray, lattice: _Lattice, px: np.ndarray, py: np.ndarray) -> np.ndarray:
-    """The frame less a smooth background, if its cell corners (the places farthest from every sub-image)
-    hold more than BACKGROUND_MIN of the sub-images' light: unfocused light through clear gaps between
-    circular lenses, or a black level set too low. The disc model has no background term, and a sloped one
-    (vignetting) pulls the centres. The background is a robust polynomial surface through the corners'
-    levels. Frames with dark corners (a full-fill array, opaque gaps) are returned as they are."""
+# the corners must lie this far outside the fitted rims to measure a background there: 1.5 px and two edge
+# widths (a background widens the fitted edge, so no more); discs that reach them (radius > ~0.53 p in hex)
+# light them themselves
+BACKGROUND_CLEAR_PX = 1.5
+
+
+def _without_background(img: np.ndarray, lattice: _Lattice, discs: _Discs, active: np.ndarray) -> np.ndarray:
+    """The frame less a smooth background, if the cell corners (the places farthest from every sub-image)
+    hold over BACKGROUND_MIN of the sub-images' light while the fitted rims lie well clear of them:
+    unfocused light through clear gaps between circular lenses, or a black level set too low. The disc
+    model has no background term, and a sloped one (vignetting) pulls the centres. The background is a
+    robust polynomial surface through the corners' levels. Otherwise (dark corners, or corners the rims
+    reach, where the light is the discs') the frame itself is returned."""
     h, w = img.shape
-    corners = np.array(_CORNERS[lattice.packing], dtype=float).T  # (2, k) lattice coordinates
-    cx = (px[:, None] + (lattice.basis @ corners)[0][None, :]).ravel()
-    cy = (py[:, None] + (lattice.basis @ corners)[1][None, :]).ravel()
-    inside = lambda x, y: (x >= 0) & (x <= w - 2) & (y >= 0) & (y <= h - 2)  # noqa: E731
-    keep = inside(cx, cy)
-    centre_in = inside(px, py)
-    if keep.sum() < 4 * (BACKGROUND_DEGREE + 1) ** 2 or not centre_in.any():
+    lit = np.flatnonzero(active)
+    corners = lattice.basis @ np.array(_CORNERS[lattice.packing], dtype=float).T  # (2, k) px from a centre
+    clear = float(np.min(np.hypot(corners[0], corners[1]))) - float(np.median(discs.radius[lit]))
+    if lit.size == 0 or clear < max(BACKGROUND_CLEAR_PX, 2.0 * discs.edge):
+        return img
+    cx = (discs.cx[lit][:, None] + corners[0][None, :]).ravel()
+    cy = (discs.cy[lit][:, None] + corners[1][None, :]).ravel()
+    keep = (cx >= 0) & (cx <= w - 2) & (cy >= 0) & (cy <= h - 2)
+    inner = (discs.cx[lit] >= 0) & (discs.cx[lit] <= w - 2) & (discs.cy[lit] >= 0) & (discs.cy[lit] <= h - 2)
+    if keep.sum() < 4 * (BACKGROUND_DEGREE + 1) ** 2 or not inner.any():
         return img
     cx, cy = cx[keep], cy[keep]
     level = _bilinear(img, cx, cy)
-    plateau = float(np.median(_bilinear(img, px[centre_in], py[centre_in])))
+    plateau = float(np.median(_bilinear(img, discs.cx[lit][inner], discs.cy[lit][inner])))
     if not float(np.median(level)) > BACKGROUND_MIN * plateau:
         return img
     sx, sy = 2.0 / w, 2.0 / h  # coordinates in [-1, 1]
@@ -998,17 +1041,17 @@ def _without_background(img: np.ndarray, lattice: _Lattice, px: np.ndarray, py: 
     xn, yn = cx * sx - 1.0, cy * sy - 1.0
     design = np.stack([xn ** a * yn ** b for a, b in terms], axis=1)
     used = np.ones(level.size, bool)
-    for _ in range(3):  # corners next to defects or the array's edge are outliers
+    for _ in range(3):  # corners next to defects are outliers
         coef = np.linalg.lstsq(design[used], level[used], rcond=None)[0]
         resid = level - design @ coef
         spread = 1.4826 * float(np.median(np.abs(resid[used]))) + 1e-12
         used = np.abs(resid) <= 3.0 * spread
-    xs = (np.arange(w) * sx - 1.0)[None, :]
-    ys = (np.arange(h) * sy - 1.0)[:, None]
+    xs_row = (np.arange(w) * sx - 1.0)[None, :]
+    ys_col = (np.arange(h) * sy - 1.0)[:, None]
     surface = np.zeros((h, w), np.float32)
     for b in range(BACKGROUND_DEGREE + 1):
-        row = sum(c * xs ** a for (a, bb), c in zip(terms, coef) if bb == b)
-        surface += (ys ** b * row).astype(np.float32)
+        row = sum(c * xs_row ** a for (a, bb), c in zip(terms, coef) if bb == b)
+        surface += (ys_col ** b * row).astype(np.float32)
     return img - surface
 
 
