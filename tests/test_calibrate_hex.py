@@ -85,6 +85,7 @@ def test_the_hex_model_lays_lenses_out_as_the_convention_says():
     dict(rotation_deg=-1.8, phase_px=(-0.25, 0.5), rim="airy", extra_falloff=0.3),
     dict(rotation_deg=2.5, phase_px=(0.5, 0.5), radius_px=8.0),  # circular sub-images with gaps between them
     dict(rotation_deg=-0.3, phase_px=(0.2, 0.3), radius_px=10.8),  # overlapping sub-images (a faster main lens)
+    dict(rotation_deg=1.1, phase_px=(-0.4, 0.1), radius_px=11.5),  # overlapping almost to the cell corners
 ])
 def test_noise_free_hex_frame_every_lens_found_and_centred(kw):
     m = hex_model(**kw)
