@@ -1358,22 +1358,26 @@ def _anchor_hex(weight: np.ndarray, dark_seen: np.ndarray, lit: np.ndarray, rows
     pad = np.zeros(rows)
     rdark = np.convolve(np.concatenate([pad, row_dark, pad]), np.ones(rows), mode="valid")  # [s]: start s - rows
     aj, ai = axis_ji
-    cands = []
+    per_parity = []
     for parity in (0, 1):
-        light = _box_sums(_sheared(weight, parity), rows, cols)
+        first = (parity + rows) % 2  # box-sum rows s start at table row s - rows: those of this parity
+        light = _box_sums(_sheared(weight, parity), rows, cols)[first::2]
+        per_parity.append((parity, first, light))
+    top = max(float(light.max()) for _, _, light in per_parity)
+    cands = []
+    for parity, first, light in per_parity:
+        s, t = np.nonzero(light >= top * (1 - 1e-9) - 1e-12)  # the windows with the most light
+        s = first + 2 * s
         col_dark = (_sheared(dark_seen, parity).any(axis=0) & ~_sheared(lit, parity).any(axis=0)).astype(float)
         cdark = np.convolve(np.concatenate([np.zeros(cols), col_dark, np.zeros(cols)]), np.ones(cols), mode="valid")
-        s, t = np.mgrid[0:light.shape[0], 0:light.shape[1]]
-        r0, c_sheared = s - rows, t - cols
-        keep = (r0 % 2) == parity
-        c0 = c_sheared - (r0 - parity) // 2 - 1  # axial column of U(1,1)
+        r0 = s - rows
+        c0 = (t - cols) - (r0 - parity) // 2 - 1  # axial column of U(1,1)
         u_mid = c0 + 0.5 * r0 + 0.5 * (cols - 1 + (0.5 if rows > 1 else 0.0))
         v_mid = r0 + 0.5 * (rows - 1)
         dist = (u_mid - (aj + 0.5 * ai)) ** 2 + ((v_mid - ai) * SQRT3_2) ** 2
-        cands.append(np.stack([light[keep], rdark[s[keep]] + cdark[t[keep]], dist[keep], r0[keep], c0[keep]]))
-    light, dark, dist, r0, c0 = np.concatenate(cands, axis=1)
-    best = light >= light.max() * (1 - 1e-9) - 1e-12
-    best &= dark <= dark[best].min()
+        cands.append(np.stack([rdark[s] + cdark[t], dist, r0, c0]).astype(np.float64))
+    dark, dist, r0, c0 = np.concatenate(cands, axis=1)
+    best = dark <= dark.min()
     pick = np.flatnonzero(best)[np.argmin(dist[best])]
     return int(r0[pick]), int(c0[pick])
 
