@@ -668,7 +668,7 @@ def _hex_lattice(img: np.ndarray, a: np.ndarray, kvec: np.ndarray, kmag: np.ndar
     h, w = (full_h // b * b, full_w // b * b) if b > 1 else (full_h, full_w)
     centre = np.array([0.5 * (w - 1), 0.5 * (h - 1)])
     base = centre + prime @ phase
-    basis = _second_shell_basis(a, _hex_basis(prime) / b) * b
+    basis = _second_shell_basis(a, _hex_basis(prime) / b, min(abs(f1), abs(f2))) * b
     pitch = np.hypot(basis[0], basis[1])
     if pitch.min() < MIN_PITCH_PX:
         raise InputError(f"the periodic structure in the image ({pitch.min():.2f} px) is too fine for microlenses")
@@ -679,17 +679,20 @@ def _hex_lattice(img: np.ndarray, a: np.ndarray, kvec: np.ndarray, kmag: np.ndar
     return _Lattice(basis, origin, "hex")
 
 
-def _second_shell_basis(a: np.ndarray, basis: np.ndarray) -> np.ndarray:
+def _second_shell_basis(a: np.ndarray, basis: np.ndarray, first_level: float) -> np.ndarray:
     """The hex basis (binned px) refined on the second shell of peaks (|k| = 2 / p: 2 b1 + b2 and b1 + 2 b2,
-    b_i the reciprocal basis). Discs of about half the pitch, as an f-number-matched camera makes, have
-    their first-shell peaks next to a zero of the disc's transform (2 pi |k| R ~ 3.7 against 3.83): weak,
-    and good to a few 1e-4 of the pitch only, which the centre block's lattice then inherits (its ring of
-    lenses is held on it). The second shell is about twice as strong and twice as far out. Kept only if
-    both refined peaks stay within a bin of where the first shell puts them."""
+    b_i the reciprocal basis) where those are the stronger (`first_level`: the weaker first-shell peak's
+    |DTFT|). Discs of about half the pitch, as an f-number-matched camera makes, have their first-shell
+    peaks next to a zero of the disc's transform (2 pi |k| R ~ 3.7 against 3.83): weak, good to a few 1e-4
+    of the pitch only; the second shell is then about twice as strong and twice as far out (discs of
+    ~0.3 p have it at the zero instead). Kept only if both refined peaks stay within a bin of where the
+    first shell puts them."""
     b1, b2 = np.linalg.inv(basis)
     h, w = a.shape
     guess = (2.0 * b1 + b2, b1 + 2.0 * b2)
-    q1, q2 = (_refine_peak(a, q)[0] for q in guess)
+    (q1, g1), (q2, g2) = (_refine_peak(a, q) for q in guess)
+    if min(abs(g1), abs(g2)) <= first_level:
+        return basis
     if max(abs((q - g)[0]) * w + abs((q - g)[1]) * h for q, g in zip((q1, q2), guess)) > 1.0:
         return basis
     return np.linalg.inv(np.array([(2.0 * q1 - q2) / 3.0, (2.0 * q2 - q1) / 3.0]))
