@@ -163,7 +163,7 @@ def test_whole_top_rows_cropped_away_are_still_u1n(rows_cut):
     m = hex_model(shape=(600, 560), rotation_deg=-0.5, phase_px=(0.1, 0.3))
     img = frame(m, noise=0.01)
     x, y = m.centres()
-    top = int(math.ceil(y[rows_cut - 1].max() + m.radius_px + 3))
+    top = math.ceil(y[rows_cut - 1].max() + m.radius_px + 3)
     g = hex_calibrate(img[top:].copy(), m)
     assert g.missing[:rows_cut].all() and not g.missing[rows_cut:].any()
     sel = ~g.missing & ~g.clipped

@@ -1377,7 +1377,6 @@ def _anchor_hex(weight: np.ndarray, dark_seen: np.ndarray, lit: np.ndarray, rows
     `_anchor` but over both at once (the window's columns zig-zag, and the top row's parity decides which
     way): the most light; among equals, the fewest lattice lines (rows, zig-zag columns) seen dark; then
     the window centred nearest the frame centre. Windows may reach beyond the frame."""
-    ni, _ = weight.shape
     row_dark = (dark_seen.any(axis=1) & ~lit.any(axis=1)).astype(float)
     pad = np.zeros(rows)
     rdark = np.convolve(np.concatenate([pad, row_dark, pad]), np.ones(rows), mode="valid")  # [s]: start s - rows
