@@ -420,3 +420,32 @@ def test_ray_traced_hex_white_agrees_with_the_first_order_layout(traced_hex):
     assert np.sqrt(np.mean(measured ** 2)) < 0.035  # measured: 0.026
     assert g.pitch_px == pytest.approx((p, p), abs=0.003)
     assert abs(g.rotation_deg) < 0.005 and abs(g.shear_deg) < 0.01
+
+
+def test_seeded_anomalies_of_every_kind_leave_the_others_centred():
+    """Shift, skew, blur, size, dim and missing lenses (tests/analytic_frames.py's random set) plus dark
+    corner lenses U(1,1) and U(28,24) on a frame holding the whole array: the index holds (the light window
+    does not slide onto the dark corners), only the missing lenses are missing, shifted lenses read their
+    shift, and the lenses away from every anomaly stay on their true centres."""
+    from analytic_frames import random_anomalies
+
+    base = hex_model(shape=(560, 540), rotation_deg=-0.6, phase_px=(0.15, -0.35))
+    seeded = random_anomalies(base, 12, np.random.default_rng(5))
+    corners = [Anomaly(0, 0, "missing", 0.0), Anomaly(SHAPE[0] - 1, SHAPE[1] - 1, "missing", 0.0)]
+    m = base.with_anomalies(seeded + corners)
+    g = hex_calibrate(frame(m, noise=0.02), m)
+    missing = {(a.row, a.col) for a in seeded + corners if a.kind == "missing"}
+    assert set(map(tuple, np.argwhere(g.missing).tolist())) == missing
+    x, y = m.centres()
+    lx, ly = m.lattice()
+    for a in seeded:
+        if a.kind == "shift":
+            k = (a.row, a.col)
+            assert (g.residual_x_px[k], g.residual_y_px[k]) == pytest.approx((x[k] - lx[k], y[k] - ly[k]), abs=0.03)
+    away = np.ones(SHAPE, bool)
+    for a in seeded + corners:
+        away[a.row, a.col] = False
+        for b in hex_neighbours(a.row, a.col):
+            if 0 <= b[0] < SHAPE[0] and 0 <= b[1] < SHAPE[1]:
+                away[b] = False
+    assert per_axis_rms(g, x, y, away & ~g.clipped) < 0.01
