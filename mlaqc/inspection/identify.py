@@ -1,7 +1,8 @@
 """Identification: flag lenses whose indexes leave the normal population, then say what is wrong.
 
 Detection compares every lens with its own neighbourhood (5 x 5 local median, which cancels vignetting,
-exposure and slow field variation). What a frame does the same way everywhere is modelled and removed,
+exposure and slow field variation; on a hex lattice the same 5 x 5 window of offset coordinates, see
+`local_deviations`). What a frame does the same way everywhere is modelled and removed,
 not flagged: the pattern the sub-pixel phase of the lens centres draws in every index (`PhaseModel`),
 and the bias and spread of the edge classes. Each index is judged against the frame's own noise,
 measured per lens class with a tail-aware spread and never below a floor set by the smallest reportable
@@ -44,6 +45,7 @@ from mlaqc.inspection.results import Defect, LensMetrics
 from mlaqc.models.position_split import PositionSplit, contrast_sigma, neighbour_contrast, split_limits, type_position
 from mlaqc.models.signatures import FEATURES, KIND_BY_NAME, RINGS, SignatureTable, lens_features
 from mlaqc.optics.config import QC
+from mlaqc.optics.lattice import Lattice
 from mlaqc.parallel import thread_map
 
 UNEXPLAINED = 0.75  # a best fit leaving more than this share of the deviation's chi-square: type 'unknown' (measured: tracer defects leave 0.1-0.7, foreign anomalies 0.8-0.95)
@@ -52,19 +54,29 @@ _CHI2_AMBIGUOUS = 9.0  # an opposite-sign reading closer than this (3 sigma) is 
 FOCUS_KINDS = ("radius", "thickness")  # errors that defocus the lens: what the focus test looks for
 
 
-def local_deviation(values: np.ndarray, size: int = 5, axis: str = "") -> np.ndarray:
+def local_deviation(values: np.ndarray, size: int = 5, axis: str = "", packing: str = "square") -> np.ndarray:
     """values minus a NaN-robust local baseline: the median over size x size lenses inside the array
     (leaving out lenses not measured, and the outermost ones for lenses two or more in: see
     `_refine_baselines`); along an edge the running median of that edge (its lenses miss the same
     neighbours). A corner lens misses neighbours on two sides: for an x index (axis='x') it is compared
     along its left/right edge, otherwise along its top/bottom edge (and flagged only at 1.5 x the
     threshold, see `identify`)."""
-    return local_deviations([values], [axis], size)[0]
+    return local_deviations([values], [axis], size, packing)[0]
 
 
-def local_deviations(planes: list[np.ndarray], axes: list[str], size: int = 5) -> list[np.ndarray]:
+def local_deviations(planes: list[np.ndarray], axes: list[str], size: int = 5,
+                     packing: str = "square") -> list[np.ndarray]:
     """`local_deviation` of several (rows, cols) index maps at once: one compiled median pass over all of
-    them (scipy's median_filter cost 16 ms per map); even sizes or all-NaN maps take the scipy route."""
+    them (scipy's median_filter cost 16 ms per map); even sizes or all-NaN maps take the scipy route.
+
+    Hex (`packing`): the window is the same size x size block of offset coordinates (U(m,n) indexes). It
+    is local (every lens in it lies within 2.6 pitches) but not point-symmetric: rows m +- 1 sit half a
+    pitch to one side. Its median is still the lens' own value on a linear trend along x, y or the
+    lattice directions, and off by at most 0.26 pitch times the trend's slope per pitch in between (a
+    trend of 1 % per pitch reads 0.003), far below any index' noise; the slow maps it removes
+    (vignetting, exposure, distortion) change by much less per pitch. The left and right columns,
+    whose lenses alternately stick out (missing 3 of 6 neighbours) and sit in (missing 1), take the
+    running median of the lenses of their own row parity (`_hex_edge_columns`)."""
     fills = []
     for values in planes:
         finite = np.isfinite(values)
@@ -82,8 +94,33 @@ def local_deviations(planes: list[np.ndarray], axes: list[str], size: int = 5) -
             median_baselines(stack, int(size), x_axis, base)
     else:
         base = np.stack([_scipy_baseline(f, size, a) for f, a in zip(stack, axes)])
-    _refine_baselines(stack, np.isfinite(np.array(planes, dtype=np.float64)), base, size, [a == "x" for a in axes])
+    finite = np.isfinite(np.array(planes, dtype=np.float64))
+    _refine_baselines(stack, finite, base, size, [a == "x" for a in axes])
+    if packing == "hex":
+        _hex_edge_columns(stack, finite, base, size, [a == "x" for a in axes])
     return [values - b for values, b in zip(planes, base)]
+
+
+def _hex_edge_columns(stack: np.ndarray, finite: np.ndarray, base: np.ndarray, size: int,
+                      x_axis: list[bool]) -> None:
+    """Hex lattice: the baselines of the first and last columns, in place, as the running median (size
+    lenses, clipped) of the finite lenses of the same column and row parity: a shifted row's end lens
+    misses other neighbours than an unshifted row's, and the two carry different biases. Corners are
+    left to the rows for planes not along x (as `median_baselines` leaves them)."""
+    n_f, rows, cols = stack.shape
+    if rows < 2 * size or cols < size:
+        return
+    half = size // 2
+    x_planes = np.asarray(x_axis, bool)
+    for col in (0, cols - 1):
+        for parity in (0, 1):
+            r = np.arange(parity, rows, 2)
+            idx = np.clip(np.arange(len(r))[:, None] + np.arange(-half, half + 1)[None, :], 0, len(r) - 1)
+            vals = stack[:, r, col][:, idx]
+            med, ok = _nan_medians(np.where(finite[:, r, col][:, idx], vals, np.nan))
+            corner = (r == 0) | (r == rows - 1)
+            write = ok & (~corner[None, :] | x_planes[:, None])
+            base[:, r, col] = np.where(write, med, base[:, r, col])
 
 
 def _refine_baselines(stack: np.ndarray, finite: np.ndarray, base: np.ndarray, size: int,
@@ -174,7 +211,12 @@ def robust_sigma(dev: np.ndarray) -> float:
 @functools.lru_cache(maxsize=8)
 def edge_classes(shape: tuple[int, int]) -> np.ndarray:
     """Per lens its distance to the array's edge in lenses, clipped at 2 (0 = outer row/column, 1 = the
-    next, 2 = inner): edge lenses miss neighbours, so their indexes have their own bias and spread."""
+    next, 2 = inner): edge lenses miss neighbours, so their indexes have their own bias and spread.
+    The same on a hex lattice: one step to a neighbour changes the row or the column index by at most
+    one, and straight along a row or column reaches the edge, so the fewest steps from U(m,n) off the
+    array are min(m, rows + 1 - m, n, cols + 1 - n) there too (each shifted row's end lens, missing one
+    neighbour, is in the outer class with the unshifted rows' ends, which miss three; their baselines
+    are kept apart, see `_hex_edge_columns`)."""
     rows, cols = shape
     m, n = np.ogrid[:rows, :cols]
     return _frozen(np.minimum(np.minimum(m, n), np.minimum(rows - 1 - m, cols - 1 - n)).clip(max=2))
@@ -392,12 +434,13 @@ _AXES = [k.split("_")[1][0] if k in ("offset_x_px", "offset_y_px", "asym_x", "as
 
 
 def deviations(metrics: LensMetrics, phase: PhaseModel | None = None,
-               planes: list[np.ndarray] | None = None) -> tuple[dict[str, np.ndarray], dict[str, float]]:
+               planes: list[np.ndarray] | None = None,
+               packing: str = "square") -> tuple[dict[str, np.ndarray], dict[str, float]]:
     """Local deviations of the classification features (their sub-pixel phase pattern removed when the
     lenses' `phase` is given; or `planes`, already computed in _NAMES order) and their robust spreads
     over the inner lenses."""
     if planes is None:
-        planes = local_deviations([metrics[k] for k in _NAMES], _AXES)
+        planes = local_deviations([metrics[k] for k in _NAMES], _AXES, packing=packing)
         if phase is not None:
             planes = remove_phase_pattern(planes, phase)
     dev = dict(zip(_NAMES, planes))
@@ -416,7 +459,7 @@ class RingNoise:
 
 
 def ring_noise(metrics: LensMetrics, phase: PhaseModel | None = None, floor: np.ndarray | None = None,
-               planes: list[np.ndarray] | None = None) -> RingNoise:
+               planes: list[np.ndarray] | None = None, packing: str = "square") -> RingNoise:
     """Local deviations of the ring profile, whitened by their covariance over the array's inner lenses
     (those within 4 robust sigma on every ring: a defect must not widen the noise it is judged against).
 
@@ -428,7 +471,7 @@ def ring_noise(metrics: LensMetrics, phase: PhaseModel | None = None, floor: np.
     smallest noise the covariance may claim, so a noise-free frame cannot make the whitening explode;
     `planes`: the rings' deviations, already computed."""
     if planes is None:
-        planes = local_deviations([metrics[r] for r in RINGS], [""] * len(RINGS))
+        planes = local_deviations([metrics[r] for r in RINGS], [""] * len(RINGS), packing=packing)
         if phase is not None:
             planes = remove_phase_pattern(planes, phase)
     dev = np.stack(planes, axis=-1)
@@ -558,37 +601,62 @@ def detection_score(dev: dict[str, np.ndarray], noise: Noise, focus=None) -> np.
 
 
 def spill(score: np.ndarray, flagged: np.ndarray, ratio: float = 0.65, asym: tuple | None = None,
-          facing_ratio: float = 0.95, offset: tuple | None = None) -> np.ndarray:
+          facing_ratio: float = 0.95, offset: tuple | None = None, packing: str = "square") -> np.ndarray:
     """Flagged lenses that are the echo of a stronger flagged neighbour: a defect disturbs its neighbours'
     windows (its light spills over). An echo scores under `ratio` times the neighbour; or, when the
     lenses' intensity tilts `asym` (x, y) are given, under `facing_ratio` times it with its tilt along
     the line to that neighbour (light that crossed into or out of its window), as where sub-images touch;
-    or, with the lenses' `offset` (x, y), under `facing_ratio` times a neighbour that moved along that line."""
-    strongest = max_of_neighbours(np.where(flagged, score, 0.0))
+    or, with the lenses' `offset` (x, y), under `facing_ratio` times a neighbour that moved along that line.
+    The neighbours are the lattice's (`Lattice.neighbours`: square 8, hex 6), each along its own
+    direction from the lens."""
+    rows, cols = score.shape
+    lat = Lattice(packing, rows, cols)
+    nbr = lat.neighbours(diagonal=True)  # (K, k) flat indices, -1 off the array
+    flag_score = np.where(flagged, score, 0.0)
+    strongest = max_of_neighbours(flag_score) if packing == "square" else _max_over(flag_score, nbr)
     echo = flagged & (score < ratio * strongest)
     if asym is None and offset is None:
         return echo
     m, n = np.nonzero(flagged & ~echo & (strongest > 0))  # the few lenses that have a flagged neighbour
-    padded = np.pad(np.where(flagged, score, 0.0), 1)
-    moved = [np.pad(np.nan_to_num(o), 1) for o in offset] if offset is not None else None
-    for dm in (-1, 0, 1):
-        for dn in (-1, 0, 1):
-            if dm == 0 and dn == 0:
-                continue
-            other = padded[m + 1 + dm, n + 1 + dn]
-            # image convention: +x right, +y down; the neighbour at (dm, dn) lies along (dn, dm). Light
-            # that crossed in tilts the window towards it, light that left tilts it away: either way along
-            along = np.zeros(m.shape, bool)
-            if asym is not None:
-                along |= _aligned(asym[0][m, n], asym[1][m, n], dn, dm)
-            if moved is not None:
-                along |= _aligned(moved[0][m + 1 + dm, n + 1 + dn], moved[1][m + 1 + dm, n + 1 + dn], dn, dm)
-            hit = along & (score[m, n] < facing_ratio * other)
-            echo[m[hit], n[hit]] = True
+    if not m.size:
+        return echo
+    flat = m * cols + n
+    others = nbr[flat]  # (L, k)
+    # image convention: +x right, +y down, as the lattice's (u, v): the direction to each neighbour
+    du, dv = _neighbour_vectors(lat, m, others)
+    flat_score = np.concatenate([flag_score.ravel(), [0.0]])  # index -1: off the array, scores 0
+    moved = [np.concatenate([np.nan_to_num(o).ravel(), [0.0]]) for o in offset] if offset is not None else None
+    for j in range(others.shape[1]):
+        other = flat_score[others[:, j]]
+        # light that crossed in tilts the window towards the neighbour, light that left tilts it away:
+        # either way along the line to it
+        along = np.zeros(m.shape, bool)
+        if asym is not None:
+            along |= _aligned(asym[0][m, n], asym[1][m, n], du[:, j], dv[:, j])
+        if moved is not None:
+            along |= _aligned(moved[0][others[:, j]], moved[1][others[:, j]], du[:, j], dv[:, j])
+        hit = along & (score[m, n] < facing_ratio * other)
+        echo[m[hit], n[hit]] = True
     return echo
 
 
-def _aligned(vx: np.ndarray, vy: np.ndarray, dx: int, dy: int) -> np.ndarray:
+def _max_over(a: np.ndarray, nbr: np.ndarray) -> np.ndarray:
+    """Per lens the largest value of `a` over its neighbours `nbr` (flat indices, -1 off the array, which
+    counts 0, as `max_of_neighbours`' constant border)."""
+    flat = np.concatenate([a.ravel(), np.zeros(1, a.dtype)])
+    return flat[nbr].max(axis=1).reshape(a.shape)
+
+
+def _neighbour_vectors(lat: Lattice, r: np.ndarray, others: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(du, dv) (L, k) in pitches from lenses of rows `r` to their neighbours (by the lattice's steps for
+    the row's parity, also where the neighbour is off the array)."""
+    steps = lat.neighbour_steps(diagonal=True)[r % 2]  # (L, k, 2) (dr, dc)
+    u0, v0 = lat.uv(r[:, None], np.zeros_like(r)[:, None])
+    u1, v1 = lat.uv(r[:, None] + steps[..., 0], steps[..., 1])
+    return u1 - u0, v1 - v0
+
+
+def _aligned(vx: np.ndarray, vy: np.ndarray, dx, dy) -> np.ndarray:
     """Where the vectors (vx, vy) lie within 45° of the line along (dx, dy), either way."""
     vx, vy = np.nan_to_num(vx), np.nan_to_num(vy)
     return np.abs(vx * dx + vy * dy) > 0.7 * np.maximum(np.hypot(vx, vy), 1e-12) * np.hypot(dx, dy)
@@ -761,13 +829,15 @@ def _lowest_from_which_all(mags: np.ndarray, ok: np.ndarray) -> float | None:
     return float(f"{mags[first]:.4g}")
 
 
-def _all_deviations(metrics: LensMetrics, position, phase: PhaseModel | None, ring_floor: np.ndarray):
+def _all_deviations(metrics: LensMetrics, position, phase: PhaseModel | None, ring_floor: np.ndarray,
+                    packing: str = "square"):
     """Every index map's local deviation, phase pattern removed, in one pass (the maps share the work):
     (classification deviations, their spreads, ring noise, detection deviations — the classification
     ones with the offsets from the lower-noise `position` signal where it is given — and the local
     baselines' trend over the array, each map's baseline minus its median per edge class)."""
     values = [metrics[k] for k in _NAMES] + [metrics[r] for r in RINGS] + list(position or ())
-    planes = local_deviations(values, _AXES + [""] * len(RINGS) + (["x", "y"] if position is not None else []))
+    planes = local_deviations(values, _AXES + [""] * len(RINGS) + (["x", "y"] if position is not None else []),
+                              packing=packing)
     trend = class_centred([v - p for v, p in zip(values, planes)])
     if phase is not None:
         planes = remove_phase_pattern(planes, phase)
@@ -794,15 +864,13 @@ def class_centred(planes: list[np.ndarray]) -> list[np.ndarray]:
     return out
 
 
-def _split_reading(split: PositionSplit, dev: dict[str, np.ndarray], m: int, n: int, shift_px: float,
+def _split_reading(split: PositionSplit, contrast: np.ndarray, m: int, n: int, shift_px: float,
                    sigma: float, readings: tuple):
-    """A 'position' lens typed by its neighbours' tilt contrast (`type_position`): (kind, magnitude,
-    direction, alternatives), the chosen kind's reading from `readings` (pitch, decenter), or unchanged
-    'position' with both readings where this frame cannot tell."""
-    c = neighbour_contrast(dev["asym_x"][max(m - 1, 0):m + 2, max(n - 1, 0):n + 2],
-                           dev["asym_y"][max(m - 1, 0):m + 2, max(n - 1, 0):n + 2])
-    contrast = float(c[min(m, 1), min(n, 1)]) if c.shape == (3, 3) else float("nan")
-    kind, _ = type_position(split, contrast, shift_px, sigma)
+    """A 'position' lens typed by its neighbours' tilt contrast (`contrast`: `neighbour_contrast` of the
+    asymmetry deviations, `type_position`): (kind, magnitude, direction, alternatives), the chosen
+    kind's reading from `readings` (pitch, decenter), or unchanged 'position' with both readings where
+    this frame cannot tell."""
+    kind, _ = type_position(split, float(contrast[m, n]), shift_px, sigma)
     if kind == "position":
         return "position", readings[0][1], readings[0][3], readings
     chosen = readings[0] if kind == "pitch" else readings[1]
@@ -842,7 +910,8 @@ def _beyond_reportable(table: SignatureTable, kind: str, mag: float, power: floa
 
 
 def identify(metrics: LensMetrics, missing: np.ndarray, qc: QC, table: SignatureTable, position=None,
-             phase=None, outside: np.ndarray | None = None, split: PositionSplit | None = None) -> Identification:
+             phase=None, outside: np.ndarray | None = None, split: PositionSplit | None = None,
+             packing: str = "square") -> Identification:
     """Flag, classify and size the defective lenses of one frame, and say what it could detect.
 
     `position`: optional (dx, dy) per-lens position residuals measured on this frame (the calibration's
@@ -854,7 +923,8 @@ def identify(metrics: LensMetrics, missing: np.ndarray, qc: QC, table: Signature
     own noise, floored) and its best reading is at least the minimum reportable error of its kind;
     classification always uses the registration features the table was built with. `split`: the optics'
     pitch/decenter split (mlaqc.models.position_split; None with grid boundaries), which types a
-    'position' lens as pitch or decenter where this frame's noise allows."""
+    'position' lens as pitch or decenter where this frame's noise allows. `packing`: the lattice the
+    (rows, cols) maps index (mlaqc.optics.lattice), which says who a lens' neighbours are."""
     det_floor, ring_floor = noise_floors(table, qc)
     phase = phase_model(phase) if phase is not None else None
     outside = np.zeros(missing.shape, bool) if outside is None else outside
@@ -862,14 +932,14 @@ def identify(metrics: LensMetrics, missing: np.ndarray, qc: QC, table: Signature
         metrics = LensMetrics({k: np.where(outside, np.nan, v) for k, v in metrics.values.items()})
         position = None if position is None else tuple(np.where(outside, np.nan, p) for p in position)
         missing = missing & ~outside
-    dev, sig, rings, detect_dev, trend = _all_deviations(metrics, position, phase, ring_floor)
+    dev, sig, rings, detect_dev, trend = _all_deviations(metrics, position, phase, ring_floor, packing)
     noise = detection_noise(detect_dev, rings, det_floor)
     score = detection_score(detect_dev, noise, focus_score(rings, table))
     threshold = np.full(score.shape, qc.detect_sigma)
     threshold[[0, 0, -1, -1], [0, -1, 0, -1]] *= 1.5  # corner windows hold dark margin on two sides: noisier
     flagged = ((score > threshold) & ~outside) | missing
     flagged &= ~spill(score, flagged, asym=(dev["asym_x"], dev["asym_y"]),
-                      offset=(detect_dev["offset_x_px"], detect_dev["offset_y_px"])) | missing
+                      offset=(detect_dev["offset_x_px"], detect_dev["offset_y_px"]), packing=packing) | missing
     sigmas = _feature_sigmas(sig)
     error_type = np.full(flagged.shape, "", dtype=object)
     defects = []
@@ -879,7 +949,8 @@ def identify(metrics: LensMetrics, missing: np.ndarray, qc: QC, table: Signature
     fits = dict(zip(lenses, fit_all(table, vecs, sigmas, rings.whiten)))
     shifts = dict(zip(lenses, features))
     mins = min_reportable(qc)
-    split_sigma = contrast_sigma(dev["asym_x"], dev["asym_y"]) if split is not None else float("nan")
+    split_sigma = contrast_sigma(dev["asym_x"], dev["asym_y"], packing) if split is not None else float("nan")
+    contrast = neighbour_contrast(dev["asym_x"], dev["asym_y"], packing) if split is not None else None
     below = 0
     for m, n in zip(*np.nonzero(flagged)):
         indexes = metrics.at(m + 1, n + 1)
@@ -890,7 +961,7 @@ def identify(metrics: LensMetrics, missing: np.ndarray, qc: QC, table: Signature
         vec, shift_dir = shifts[(m, n)]
         kind, mag, unit, direction, alts = classify(table, vec, shift_dir, sigmas, fits[(m, n)], rings.whiten)
         if kind == "position" and split is not None:
-            kind, mag, direction, alts = _split_reading(split, dev, m, n, vec[0], split_sigma, alts)
+            kind, mag, direction, alts = _split_reading(split, contrast, m, n, vec[0], split_sigma, alts)
         uv = _unit_noise(vec, sigmas, rings.whiten)
         dof = len(uv) - 1  # what noise alone leaves in the best fit's chi-square, on average
         misfit = min(c for _, c in fits[(m, n)].values()) - dof

@@ -8,7 +8,7 @@ the rays that leave the lens through that strip change, which lights one half of
 intensity tilt. Both move the lens' own sub-image alike (decenter by about half as much per µm), so the
 neighbours' tilts, taken against the lens' own shift, separate them:
 
-    contrast C = the four neighbours' tilts towards the lens (`neighbour_contrast`)
+    contrast C = the edge neighbours' tilts towards the lens (`neighbour_contrast`: 4 square, 6 hex)
 
 is small for a pitch error and about four times larger for a decenter of the same shift. With `grid` boundaries no boundary
 moves and no neighbour changes at all: a white image cannot separate them (bench/type_separation.py:
@@ -29,6 +29,7 @@ from mlaqc.models.reference import build_reference
 from mlaqc.models.store import stored_json
 from mlaqc.optics.config import CameraConfig
 from mlaqc.optics.errormap import ErrorMap
+from mlaqc.optics.lattice import Lattice
 
 FORMAT_VERSION = 1
 SPLIT_KINDS = {"pitch": 2.0, "decenter": 4.0}  # rendered magnitudes, µm: the same sub-image shift for both
@@ -56,14 +57,28 @@ class PositionSplit:
                    {k: float(v) for k, v in d["shift_px_per_um"].items()}, str(d["key"]))
 
 
-def neighbour_contrast(asym_x: np.ndarray, asym_y: np.ndarray) -> np.ndarray:
-    """C of every lens: its left and upper neighbours' tilts towards it minus its right and lower ones'
-    (image axes, y down); NaN where a neighbour is off the array. Measured on the tracer, a decenter makes
-    both neighbours along its axis brighter on the side facing the lens whichever way it points, so C
-    does not depend on the direction (a pitch error leaves the neighbours untilted)."""
+def neighbour_contrast(asym_x: np.ndarray, asym_y: np.ndarray, packing: str = "square") -> np.ndarray:
+    """C of every lens: the sum over its edge neighbours (square: left, right, upper, lower; hex: its 6)
+    of each neighbour's tilt projected on the unit vector from that neighbour to the lens (image axes,
+    y down); NaN where a neighbour is off the array. On a square lattice: the left and upper
+    neighbours' tilts towards it minus the right and lower ones'. Measured on the tracer, a decenter
+    makes both neighbours along its axis brighter on the side facing the lens whichever way it points,
+    so C does not depend on the direction (a pitch error leaves the neighbours untilted)."""
     c = np.full(asym_x.shape, np.nan)
-    c[1:-1, 1:-1] = (asym_x[1:-1, :-2] - asym_x[1:-1, 2:]) + (asym_y[:-2, 1:-1] - asym_y[2:, 1:-1])
-    return c
+    if packing == "square":
+        c[1:-1, 1:-1] = (asym_x[1:-1, :-2] - asym_x[1:-1, 2:]) + (asym_y[:-2, 1:-1] - asym_y[2:, 1:-1])
+        return c
+    rows, cols = asym_x.shape
+    lat = Lattice(packing, rows, cols)
+    nbr = lat.neighbours(diagonal=False)  # (K, 6)
+    r = np.arange(rows * cols) // cols
+    steps = lat.neighbour_steps(diagonal=False)[r % 2]  # (K, 6, 2) (dr, dc)
+    u_n, v_n = lat.uv(r[:, None] + steps[..., 0], steps[..., 1])
+    u_0, v_0 = lat.uv(r[:, None], np.zeros((rows * cols, 1)))
+    ux, uy = u_0 - u_n, v_0 - v_n  # neighbour -> lens, one pitch long
+    ax, ay = asym_x.ravel()[nbr], asym_y.ravel()[nbr]
+    total = (ax * ux + ay * uy).sum(axis=1)
+    return np.where((nbr >= 0).all(axis=1), total, np.nan).reshape(rows, cols)
 
 
 def _patch_metrics(cfg: CameraConfig, fields: dict[str, float], rays_per_pixel: float, seed: int, model):
@@ -122,10 +137,10 @@ def position_split(cfg: CameraConfig) -> PositionSplit | None:
 SPLIT_Z = 4.0  # the two kinds' predictions must lie this many sigma apart before a lens is typed (2 sigma each side: 2.3 % wrong)
 
 
-def contrast_sigma(asym_x_dev: np.ndarray, asym_y_dev: np.ndarray) -> float:
+def contrast_sigma(asym_x_dev: np.ndarray, asym_y_dev: np.ndarray, packing: str = "square") -> float:
     """The frame's spread of C (robust, over every lens) from the asymmetry deviations; a
     tiny floor keeps a noise-free frame's z finite."""
-    c = neighbour_contrast(asym_x_dev, asym_y_dev)
+    c = neighbour_contrast(asym_x_dev, asym_y_dev, packing)
     c = c[np.isfinite(c)]
     if c.size == 0:
         return float("inf")
