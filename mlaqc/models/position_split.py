@@ -15,7 +15,7 @@ moves and no neighbour changes at all: a white image cannot separate them (bench
 1.5 sigma at best), and `position_split` returns None, so the lens stays 'position'.
 
 `PositionSplit` holds C per pixel of the lens' own sub-image shift for each kind, measured on the
-tracer's 9 x 9-lens patch (mlaqc.models.signatures) with the sensor formation applied; cached on disk by
+tracer's 9 x 9-lens patch (hex: 9 x 11, `signatures.patch_shape`) (mlaqc.models.signatures) with the sensor formation applied; cached on disk by
 the optics' signature key.
 """
 
@@ -34,6 +34,7 @@ from mlaqc.optics.lattice import Lattice
 FORMAT_VERSION = 1
 SPLIT_KINDS = {"pitch": 2.0, "decenter": 4.0}  # rendered magnitudes, µm: the same sub-image shift for both
 SPLIT_DIRECTIONS_DEG = (0.0, 45.0)  # along an axis and diagonal: C varies by about 15 % between them
+HEX_SPLIT_DIRECTIONS_DEG = (0.0, 30.0)  # hex: towards a neighbour and between two
 
 
 @dataclass(frozen=True)
@@ -83,13 +84,14 @@ def neighbour_contrast(asym_x: np.ndarray, asym_y: np.ndarray, packing: str = "s
 
 def _patch_metrics(cfg: CameraConfig, fields: dict[str, float], rays_per_pixel: float, seed: int, model):
     from mlaqc.inspection.metrics import compute_metrics
-    from mlaqc.models.signatures import PATCH, _blurred, nominal_windows, patch_config, um_per_px_at_mla
+    from mlaqc.models.signatures import _blurred, nominal_windows, patch_centre, patch_config, um_per_px_at_mla
     from mlaqc.optics.render import Renderer
     from mlaqc.optics.scene import WhiteScene
 
     patch = patch_config(cfg)
-    c = PATCH // 2
-    errors = ErrorMap.zeros(PATCH, PATCH).with_lens(c + 1, c + 1, **fields) if fields else ErrorMap.zeros(PATCH, PATCH)
+    r, c = patch_centre(patch)
+    errors = ErrorMap.zeros(patch.mla.count_h, patch.mla.count_w, patch.mla.packing)
+    errors = errors.with_lens(r + 1, c + 1, **fields) if fields else errors
     img = _blurred(Renderer(patch, errors).render(WhiteScene(), rays_per_pixel=rays_per_pixel, seed=seed).photons, patch, 0.0)
     win, cx, cy = nominal_windows(img / img.max(), patch)
     return compute_metrics(win, cx, cy, model, um_per_px_at_mla=um_per_px_at_mla(patch))
@@ -98,18 +100,18 @@ def _patch_metrics(cfg: CameraConfig, fields: dict[str, float], rays_per_pixel: 
 def build_position_split(cfg: CameraConfig, *, rays_per_pixel: float = 1500.0, seed: int = 5) -> PositionSplit:
     """Render the patch healthy, with a pitch error and with a decenter along +x (common random numbers)
     and read each kind's contrast and own shift."""
-    from mlaqc.models.signatures import PATCH, patch_config, signature_key
+    from mlaqc.models.signatures import patch_centre, patch_config, signature_key
 
     model = build_reference(patch_config(cfg), rays_per_lens=2_000_000)  # as the signature tables are
-    c = PATCH // 2
+    r, c = patch_centre(patch_config(cfg))
     base = _patch_metrics(cfg, {}, rays_per_pixel, seed, model)
     contrast, shift = {}, {}
     for kind, mag in SPLIT_KINDS.items():
         ks, kc = [], []
-        for direction in SPLIT_DIRECTIONS_DEG:
+        for direction in (HEX_SPLIT_DIRECTIONS_DEG if cfg.mla.packing == "hex" else SPLIT_DIRECTIONS_DEG):
             m = _patch_metrics(cfg, {f"{kind}_um": mag, f"{kind}_dir_deg": direction}, rays_per_pixel, seed, model)
-            ds = float(np.hypot(m["offset_x_px"][c, c] - base["offset_x_px"][c, c], m["offset_y_px"][c, c] - base["offset_y_px"][c, c]))
-            dc = float(neighbour_contrast(m["asym_x"] - base["asym_x"], m["asym_y"] - base["asym_y"])[c, c])
+            ds = float(np.hypot(m["offset_x_px"][r, c] - base["offset_x_px"][r, c], m["offset_y_px"][r, c] - base["offset_y_px"][r, c]))
+            dc = float(neighbour_contrast(m["asym_x"] - base["asym_x"], m["asym_y"] - base["asym_y"], cfg.mla.packing)[r, c])
             ks.append(ds / mag)
             kc.append(dc / ds if ds else 0.0)
         shift[kind], contrast[kind] = float(np.mean(ks)), float(np.mean(kc))
