@@ -255,7 +255,8 @@ def scan_frame_hook(frame) -> dict:
     the camera's own when it reports one (the mock does), else the one the through-focus step used, else
     the default. Dark frames in the scan folder (`darks.scan_dark_frames`) are subtracted (their master
     built once). Returns a summary the scan writes beside the raw as `<raw>.inspect.json`; with pinhole
-    frames it has `through_focus`: their names and the pairs' summary (as report.json's)."""
+    frames it has `through_focus`: their names and the pairs' summary (as report.json's); `lattice`: the
+    lattice U(m,n) indexes, with its convention."""
     from mlaqc.optics.config import config_from_dict, default_config
 
     header = frame.header
@@ -275,6 +276,7 @@ def scan_frame_hook(frame) -> dict:
                        for d in result.defects],
            "grid": {"pitch_px": list(result.grid.pitch_px), "rotation_deg": result.grid.rotation_deg,
                     "rms_residual_px": result.grid.rms_residual_px},
+           "lattice": result.lattice_facts(),
            "assembly": _plain(result.assembly.to_json_dict()) if result.assembly is not None else None,
            "timings_s": result.timings_s}
     tf = getattr(result, "through_focus", None)

@@ -9,6 +9,8 @@ from typing import Any
 
 import numpy as np
 
+from mlaqc.optics.lattice import Lattice
+
 # Every per-lens index: name -> (unit, one-line meaning). Column order of lenses.csv follows this.
 METRICS: dict[str, tuple[str, str]] = {
     "flux": ("rel", "sub-image flux relative to an ideal lens at that place (exposure-normalized)"),
@@ -163,6 +165,16 @@ class InspectionResult:
     @property
     def failed(self) -> bool:
         return self.verdict == "FAIL"
+
+    @property
+    def lattice(self) -> Lattice:
+        """The lattice the per-lens arrays index (the grid's packing; square for grids made before hex)."""
+        return Lattice(getattr(self.grid, "packing", "square") or "square", *self.flagged.shape)
+
+    def lattice_facts(self) -> dict[str, Any]:
+        """What report.json states about the lattice: `Lattice.to_json_dict()` (packing, rows, cols, row
+        step, convention), for its "lattice" entry under "conventions"."""
+        return self.lattice.to_json_dict()
 
 
 def detection_limit_text(limit: dict[str, Any]) -> str:
