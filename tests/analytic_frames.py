@@ -1,7 +1,9 @@
 """White plenoptic frames from an analytic model that shares no code with mlaqc's tracer.
 
 Each sub-image is a disc (the main lens' pupil imaged by one microlens) whose rim is blurred by a
-Gaussian or an Airy edge-spread function, on a rotated grid with any sub-pixel phase, integrated exactly
+Gaussian or an Airy edge-spread function, on a rotated square or hexagonal grid (hex: rows pitch·√3/2
+apart, every second row shifted half a pitch right; a radius under half the pitch leaves gaps) with any
+sub-pixel phase, integrated exactly
 over each pixel (4 x 4 Gauss-Legendre points: the disc is smooth at that scale), times cos⁴ vignetting
 (and an optional extra radial fall-off), a fixed PRNU pattern and nearest-neighbour crosstalk. Seeded
 anomalies of known size: shift, skew (intensity tilt), blur, size, dim, missing. Noise from none to
@@ -71,16 +73,26 @@ class AnalyticModel:
     crosstalk: float = 0.02  # to each 4-neighbour
     sensor_seed: int = 3
     anomalies: tuple[Anomaly, ...] = ()
+    packing: str = "square"  # or "hex": rows pitch·√3/2 apart, rows 1, 3, ... (0-based; U(2,n), U(4,n), ...) +pitch/2 in x
 
     def with_anomalies(self, anomalies) -> AnalyticModel:
         return dataclasses.replace(self, anomalies=tuple(anomalies))
 
     def lattice(self) -> tuple[np.ndarray, np.ndarray]:
-        """Undisturbed lens centres (x, y), each (rows, cols)."""
+        """Undisturbed lens centres (x, y), each (rows, cols); the middle of their bounding box (before the
+        rotation) sits at the frame centre + phase_px."""
         rows, cols = self.lenses
-        m, n = np.meshgrid(np.arange(rows) - (rows - 1) / 2, np.arange(cols) - (cols - 1) / 2, indexing="ij")
         a = math.radians(self.rotation_deg)  # counterclockwise on the image (towards the top)
-        u, v = n * self.pitch_px, m * self.pitch_px
+        if self.packing == "hex":
+            m, n = np.meshgrid(np.arange(rows), np.arange(cols), indexing="ij")
+            shifted = 0.5 if rows > 1 else 0.0
+            u = (n + 0.5 * (m % 2) - (cols - 1 + shifted) / 2) * self.pitch_px
+            v = (m - (rows - 1) / 2) * (math.sqrt(3.0) / 2) * self.pitch_px
+        elif self.packing == "square":
+            m, n = np.meshgrid(np.arange(rows) - (rows - 1) / 2, np.arange(cols) - (cols - 1) / 2, indexing="ij")
+            u, v = n * self.pitch_px, m * self.pitch_px
+        else:
+            raise ValueError(f"unknown packing {self.packing!r}")
         x = (self.shape[1] - 1) / 2 + self.phase_px[0] + u * math.cos(a) + v * math.sin(a)
         y = (self.shape[0] - 1) / 2 + self.phase_px[1] - u * math.sin(a) + v * math.cos(a)
         return x, y

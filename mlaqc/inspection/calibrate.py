@@ -59,6 +59,7 @@ from mlaqc.atomic import write_json_atomic
 from mlaqc.errors import InputError
 from mlaqc.inspection.fft import rfft2
 from mlaqc.inspection import calibrate_kernels as kernels
+from mlaqc.optics.lattice import CONVENTIONS, PACKINGS, SQRT3_2, Lattice, packing_of
 from mlaqc.parallel import thread_map
 
 FORMAT = "mlaqc-grid"
@@ -147,8 +148,11 @@ class Grid:
 
     def predict(self, m, n) -> tuple[np.ndarray, np.ndarray]:
         """Model centre (x, y) in pixels of lens U(m,n) (1-based; arrays broadcast; may extrapolate)."""
-        u = np.asarray(n, dtype=np.float64) - 1.0
-        v = np.asarray(m, dtype=np.float64) - 1.0
+        if self.packing == "square":
+            u = np.asarray(n, dtype=np.float64) - 1.0
+            v = np.asarray(m, dtype=np.float64) - 1.0
+        else:
+            u, v = Lattice(self.packing, self.rows, self.cols).uv(np.asarray(m) - 1, np.asarray(n) - 1)
         return _model_xy(self.homography, self.radial_k, self.radial_centre_px, self.radial_scale_px, u, v)
 
     # ------------------------------------------------------------------ JSON
@@ -169,7 +173,9 @@ class Grid:
             "format": FORMAT,
             "version": VERSION,
             "conventions": "pixel (0,0) = centre of the top-left pixel, x right, y down; U(m,n): row m from "
-                           "the top, column n from the left, 1-based; rotation counterclockwise as displayed",
+                           "the top, column n from the left, 1-based; rotation counterclockwise as displayed"
+                           + ("" if self.packing == "square" else f"; {CONVENTIONS[self.packing]}"),
+            "packing": self.packing,
             "image": {"height_px": self.image_shape[0], "width_px": self.image_shape[1]},
             "shape": {"rows": self.rows, "cols": self.cols},
             "pitch_px": {"x": self.pitch_px[0], "y": self.pitch_px[1]},
@@ -178,7 +184,7 @@ class Grid:
             "origin_px": {"x": self.origin_px[0], "y": self.origin_px[1]},
             "model": {
                 "type": "projective+radial",
-                "lattice": "u = n - 1, v = m - 1; [x', y', w] = homography @ [u, v, 1]; x' /= w, y' /= w",
+                "lattice": _MODEL_LATTICE[self.packing],
                 "homography": [[float(v) for v in row] for row in self.homography],
                 "radial": "p = c + (p' - c) * (1 + k * |p' - c|^2 / scale^2)",
                 "radial_k": self.radial_k,
@@ -219,6 +225,7 @@ class Grid:
             }
         except (KeyError, TypeError, ValueError) as exc:
             raise InputError(f"{source}: grid header is incomplete or malformed ({_describe(exc)})") from None
+        packing = packing_of(data, source)
         if not np.all(np.isfinite(hom)) or head["radial_scale_px"] <= 0:
             raise InputError(f"{source}: grid model terms must be finite numbers with a positive radial scale")
         lenses = data.get("lenses")
@@ -262,11 +269,19 @@ class Grid:
         if lost.any():
             m, n = (int(v) + 1 for v in np.argwhere(lost)[0])
             raise InputError(f"{source}: lens U({m},{n}) is not marked missing but has no measured centre")
-        return cls(rows=rows, cols=cols, homography=hom, image_shape=(height, width), **head, **arrays, **flags)
+        return cls(rows=rows, cols=cols, homography=hom, image_shape=(height, width), **head, **arrays, **flags,
+                   packing=packing)
 
     def save(self, path: str | Path) -> None:
         """Write grid.json atomically (a reader never sees half a file)."""
         write_json_atomic(path, self.to_json_dict())
+
+
+_MODEL_LATTICE = {  # the design coordinates (u, v) of U(m,n) the model maps (mlaqc.optics.lattice.Lattice.uv)
+    "square": "u = n - 1, v = m - 1; [x', y', w] = homography @ [u, v, 1]; x' /= w, y' /= w",
+    "hex": "u = n - 1 + 0.5 [m even], v = (m - 1) sqrt(3)/2 (pitches); [x', y', w] = homography @ [u, v, 1]; "
+           "x' /= w, y' /= w",
+}
 
 
 _LENS_FLOATS = ("measured_x_px", "measured_y_px", "grid_x_px", "grid_y_px", "residual_px", "flux", "radius_px")
@@ -429,8 +444,13 @@ def _check_levels(img: np.ndarray) -> None:
 
 @dataclass(frozen=True)
 class _Lattice:
-    basis: np.ndarray  # (2, 2): columns a1 (along n, ~x) and a2 (along m, ~y), px
+    """The image's sub-image lattice: point (j, i) (lattice coordinates) lies at origin + basis @ (j, i).
+    Square: a1 along n (~x), a2 along m (~y). Hex: a1 along the rows (~x), a2 at 60 degrees from it
+    (down and to the right as displayed), both one pitch long ("axial" coordinates)."""
+
+    basis: np.ndarray  # (2, 2): columns a1 and a2, px
     origin: np.ndarray  # (2,) a lattice point (sub-image centre) near the frame centre, px
+    packing: str = "square"
 
 
 def _hann(n: int) -> np.ndarray:
@@ -472,8 +492,8 @@ def _refine_peak(a: np.ndarray, k: np.ndarray) -> tuple[np.ndarray, complex]:
     return k, complex(_dtft(a, k[:1], k[1:])[0, 0])
 
 
-def _fft_lattice(img: np.ndarray, expected_pitch_px: float | None) -> _Lattice:
-    """Pitch, rotation and offset of the sub-image lattice from the image's Fourier transform."""
+def _fft_lattice(img: np.ndarray, expected_pitch_px: float | None, packing: str = "square") -> _Lattice:
+    """Pitch, rotation and offset of the sub-image lattice of `packing` from the image's Fourier transform."""
     full_h, full_w = img.shape
     # large frames of coarse lattices: b x b binning keeps the fundamental periods (>= 5 binned px) and the
     # frame centre, and costs 1 / b^2 of the transform and of the peak refinement
@@ -521,10 +541,13 @@ def _fft_lattice(img: np.ndarray, expected_pitch_px: float | None) -> _Lattice:
     kmag = np.hypot(kvec[:, 0], kvec[:, 1])
     order = np.argsort(kmag)
     kvec, kmag, pv = kvec[order], kmag[order], pv[order]
+    if packing == "hex":
+        return _hex_lattice(img, a, kvec, kmag, pv, b, expected_pitch_px)
     first = kvec[0]
     if expected_pitch_px is not None:
         near = np.abs(kmag * expected_pitch_px - 1.0) <= PITCH_TOLERANCE
         if not near.any():
+            _refuse_mismatch(kvec, pv, "square")
             unit = float(b)
             raise InputError(f"the microlens pitch in the image ({unit / kmag[0]:.2f} px) is far from the expected "
                              f"{unit * expected_pitch_px:.2f} px; check the camera config and the image")
@@ -534,6 +557,7 @@ def _fft_lattice(img: np.ndarray, expected_pitch_px: float | None) -> _Lattice:
     ratio = np.hypot(kvec[:, 0], kvec[:, 1]) / np.hypot(*first)
     partner = (cosang < math.sin(math.radians(10))) & (np.abs(ratio - 1) < 0.1)
     if not partner.any():
+        _refuse_mismatch(kvec, pv, "square")
         raise InputError("the white image shows no square microlens lattice (only one periodic direction found)")
     second = kvec[np.argmax(np.where(partner, pv, -1))]
     k1, f1 = _refine_peak(a, first)
@@ -558,6 +582,7 @@ def _fft_lattice(img: np.ndarray, expected_pitch_px: float | None) -> _Lattice:
     if pitch.min() < MIN_PITCH_PX:
         raise InputError(f"the periodic structure in the image ({pitch.min():.2f} px) is too fine for microlenses")
     if expected_pitch_px is not None and np.any(np.abs(pitch / expected_pitch_px - 1) > PITCH_TOLERANCE):
+        _refuse_mismatch(kvec, pv, "square")
         raise InputError(f"the microlens pitch in the image ({pitch[0]:.2f} x {pitch[1]:.2f} px) is far from the expected "
                          f"{expected_pitch_px:.2f} px; check the camera config and the image")
     centre = np.array([0.5 * (w - 1), 0.5 * (h - 1)])
@@ -566,7 +591,94 @@ def _fft_lattice(img: np.ndarray, expected_pitch_px: float | None) -> _Lattice:
     return _Lattice(basis, origin)
 
 
-def _resolve_half_period(img: np.ndarray, basis: np.ndarray, base: np.ndarray) -> np.ndarray:
+PACKING_WORDS = {"square": "square", "hex": "hexagonal"}
+
+
+def _spectrum_packing(kvec: np.ndarray, pv: np.ndarray) -> str | None:
+    """The packing the spectrum's peaks show, or None if unclear: a hexagonal lattice's shells of equal
+    peaks lie 60 degrees apart, a square one's 90 degrees. Looked at round the lowest and the strongest
+    peak (peaks of one shell have lengths within 3 %; directions are lines, k and -k alike)."""
+    if kvec.shape[0] < 2:
+        return None
+    mag = np.hypot(kvec[:, 0], kvec[:, 1])
+    votes = set()
+    for ref in {0, int(np.argmax(pv))}:
+        same = np.abs(mag / mag[ref] - 1.0) < 0.03
+        same[ref] = False
+        cos = np.abs(kvec[same] @ kvec[ref]) / (mag[same] * mag[ref])
+        if np.any(cos < math.sin(math.radians(5.0))):
+            votes.add("square")
+        if np.any(np.abs(cos - 0.5) < 0.075):  # 60 or 120 degrees, within ~5
+            votes.add("hex")
+    return votes.pop() if len(votes) == 1 else None
+
+
+def _refuse_mismatch(kvec: np.ndarray, pv: np.ndarray, packing: str) -> None:
+    """InputError if the spectrum plainly shows the other packing than the config's."""
+    seen = _spectrum_packing(kvec, pv)
+    if seen is not None and seen != packing:
+        raise InputError(f"the white image shows a {PACKING_WORDS[seen]} microlens lattice but the config says "
+                         f"mla.packing = {packing!r}")
+
+
+def _hex_lattice(img: np.ndarray, a: np.ndarray, kvec: np.ndarray, kmag: np.ndarray, pv: np.ndarray, b: int,
+                 expected_pitch_px: float | None) -> _Lattice:
+    """The hexagonal lattice from the (binned by b, windowed) frame `a`'s spectral peaks (sorted by |k|):
+    two of the six fundamental peaks (|k| = 2 / (sqrt(3) p), 60 degrees apart) give the lattice and its
+    offset; the basis is then a1 along the rows (the lattice vector nearest +x), a2 at +60 degrees."""
+    full_h, full_w = img.shape
+    _refuse_mismatch(kvec, pv, "hex")
+    first = kvec[0]
+    if expected_pitch_px is not None:  # binned px here
+        near = np.abs(kmag * expected_pitch_px * SQRT3_2 - 1.0) <= PITCH_TOLERANCE
+        if not near.any():
+            raise InputError(f"the microlens pitch in the image ({b / (kmag[0] * SQRT3_2):.2f} px) is far from the "
+                             f"expected {b * expected_pitch_px:.2f} px; check the camera config and the image")
+        first = kvec[np.argmax(near)]
+    mag = np.hypot(kvec[:, 0], kvec[:, 1])
+    cosang = np.abs(kvec @ first) / (mag * np.hypot(*first))
+    partner = (np.abs(cosang - 0.5) < 0.15) & (np.abs(mag / np.hypot(*first) - 1) < 0.1)
+    if not partner.any():
+        raise InputError("the white image shows no hexagonal microlens lattice (only one periodic direction found)")
+    second = kvec[np.argmax(np.where(partner, pv, -1))]
+    k1, f1 = _refine_peak(a, first)
+    k2, f2 = _refine_peak(a, second)
+    prime = np.linalg.inv(np.array([k1, k2])) * b  # columns: a lattice basis (k_i . a_j = delta_ij), frame px
+    phase = -np.angle([f1, f2]) / (2.0 * np.pi)
+    h, w = (full_h // b * b, full_w // b * b) if b > 1 else (full_h, full_w)
+    centre = np.array([0.5 * (w - 1), 0.5 * (h - 1)])
+    base = centre + prime @ phase
+    basis = _hex_basis(prime)
+    pitch = np.hypot(basis[0], basis[1])
+    if pitch.min() < MIN_PITCH_PX:
+        raise InputError(f"the periodic structure in the image ({pitch.min():.2f} px) is too fine for microlenses")
+    if expected_pitch_px is not None and np.any(np.abs(pitch / (b * expected_pitch_px) - 1) > PITCH_TOLERANCE):
+        raise InputError(f"the microlens pitch in the image ({pitch[0]:.2f} x {pitch[1]:.2f} px) is far from the expected "
+                         f"{b * expected_pitch_px:.2f} px; check the camera config and the image")
+    origin = _resolve_half_period(img, basis, base, "hex")
+    return _Lattice(basis, origin, "hex")
+
+
+def _hex_basis(prime: np.ndarray) -> np.ndarray:
+    """The canonical basis of the hexagonal lattice spanned by `prime`'s columns: a1 the shortest lattice
+    vector nearest +x, a2 the one nearest a1 turned 60 degrees towards +y (down as displayed)."""
+    p1, p2 = prime[:, 0], prime[:, 1]
+    vecs = np.array([p1, p2, p1 + p2, p1 - p2, -p1, -p2, -p1 - p2, p2 - p1])
+    length = np.hypot(vecs[:, 0], vecs[:, 1])
+    short = vecs[np.argsort(length, kind="stable")[:6]]
+    a1 = short[np.argmax(short[:, 0] / np.hypot(short[:, 0], short[:, 1]))]
+    c, s = 0.5, SQRT3_2
+    turned = np.array([c * a1[0] - s * a1[1], s * a1[0] + c * a1[1]])
+    a2 = short[np.argmax(short @ turned)]
+    return np.stack([a1, a2], axis=1)
+
+
+# cell corners in lattice coordinates: the square's 4, the hexagon's 6 (centroids of the lattice triangles)
+_CORNERS = {"square": [(cx, cy) for cx in (-0.5, 0.5) for cy in (-0.5, 0.5)],
+            "hex": [(1 / 3, 1 / 3), (-1 / 3, 2 / 3), (-2 / 3, 1 / 3), (-1 / 3, -1 / 3), (1 / 3, -2 / 3), (2 / 3, -1 / 3)]}
+
+
+def _resolve_half_period(img: np.ndarray, basis: np.ndarray, base: np.ndarray, packing: str = "square") -> np.ndarray:
     """The Fourier phase fixes the lattice up to half a period per axis (the sign of the sub-image's
     transform); pick the shift whose points are bright with dark cell corners around them."""
     h, w = img.shape
@@ -576,7 +688,7 @@ def _resolve_half_period(img: np.ndarray, basis: np.ndarray, base: np.ndarray) -
         for sy in (0.0, 0.5):
             o = base + basis @ np.array([sx, sy])
             pts = o[:, None] + basis @ np.stack([jj.ravel(), ii.ravel()])
-            corners = [pts + basis @ np.array([cx, cy])[:, None] for cx in (-0.5, 0.5) for cy in (-0.5, 0.5)]
+            corners = [pts + basis @ np.array([cx, cy])[:, None] for cx, cy in _CORNERS[packing]]
             inside = lambda p: (p[0] > 1) & (p[0] < w - 2) & (p[1] > 1) & (p[1] < h - 2)  # noqa: E731
             ok = inside(pts) & np.all([inside(c) for c in corners], axis=0)
             if not ok.any():
@@ -657,6 +769,7 @@ class _DiscFit:
         if np.any(np.diff(self.colour) < 0):
             raise ValueError("lenses must be sorted by colour")
         self.n_red = int(np.count_nonzero(self.colour == 0))
+        self.n_colours = max(2, int(self.colour.max()) + 1) if self.n else 2
         self.coupled = np.zeros(self.n, bool)  # lenses next to (or being) a lens far off the lattice
         self.wide = None  # lenses fitted with a wide edge (capture of far-off lenses)
         self.wide_edge = 1.0
@@ -741,12 +854,12 @@ class _DiscFit:
         return normal, rhs
 
     def sweep(self, edge: float | None, active: np.ndarray, weighted: bool, lenses: np.ndarray | None = None) -> None:
-        """One Gauss-Newton step for every lens (or `lenses`), red-black: lenses of one lattice colour step
-        together, then the other colour steps against their new positions (side neighbours, whose discs
-        overlap, never step at the same time, so strongly overlapping pairs cannot run away)."""
+        """One Gauss-Newton step for every lens (or `lenses`), by colour (square red-black, hex three): lenses
+        of one lattice colour step together, then the next colour steps against their new positions (side
+        neighbours, whose discs overlap, never step at the same time, so overlapping pairs cannot run away)."""
         # each lens once: `iterate` updates its lenses by fancy index, which must not repeat a lens
         idx = np.arange(self.n) if lenses is None else np.unique(np.asarray(lenses))
-        for colour in (0, 1):
+        for colour in range(self.n_colours):
             part = idx[self.colour[idx] == colour]
             if part.size:
                 self.iterate(edge, active, weighted, part)
@@ -800,14 +913,18 @@ class _DiscFit:
 
 
 def calibrate(img: np.ndarray, *, expected_pitch_px: float | None = None,
-              expected_shape: tuple[int, int] | None = None) -> Grid:
+              expected_shape: tuple[int, int] | None = None, packing: str = "square") -> Grid:
     """Find, measure and index every microlens of a white image; fit the global grid.
 
     `img`: float, black-subtracted, normalized (1 = full scale) white image. `expected_pitch_px`: the
     config's sub-image pitch (the found pitch must lie within 10 %). `expected_shape`: (N_H, N_W) of the
     MLA; the grid then has exactly that many rows and columns, U(1,1) being the array's top-left lens even
-    if border lenses are dim or cut by the frame. Raises InputError for an image that cannot be calibrated.
+    if border lenses are dim or cut by the frame. `packing`: the MLA's ("square" or "hex", the config's
+    mla.packing; mlaqc.optics.lattice's U(m,n) convention). Raises InputError for an image that cannot be
+    calibrated, or whose lattice is not of `packing`.
     """
+    if packing not in PACKINGS:
+        raise InputError(f"packing must be one of {list(PACKINGS)}, got {packing!r}")
     img = _as_image(img)
     if expected_pitch_px is not None and not (np.isfinite(expected_pitch_px) and expected_pitch_px >= MIN_PITCH_PX):
         raise InputError(f"expected pitch must be a number of at least {MIN_PITCH_PX} px, got {expected_pitch_px!r}")
@@ -816,14 +933,22 @@ def calibrate(img: np.ndarray, *, expected_pitch_px: float | None = None,
             raise InputError(f"expected shape must be two positive integers (N_H, N_W), got {expected_shape!r}")
         expected_shape = (int(expected_shape[0]), int(expected_shape[1]))
     _check_levels(img)
-    lattice = _fft_lattice(img, expected_pitch_px)
+    lattice = _fft_lattice(img, expected_pitch_px, packing)
     lat_j, lat_i, px, py = _candidates(img.shape, lattice)
-    order = np.argsort((lat_i + lat_j) % 2, kind="stable")  # red-black colours, each contiguous
+    order = np.argsort(_colours(lat_j, lat_i, packing), kind="stable")  # sweep colours, each contiguous
     lat_j, lat_i, px, py = lat_j[order], lat_i[order], px[order], py[order]
     pitch = float(np.sqrt(abs(np.linalg.det(lattice.basis))))
     radius0 = _radius_guess(img, pitch)
-    discs, active = _measure(img, px, py, lat_j, lat_i, lattice.basis, radius0)
+    discs, active = _measure(img, px, py, lat_j, lat_i, lattice.basis, radius0, packing)
     return _assemble(img.shape, lattice, lat_j, lat_i, discs, active, expected_shape)
+
+
+def _colours(lat_j: np.ndarray, lat_i: np.ndarray, packing: str) -> np.ndarray:
+    """Sweep colour of each lattice point such that side neighbours (whose discs overlap) differ: square
+    red-black, hex (j + 2 i) mod 3 (its six neighbours step j, i or i - j by one)."""
+    if packing == "hex":
+        return (lat_j + 2 * lat_i) % 3
+    return (lat_i + lat_j) % 2
 
 
 def _candidates(shape: tuple[int, int], lattice: _Lattice):
@@ -852,7 +977,7 @@ def _radius_guess(img: np.ndarray, pitch: float) -> float:
 
 
 def _measure(img: np.ndarray, px: np.ndarray, py: np.ndarray, lat_j: np.ndarray, lat_i: np.ndarray,
-             basis: np.ndarray, radius0: float) -> tuple[_Discs, np.ndarray]:
+             basis: np.ndarray, radius0: float, packing: str = "square") -> tuple[_Discs, np.ndarray]:
     """Joint disc fit of every lens (see the module docstring), in two stages:
 
     1. a central block of lenses, from a wide edge down: the edge width, the typical radius and a lattice
@@ -865,16 +990,17 @@ def _measure(img: np.ndarray, px: np.ndarray, py: np.ndarray, lat_j: np.ndarray,
     # lattice neighbours whose discs can overlap a lens' fitting annulus: the first ring, and the second
     # too for discs large against the pitch
     spacing = float(np.min(np.hypot(basis[0], basis[1])))
-    ring = 1 if 2.0 * spacing > 2.0 * radius0 + band + 0.5 + 4.0 else 2
+    second = (math.sqrt(3.0) if packing == "hex" else 2.0) * spacing  # distance to the second ring
+    ring = 1 if second > 2.0 * radius0 + band + 0.5 + 4.0 else 2
     # stage 1: a block of about SUBSET x SUBSET lenses round the brightest part of the centre
     cj, ci = np.median(lat_j), np.median(lat_i)
     half = SUBSET // 2
     block = (np.abs(lat_j - cj) <= half + 1) & (np.abs(lat_i - ci) <= half + 1)
     inner = (np.abs(lat_j - cj) <= half) & (np.abs(lat_i - ci) <= half)
-    colour = (lat_i + lat_j) % 2
+    colour = _colours(lat_j, lat_i, packing)
     px, py = px.copy(), py.copy()
     lattice_x, lattice_y = px, py
-    sub = _DiscFit(img, px[block], py[block], radius0, _lattice_neighbours(lat_j[block], lat_i[block], ring),
+    sub = _DiscFit(img, px[block], py[block], radius0, _lattice_neighbours(lat_j[block], lat_i[block], ring, packing),
                    colour[block])
     sub.init_amplitude(radius0)
     sub.set_band(band)
@@ -900,7 +1026,7 @@ def _measure(img: np.ndarray, px: np.ndarray, py: np.ndarray, lat_j: np.ndarray,
     else:
         edge0 = max(0.4, 0.025 * pitch)
     # stage 2: every lens
-    neighbours = _lattice_neighbours(lat_j, lat_i, ring)
+    neighbours = _lattice_neighbours(lat_j, lat_i, ring, packing)
     fit = _DiscFit(img, px, py, radius0, neighbours, colour)
     fit.edge = edge0
     fit.init_amplitude(radius0)
@@ -910,7 +1036,7 @@ def _measure(img: np.ndarray, px: np.ndarray, py: np.ndarray, lat_j: np.ndarray,
     if np.count_nonzero(active) < MIN_LENSES:
         raise InputError(f"only {int(np.count_nonzero(active))} microlens sub-images found in the white image "
                          f"(at least {MIN_LENSES} are needed)")
-    side = neighbours[:, :8]  # the first ring: who is coupled to whom
+    side = neighbours[:, :_FIRST_RING[packing]]  # the first ring: who is coupled to whom
     for it in range(N_SWEEPS):
         if it == 1:
             fit.set_slopes(lat_j, lat_i, basis, active)
@@ -941,14 +1067,22 @@ def _measure(img: np.ndarray, px: np.ndarray, py: np.ndarray, lat_j: np.ndarray,
     return discs, active
 
 
-def _lattice_neighbours(lat_j: np.ndarray, lat_i: np.ndarray, ring: int = 1) -> np.ndarray:
-    """(n, (2 ring + 1)^2 - 1) indices of each candidate's lattice neighbours within `ring` steps (-1 where
-    there is none); the first 8 columns are the first ring."""
+_FIRST_RING = {"square": 8, "hex": 6}  # neighbours in the first ring (square: edges and diagonals)
+
+
+def _lattice_neighbours(lat_j: np.ndarray, lat_i: np.ndarray, ring: int = 1, packing: str = "square") -> np.ndarray:
+    """(n, k) indices of each candidate's lattice neighbours within `ring` steps (-1 where there is none),
+    nearest ring first: square (2 ring + 1)^2 - 1 (the first 8 the first ring), hex 3 ring (ring + 1)
+    (the first 6 the first ring; axial steps (dj, di) with max(|dj|, |di|, |dj + di|) <= ring)."""
     j0, i0 = lat_j.min(), lat_i.min()
     table = np.full((lat_i.max() - i0 + 1 + 2 * ring, lat_j.max() - j0 + 1 + 2 * ring), -1)
     table[lat_i - i0 + ring, lat_j - j0 + ring] = np.arange(lat_j.size)
-    offsets = sorted(((di, dj) for di in range(-ring, ring + 1) for dj in range(-ring, ring + 1) if di or dj),
-                     key=lambda o: max(abs(o[0]), abs(o[1])))
+    if packing == "hex":
+        steps = lambda o: max(abs(o[0]), abs(o[1]), abs(o[0] + o[1]))  # noqa: E731 (hex distance)
+    else:
+        steps = lambda o: max(abs(o[0]), abs(o[1]))  # noqa: E731
+    offsets = sorted(((di, dj) for di in range(-ring, ring + 1) for dj in range(-ring, ring + 1)
+                      if (di or dj) and steps((di, dj)) <= ring), key=steps)
     return np.stack([table[lat_i - i0 + ring + di, lat_j - j0 + ring + dj] for di, dj in offsets], axis=1)
 
 
@@ -988,26 +1122,36 @@ def _assemble(shape, lattice, lat_j, lat_i, discs: _Discs, active, expected_shap
     weight = np.where(t_act, amp, 0.0)  # light of every lit lens (dim ones included)
     seen = table(discs.valid_fraction >= MIN_VALID_FRACTION, False)
     dark_seen = seen & ~t_act  # looked at, and nothing there: beyond the MLA
-    rows_used = np.flatnonzero(found.any(axis=1))
-    cols_used = np.flatnonzero(found.any(axis=0))
     axis_centre = np.linalg.inv(lattice.basis) @ (np.array([0.5 * (w - 1), 0.5 * (h - 1)]) - lattice.origin)
+    hexagonal = lattice.packing == "hex"
     if expected_shape is None:
-        r0, c0 = int(rows_used[0]), int(cols_used[0])
-        rows, cols = int(rows_used[-1]) - r0 + 1, int(cols_used[-1]) - c0 + 1
+        rows_used = np.flatnonzero(found.any(axis=1))
+        r0 = int(rows_used[0])
+        rows = int(rows_used[-1]) - r0 + 1
+        # hex: columns counted along the rows' zig-zag from the top row (offset coordinates)
+        cols_used = np.flatnonzero((_sheared(found, r0 % 2) if hexagonal else found).any(axis=0))
+        c0, cols = int(cols_used[0]), int(cols_used[-1]) - int(cols_used[0]) + 1
+        if hexagonal:
+            c0 = c0 - (r0 - r0 % 2) // 2 - 1
+    elif hexagonal:
+        rows, cols = expected_shape
+        r0, c0 = _anchor_hex(weight, dark_seen, t_act, rows, cols, (axis_centre[0] - j0, axis_centre[1] - i0))
     else:
         rows, cols = expected_shape
         r0 = _anchor(weight.sum(axis=1), dark_seen.any(axis=1) & ~t_act.any(axis=1), rows, axis_centre[1] - i0)
         c0 = _anchor(weight.sum(axis=0), dark_seen.any(axis=0) & ~t_act.any(axis=0), cols, axis_centre[0] - j0)
     if rows < 3 or cols < 3:
         raise InputError(f"the microlens sub-images found span only {rows}x{cols} lenses; at least 3x3 are needed")
-    # (rows, cols) views into the lattice tables, padded where the window leaves the candidate range
+    # lens U(r+1, c+1) is table entry [ti, tj]: square (r0 + r, c0 + c); hex (r0 + r, c0 + c - floor(r / 2)),
+    # the axial column of offset column c on window row r (a2 leans +p/2 per row)
+    rr, cc = np.mgrid[0:rows, 0:cols]
+    ti, tj = r0 + rr, c0 + cc - (rr // 2 if hexagonal else 0)
+    inside_table = (ti >= 0) & (ti < ni) & (tj >= 0) & (tj < nj)
+
     def window(table_2d, fill):
+        """(rows, cols) view of a lattice table, padded where the window leaves the candidate range."""
         out = np.full((rows, cols), fill, dtype=np.asarray(table_2d).dtype)
-        rr = np.arange(rows) + r0
-        cc = np.arange(cols) + c0
-        okr = (rr >= 0) & (rr < ni)
-        okc = (cc >= 0) & (cc < nj)
-        out[np.ix_(okr, okc)] = table_2d[np.ix_(rr[okr], cc[okc])]
+        out[inside_table] = table_2d[ti[inside_table], tj[inside_table]]
         return out
 
     found_w = window(found, False)
@@ -1023,14 +1167,19 @@ def _assemble(shape, lattice, lat_j, lat_i, discs: _Discs, active, expected_shap
     vfrac = window(table(discs.valid_fraction, 0.0), 0.0)
     flux = np.where(found_w, window(table(discs.amp * np.pi * discs.radius ** 2, np.nan), np.nan), np.nan)
     radius = np.where(found_w, window(table(discs.radius, np.nan), np.nan), np.nan)
-    vv, uu = np.mgrid[0:rows, 0:cols].astype(float)
+    design = Lattice(lattice.packing, rows, cols)
+    if hexagonal:
+        uu, vv = design.uv(rr, cc)  # the design's lattice units (pitches): the model's (u, v)
+    else:
+        vv, uu = np.mgrid[0:rows, 0:cols].astype(float)
+    span = design.span_uv
     centre = (0.5 * (w - 1), 0.5 * (h - 1))
     hom, k, scale, used, rms = _fit_model(uu[found_w], vv[found_w], mx[found_w], my[found_w], centre,
-                                          lattice, (r0 + i0, c0 + j0), (rows, cols))
+                                          lattice, (r0 + i0, c0 + j0), (rows, cols), span)
     gx, gy = _model_xy(hom, k, centre, scale, uu, vv)
     # lenses whose predicted window leaves the frame entirely were never candidates: clipped + missing
     clipped = (vfrac < 1.0) | ~np.isfinite(vfrac)
-    jac = _local_jacobian(hom, k, centre, scale, 0.5 * (cols - 1), 0.5 * (rows - 1))
+    jac = _local_jacobian(hom, k, centre, scale, 0.5 * span[0], 0.5 * span[1])
     pitch_x, pitch_y = float(np.hypot(*jac[:, 0])), float(np.hypot(*jac[:, 1]))
     rotation = math.degrees(math.atan2(-jac[1, 0], jac[0, 0]))
     angle = math.degrees(math.acos(float(np.clip(jac[:, 0] @ jac[:, 1] / (pitch_x * pitch_y), -1, 1))))
@@ -1041,7 +1190,7 @@ def _assemble(shape, lattice, lat_j, lat_i, discs: _Discs, active, expected_shap
         radial_scale_px=float(scale), edge_width_px=float(discs.edge), image_shape=(h, w),
         measured_x_px=mx, measured_y_px=my, grid_x_px=gx, grid_y_px=gy,
         residual_px=np.hypot(mx - gx, my - gy), flux=flux, radius_px=radius,
-        missing=~found_w, clipped=clipped, rms_residual_px=float(rms),
+        missing=~found_w, clipped=clipped, rms_residual_px=float(rms), packing=lattice.packing,
     )
 
 
@@ -1067,6 +1216,57 @@ def _anchor(line_weight: np.ndarray, line_dark: np.ndarray, count: int, axis_pos
     return int(cand[np.argmin(np.abs(cand + 0.5 * (count - 1) - axis_pos))])
 
 
+def _sheared(table: np.ndarray, parity: int) -> np.ndarray:
+    """An axial hex table (rows i, columns j) with each row moved floor((i - parity) / 2) + 1 columns right:
+    its columns are then the offset columns of a window whose top row has that parity (a lens of window
+    row r, offset column c sits in sheared column c + const)."""
+    ni, nj = table.shape
+    shift = (np.arange(ni) - parity) // 2 + 1
+    out = np.zeros((ni, nj + int(shift.max()) + 1), dtype=table.dtype)
+    out[np.arange(ni)[:, None], np.arange(nj)[None, :] + shift[:, None]] = table
+    return out
+
+
+def _box_sums(a: np.ndarray, rows: int, cols: int) -> np.ndarray:
+    """Sums of `a` over every rows x cols window, windows reaching up to the whole size beyond each side:
+    [s, t] is the window starting at (s - rows, t - cols)."""
+    pad = np.pad(np.asarray(a, dtype=np.float64), ((rows, rows), (cols, cols)))
+    cs = np.zeros((pad.shape[0] + 1, pad.shape[1] + 1))
+    cs[1:, 1:] = pad.cumsum(axis=0).cumsum(axis=1)
+    return cs[rows:, cols:] - cs[:-rows, cols:] - cs[rows:, :-cols] + cs[:-rows, :-cols]
+
+
+def _anchor_hex(weight: np.ndarray, dark_seen: np.ndarray, lit: np.ndarray, rows: int, cols: int,
+                axis_ji: tuple[float, float]) -> tuple[int, int]:
+    """Top row r0 and axial column c0 (table indices) of U(1,1) for a hex array of rows x cols lenses: as
+    `_anchor` but over both at once (the window's columns zig-zag, and the top row's parity decides which
+    way): the most light; among equals, the fewest lattice lines (rows, zig-zag columns) seen dark; then
+    the window centred nearest the frame centre. Windows may reach beyond the frame."""
+    ni, _ = weight.shape
+    row_dark = (dark_seen.any(axis=1) & ~lit.any(axis=1)).astype(float)
+    pad = np.zeros(rows)
+    rdark = np.convolve(np.concatenate([pad, row_dark, pad]), np.ones(rows), mode="valid")  # [s]: start s - rows
+    aj, ai = axis_ji
+    cands = []
+    for parity in (0, 1):
+        light = _box_sums(_sheared(weight, parity), rows, cols)
+        col_dark = (_sheared(dark_seen, parity).any(axis=0) & ~_sheared(lit, parity).any(axis=0)).astype(float)
+        cdark = np.convolve(np.concatenate([np.zeros(cols), col_dark, np.zeros(cols)]), np.ones(cols), mode="valid")
+        s, t = np.mgrid[0:light.shape[0], 0:light.shape[1]]
+        r0, c_sheared = s - rows, t - cols
+        keep = (r0 % 2) == parity
+        c0 = c_sheared - (r0 - parity) // 2 - 1  # axial column of U(1,1)
+        u_mid = c0 + 0.5 * r0 + 0.5 * (cols - 1 + (0.5 if rows > 1 else 0.0))
+        v_mid = r0 + 0.5 * (rows - 1)
+        dist = (u_mid - (aj + 0.5 * ai)) ** 2 + ((v_mid - ai) * SQRT3_2) ** 2
+        cands.append(np.stack([light[keep], rdark[s[keep]] + cdark[t[keep]], dist[keep], r0[keep], c0[keep]]))
+    light, dark, dist, r0, c0 = np.concatenate(cands, axis=1)
+    best = light >= light.max() * (1 - 1e-9) - 1e-12
+    best &= dark <= dark[best].min()
+    pick = np.flatnonzero(best)[np.argmin(dist[best])]
+    return int(r0[pick]), int(c0[pick])
+
+
 def _local_jacobian(hom, k, centre, scale, u, v) -> np.ndarray:
     d = 1e-3
     x1, y1 = _model_xy(hom, k, centre, scale, u + d, v)
@@ -1076,18 +1276,20 @@ def _local_jacobian(hom, k, centre, scale, u, v) -> np.ndarray:
     return np.array([[x1 - x0, x3 - x2], [y1 - y0, y3 - y2]]) / (2 * d)
 
 
-def _fit_model(u, v, x, y, centre, lattice: _Lattice, start, shape):
-    """Robust least-squares fit of the global model to the measured centres.
+def _fit_model(u, v, x, y, centre, lattice: _Lattice, start, shape, span=None):
+    """Robust least-squares fit of the global model to the measured centres at design coordinates (u, v)
+    (pitches from U(1,1); `span`: their extent, default the square's (cols - 1, rows - 1)).
 
     Returns (homography for raw lattice coordinates, radial k, radial scale, used mask, rms residual)."""
 
     rows, cols = shape
+    su, sv = (cols - 1, rows - 1) if span is None else span
     full = u.size >= 100 and rows >= 8 and cols >= 8
-    uc, vc = 0.5 * (cols - 1), 0.5 * (rows - 1)
+    uc, vc = 0.5 * su, 0.5 * sv
     us, vs = max(uc, 1.0), max(vc, 1.0)
     un, vn = (u - uc) / us, (v - vc) / vs
-    corners_u = np.array([0, cols - 1, 0, cols - 1], float)
-    corners_v = np.array([0, 0, rows - 1, rows - 1], float)
+    corners_u = np.array([0, su, 0, su], float)
+    corners_v = np.array([0, 0, sv, sv], float)
     # initial affine from the Fourier lattice
     design = np.stack([np.ones_like(un), un, vn], 1)
     used = np.ones(u.size, bool)
