@@ -72,8 +72,8 @@ def local_deviations(planes: list[np.ndarray], axes: list[str], size: int = 5,
     Hex (`packing`): the window is the same size x size block of offset coordinates (U(m,n) indexes). It
     is local (every lens in it lies within 2.6 pitches) but not point-symmetric: rows m +- 1 sit half a
     pitch to one side. Its median is still the lens' own value on a linear trend along x, y or the
-    lattice directions, and off by at most 0.26 pitch times the trend's slope per pitch in between (a
-    trend of 1 % per pitch reads 0.003), far below any index' noise; the slow maps it removes
+    lattice directions, and off by at most 0.33 pitch times the trend's slope per pitch in between (a
+    trend of 1 % per pitch reads 0.0033), far below any index' noise; the slow maps it removes
     (vignetting, exposure, distortion) change by much less per pitch. The left and right columns,
     whose lenses alternately stick out (missing 3 of 6 neighbours) and sit in (missing 1), take the
     running median of the lenses of their own row parity (`_hex_edge_columns`)."""
