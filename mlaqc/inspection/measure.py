@@ -115,7 +115,8 @@ def _centre(found: Identification, table: SignatureTable, cfg: CameraConfig, dis
 
 def _pair_sigma(a: np.ndarray) -> float:
     """A map's noise per lens from the differences of neighbours along rows and columns (a smooth trend
-    cancels in them): robust spread over sqrt(2)."""
+    cancels in them): robust spread over sqrt(2). On a hex lattice too every such pair is a pair of
+    neighbours: U(m,n) and U(m+1,n) are one pitch apart on either row parity."""
     d = np.concatenate([np.diff(a, axis=0).ravel(), np.diff(a, axis=1).ravel()])
     d = d[np.isfinite(d)]
     return robust_sigma(d) / np.sqrt(2.0) if d.size > 20 else np.nan
