@@ -58,7 +58,7 @@ def run(args: argparse.Namespace) -> int:
         check_exposure(frame)
         img, _ = suppress_hot_pixels(normalized(frame), frame.cfa)
     grid = calibrate(img, expected_pitch_px=cfg.layout.subimage_pitch_px,
-                     expected_shape=(cfg.mla.count_h, cfg.mla.count_w))
+                     expected_shape=(cfg.mla.count_h, cfg.mla.count_w), packing=cfg.mla.packing)
     grid.save(out)
     if not args.quiet:
         print(f"wrote {out}: {grid.rows}x{grid.cols} lenses, pitch {grid.pitch_px[0]:.4f} x {grid.pitch_px[1]:.4f} px "

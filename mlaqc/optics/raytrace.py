@@ -414,7 +414,7 @@ class MicrolensArray:
         gap = False
         if self.circle:
             k, local, ldir, nrm, hit, gap = self._hit_circle(k, r)
-            corner = ~self._inside_lens(k, *local)
+            corner = ~self._inside_lens(k, *local) & ~gap  # the gap is flat substrate: no corner there
         elif self.sag:
             k, local, ldir, nrm, hit = self._hit_sag(k, r, rear=False)
             corner = self._corner_sag(k, *local)

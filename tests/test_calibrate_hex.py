@@ -1,0 +1,309 @@
+"""Calibration of hexagonal microlens arrays against the independent analytic image model.
+
+Frames come from tests/analytic_frames.py (discs with a Gaussian or Airy rim on a hex lattice it lays out
+itself: rows pitch·√3/2 apart, rows 2, 4, ... (1-based) shifted +pitch/2, no mlaqc code), so every lens'
+true centre and its U(m,n) index are known exactly. Checked: every lens found and indexed, centres to
+0.01 px per axis on noise-free frames, noise on par with the square array on the same model, the Table 1
+size array (102 x 116 on 2048²), clipped borders, dark and shifted lenses, the packing mismatch and shape
+errors, grid.json and the CLI.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from analytic_frames import Anomaly, AnalyticModel, expose, table1_pitch_px, to_counts, write_container
+from mlaqc.cli import main
+from mlaqc.errors import InputError
+from mlaqc.inspection.calibrate import Grid, calibrate, load_grid
+from mlaqc.inspection.rawio import load_raw, normalized
+from mlaqc.optics.config import config_to_toml, load_config
+
+FIXTURES = Path(__file__).resolve().parent.parent / "fixtures"
+HEX_SMALL = load_config(FIXTURES / "hex_small_camera.toml")
+SHAPE = (HEX_SMALL.mla.count_h, HEX_SMALL.mla.count_w)  # 28 rows x 24 columns
+PITCH = table1_pitch_px()
+SQRT3_2 = math.sqrt(3.0) / 2.0
+
+
+def hex_model(**kw) -> AnalyticModel:
+    """The small hex camera's frame on the analytic model (vignetting as a short exit pupil)."""
+    base = dict(shape=(HEX_SMALL.sensor.height_px, HEX_SMALL.sensor.width_px), lenses=SHAPE, packing="hex",
+                exit_pupil_px=900.0)
+    return AnalyticModel(**{**base, **kw})
+
+
+def frame(model: AnalyticModel, noise: float = 0.0, seed: int = 1, scale: float = 0.8) -> np.ndarray:
+    """Normalized float32 frame (the model's centre at `scale` of full scale), with noise if asked."""
+    return (scale * expose(model.render(), noise, np.random.default_rng(seed))).astype(np.float32)
+
+
+def hex_calibrate(img, model: AnalyticModel | None = None, **kw) -> Grid:
+    kw.setdefault("expected_pitch_px", PITCH)
+    kw.setdefault("expected_shape", model.lenses if model is not None else SHAPE)
+    return calibrate(img, packing="hex", **kw)
+
+
+def per_axis_rms(grid: Grid, x: np.ndarray, y: np.ndarray, sel: np.ndarray, which: str = "measured") -> float:
+    ex = getattr(grid, f"{which}_x_px")[sel] - x[sel]
+    ey = getattr(grid, f"{which}_y_px")[sel] - y[sel]
+    return float(np.sqrt(np.mean(np.concatenate([ex, ey]) ** 2)))
+
+
+def hex_neighbours(m: int, n: int) -> list[tuple[int, int]]:
+    """0-based (row, col) of the six lenses one pitch from (m, n), from the stated convention."""
+    lo = n - 1 if m % 2 == 0 else n  # rows 0, 2, ... are not shifted: their neighbours above/below sit left
+    return [(m, n - 1), (m, n + 1), (m - 1, lo), (m - 1, lo + 1), (m + 1, lo), (m + 1, lo + 1)]
+
+
+# ------------------------------------------------------------------------------------ the model's facts
+
+
+def test_the_hex_model_lays_lenses_out_as_the_convention_says():
+    m = AnalyticModel(shape=(200, 200), lenses=(5, 4), packing="hex", rotation_deg=0.0, phase_px=(0.3, -0.2))
+    x, y = m.lattice()
+    assert np.allclose(np.diff(x, axis=1), PITCH) and np.allclose(np.diff(y, axis=0), PITCH * SQRT3_2)
+    assert np.allclose(x[1] - x[0], 0.5 * PITCH) and np.allclose(x[2], x[0])  # U(2,n) shifted right, U(3,n) not
+    assert 0.5 * (x.min() + x.max()) == pytest.approx(99.5 + 0.3) and 0.5 * (y.min() + y.max()) == pytest.approx(99.5 - 0.2)
+    for a, b in hex_neighbours(2, 1):
+        assert math.hypot(x[a, b] - x[2, 1], y[a, b] - y[2, 1]) == pytest.approx(PITCH)
+
+
+# ------------------------------------------------------------------------------------ accuracy
+
+
+@pytest.mark.parametrize("kw", [
+    dict(rotation_deg=0.0, phase_px=(0.0, 0.0)),
+    dict(rotation_deg=0.7, phase_px=(0.4, 0.15)),
+    dict(rotation_deg=-1.8, phase_px=(-0.25, 0.5), rim="airy", extra_falloff=0.3),
+    dict(rotation_deg=2.5, phase_px=(0.5, 0.5), radius_px=8.0),  # circular sub-images with gaps between them
+])
+def test_noise_free_hex_frame_every_lens_found_and_centred(kw):
+    m = hex_model(**kw)
+    g = hex_calibrate(frame(m), m)
+    x, y = m.centres()
+    assert g.packing == "hex" and g.shape == SHAPE
+    assert not g.missing[m.inside()].any()  # every lens wholly on the sensor is found...
+    sel = m.inside() & ~g.clipped
+    assert sel.sum() > 0.8 * sel.size
+    assert per_axis_rms(g, x, y, sel) <= 0.01  # ... at its true centre, under its own U(m,n)
+    assert per_axis_rms(g, x, y, sel, "grid") <= 0.01
+    assert g.rotation_deg == pytest.approx(kw["rotation_deg"], abs=0.005)
+    assert g.pitch_px == pytest.approx((PITCH, PITCH), abs=0.003)  # both along the rows and across them
+    assert abs(g.shear_deg) < 0.01
+    assert g.origin_px == pytest.approx((x[0, 0], y[0, 0]), abs=0.01)
+
+
+@pytest.mark.parametrize("noise, bits, black", [(0.01, 12, 64), (0.05, 12, 64), (0.15, 16, 0)])
+def test_noisy_containers_hex_centres_on_par_with_the_square_array(tmp_path, noise, bits, black):
+    """12-bit-in-16 (and 16-bit) files with black levels: the hex array's per-lens centre noise is that of
+    the square array rendered by the same model at the same noise (same disc, same rim, same light)."""
+    out = {}
+    for packing, lenses in (("hex", SHAPE), ("square", (24, 24))):
+        m = hex_model(packing=packing, lenses=lenses, rotation_deg=0.6, phase_px=(0.2, 0.7))
+        counts = to_counts(expose(m.render(), noise, np.random.default_rng(7)), bits, black)
+        raw = load_raw(write_container(tmp_path / f"{packing}.tif", counts, bits, black, tags=True))
+        g = calibrate(normalized(raw), expected_pitch_px=PITCH, expected_shape=lenses, packing=packing)
+        x, y = m.centres()
+        sel = m.inside() & ~g.clipped
+        assert not g.missing[m.inside()].any()
+        out[packing] = per_axis_rms(g, x, y, sel)
+    # noise-limited per-lens figures: alike within 30 % (each is over ~500 lenses: ±3 % sampling spread)
+    assert out["hex"] <= 1.3 * out["square"] + 0.002, out
+    assert out["hex"] >= out["square"] / 1.3 - 0.002, out
+    assert out["hex"] < 0.25 * noise + 0.01, out
+
+
+def test_table1_size_hex_array_on_a_2048_frame():
+    """102 columns x 116 rows at the Table 1 sub-image pitch: 2055 px wide, so the sides are cut."""
+    m = AnalyticModel(shape=(2048, 2048), lenses=(116, 102), packing="hex", rotation_deg=0.3, phase_px=(0.21, -0.4))
+    g = hex_calibrate(frame(m, noise=0.0), m)
+    x, y = m.centres()
+    assert g.shape == (116, 102) and g.lenses_missing == 0  # every centre lies on the sensor
+    assert g.clipped[:, 0].any() and g.clipped[:, -1].any()  # the sides are cut by the frame
+    sel = m.inside() & ~g.clipped
+    assert per_axis_rms(g, x, y, sel) <= 0.01 and per_axis_rms(g, x, y, sel, "grid") <= 0.01
+    cut = ~g.clipped | ~g.missing
+    assert per_axis_rms(g, x, y, g.clipped & cut) < 0.05  # cut lenses are measured without bias too
+    assert g.pitch_px == pytest.approx((PITCH, PITCH), abs=0.001) and g.rotation_deg == pytest.approx(0.3, abs=0.002)
+
+
+# ------------------------------------------------------------------------------------ borders, defects
+
+
+def test_clipped_border_keeps_the_index_and_parity():
+    """A bigger frame cut so that the array's top row and left column lose part of their discs: U(1,1)
+    stays the top-left lens (not the next row's, which would swap the rows' shift)."""
+    m = hex_model(shape=(560, 540), rotation_deg=0.4, phase_px=(0.3, 0.1))
+    img = frame(m, noise=0.01)
+    x, y = m.centres()
+    top, left = int(y[0].min()) - 3, int(x[:, 0].min()) - 3  # through the first row's and column's discs
+    g = hex_calibrate(img[top:, left:].copy(), m)
+    assert g.clipped[0].all() and g.clipped[:, 0].any()
+    sel = ~g.missing
+    assert sel.sum() >= SHAPE[0] * SHAPE[1] - 2
+    err = np.hypot(g.measured_x_px + left - x, g.measured_y_px + top - y)
+    assert np.nanmax(err[sel]) < 0.1 and per_axis_rms(g, x - left, y - top, sel & ~g.clipped) < 0.01
+
+
+@pytest.mark.parametrize("rows_cut", [1, 2])
+def test_whole_top_rows_cropped_away_are_still_u1n(rows_cut):
+    """With the top row(s) wholly off the frame, the expected shape puts U(1,1) above the frame: the light
+    window (rows seen dark below the array, the zig-zag of the columns) fixes rows and their shift."""
+    m = hex_model(shape=(600, 560), rotation_deg=-0.5, phase_px=(0.1, 0.3))
+    img = frame(m, noise=0.01)
+    x, y = m.centres()
+    top = int(math.ceil(y[rows_cut - 1].max() + m.radius_px + 3))
+    g = hex_calibrate(img[top:].copy(), m)
+    assert g.missing[:rows_cut].all() and not g.missing[rows_cut:].any()
+    sel = ~g.missing & ~g.clipped
+    assert per_axis_rms(g, x, y - top, sel) < 0.01
+    assert per_axis_rms(g, x, y - top, g.missing, "grid") < 0.02  # the model extrapolates the cut rows
+
+
+def test_missing_and_dim_lenses_are_reported_not_fatal():
+    dark = [(3, 4), (12, 11), (13, 11), (20, 17)]
+    m = hex_model(rotation_deg=0.9, phase_px=(0.1, 0.2)).with_anomalies(
+        [Anomaly(r, c, "missing", 0.0) for r, c in dark] + [Anomaly(8, 18, "dim", 0.15)])
+    g = hex_calibrate(frame(m, noise=0.02), m)
+    assert set(map(tuple, np.argwhere(g.missing).tolist())) == set(dark) | {(8, 18)}
+    x, y = m.centres()
+    assert np.max(np.hypot(g.grid_x_px - x, g.grid_y_px - y)[list(zip(*dark))]) < 0.02  # predicted anyway
+
+
+@pytest.mark.parametrize("lens, direction", [((10, 8), 30.0), ((11, 15), 200.0), ((15, 5), 95.0)])
+def test_a_lens_shifted_by_one_pixel_reads_its_shift_and_its_neighbours_do_not(lens, direction):
+    """Row parity matters for who the six neighbours are: rows 10 and 15 (0-based) differ."""
+    m = hex_model(rotation_deg=-0.9, phase_px=(0.3, 0.1)).with_anomalies([Anomaly(*lens, "shift", 1.0, direction)])
+    g = hex_calibrate(frame(m, noise=0.01), m)
+    t = math.radians(direction)
+    assert (g.residual_x_px[lens], g.residual_y_px[lens]) == pytest.approx((math.cos(t), -math.sin(t)), abs=0.02)
+    near = [g.residual_px[a, b] for a, b in hex_neighbours(*lens)]
+    assert max(near) < 0.03, near
+    others = np.ones(SHAPE, bool)
+    others[lens] = False
+    assert np.sqrt(np.nanmean(g.residual_px[others] ** 2)) < 0.02
+
+
+# ------------------------------------------------------------------------------------ errors
+
+
+def _one_sentence(exc: pytest.ExceptionInfo) -> str:
+    text = str(exc.value)
+    assert "\n" not in text and text.count(". ") == 0
+    return text
+
+
+@pytest.mark.parametrize("rotation", [0.0, 1.3, -2.5])
+@pytest.mark.parametrize("expect", [True, False])
+def test_packing_mismatch_is_named(rotation, expect):
+    hexagonal = hex_model(rotation_deg=rotation)
+    square = hex_model(rotation_deg=rotation, packing="square", lenses=(24, 24))
+    for model, stated, seen in ((hexagonal, "square", "hexagonal"), (square, "hex", "square")):
+        kw = dict(expected_pitch_px=PITCH, expected_shape=model.lenses) if expect else {}
+        with pytest.raises(InputError, match=f"shows a {seen} microlens lattice but the config says "
+                                             f"mla.packing = '{stated}'") as exc:
+            calibrate(frame(model, noise=0.05), packing=stated, **kw)
+        _one_sentence(exc)
+
+
+def test_wrong_shape_pitch_and_packing_arguments():
+    img = frame(hex_model(rotation_deg=0.4))
+    with pytest.raises(InputError, match="expected 60x60") as exc:
+        hex_calibrate(img, expected_shape=(60, 60))
+    _one_sentence(exc)
+    with pytest.raises(InputError, match="far from the expected") as exc:
+        hex_calibrate(img, expected_pitch_px=30.0)
+    _one_sentence(exc)
+    with pytest.raises(InputError, match="packing must be one of"):
+        calibrate(img, packing="triangular")
+
+
+# ------------------------------------------------------------------------------------ internals vs geometry
+
+
+def test_neighbour_table_and_colours_follow_the_hex_geometry():
+    """The disc fit's neighbour table holds exactly the lattice points one pitch away (6), then those
+    within two steps (sqrt(3) and 2 pitches: 12 more); the three colours never put neighbours together."""
+    from mlaqc.inspection.calibrate import _colours, _lattice_neighbours
+
+    jj, ii = (a.ravel() for a in np.meshgrid(np.arange(-6, 7), np.arange(-5, 6)))
+    a1, a2 = np.array([1.0, 0.0]), np.array([0.5, SQRT3_2])  # the axial basis: a2 at 60 degrees
+    pos = np.outer(jj, a1) + np.outer(ii, a2)
+    for ring, dists in ((1, [1.0] * 6), (2, [1.0] * 6 + [math.sqrt(3.0)] * 6 + [2.0] * 6)):
+        table = _lattice_neighbours(jj, ii, ring, "hex")
+        k = int(np.flatnonzero((jj == 0) & (ii == 0))[0])
+        d = np.hypot(*(pos[table[k]] - pos[k]).T)
+        assert np.allclose(d[:6], 1.0) and np.allclose(np.sort(d), dists)  # nearest ring first
+        inner = (np.abs(jj) <= 3) & (np.abs(ii) <= 3)
+        assert (table[inner] >= 0).all()
+    first = _lattice_neighbours(jj, ii, 1, "hex")
+    colour = _colours(jj, ii, "hex")
+    ok = first >= 0
+    assert set(colour.tolist()) == {0, 1, 2}
+    assert not np.any((colour[:, None] == colour[np.where(ok, first, 0)]) & ok)
+
+
+# ------------------------------------------------------------------------------------ JSON, predict, CLI
+
+
+@pytest.fixture(scope="module")
+def hex_grid() -> tuple[Grid, AnalyticModel]:
+    m = hex_model(rotation_deg=0.7, phase_px=(0.4, 0.15))
+    return hex_calibrate(frame(m, noise=0.01), m), m
+
+
+def test_predict_uses_the_hex_design_coordinates(hex_grid):
+    g, model = hex_grid
+    m, n = np.mgrid[1:SHAPE[0] + 1, 1:SHAPE[1] + 1]
+    px, py = g.predict(m, n)
+    np.testing.assert_allclose(px, g.grid_x_px, atol=1e-9)
+    np.testing.assert_allclose(py, g.grid_y_px, atol=1e-9)
+    x, y = model.lattice()
+    assert np.max(np.hypot(px - x, py - y)) < 0.01
+    assert g.predict(1, 1) == pytest.approx(g.origin_px)
+
+
+def test_hex_grid_json_round_trip(hex_grid, tmp_path):
+    g, _ = hex_grid
+    path = tmp_path / "grid.json"
+    g.save(path)
+    data = json.loads(path.read_text())
+    assert data["packing"] == "hex" and "shifted +pitch/2" in data["conventions"] and "sqrt(3)/2" in data["model"]["lattice"]
+    back = load_grid(path)
+    assert back.packing == "hex" and back.shape == g.shape
+    for name in ("measured_x_px", "measured_y_px", "grid_x_px", "grid_y_px", "residual_px", "flux", "radius_px"):
+        np.testing.assert_allclose(getattr(back, name), getattr(g, name), atol=2e-6, equal_nan=True)
+    m, n = np.mgrid[1:SHAPE[0] + 1, 1:SHAPE[1] + 1]
+    np.testing.assert_allclose(np.stack(back.predict(m, n)), np.stack(g.predict(m, n)), atol=1e-9)
+    data["packing"] = "triangle"
+    path.write_text(json.dumps(data))
+    with pytest.raises(InputError, match="packing"):
+        load_grid(path)
+    del data["packing"]  # a file written before hex support: square
+    path.write_text(json.dumps(data))
+    assert load_grid(path).packing == "square"
+
+
+def test_cli_calibrate_uses_the_configs_packing(tmp_path, capsys):
+    config = tmp_path / "hex.toml"
+    config.write_text(config_to_toml(HEX_SMALL))
+    m = hex_model(rotation_deg=0.5)
+    s = HEX_SMALL.sensor
+    counts = to_counts(expose(m.render(), 0.01, np.random.default_rng(3)), s.bit_depth, s.black_level_dn)
+    raw = write_container(tmp_path / "white.tif", counts, s.bit_depth, s.black_level_dn, tags=True)
+    out = tmp_path / "grid.json"
+    assert main(["calibrate", str(raw), "--out", str(out), "--config", str(config)]) == 0
+    assert "28x24 lenses" in capsys.readouterr().out
+    g = load_grid(out)
+    assert g.packing == "hex" and g.lenses_missing == 0
+    # the same frame against a square camera's config: refused, nothing written
+    square = FIXTURES / "small_camera.toml"  # the square 24 x 24 camera, same sensor and optics
+    out2 = tmp_path / "grid2.json"
+    assert main(["calibrate", str(raw), "--out", str(out2), "--config", str(square)]) == 2
+    assert "hexagonal microlens lattice" in capsys.readouterr().err and not out2.exists()
