@@ -286,3 +286,55 @@ def test_inspect_with_a_grid_file_of_another_lattice_exits_2_writing_nothing(tmp
     assert code == 2 and "Traceback" not in err and err.count("\n") == 1
     assert "square lattice but the camera's MLA is hex" in err
     assert not out.exists() or not any(out.iterdir())
+
+
+# --- the whole chain on a ray-traced hex frame -----------------------------------------------------------
+
+SEEDED = {(10, 8): ("pitch", 3.0, 0.0), (15, 15): ("decenter", 10.0, 60.0), (20, 6): ("radius", -0.15, 0.0),
+          (7, 18): ("radius", 0.15, 0.0), (23, 21): ("pitch", 3.0, 120.0)}
+
+
+@pytest.fixture(scope="module")
+def hex_result():
+    from mlaqc.inspection.pipeline import inspect_image, prepare
+    from mlaqc.inspection.rawio import RawFrame
+    from mlaqc.optics.errormap import ErrorMap, lens_error_fields
+    from mlaqc.optics.sensor import white_level
+    from mlaqc.optics.simulate import simulate
+
+    em = ErrorMap.zeros(28, 24, "hex")
+    for (m, n), (kind, mag, d) in SEEDED.items():
+        em = em.with_lens(m, n, **lens_error_fields(kind, mag, d))
+    sim = simulate(HEX, None, em, rays_per_pixel=50, seed=11)
+    s = HEX.sensor
+    frame = RawFrame(sim.raw, s.bit_depth, None, s.black_level_dn, white_level(s), {}, "hex")
+    return inspect_image(prepare(frame), HEX)
+
+
+def test_a_hex_frame_finds_the_seeded_lenses_by_their_u_m_n_and_nothing_else(hex_result):
+    found = {(d.m, d.n): d for d in hex_result.defects}
+    assert set(found) == set(SEEDED)
+    assert hex_result.grid.packing == "hex" and hex_result.lattice.hex
+    for key, (kind, mag, _) in SEEDED.items():
+        d = found[key]
+        ok = d.error_type == kind or (d.error_type == "position" and kind in ("pitch", "decenter"))
+        assert ok, (key, d.error_type)
+        read = {a[0]: a[1] for a in d.alternatives}[kind] if d.error_type == "position" else d.magnitude
+        assert abs(read - mag) <= 0.35 * abs(mag), (key, read)
+        if d.direction_deg is not None:  # (within 25 deg: the registration's gain is lower along y on hex)
+            assert abs((d.direction_deg - SEEDED[key][2] + 180.0) % 360.0 - 180.0) < 25.0, (key, d.direction_deg)
+    assert hex_result.lattice_facts()["packing"] == "hex"
+    assert hex_result.lattice_facts()["convention"].startswith("U(m,n)")
+
+
+def test_a_hex_frame_measures_every_lens_and_states_what_it_detects(hex_result):
+    meas = hex_result.measurements
+    assert meas["centre_dx_um"].shape == (28, 24)
+    healthy = np.ones((28, 24), bool)
+    for m, n in SEEDED:
+        healthy[m - 1, n - 1] = False
+    # a 3 µm pitch error moves its lens' optical centre by 3 µm; healthy lenses scatter far less
+    dx, dy = meas["centre_dx_um"], meas["centre_dy_um"]
+    assert math.hypot(dx[9, 7], dy[9, 7]) == pytest.approx(3.0, rel=0.35)
+    assert np.nanmedian(np.hypot(dx, dy)[healthy]) < 0.5
+    assert hex_result.detection_limit["pitch_um"] is not None
