@@ -43,7 +43,7 @@ from mlaqc.inspection.filters import max_filter_nearest, max_of_neighbours
 from mlaqc.inspection.metrics_kernels import median_baselines
 from mlaqc.inspection.results import Defect, LensMetrics
 from mlaqc.models.position_split import PositionSplit, contrast_sigma, neighbour_contrast, split_limits, type_position
-from mlaqc.models.signatures import FEATURES, KIND_BY_NAME, RINGS, SignatureTable, lens_features
+from mlaqc.models.signatures import FEATURES, KIND_BY_NAME, RINGS, SignatureTable, lens_features, shift_gain_y
 from mlaqc.optics.config import QC
 from mlaqc.optics.lattice import Lattice
 from mlaqc.parallel import thread_map
@@ -868,6 +868,16 @@ def class_centred(planes: list[np.ndarray]) -> list[np.ndarray]:
     return out
 
 
+def _isotropic_offsets(dev: dict[str, np.ndarray], sig: dict[str, float], gain_y: float):
+    """The classification deviations with the registration offsets' y divided by the table's
+    `shift_gain_y` (hex: a shift across the rows registers at about half its size), so that a lens shift
+    reads alike in every direction, as the table (rendered along x) reads it; and their spread with it.
+    Unchanged where the gain is 1 (square)."""
+    if gain_y == 1.0 or not gain_y > 0:
+        return dev, sig
+    return dev | {"offset_y_px": dev["offset_y_px"] / gain_y}, sig | {"offset_y_px": sig["offset_y_px"] / gain_y}
+
+
 def _split_reading(split: PositionSplit, contrast: np.ndarray, m: int, n: int, shift_px: float,
                    sigma: float, readings: tuple):
     """A 'position' lens typed by its neighbours' tilt contrast (`contrast`: `neighbour_contrast` of the
@@ -937,6 +947,7 @@ def identify(metrics: LensMetrics, missing: np.ndarray, qc: QC, table: Signature
         position = None if position is None else tuple(np.where(outside, np.nan, p) for p in position)
         missing = missing & ~outside
     dev, sig, rings, detect_dev, trend = _all_deviations(metrics, position, phase, ring_floor, packing)
+    dev, sig = _isotropic_offsets(dev, sig, shift_gain_y(table))
     noise = detection_noise(detect_dev, rings, det_floor)
     score = detection_score(detect_dev, noise, focus_score(rings, table))
     threshold = np.full(score.shape, qc.detect_sigma)

@@ -123,9 +123,9 @@ _SPLITS: dict[str, PositionSplit] = {}
 
 def position_split(cfg: CameraConfig) -> PositionSplit | None:
     """The split of `cfg`'s optics (the package's for Table 1 optics, else the disk cache, else rendered,
-    about 10 s, and cached), or None with grid boundaries,
-    where no neighbour sees either error."""
-    if cfg.mla.boundaries != "sag-intersection":
+    about 10 s, and cached), or None with grid boundaries or circular apertures (each centred on its own
+    front vertex, as a chrome mask makes them: no boundary is shared), where no neighbour sees either error."""
+    if cfg.mla.boundaries != "sag-intersection" or cfg.mla.aperture == "circle":
         return None
     from mlaqc.models.signatures import signature_key
 

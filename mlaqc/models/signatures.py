@@ -149,6 +149,8 @@ def signature_key(cfg: CameraConfig) -> str:
     mla = {k: v for k, v in mla_hash_view(d["mla"]).items() if k not in ("count_w", "count_h")}
     keep = {"main_lens": d["main_lens"], "mla": mla, "geometry": d["geometry"], "pixel_um": d["sensor"]["pixel_um"],
             "fresnel": d["trace"]["fresnel"], "version": TABLE_VERSION, **blur_key(cfg)}
+    if cfg.mla.packing == "hex":  # hex tables also hold the Y_PROBE's gain
+        keep["y_probe"] = Y_PROBE
     return hashlib.sha256(json.dumps(keep, sort_keys=True).encode()).hexdigest()[:16]
 
 
@@ -214,13 +216,30 @@ def lens_features(metrics, m: int, n: int, direction_deg: float | None = None) -
 
 def patch_errors(kinds=KINDS, packing: str = "square") -> list[ErrorMap]:
     """The patch's error maps in table order: the perfect patch, then each kind at each magnitude on the
-    centre lens (`patch_centre`)."""
+    centre lens (`patch_centre`); on hex then the Y_PROBE (see `shift_gain_y`)."""
     rows, cols = patch_shape(packing)
     r, c = rows // 2, cols // 2
     maps = [ErrorMap.zeros(rows, cols, packing)]
     for kind in kinds:
         maps += [ErrorMap.zeros(rows, cols, packing).with_lens(r + 1, c + 1, **kind.fields(v)) for v in kind.magnitudes]
+    if packing == "hex" and any(k.name == "pitch" for k in kinds):
+        maps.append(ErrorMap.zeros(rows, cols, packing).with_lens(r + 1, c + 1, **Y_PROBE))
     return maps
+
+
+# A pitch error across the rows (90 deg), rendered on hex patches only: see `shift_gain_y`.
+Y_PROBE = {"pitch_um": 2.0, "pitch_dir_deg": 90.0}
+
+
+def shift_gain_y(table: SignatureTable) -> float:
+    """How much less a lens shift across the rows (y) moves its registered sub-image than one along them
+    (x), on hex: 1 on a square lattice. Hex sub-images of a pitch-wide disc overlap the rows above and
+    below (rows are 0.87 pitch apart), so a shift in y moves the lens' rim under its neighbours' light,
+    which the registration against the whole window sees only in part (measured on the small hex
+    camera: 0.21 px against 0.38 px for 2 µm; a sub-window without the overlap strips sees almost none
+    of it). The table's directional kinds are rendered along x; `identify` scales the y offsets by
+    1 / this before reading them, so that a shift reads the same in every direction."""
+    return float(table.settings.get("shift_gain_y", 1.0) or 1.0)
 
 
 def _render_patch(patch: CameraConfig, errors: ErrorMap, rays_per_pixel: float, seed: int) -> np.ndarray:
@@ -287,9 +306,15 @@ def build_signatures(cfg: CameraConfig, *, rays_per_pixel: float = 400.0, kinds=
         feats[kind.name] = np.asarray([lens_features(m_, r, c, phi) - base_phi for m_ in mets])
         rings[kind.name] = np.asarray([[m_[k][r, c] - base[k][r, c] for k in RINGS] for m_ in mets])
         phi0[kind.name] = phi
-    return SignatureTable(mags, feats, phi0, signature_key(cfg), rings,
-                          {"rays_per_pixel": rays_per_pixel, "seed": seed, "patch_lenses": PATCH,
-                           "extra_blur_px": extra_blur_px, "edge_width_px": edge_width})
+    settings = {"rays_per_pixel": rays_per_pixel, "seed": seed, "patch_lenses": PATCH,
+                "extra_blur_px": extra_blur_px, "edge_width_px": edge_width}
+    if len(images) > first and "pitch" in mags:  # the hex Y_PROBE: its shift over the same pitch along x
+        probe = metrics_of(images[first])
+        along = float(np.interp(Y_PROBE["pitch_um"], mags["pitch"], feats["pitch"][:, 0]))
+        across = float(np.hypot(probe["offset_x_px"][r, c] - base["offset_x_px"][r, c],
+                                probe["offset_y_px"][r, c] - base["offset_y_px"][r, c]))
+        settings["shift_gain_y"] = across / along if along > 0 else 1.0
+    return SignatureTable(mags, feats, phi0, signature_key(cfg), rings, settings)
 
 
 def build_signature_set(cfg: CameraConfig, *, rays_per_pixel: float = 400.0, progress=None,
