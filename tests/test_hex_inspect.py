@@ -281,6 +281,7 @@ def test_inspect_with_a_grid_file_of_another_lattice_exits_2_writing_nothing(tmp
     raw = tmp_path / "white.npy"
     np.save(raw, (3000 * img / img.max()).astype(np.uint16))
     out = tmp_path / "rep"
+    capsys.readouterr()  # (a first render's one-time compile note is not the command's)
     code = main(["inspect", str(raw), "-c", str(hex24), "-g", str(tmp_path / "grid.json"), "-o", str(out), "-q"])
     err = capsys.readouterr().err
     assert code == 2 and "Traceback" not in err and err.count("\n") == 1
@@ -338,3 +339,32 @@ def test_a_hex_frame_measures_every_lens_and_states_what_it_detects(hex_result):
     assert math.hypot(dx[9, 7], dy[9, 7]) == pytest.approx(3.0, rel=0.35)
     assert np.nanmedian(np.hypot(dx, dy)[healthy]) < 0.5
     assert hex_result.detection_limit["pitch_um"] is not None
+
+
+def test_a_perfect_hex_array_reads_no_placement_error():
+    """The projection fit's design centres are the hex lattice's: a perfect array's frame reads no shift
+    or rotation, and its centres fit to the calibration's own noise (the square formula would leave
+    every other row half a pitch off)."""
+    from mlaqc.inspection.pipeline import calibrate_for
+    from mlaqc.inspection.projection import fit_projection, pupil_distance_mm
+    from mlaqc.optics.render import Renderer
+    from mlaqc.optics.scene import WhiteScene
+
+    img = Renderer(HEX).render(WhiteScene(), rays_per_pixel=30, seed=2).photons
+    grid = calibrate_for((img / img.max()).astype(np.float32), HEX)
+    params, cov, used, rms = fit_projection(grid, HEX, pupil_distance_mm(HEX))
+    sigma = np.sqrt(np.diag(cov))
+    assert used == 28 * 24 and rms < 0.05
+    assert abs(params[1]) < 4 * sigma[1] + 1e-3  # rotation, deg
+    assert abs(params[4]) < 0.05 and abs(params[5]) < 0.05  # shifts, µm
+    assert abs(params[0]) < 4 * sigma[0] + 1.0  # sensor distance, µm
+
+
+def test_circular_apertures_cannot_tell_pitch_from_decenter():
+    """Each circle is centred on its own front vertex: no boundary is shared, no neighbour sees either."""
+    import dataclasses
+
+    from mlaqc.models.position_split import position_split
+
+    circ = dataclasses.replace(HEX, mla=dataclasses.replace(HEX.mla, aperture="circle", aperture_diameter_um=90.0))
+    assert position_split(circ) is None
