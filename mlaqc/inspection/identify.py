@@ -842,7 +842,7 @@ def _all_deviations(metrics: LensMetrics, position, phase: PhaseModel | None, ri
     values = [metrics[k] for k in _NAMES] + [metrics[r] for r in RINGS] + list(position or ())
     planes = local_deviations(values, _AXES + [""] * len(RINGS) + (["x", "y"] if position is not None else []),
                               packing=packing)
-    trend = class_centred([v - p for v, p in zip(values, planes)])
+    trend = class_centred([v - p for v, p in zip(values, planes)], packing)
     if phase is not None:
         planes = remove_phase_pattern(planes, phase)
         trend = remove_phase_trend(trend, phase)
@@ -854,18 +854,34 @@ def _all_deviations(metrics: LensMetrics, position, phase: PhaseModel | None, ri
     return dev, sig, rings, detect_dev, dict(zip(names, trend))
 
 
-def class_centred(planes: list[np.ndarray]) -> list[np.ndarray]:
-    """Each (rows, cols) map minus its median over each edge class (edge lenses carry their own bias)."""
+def class_centred(planes: list[np.ndarray], packing: str = "square") -> list[np.ndarray]:
+    """Each (rows, cols) map minus its median over each edge class (edge lenses carry their own bias);
+    on hex the row ends that stick out (`hex_row_ends`) are a class of their own."""
     cls = edge_classes(planes[0].shape)
+    if packing == "hex":
+        cls = np.where(hex_row_ends(planes[0].shape), 3, cls)
     out = []
     for p in planes:
         q = np.array(p, dtype=np.float64)
-        for c in range(3):
+        for c in range(4):
             sel = (cls == c) & np.isfinite(q)
             if sel.any():
                 q[sel] -= np.median(q[sel])
         out.append(q)
     return out
+
+
+@functools.lru_cache(maxsize=8)
+def hex_row_ends(shape: tuple[int, int]) -> np.ndarray:
+    """On a hex lattice, the row ends that stick out half a pitch past the rows above and below (the
+    unshifted rows' first lenses, the shifted rows' last): they miss 3 of their 6 neighbours, the other
+    ends 1, and their sub-images differ the more (measured: flux 0.905 against 0.985)."""
+    rows, cols = shape
+    r = np.arange(rows)
+    ends = np.zeros(shape, bool)
+    ends[r % 2 == 0, 0] = True
+    ends[r % 2 == 1, cols - 1] = True
+    return _frozen(ends)
 
 
 def _isotropic_offsets(dev: dict[str, np.ndarray], sig: dict[str, float], gain_y: float):

@@ -103,7 +103,7 @@ def _centre(found: Identification, table: SignatureTable, cfg: CameraConfig, dis
     gain differs (measured 0.84 on analytic discs against 0.96 on the tracer's)."""
     r = found.readings
     if disc is not None:
-        dx, dy = class_centred([np.asarray(disc[0], float), np.asarray(disc[1], float)])
+        dx, dy = class_centred([np.asarray(disc[0], float), np.asarray(disc[1], float)], cfg.mla.packing)
         um_per_px = cfg.mla.pitch_um / cfg.layout.subimage_pitch_px
     else:
         dx, dy = r["offset_x_px"], r["offset_y_px"] / shift_gain_y(table)  # (hex: y registers low)
