@@ -43,7 +43,7 @@ from mlaqc.inspection.filters import max_filter_nearest, max_of_neighbours
 from mlaqc.inspection.metrics_kernels import median_baselines
 from mlaqc.inspection.results import Defect, LensMetrics
 from mlaqc.models.position_split import PositionSplit, contrast_sigma, neighbour_contrast, split_limits, type_position
-from mlaqc.models.signatures import FEATURES, KIND_BY_NAME, RINGS, SignatureTable, lens_features, shift_gain_y
+from mlaqc.models.signatures import FEATURES, KIND_BY_NAME, RINGS, SignatureTable, lens_features, gains_y
 from mlaqc.optics.config import QC
 from mlaqc.optics.lattice import Lattice
 from mlaqc.parallel import thread_map
@@ -884,14 +884,17 @@ def hex_row_ends(shape: tuple[int, int]) -> np.ndarray:
     return _frozen(ends)
 
 
-def _isotropic_offsets(dev: dict[str, np.ndarray], sig: dict[str, float], gain_y: float):
-    """The classification deviations with the registration offsets' y divided by the table's
-    `shift_gain_y` (hex: a shift across the rows registers at about half its size), so that a lens shift
-    reads alike in every direction, as the table (rendered along x) reads it; and their spread with it.
-    Unchanged where the gain is 1 (square)."""
-    if gain_y == 1.0 or not gain_y > 0:
-        return dev, sig
-    return dev | {"offset_y_px": dev["offset_y_px"] / gain_y}, sig | {"offset_y_px": sig["offset_y_px"] / gain_y}
+def _isotropic(dev: dict[str, np.ndarray], sig: dict[str, float], gains_y: tuple[float, float]):
+    """The classification deviations with the y components of the registration offset and the intensity
+    tilt divided by the table's gains across the rows (`shift_gain_y`, `asym_gain_y`; hex: a shift
+    across the rows registers at about half its size, and tilts the sub-image more), so that a lens
+    shift reads alike in every direction, as the table (rendered along x) reads it; their spreads with
+    them. Unchanged where the gains are 1 (square)."""
+    out, out_sig = dict(dev), dict(sig)
+    for name, gain in zip(("offset_y_px", "asym_y"), gains_y):
+        if gain != 1.0 and gain > 0:
+            out[name], out_sig[name] = dev[name] / gain, sig[name] / gain
+    return out, out_sig
 
 
 def _split_reading(split: PositionSplit, contrast: np.ndarray, m: int, n: int, shift_px: float,
@@ -963,7 +966,6 @@ def identify(metrics: LensMetrics, missing: np.ndarray, qc: QC, table: Signature
         position = None if position is None else tuple(np.where(outside, np.nan, p) for p in position)
         missing = missing & ~outside
     dev, sig, rings, detect_dev, trend = _all_deviations(metrics, position, phase, ring_floor, packing)
-    dev, sig = _isotropic_offsets(dev, sig, shift_gain_y(table))
     noise = detection_noise(detect_dev, rings, det_floor)
     score = detection_score(detect_dev, noise, focus_score(rings, table))
     threshold = np.full(score.shape, qc.detect_sigma)
@@ -971,11 +973,12 @@ def identify(metrics: LensMetrics, missing: np.ndarray, qc: QC, table: Signature
     flagged = ((score > threshold) & ~outside) | missing
     flagged &= ~spill(score, flagged, asym=(dev["asym_x"], dev["asym_y"]),
                       offset=(detect_dev["offset_x_px"], detect_dev["offset_y_px"]), packing=packing) | missing
-    sigmas = _feature_sigmas(sig)
+    feat_dev, feat_sig = _isotropic(dev, sig, gains_y(table))  # what the lens' features are read from
+    sigmas = _feature_sigmas(feat_sig)
     error_type = np.full(flagged.shape, "", dtype=object)
     defects = []
     lenses = list(zip(*np.nonzero(flagged & ~missing)))
-    features = [_feature_vector(dev, rings, m, n) for m, n in lenses]
+    features = [_feature_vector(feat_dev, rings, m, n) for m, n in lenses]
     vecs = np.array([f[0] for f in features]) if features else np.zeros((0, len(sigmas) + len(RINGS)))
     fits = dict(zip(lenses, fit_all(table, vecs, sigmas, rings.whiten)))
     shifts = dict(zip(lenses, features))

@@ -242,6 +242,12 @@ def shift_gain_y(table: SignatureTable) -> float:
     return float(table.settings.get("shift_gain_y", 1.0) or 1.0)
 
 
+def gains_y(table: SignatureTable) -> tuple[float, float]:
+    """(`shift_gain_y`, asym_gain_y): the Y_PROBE's registered shift and intensity tilt over the same
+    pitch error's along x (1, 1 on a square lattice)."""
+    return shift_gain_y(table), float(table.settings.get("asym_gain_y", 1.0) or 1.0)
+
+
 def _render_patch(patch: CameraConfig, errors: ErrorMap, rays_per_pixel: float, seed: int) -> np.ndarray:
     return Renderer(patch, errors).render(WhiteScene(), rays_per_pixel=rays_per_pixel, seed=seed).photons
 
@@ -314,6 +320,9 @@ def build_signatures(cfg: CameraConfig, *, rays_per_pixel: float = 400.0, kinds=
         across = float(np.hypot(probe["offset_x_px"][r, c] - base["offset_x_px"][r, c],
                                 probe["offset_y_px"][r, c] - base["offset_y_px"][r, c]))
         settings["shift_gain_y"] = across / along if along > 0 else 1.0
+        tilt = float(np.interp(Y_PROBE["pitch_um"], mags["pitch"], feats["pitch"][:, 2]))
+        tilt_y = float(np.hypot(probe["asym_x"][r, c] - base["asym_x"][r, c], probe["asym_y"][r, c] - base["asym_y"][r, c]))
+        settings["asym_gain_y"] = tilt_y / abs(tilt) if abs(tilt) > 0 else 1.0
     return SignatureTable(mags, feats, phi0, signature_key(cfg), rings, settings)
 
 
