@@ -2,7 +2,13 @@
 
     python bench/calibrate.py [--rays-per-pixel 50] [--seed 1] [--no-noise] [--rotation-deg A]
                               [--vignetting F] [--repeat 5] [--steps] [--raw FILE [--config C]]
-                              [--threads N] [--no-truth]
+                              [--threads N] [--no-truth] [--packing hex [--noise N]] [--bars]
+
+--packing hex calibrates a hexagonal array of the Table 1 size (102 columns x 116 rows at the Table 1
+sub-image pitch on 2048 x 2048) rendered by the independent analytic model (tests/analytic_frames.py,
+--noise: relative shot noise at full signal, default 0) against its exact centres. --bars prints the hex
+bars: on that model, noise-free and noisy, hex against the square 102 x 102 array (every lens found, per-lens
+centre RMS per axis, calibration time and the hex / square ratio).
 
 The frame is rendered once (about 20-35 s at 50 rays/pixel; --rotation-deg renders a rotated MLA) and
 kept in ~/.cache/mlaqc-bench, or read from --raw (any file mlaqc.inspection.rawio.load_raw reads). --vignetting F
@@ -116,6 +122,67 @@ def step_times(fn, repeat: int) -> dict[str, float]:
     return best
 
 
+def analytic_frame(packing: str, noise: float, seed: int = 1, rotation_deg: float = 0.3):
+    """(model, normalized float32 frame) of the Table 1 size array on the analytic model: square 102 x 102,
+    hex 102 columns x 116 rows; the model's centre at 80 % of full scale."""
+    from analytic_frames import AnalyticModel, expose
+
+    lenses = (116, 102) if packing == "hex" else (102, 102)
+    model = AnalyticModel(shape=(2048, 2048), lenses=lenses, packing=packing, rotation_deg=rotation_deg,
+                          phase_px=(0.21, -0.4))
+    img = (0.8 * expose(model.render(), noise, np.random.default_rng(seed))).astype(np.float32)
+    return model, img
+
+
+def analytic_figures(model, img, packing: str, repeat: int) -> dict[str, float]:
+    """Calibrate `img` (timed: best of `repeat`) and measure against the model's exact centres."""
+    kw = dict(expected_pitch_px=model.pitch_px, expected_shape=model.lenses, packing=packing)
+    grid, wall, _ = timed(lambda: calibrate(img, **kw), repeat)
+    x, y = model.centres()
+    sel = model.inside() & ~grid.clipped
+    ex, ey = (grid.measured_x_px - x)[sel], (grid.measured_y_px - y)[sel]
+    gx, gy = (grid.grid_x_px - x)[sel], (grid.grid_y_px - y)[sel]
+    return {"lenses": grid.rows * grid.cols, "found": grid.lenses_found,
+            "missing_on_sensor": int(np.count_nonzero(grid.missing & model.inside())),
+            "rms_axis": float(np.sqrt(np.nanmean(np.concatenate([ex, ey]) ** 2))),
+            "max": float(np.nanmax(np.hypot(ex, ey))),
+            "grid_rms_axis": float(np.sqrt(np.mean(np.concatenate([gx, gy]) ** 2))),
+            "time_s": min(wall), "time_median_s": statistics.median(wall),
+            "pitch": grid.pitch_px, "rotation": grid.rotation_deg, "shear": grid.shear_deg}
+
+
+def print_figures(label: str, f: dict) -> None:
+    print(f"  {label:28s} {f['found']:5d}/{f['lenses']} found ({f['missing_on_sensor']} on the sensor missing), "
+          f"centres RMS {f['rms_axis']:.4f} px per axis (max {f['max']:.3f}), grid {f['grid_rms_axis']:.4f}; "
+          f"pitch {f['pitch'][0]:.4f} x {f['pitch'][1]:.4f}, rotation {f['rotation']:+.4f}, shear {f['shear']:+.4f} deg; "
+          f"calibrate best {f['time_s'] * 1e3:.0f} ms (median {f['time_median_s'] * 1e3:.0f})")
+
+
+def bars(repeat: int) -> int:
+    """The hex bars on the analytic model (noise-free and noisy), hex against square."""
+    print("analytic model (tests/analytic_frames.py), 2048 x 2048, rotation 0.3 deg, Gaussian rim 0.5 px, "
+          "radius 9.75 px, cos^4 vignetting, PRNU 0.5 %, crosstalk 2 %")
+    out = {}
+    for noise in (0.0, 0.01, 0.05):
+        print(f"noise {noise:g} (relative, at full signal):")
+        for packing in ("square", "hex"):
+            model, img = analytic_frame(packing, noise)
+            out[packing, noise] = f = analytic_figures(model, img, packing, repeat if noise == 0.0 else 1)
+            print_figures(f"{packing} {model.lenses[1]} x {model.lenses[0]}", f)
+    clean = out["hex", 0.0]
+    print("bars:")
+    print(f"  noise-free hex: every lens on the sensor found: {clean['missing_on_sensor'] == 0}; per-lens centre RMS "
+          f"{clean['rms_axis']:.4f} px per axis (bar <= 0.01): {clean['rms_axis'] <= 0.01}")
+    for noise in (0.01, 0.05):
+        h, q = out["hex", noise]["rms_axis"], out["square", noise]["rms_axis"]
+        print(f"  noise {noise:g}: per-lens centre RMS hex {h:.4f} / square {q:.4f} px per axis (ratio {h / q:.2f})")
+    ratio = out["hex", 0.0]["time_s"] / out["square", 0.0]["time_s"]
+    print(f"  calibration time hex / square: {ratio:.2f} (bar: inspection within 1.2x) "
+          f"({out['hex', 0.0]['lenses']} / {out['square', 0.0]['lenses']} lenses = "
+          f"{out['hex', 0.0]['lenses'] / out['square', 0.0]['lenses']:.2f})")
+    return 0
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--rays-per-pixel", type=float, default=50.0)
@@ -129,10 +196,22 @@ def main() -> int:
     ap.add_argument("--config", help="camera config of --raw (default: Table 1)")
     ap.add_argument("--threads", type=int, help="worker threads of the disc fit (default: one per core, max 4)")
     ap.add_argument("--no-truth", action="store_true", help="skip the accuracy figures")
+    ap.add_argument("--packing", choices=("square", "hex"), default="square",
+                    help="hex: the Table 1 size hex array on the analytic model (see above)")
+    ap.add_argument("--noise", type=float, default=0.0, help="with --packing hex: relative noise at full signal")
+    ap.add_argument("--bars", action="store_true", help="print the hex bars (analytic model, hex vs square)")
     args = ap.parse_args()
-    cfg = load_config(args.config) if args.raw else default_config()
     if args.threads:
         calibration._workers = lambda: args.threads  # noqa: E731
+    if args.bars:
+        return bars(args.repeat)
+    if args.packing == "hex":
+        model, img = analytic_frame("hex", args.noise, args.seed, args.rotation_deg or 0.3)
+        print(f"frame: 2048x2048 px (analytic model, hex {model.lenses[1]} x {model.lenses[0]}, noise {args.noise:g}, "
+              f"rotation {model.rotation_deg:g} deg)")
+        print_figures("hex", analytic_figures(model, img, "hex", args.repeat))
+        return 0
+    cfg = load_config(args.config) if args.raw else default_config()
     if args.raw:
         frame = load_raw(args.raw)
         img, _ = suppress_hot_pixels(normalized(frame), frame.cfa)

@@ -5,7 +5,9 @@ Gaussian or an Airy edge-spread function, on a rotated square or hexagonal grid 
 apart, every second row shifted half a pitch right; a radius under half the pitch leaves gaps) with any
 sub-pixel phase, integrated exactly
 over each pixel (4 x 4 Gauss-Legendre points: the disc is smooth at that scale), times cos⁴ vignetting
-(and an optional extra radial fall-off), a fixed PRNU pattern and nearest-neighbour crosstalk. Seeded
+(and an optional extra radial fall-off), a fixed PRNU pattern and nearest-neighbour crosstalk; an
+optional uniform background stands for the unfocused light that clear gaps between circular lenses let
+through. Seeded
 anomalies of known size: shift, skew (intensity tilt), blur, size, dim, missing. Noise from none to
 15 % per white pixel; containers of 8, 12 (in 16), 14 and 16 bits with black levels and with or
 without level tags.
@@ -74,6 +76,7 @@ class AnalyticModel:
     sensor_seed: int = 3
     anomalies: tuple[Anomaly, ...] = ()
     packing: str = "square"  # or "hex": rows pitch·√3/2 apart, rows 1, 3, ... (0-based; U(2,n), U(4,n), ...) +pitch/2 in x
+    background: float = 0.0  # unfocused light through clear gaps between circular lenses, level under and between discs
 
     def with_anomalies(self, anomalies) -> AnalyticModel:
         return dataclasses.replace(self, anomalies=tuple(anomalies))
@@ -140,6 +143,8 @@ class AnalyticModel:
         for chunk in np.array_split(np.arange(rows * cols), max(1, rows * cols // 1500)):
             self._add_discs(img, x.ravel()[chunk], y.ravel()[chunk], radius.ravel()[chunk], blur.ravel()[chunk],
                             flux.ravel()[chunk], skew.reshape(-1, 2)[chunk], edge)
+        if self.background:
+            img += self.background
         img *= self._vignetting()
         if self.crosstalk:
             c = self.crosstalk

@@ -39,8 +39,10 @@ def hex_model(**kw) -> AnalyticModel:
 
 
 def frame(model: AnalyticModel, noise: float = 0.0, seed: int = 1, scale: float = 0.8) -> np.ndarray:
-    """Normalized float32 frame (the model's centre at `scale` of full scale), with noise if asked."""
-    return (scale * expose(model.render(), noise, np.random.default_rng(seed))).astype(np.float32)
+    """Normalized float32 frame (the model's plateau, or overlaps, at `scale` of full scale), noise if asked."""
+    irradiance = model.render()
+    irradiance /= max(1.0, float(irradiance.max()))
+    return (scale * expose(irradiance, noise, np.random.default_rng(seed))).astype(np.float32)
 
 
 def hex_calibrate(img, model: AnalyticModel | None = None, **kw) -> Grid:
@@ -82,6 +84,8 @@ def test_the_hex_model_lays_lenses_out_as_the_convention_says():
     dict(rotation_deg=0.7, phase_px=(0.4, 0.15)),
     dict(rotation_deg=-1.8, phase_px=(-0.25, 0.5), rim="airy", extra_falloff=0.3),
     dict(rotation_deg=2.5, phase_px=(0.5, 0.5), radius_px=8.0),  # circular sub-images with gaps between them
+    dict(rotation_deg=-0.3, phase_px=(0.2, 0.3), radius_px=10.8),  # overlapping sub-images (a faster main lens)
+    dict(rotation_deg=1.1, phase_px=(-0.4, 0.1), radius_px=11.5),  # overlapping almost to the cell corners
 ])
 def test_noise_free_hex_frame_every_lens_found_and_centred(kw):
     m = hex_model(**kw)
@@ -227,6 +231,26 @@ def test_wrong_shape_pitch_and_packing_arguments():
 # ------------------------------------------------------------------------------------ internals vs geometry
 
 
+@pytest.mark.parametrize("radius", [3.0, 6.0, 10.0, 10.8, 11.5, 13.0])
+@pytest.mark.parametrize("noise", [0.0, 0.15])
+def test_the_fourier_lattice_lands_on_sub_image_centres(radius, noise):
+    """The Fourier phase leaves a half period open (a disc's transform changes sign at |k| R ~ 0.61): the
+    origin must still be a true centre, from small discs with wide gaps to discs overlapping past the cell
+    corners (0.577 p), where every brightness test is fooled by the twice-lit overlaps."""
+    from mlaqc.inspection.calibrate import _fft_lattice
+
+    m = hex_model(rotation_deg=0.4, radius_px=radius, rim_sigma_px=0.8)
+    img = m.render()
+    img = (0.7 * expose(img / img.max(), noise, np.random.default_rng(3))).astype(np.float32)
+    lattice = _fft_lattice(img, PITCH, "hex")
+    x, y = m.centres()
+    assert np.min(np.hypot(x - lattice.origin[0], y - lattice.origin[1])) < 0.1
+    a1, a2 = lattice.basis.T
+    assert np.hypot(*a1) == pytest.approx(PITCH, rel=1e-3) and np.hypot(*a2) == pytest.approx(PITCH, rel=1e-3)
+    assert math.degrees(math.atan2(-a1[1], a1[0])) == pytest.approx(0.4, abs=0.1)  # a1 along the rows
+    assert math.degrees(math.acos(a1 @ a2 / (a1 @ a1))) == pytest.approx(60.0, abs=0.1) and a2[1] > 0
+
+
 def test_neighbour_table_and_colours_follow_the_hex_geometry():
     """The disc fit's neighbour table holds exactly the lattice points one pitch away (6), then those
     within two steps (sqrt(3) and 2 pitches: 12 more); the three colours never put neighbours together."""
@@ -307,3 +331,47 @@ def test_cli_calibrate_uses_the_configs_packing(tmp_path, capsys):
     out2 = tmp_path / "grid2.json"
     assert main(["calibrate", str(raw), "--out", str(out2), "--config", str(square)]) == 2
     assert "hexagonal microlens lattice" in capsys.readouterr().err and not out2.exists()
+
+
+@pytest.mark.parametrize("rotation, phase", [(0.4, (0.3, 0.1)), (-1.2, (5.3, -7.9))])
+def test_blind_hex_calibration_finds_the_whole_array(rotation, phase):
+    """No expected pitch or shape: the lit lenses' extent (columns counted along the zig-zag) is the array."""
+    m = hex_model(shape=(560, 540), rotation_deg=rotation, phase_px=phase)
+    g = calibrate(frame(m), packing="hex")
+    x, y = m.centres()
+    assert g.shape == SHAPE and g.lenses_missing == 0
+    assert per_axis_rms(g, x, y, np.ones(SHAPE, bool)) < 0.01
+
+
+@pytest.mark.parametrize("packing, lenses, radius", [("hex", SHAPE, 8.0), ("hex", SHAPE, 9.75), ("square", (24, 24), 8.0)])
+def test_clear_gaps_background_does_not_pull_the_centres(packing, lenses, radius):
+    """Circular lenses with clear gaps: unfocused light under and between the sub-images (27 % of their
+    level) times strong vignetting. Without a background term a sloped pedestal pulls each disc towards
+    the brighter side (0.013 px RMS, 0.08 px at the corners, measured at radius 9.75); the calibration
+    takes a smooth background through the cell corners off and measures again."""
+    m = hex_model(packing=packing, lenses=lenses, radius_px=radius, background=0.27, rotation_deg=0.6,
+                  phase_px=(0.3, -0.2), rim="airy", airy_radius_px=0.9)
+    g = calibrate(frame(m, scale=0.6), expected_pitch_px=PITCH, expected_shape=lenses, packing=packing)
+    x, y = m.centres()
+    sel = m.inside() & ~g.clipped
+    assert g.lenses_missing == 0
+    assert per_axis_rms(g, x, y, sel) <= 0.01
+    assert np.nanmax(np.hypot(g.measured_x_px - x, g.measured_y_px - y)[sel]) < 0.04
+
+
+@pytest.mark.parametrize("radius, pedestal, fits", [(9.75, 0.0, 1), (10.8, 0.0, 1), (9.75, 0.2, 2)])
+def test_a_background_is_taken_off_only_where_the_corners_show_one(monkeypatch, radius, pedestal, fits):
+    """Dark corners (touching discs), or corners lit by the rims of overlapping discs, leave the frame as it
+    is (one fit); a flat pedestal (a black level set too low) is taken off (a second fit), and the centres
+    come out as without it."""
+    import mlaqc.inspection.calibrate as calibration
+
+    calls = []
+    measure = calibration._measure
+    monkeypatch.setattr(calibration, "_measure", lambda *a, **k: calls.append(1) or measure(*a, **k))
+    m = hex_model(rotation_deg=0.4, radius_px=radius)
+    img = frame(m, noise=0.01)
+    g = hex_calibrate(img + np.float32(pedestal), m)
+    assert len(calls) == fits
+    x, y = m.centres()
+    assert per_axis_rms(g, x, y, m.inside() & ~g.clipped) < 0.01

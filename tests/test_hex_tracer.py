@@ -349,7 +349,8 @@ def test_hex_white_spectrum_peaks_on_the_reciprocal_lattice(hex_white):
     (vectors (1/P, -1/(sqrt(3) P)), (0, 2/(sqrt(3) P)), P the sub-image pitch), not at a square lattice's
     (1/P, 0), (0, 1/P)."""
     img = hex_white[40:456, 40:456]
-    spec = np.abs(np.fft.fft2(img - img.mean()))
+    hann = np.hanning(img.shape[0])
+    spec = np.abs(np.fft.fft2((img - img.mean()) * np.outer(hann, hann)))  # windowed: little leakage
     n = img.shape[0]
     big = HEX.layout.subimage_pitch_px
 
@@ -361,7 +362,7 @@ def test_hex_white_spectrum_peaks_on_the_reciprocal_lattice(hex_white):
             at(1 / big, 1 / (math.sqrt(3) * big))]
     square = [at(1 / big, 0), at(0, 1 / big)]
     floor = np.median(spec)
-    assert min(hexp) > 50 * max(square) and min(hexp) > 200 * floor
+    assert min(hexp) > 50 * max(square) and min(hexp) > 50 * floor  # the square points are at the noise floor
 
 
 def test_stratified_hex_sampler_is_unbiased():

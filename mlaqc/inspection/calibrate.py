@@ -6,7 +6,12 @@ Pipeline (DESIGN.md §6), vectorized over all lenses at once (no per-lens Python
 1. Lattice from the Fourier transform of the (Hann-windowed, for big frames 2x2- or 4x4-binned) white
    image: the two fundamental peaks give pitch and rotation (refined to ~0.01 bin with a local DTFT),
    their phases the lattice offset (the remaining half-period ambiguity is settled by where the cell
-   corners are dark).
+   corners are dark). Square: the peaks at |k| = 1/p, 90 degrees apart. Hex: two of the six at
+   |k| = 2/(sqrt(3) p), 60 degrees apart; the real basis is then a1 along the rows (~x) and a2 at +60
+   degrees (down-right as displayed), both a pitch long ("axial" lattice coordinates (j, i)); the cell
+   offset is the half-period shift about which the frame is six-fold symmetric. A spectrum plainly of
+   the other packing than the config's (shells of equal peaks 60 rather than 90 degrees apart, or the
+   reverse) is refused by name.
 2. Every sub-image is measured by a joint least-squares fit of the frame by a sum of discs, one per lens:
    lens k adds (a_k + slope . (x - c_k)) * e((R_k - |x - c_k|) / s) to the model, e a logistic edge.
    Gauss-Newton on (a_k, c_k, R_k) of all lenses at once: one compiled pass per lens
@@ -20,7 +25,8 @@ Pipeline (DESIGN.md §6), vectorized over all lenses at once (no per-lens Python
    lens reads its full shift and its neighbours read ~2 % of it. Details that matter:
    - each lens is fitted on an annulus round its rim, tapered and centred on its current estimate (a
      window fixed to the pixel grid would pull a not-yet-right model off centre);
-   - red-black sweeps: side neighbours (whose discs overlap) never step together;
+   - red-black sweeps (hex: three colours, (j + 2 i) mod 3): side neighbours (whose discs overlap) never
+     step together;
    - noise weights ~ 1 / signal (Monte-Carlo and photon noise), except round lenses far off the lattice;
    - intensity slopes across each sub-image (illumination falloff, vignetting) come from the smooth
      field of the lens amplitudes and are held fixed (fitting them per lens costs precision);
@@ -28,12 +34,20 @@ Pipeline (DESIGN.md §6), vectorized over all lenses at once (no per-lens Python
      pull in (more than ~1.5 px off the lattice) are captured with a wide edge of their own;
    - pixels outside the frame are simply left out, so lenses cut by the frame are measured unbiased;
    - the first weighted sweep is not damped as an oscillation (it answers a new objective), so three
-     sweeps settle nearly every lens.
+     sweeps settle nearly every lens;
+   - the model has no background term: where the cell corners, well clear of the fitted rims, hold over
+     15 % of the sub-images' light (clear gaps between circular lenses, a low black level), a smooth
+     surface through them is taken off and every lens measured again (`_without_background`).
 3. Indexing: lattice rows/columns; with an expected MLA shape the window of N_H x N_W lattice lines with
    the most light (then the fewest lines seen dark, then nearest the frame centre) is U(1,1)..U(N_H,N_W).
+   Hex (mlaqc.optics.lattice's offset convention: rows 2, 4, ... shifted +p/2): the window's columns
+   zig-zag along a2 and a2 - a1, and which lattice row is U(1,n) decides which rows are the shifted ones,
+   so rows and columns are anchored together (`_anchor_hex`).
 4. Global model: a projective map of the lattice (pitch x/y, rotation, shear, offset, keystone from an
    MLA tilt) plus a radial term about the frame centre, fitted robustly (defective lenses are outliers)
-   by Gauss-Newton with the analytic Jacobian.
+   by Gauss-Newton with the analytic Jacobian. Its lattice coordinates are the design's, in pitches from
+   U(1,1) (`Lattice.uv`: square (n-1, m-1), hex (n-1 + [m even]/2, (m-1) sqrt(3)/2)), so pitch, rotation
+   and shear mean the same for both packings (a perfect hex array has shear 0).
    Lenses predicted by the model but dark or dim are reported in `missing`, never an error.
 
 Measured on the Table 1 camera (50 rays/pixel, noise on): per-lens centres 0.029 px RMS (0.021 px per
@@ -71,6 +85,10 @@ MIN_VALID_FRACTION = 0.35  # lenses with less of their rim than this inside the 
 PITCH_TOLERANCE = 0.10  # the found pitch may differ from the expected one by 10 %
 MIN_LENSES = 9
 MIN_PITCH_PX = 4.0
+# light at the cell corners above this fraction of the sub-images' is a background: less pulls the centres by
+# under 0.01 px even with strong vignetting, and blurred or Airy rims alone reach 5 - 12 % there (measured)
+BACKGROUND_MIN = 0.15
+BACKGROUND_DEGREE = 4  # of the polynomial surface fitted to it
 
 # The disc fit (see _measure). Lengths in pixels.
 BLOCK_SWEEPS = 5  # sweeps on the central block that sets the edge width and typical radius
@@ -95,7 +113,8 @@ class Grid:
 
     Per-lens arrays have shape (rows, cols); [m-1, n-1] is lens U(m,n). `measured_*` and the per-lens
     measurements are NaN where `missing` (dark/dim, or mostly outside the frame). `grid_*` is the global
-    model's prediction for every lens. The model maps lattice coordinates (u, v) = (n-1, m-1) to pixels:
+    model's prediction for every lens. The model maps design coordinates (u, v) (`Lattice.uv` of
+    `packing`, in pitches from U(1,1): square (n-1, m-1), hex (n-1 + 0.5 [m even], (m-1) sqrt(3)/2)) to pixels:
     (x', y') = projective(homography, u, v), then a radial term about `radial_centre_px`:
     p = c + (p' - c) * (1 + radial_k * |p' - c|^2 / radial_scale_px^2).
     """
@@ -678,16 +697,12 @@ _CORNERS = {"square": [(cx, cy) for cx in (-0.5, 0.5) for cy in (-0.5, 0.5)],
             "hex": [(1 / 3, 1 / 3), (-1 / 3, 2 / 3), (-2 / 3, 1 / 3), (-1 / 3, -1 / 3), (1 / 3, -2 / 3), (2 / 3, -1 / 3)]}
 
 
-# hex: the corners weigh 10x: overlapping discs (radius > p / 2) light the wrong candidates' points (where
-# two discs overlap) twice and their corners (0.29 p from a centre) once, while the true corners, 0.577 p
-# from three centres, stay the darkest places of the frame up to a radius of ~0.56 p (measured: 11.2 px at
-# a 20.05 px pitch); with small discs every wrong corner is dark too and the points decide
-_CORNER_WEIGHT = {"square": 1.0, "hex": 10.0}
-
-
 def _resolve_half_period(img: np.ndarray, basis: np.ndarray, base: np.ndarray, packing: str = "square") -> np.ndarray:
     """The Fourier phase fixes the lattice up to half a period per axis (the sign of the sub-image's
-    transform); pick the shift whose points are bright with dark cell corners around them."""
+    transform); pick the shift whose points are bright with dark cell corners around them (hex: the
+    shift about whose points the frame has the lattice's six-fold symmetry, `_six_fold_origin`)."""
+    if packing == "hex":
+        return _six_fold_origin(img, basis, base)
     h, w = img.shape
     jj, ii = np.meshgrid(np.arange(-6, 7), np.arange(-6, 7))
     best, score_best = base, -np.inf
@@ -701,8 +716,38 @@ def _resolve_half_period(img: np.ndarray, basis: np.ndarray, base: np.ndarray, p
             if not ok.any():
                 continue
             sample = lambda p: _bilinear(img, p[0][ok], p[1][ok])  # noqa: E731
-            score = float(np.mean(sample(pts)) - _CORNER_WEIGHT[packing] * np.mean([sample(c) for c in corners]))
+            score = float(np.mean(sample(pts)) - np.mean([sample(c) for c in corners]))
             if score > score_best:
+                best, score_best = o, score
+    return best
+
+
+def _six_fold_origin(img: np.ndarray, basis: np.ndarray, base: np.ndarray) -> np.ndarray:
+    """Of the four half-period shifts of a hex lattice, the one whose points are centres of six-fold
+    symmetry: on rings round a sub-image centre the frame repeats every 60 degrees, round the other three
+    (midpoints between two neighbours) only every 180. Brightness tests fail here: discs larger than half
+    the pitch light their overlaps twice and, beyond ~0.56 p, the cell corners too. Measured on the
+    analytic model for radii 0.15 - 0.65 p, noise-free and at 15 % noise. Rings at 0.2, 0.3 and 0.4 p,
+    12 samples each, round 21 x 21 lattice points near the frame centre."""
+    h, w = img.shape
+    jj, ii = np.meshgrid(np.arange(-10, 11), np.arange(-10, 11))
+    pitch = float(np.hypot(*basis[:, 0]))
+    angle = math.atan2(basis[1, 0], basis[0, 0]) + np.radians(np.arange(12) * 30.0)
+    best, score_best = base, np.inf
+    for sx in (0.0, 0.5):
+        for sy in (0.0, 0.5):
+            o = base + basis @ np.array([sx, sy])
+            pts = o[:, None] + basis @ np.stack([jj.ravel(), ii.ravel()])
+            score = 0.0
+            for rho in (0.2 * pitch, 0.3 * pitch, 0.4 * pitch):
+                rx = pts[0][:, None] + rho * np.cos(angle)[None, :]
+                ry = pts[1][:, None] + rho * np.sin(angle)[None, :]
+                ok = np.all((rx > 1) & (rx < w - 2) & (ry > 1) & (ry < h - 2), axis=1)
+                if not ok.any():
+                    continue
+                f = _bilinear(img, rx[ok], ry[ok])
+                score += float(np.mean(np.abs(f - np.roll(f, -2, axis=1))) / (np.mean(np.abs(f)) + 1e-12))
+            if score < score_best:
                 best, score_best = o, score
     return best
 
@@ -947,6 +992,9 @@ def calibrate(img: np.ndarray, *, expected_pitch_px: float | None = None,
     pitch = float(np.sqrt(abs(np.linalg.det(lattice.basis))))
     radius0 = _radius_guess(img, pitch)
     discs, active = _measure(img, px, py, lat_j, lat_i, lattice.basis, radius0, packing)
+    clean = _without_background(img, lattice, discs, active)
+    if clean is not img:  # a background the discs do not explain: measured again without it
+        discs, active = _measure(clean, px, py, lat_j, lat_i, lattice.basis, radius0, packing)
     return _assemble(img.shape, lattice, lat_j, lat_i, discs, active, expected_shape)
 
 
@@ -956,6 +1004,62 @@ def _colours(lat_j: np.ndarray, lat_i: np.ndarray, packing: str) -> np.ndarray:
     if packing == "hex":
         return (lat_j + 2 * lat_i) % 3
     return (lat_i + lat_j) % 2
+
+
+# the corners must lie this far outside the fitted rims to measure a background there: 1.5 px and two edge
+# widths (a background widens the fitted edge, so no more); discs that reach them (radius > ~0.53 p in hex)
+# light them themselves
+BACKGROUND_CLEAR_PX = 1.5
+
+
+def _without_background(img: np.ndarray, lattice: _Lattice, discs: _Discs, active: np.ndarray) -> np.ndarray:
+    """The frame less a smooth background, if the cell corners (the places farthest from every sub-image)
+    hold over BACKGROUND_MIN of the sub-images' light while the fitted rims lie well clear of them:
+    unfocused light through clear gaps between circular lenses, or a black level set too low. The disc
+    model has no background term, and a sloped one (vignetting) pulls the centres. The background is a
+    robust polynomial surface through the corners' levels. Otherwise (dark corners, or corners the rims
+    reach, where the light is the discs') the frame itself is returned."""
+    h, w = img.shape
+    lit = np.flatnonzero(active)
+    corners = lattice.basis @ np.array(_CORNERS[lattice.packing], dtype=float).T  # (2, k) px from a centre
+    clear = float(np.min(np.hypot(corners[0], corners[1]))) - float(np.median(discs.radius[lit]))
+    if lit.size == 0 or clear < max(BACKGROUND_CLEAR_PX, 2.0 * discs.edge):
+        return img
+
+    def corner_levels(lenses: np.ndarray):
+        """(x, y, level) of the corners of `lenses` inside the frame."""
+        x = (discs.cx[lenses][:, None] + corners[0][None, :]).ravel()
+        y = (discs.cy[lenses][:, None] + corners[1][None, :]).ravel()
+        keep = (x >= 0) & (x <= w - 2) & (y >= 0) & (y <= h - 2)
+        return x[keep], y[keep], _bilinear(img, x[keep], y[keep])
+
+    # the question on a sample of a few thousand lenses (a millisecond), the surface from all of them
+    sample = lit[:: max(1, lit.size // 2000)]
+    inner = (discs.cx[sample] >= 0) & (discs.cx[sample] <= w - 2) & (discs.cy[sample] >= 0) & (discs.cy[sample] <= h - 2)
+    _, _, level = corner_levels(sample)
+    if level.size < 4 * (BACKGROUND_DEGREE + 1) ** 2 or not inner.any():
+        return img
+    plateau = float(np.median(_bilinear(img, discs.cx[sample][inner], discs.cy[sample][inner])))
+    if not float(np.median(level)) > BACKGROUND_MIN * plateau:
+        return img
+    cx, cy, level = corner_levels(lit)
+    sx, sy = 2.0 / w, 2.0 / h  # coordinates in [-1, 1]
+    terms = [(a, b) for a in range(BACKGROUND_DEGREE + 1) for b in range(BACKGROUND_DEGREE + 1 - a)]
+    xn, yn = cx * sx - 1.0, cy * sy - 1.0
+    design = np.stack([xn ** a * yn ** b for a, b in terms], axis=1)
+    used = np.ones(level.size, bool)
+    for _ in range(3):  # corners next to defects are outliers
+        coef = np.linalg.lstsq(design[used], level[used], rcond=None)[0]
+        resid = level - design @ coef
+        spread = 1.4826 * float(np.median(np.abs(resid[used]))) + 1e-12
+        used = np.abs(resid) <= 3.0 * spread
+    xs_row = (np.arange(w) * sx - 1.0)[None, :]
+    ys_col = (np.arange(h) * sy - 1.0)[:, None]
+    surface = np.zeros((h, w), np.float32)
+    for b in range(BACKGROUND_DEGREE + 1):
+        row = sum(c * xs_row ** a for (a, bb), c in zip(terms, coef) if bb == b)
+        surface += (ys_col ** b * row).astype(np.float32)
+    return img - surface
 
 
 def _candidates(shape: tuple[int, int], lattice: _Lattice):
@@ -1254,22 +1358,26 @@ def _anchor_hex(weight: np.ndarray, dark_seen: np.ndarray, lit: np.ndarray, rows
     pad = np.zeros(rows)
     rdark = np.convolve(np.concatenate([pad, row_dark, pad]), np.ones(rows), mode="valid")  # [s]: start s - rows
     aj, ai = axis_ji
-    cands = []
+    per_parity = []
     for parity in (0, 1):
-        light = _box_sums(_sheared(weight, parity), rows, cols)
+        first = (parity + rows) % 2  # box-sum rows s start at table row s - rows: those of this parity
+        light = _box_sums(_sheared(weight, parity), rows, cols)[first::2]
+        per_parity.append((parity, first, light))
+    top = max(float(light.max()) for _, _, light in per_parity)
+    cands = []
+    for parity, first, light in per_parity:
+        s, t = np.nonzero(light >= top * (1 - 1e-9) - 1e-12)  # the windows with the most light
+        s = first + 2 * s
         col_dark = (_sheared(dark_seen, parity).any(axis=0) & ~_sheared(lit, parity).any(axis=0)).astype(float)
         cdark = np.convolve(np.concatenate([np.zeros(cols), col_dark, np.zeros(cols)]), np.ones(cols), mode="valid")
-        s, t = np.mgrid[0:light.shape[0], 0:light.shape[1]]
-        r0, c_sheared = s - rows, t - cols
-        keep = (r0 % 2) == parity
-        c0 = c_sheared - (r0 - parity) // 2 - 1  # axial column of U(1,1)
+        r0 = s - rows
+        c0 = (t - cols) - (r0 - parity) // 2 - 1  # axial column of U(1,1)
         u_mid = c0 + 0.5 * r0 + 0.5 * (cols - 1 + (0.5 if rows > 1 else 0.0))
         v_mid = r0 + 0.5 * (rows - 1)
         dist = (u_mid - (aj + 0.5 * ai)) ** 2 + ((v_mid - ai) * SQRT3_2) ** 2
-        cands.append(np.stack([light[keep], rdark[s[keep]] + cdark[t[keep]], dist[keep], r0[keep], c0[keep]]))
-    light, dark, dist, r0, c0 = np.concatenate(cands, axis=1)
-    best = light >= light.max() * (1 - 1e-9) - 1e-12
-    best &= dark <= dark[best].min()
+        cands.append(np.stack([rdark[s] + cdark[t], dist, r0, c0]).astype(np.float64))
+    dark, dist, r0, c0 = np.concatenate(cands, axis=1)
+    best = dark <= dark.min()
     pick = np.flatnonzero(best)[np.argmin(dist[best])]
     return int(r0[pick]), int(c0[pick])
 
