@@ -368,3 +368,22 @@ def test_circular_apertures_cannot_tell_pitch_from_decenter():
 
     circ = dataclasses.replace(HEX, mla=dataclasses.replace(HEX.mla, aperture="circle", aperture_diameter_um=90.0))
     assert position_split(circ) is None
+
+
+def test_a_hex_frame_inspected_with_a_square_config_exits_2_writing_nothing(tmp_path, capsys):
+    """The calibration finds the frame's lattice is not the config's: one sentence naming both, exit 2."""
+    from mlaqc.cli import main
+    from mlaqc.optics.errormap import ErrorMap
+    from mlaqc.optics.simulate import simulate, write_simulation
+
+    raw = tmp_path / "hex.dng"
+    write_simulation(raw, simulate(HEX, None, ErrorMap.zeros(28, 24, "hex"), rays_per_pixel=20, seed=3), HEX)
+    square = tmp_path / "square.toml"
+    square.write_text("[mla]\ncount_w = 24\ncount_h = 28\n[sensor]\nwidth_px = 496\nheight_px = 496\n")
+    out = tmp_path / "rep"
+    capsys.readouterr()
+    code = main(["inspect", str(raw), "-c", str(square), "-o", str(out), "-q"])
+    err = capsys.readouterr().err
+    assert code == 2 and "Traceback" not in err and err.count("\n") == 1, err
+    assert "hex" in err and "square" in err
+    assert not out.exists() or not any(out.iterdir())
