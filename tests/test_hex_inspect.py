@@ -378,12 +378,10 @@ def test_a_hex_frame_inspected_with_a_square_config_exits_2_writing_nothing(tmp_
 
     raw = tmp_path / "hex.dng"
     write_simulation(raw, simulate(HEX, None, ErrorMap.zeros(28, 24, "hex"), rays_per_pixel=20, seed=3), HEX)
-    square = tmp_path / "square.toml"
-    square.write_text("[mla]\ncount_w = 24\ncount_h = 28\n[sensor]\nwidth_px = 496\nheight_px = 496\n")
     out = tmp_path / "rep"
     capsys.readouterr()
-    code = main(["inspect", str(raw), "-c", str(square), "-o", str(out), "-q"])
+    code = main(["inspect", str(raw), "-c", str(FIXTURES / "small_camera.toml"), "-o", str(out), "-q"])
     err = capsys.readouterr().err
     assert code == 2 and "Traceback" not in err and err.count("\n") == 1, err
-    assert "hex" in err and "square" in err
+    assert "hexagonal microlens lattice" in err and "'square'" in err
     assert not out.exists() or not any(out.iterdir())
