@@ -385,3 +385,24 @@ def test_a_hex_frame_inspected_with_a_square_config_exits_2_writing_nothing(tmp_
     assert code == 2 and "Traceback" not in err and err.count("\n") == 1, err
     assert "hexagonal microlens lattice" in err and "'square'" in err
     assert not out.exists() or not any(out.iterdir())
+
+
+def test_hex_edge_classes_are_the_steps_off_the_array():
+    """`edge_classes` (min of the row and column distances to the edge) is, on hex too, the number of
+    neighbour steps from a lens to the nearest site off the array, less one (breadth-first search over
+    the lattice's own neighbours, clipped at 2)."""
+    from mlaqc.inspection.identify import edge_classes
+    from mlaqc.optics.lattice import Lattice
+
+    rows, cols = 13, 11
+    nbr = Lattice("hex", rows, cols).neighbours()
+    dist = np.full(rows * cols, -1)
+    frontier = np.flatnonzero((nbr < 0).any(axis=1))  # one step from a site off the array
+    dist[frontier] = 0
+    d = 0
+    while frontier.size:
+        d += 1
+        nxt = np.unique(nbr[frontier][nbr[frontier] >= 0])
+        frontier = nxt[dist[nxt] < 0]
+        dist[frontier] = d
+    assert np.array_equal(np.minimum(dist, 2).reshape(rows, cols), edge_classes((rows, cols)))
