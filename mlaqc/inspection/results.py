@@ -194,7 +194,8 @@ def detection_limit_text(limit: dict[str, Any]) -> str:
         return text
     split = limit["pitch_vs_decenter"]
     if split is None:
-        return text + "; pitch vs decenter: not told apart (grid lens boundaries: reported as 'position')"
+        return text + ("; pitch vs decenter: not told apart (grid lens boundaries or circular apertures: no boundary "
+                       "is shared; reported as 'position')")
     return text + (f"; tells pitch from decenter from {split['pitch_um']:.3g} µm pitch / {split['decenter_um']:.3g} µm "
                    "decenter (sag-intersection lens boundaries)")
 
