@@ -6,7 +6,6 @@ the code's output."""
 
 from __future__ import annotations
 
-import json
 import math
 from pathlib import Path
 
@@ -256,7 +255,7 @@ def test_a_grid_on_another_lattice_is_refused_in_one_sentence():
 
 
 def test_a_calibration_without_packing_refuses_a_hex_config(monkeypatch):
-    import mlaqc.inspection.pipeline as pipeline
+    from mlaqc.inspection import pipeline
 
     def old_calibrate(img, *, expected_pitch_px=None, expected_shape=None):
         return "square grid"

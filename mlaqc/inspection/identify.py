@@ -43,7 +43,7 @@ from mlaqc.inspection.filters import max_filter_nearest, max_of_neighbours
 from mlaqc.inspection.metrics_kernels import median_baselines
 from mlaqc.inspection.results import Defect, LensMetrics
 from mlaqc.models.position_split import PositionSplit, contrast_sigma, neighbour_contrast, split_limits, type_position
-from mlaqc.models.signatures import FEATURES, KIND_BY_NAME, RINGS, SignatureTable, lens_features, gains_y
+from mlaqc.models.signatures import FEATURES, KIND_BY_NAME, RINGS, SignatureTable, gains_y, lens_features
 from mlaqc.optics.config import QC
 from mlaqc.optics.lattice import Lattice
 from mlaqc.parallel import thread_map
@@ -110,7 +110,7 @@ def _hex_edge_columns(stack: np.ndarray, finite: np.ndarray, base: np.ndarray, s
     lenses, clipped) of the finite lenses of the same column and row parity: a shifted row's end lens
     misses other neighbours than an unshifted row's, and the two carry different biases. Corners are
     left to the rows for planes not along x (as `median_baselines` leaves them)."""
-    n_f, rows, cols = stack.shape
+    _, rows, cols = stack.shape
     if rows < 2 * size or cols < size:
         return
     half = size // 2
