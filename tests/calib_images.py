@@ -58,7 +58,7 @@ class RenderCache:
         self.folder.mkdir(parents=True, exist_ok=True)
 
     def white(self, cfg, errors: ErrorMap | None = None, *, rpp: float = 50, seed: int = 1, noise: bool = True) -> White:
-        errors = errors if errors is not None else ErrorMap.zeros(cfg.mla.count_h, cfg.mla.count_w)
+        errors = errors if errors is not None else ErrorMap.zeros(cfg.mla.count_h, cfg.mla.count_w, cfg.mla.packing)
         key = hashlib.sha256(json.dumps([config_to_toml(cfg), errors.to_json_dict(), rpp, seed, noise],
                                         sort_keys=True).encode()).hexdigest()[:20]
         path = self.folder / f"white-{key}.npz"

@@ -166,7 +166,8 @@ class Grid:
         return int(np.count_nonzero(self.missing))
 
     def predict(self, m, n) -> tuple[np.ndarray, np.ndarray]:
-        """Model centre (x, y) in pixels of lens U(m,n) (1-based; arrays broadcast; may extrapolate)."""
+        """Model centre (x, y) in pixels of lens U(m,n) (1-based; arrays broadcast; may extrapolate; hex:
+        integer m, whose parity shifts the row)."""
         if self.packing == "square":
             u = np.asarray(n, dtype=np.float64) - 1.0
             v = np.asarray(m, dtype=np.float64) - 1.0
