@@ -27,6 +27,13 @@ neighbours' tilt contrast against the lens' own shift types it (mlaqc.models.pos
 the frame's noise separates the two, and the frame reports from what size on it does. And a radius error
 whose opposite sign fits about as well carries the other reading in `alternatives` (the microlens'
 spherical aberration puts best focus in front of the paraxial focus the sensor sits at).
+
+Hex lattices (`packing="hex"`, mlaqc.optics.lattice): a lens' neighbours are the lattice's six, each
+along its own direction (echoes, the pitch/decenter contrast); the outer lenses, whose windows miss the
+strip of the rows beyond, are left out of every other lens' baseline, and the row ends that stick out
+are compared with each other (`_hex_edge_columns`, `hex_row_ends`). A shift across the rows registers
+at about half its size (the pitch-wide discs overlap the rows above and below): the features are read
+with the y offset and tilt scaled by the table's gains (`signatures.gains_y`).
 """
 
 from __future__ import annotations
