@@ -203,25 +203,6 @@ def under_black_matrix(u, v, p, hw, lat):
     return _black_square(u, v, p, hw, lat) if lat is None else _black_hex(u, v, p, hw, lat)
 
 
-def _start_square(u2, u3, row, col, ax0, ay0, p, lat):
-    return ax0 + (col + u2) * p, ay0 + (row + u3) * p, (u2 - 0.5) * p, (u3 - 0.5) * p
-
-
-def _start_hex(u2, u3, row, col, ax0, ay0, p, lat):
-    bb = u3 - 0.5
-    _, _, du, dv = hex_locate((u2 - 0.5) + 0.5 * bb, SQRT3_2 * bb)
-    hx, hy = du * p, dv * p
-    mx = ax0 + (col + 0.5 * (row - 2.0 * np.floor(0.5 * row))) * p + hx
-    return mx, ay0 + row * (SQRT3_2 * p) + hy, hx, hy
-
-
-def cell_start(u2, u3, row, col, ax0, ay0, p, lat):
-    """A stratified start in cell (row, col) from uniforms u2, u3 (as scene.sample_image_cells): MLA-frame
-    (x, y) and its offset from the cell centre, mm."""
-    return (_start_square(u2, u3, row, col, ax0, ay0, p, lat) if lat is None
-            else _start_hex(u2, u3, row, col, ax0, ay0, p, lat))
-
-
 if AVAILABLE:
     import warnings
 
@@ -238,7 +219,7 @@ if AVAILABLE:
     # the overloads only forward to inline-compiled helpers: selects written in an overload's own body
     # trip a Numba SSA check (NumbaIRAssumptionWarning) when it is inlined
     _cs, _ch, _es, _eh = (_jit_inline(f) for f in (_cell_square, _cell_hex, _cell_edge_square, _cell_edge_hex))
-    _bs, _bh, _ss, _sh = (_jit_inline(f) for f in (_black_square, _black_hex, _start_square, _start_hex))
+    _bs, _bh = _jit_inline(_black_square), _jit_inline(_black_hex)
 
     @overload(lattice_cell, **_TYPED)
     def _lattice_cell_typed(u, v, lat):
@@ -257,12 +238,6 @@ if AVAILABLE:
         if isinstance(lat, types.NoneType):
             return lambda u, v, p, hw, lat: _bs(u, v, p, hw, lat)
         return lambda u, v, p, hw, lat: _bh(u, v, p, hw, lat)
-
-    @overload(cell_start, **_TYPED)
-    def _start_typed(u2, u3, row, col, ax0, ay0, p, lat):
-        if isinstance(lat, types.NoneType):
-            return lambda u2, u3, row, col, ax0, ay0, p, lat: _ss(u2, u3, row, col, ax0, ay0, p, lat)
-        return lambda u2, u3, row, col, ax0, ay0, p, lat: _sh(u2, u3, row, col, ax0, ay0, p, lat)
 
 
 @_jit_inline
@@ -478,10 +453,15 @@ def cell_starts(m, s, buf, g, shift_coef, lat):
     inv_rm, sq, sqw = s[S_INVKR], s[S_SQUARE], s[S_SQW]
     inv_ra = 1.0 / rp
     rp2 = rp * rp
+    if lat is not None:
+        hex_fold(m, g)
     for j in range(m):
-        mx, my, hx, hy = cell_start(g[G_HZ, j], g[G_LL, j], g[G_ROW, j], g[G_COL, j], ax0, ay0, p, lat)
+        u2, u3 = g[G_HZ, j], g[G_LL, j]
+        mx = ax0 + (g[G_COL, j] + u2) * p
+        my = ay0 + (g[G_ROW, j] + u3) * p
         x = r00 * mx + r01 * my + shx
         y = r10 * mx + r11 * my + shy
+        hx, hy = (u2 - 0.5) * p, (u3 - 0.5) * p
         hcx, hcy = r00 * hx + r01 * hy, r10 * hx + r11 * hy
         bx, by = sq * (2.0 * g[G_HX, j] - 1.0), sq * (2.0 * g[G_HY, j] - 1.0)
         ax, ay, jac = aperture_point(shift_coef, inv_rm, inv_ra, hcx, hcy, bx, by)
@@ -492,6 +472,20 @@ def cell_starts(m, s, buf, g, shift_coef, lat):
         w = (N * N) * (N * N) * sqw * jac
         buf[0, j], buf[1, j], buf[2, j], buf[3, j], buf[4, j], buf[5, j] = x, y, zs, L, M, N
         buf[6, j] = w if ax * ax + ay * ay <= rp2 else 0.0
+
+
+@_jit_inline
+def hex_fold(m, g):
+    """Hex cells (as scene.hex_cell_draws): each ray's cell draws (u2, u3) and cell (row, col) rewritten so
+    that the square cell's formulas (x0 + (col + u2) p, offset (u2 - 1/2) p) give the point of its
+    hexagon, (x0, y0) being U(1,1)'s centre."""
+    for j in range(m):
+        bb = g[G_LL, j] - 0.5
+        _, _, du, dv = hex_locate((g[G_HZ, j] - 0.5) + 0.5 * bb, SQRT3_2 * bb)
+        row = g[G_ROW, j]
+        g[G_HZ, j], g[G_LL, j] = du + 0.5, dv + 0.5
+        g[G_COL, j] = g[G_COL, j] + 0.5 * (row - 2.0 * np.floor(0.5 * row)) - 0.5
+        g[G_ROW, j] = row * SQRT3_2 - 0.5
 
 
 @_jit_inline
