@@ -229,7 +229,8 @@ def main() -> int:
         r2 = ((xx - 0.5 * (w - 1)) ** 2 + (yy - 0.5 * (h - 1)) ** 2) / (0.5 * h) ** 2
         img = img * (1.0 - args.vignetting * r2).astype(np.float32)
         source += f", vignetting 1 - {args.vignetting:g} r^2"
-    kw = dict(expected_pitch_px=cfg.layout.subimage_pitch_px, expected_shape=(cfg.mla.count_h, cfg.mla.count_w))
+    kw = dict(expected_pitch_px=cfg.layout.subimage_pitch_px, expected_shape=(cfg.mla.count_h, cfg.mla.count_w),
+              packing=cfg.mla.packing)
     grid, cal_wall, cal_cpu = timed(lambda: calibrate(img, **kw), args.repeat)
     sub, div_wall, div_cpu = timed(lambda: divide(img, grid), args.repeat)
     both = [a + b for a, b in zip(cal_wall, div_wall)]

@@ -668,7 +668,7 @@ def _hex_lattice(img: np.ndarray, a: np.ndarray, kvec: np.ndarray, kmag: np.ndar
     h, w = (full_h // b * b, full_w // b * b) if b > 1 else (full_h, full_w)
     centre = np.array([0.5 * (w - 1), 0.5 * (h - 1)])
     base = centre + prime @ phase
-    basis = _hex_basis(prime)
+    basis = _second_shell_basis(a, _hex_basis(prime) / b, min(abs(f1), abs(f2))) * b
     pitch = np.hypot(basis[0], basis[1])
     if pitch.min() < MIN_PITCH_PX:
         raise InputError(f"the periodic structure in the image ({pitch.min():.2f} px) is too fine for microlenses")
@@ -677,6 +677,25 @@ def _hex_lattice(img: np.ndarray, a: np.ndarray, kvec: np.ndarray, kmag: np.ndar
                          f"{b * expected_pitch_px:.2f} px; check the camera config and the image")
     origin = _resolve_half_period(img, basis, base, "hex")
     return _Lattice(basis, origin, "hex")
+
+
+def _second_shell_basis(a: np.ndarray, basis: np.ndarray, first_level: float) -> np.ndarray:
+    """The hex basis (binned px) refined on the second shell of peaks (|k| = 2 / p: 2 b1 + b2 and b1 + 2 b2,
+    b_i the reciprocal basis) where those are the stronger (`first_level`: the weaker first-shell peak's
+    |DTFT|). Discs of about half the pitch, as an f-number-matched camera makes, have their first-shell
+    peaks next to a zero of the disc's transform (2 pi |k| R ~ 3.7 against 3.83): weak, good to a few 1e-4
+    of the pitch only; the second shell is then about twice as strong and twice as far out (discs of
+    ~0.3 p have it at the zero instead). Kept only if both refined peaks stay within a bin of where the
+    first shell puts them."""
+    b1, b2 = np.linalg.inv(basis)
+    h, w = a.shape
+    guess = (2.0 * b1 + b2, b1 + 2.0 * b2)
+    (q1, g1), (q2, g2) = (_refine_peak(a, q) for q in guess)
+    if min(abs(g1), abs(g2)) <= first_level:
+        return basis
+    if max(abs((q - g)[0]) * w + abs((q - g)[1]) * h for q, g in zip((q1, q2), guess)) > 1.0:
+        return basis
+    return np.linalg.inv(np.array([(2.0 * q1 - q2) / 3.0, (2.0 * q2 - q1) / 3.0]))
 
 
 def _hex_basis(prime: np.ndarray) -> np.ndarray:
@@ -1107,7 +1126,11 @@ def _measure(img: np.ndarray, px: np.ndarray, py: np.ndarray, lat_j: np.ndarray,
     # stage 1: a block of about SUBSET x SUBSET lenses round the brightest part of the centre
     cj, ci = np.median(lat_j), np.median(lat_i)
     half = SUBSET // 2
-    block = (np.abs(lat_j - cj) <= half + 1) & (np.abs(lat_i - ci) <= half + 1)
+    # its lenses are fitted with one ring of lenses round them held on the lattice (amplitude only); hex:
+    # two rings, as the first ring's amplitude, fitted with its outer neighbours (not in the block) left
+    # out, is inflated by their overlaps and would push the block's edge lenses inwards (0.05 px measured)
+    pad = 2 if packing == "hex" else 1
+    block = (np.abs(lat_j - cj) <= half + pad) & (np.abs(lat_i - ci) <= half + pad)
     inner = (np.abs(lat_j - cj) <= half) & (np.abs(lat_i - ci) <= half)
     colour = _colours(lat_j, lat_i, packing)
     px, py = px.copy(), py.copy()

@@ -145,6 +145,101 @@ def hex_edge(du, dv):
     return 0.5 - mx
 
 
+# Helpers that differ between square and hex cells, chosen when Numba types the call from `lat` (None:
+# square): a branch on `lat` inside a pass' loop, even one that can never be taken, keeps LLVM from
+# vectorizing that loop (measured: the hex sag-intersection passes ran scalar, 3x slower). Without Numba
+# the stubs branch at run time.
+def _cell_square(u, v, lat):
+    return np.floor(v), np.floor(u)  # np.floor stays a float: math.floor's int64 does not vectorize on AVX2
+
+
+def _cell_hex(u, v, lat):
+    row, col, _, _ = hex_locate(u, v)
+    return row, col
+
+
+def lattice_cell(u, v, lat):
+    """Row and column (floats) of the cell holding lattice point (u, v): u, v in pitches from the first
+    cell's corner (square) or from U(1,1)'s centre (hex)."""
+    return _cell_square(u, v, lat) if lat is None else _cell_hex(u, v, lat)
+
+
+def _cell_edge_square(u, v, ncols, nrows, lat):
+    col = np.floor(u)
+    row = np.floor(v)
+    fu = u - col
+    fv = v - row
+    eu = fu if fu < 1.0 - fu else 1.0 - fu  # selects: the builtin min's NaN handling does not vectorize
+    ev = fv if fv < 1.0 - fv else 1.0 - fv
+    on = (col >= 0.0) & (col < ncols) & (row >= 0.0) & (row < nrows)
+    return (row * ncols + col if on else -1.0), (eu if eu < ev else ev)
+
+
+def _cell_edge_hex(u, v, ncols, nrows, lat):
+    row, col, du, dv = hex_locate(u, v)
+    on = (col >= 0.0) & (col < ncols) & (row >= 0.0) & (row < nrows)
+    return (row * ncols + col if on else -1.0), hex_edge(du, dv)
+
+
+def cell_edge(u, v, ncols, nrows, lat):
+    """Flat cell index (float, -1.0 off the array) of lattice point (u, v) and its distance (pitches) from
+    the cell's nearest edge."""
+    return _cell_edge_square(u, v, ncols, nrows, lat) if lat is None else _cell_edge_hex(u, v, ncols, nrows, lat)
+
+
+def _black_square(u, v, p, hw, lat):
+    fu = u - np.floor(u)
+    fv = v - np.floor(v)
+    return (p * min(fu, 1.0 - fu) < hw) | (p * min(fv, 1.0 - fv) < hw)
+
+
+def _black_hex(u, v, p, hw, lat):
+    _, _, du, dv = hex_locate(u, v)
+    return p * hex_edge(du, dv) < hw
+
+
+def under_black_matrix(u, v, p, hw, lat):
+    """Lattice point (u, v) lies within hw (mm) of its cell's edge (pitch p mm)."""
+    return _black_square(u, v, p, hw, lat) if lat is None else _black_hex(u, v, p, hw, lat)
+
+
+if AVAILABLE:
+    import warnings
+
+    from numba import types
+    from numba.core.errors import NumbaIRAssumptionWarning
+    from numba.extending import overload
+
+    # Inlining cell_edge's selects into the sag-intersection passes trips a pedantic SSA check of Numba's
+    # (the variables are in scope: the kernels agree with the NumPy reference ray by ray); it is not the
+    # user's to see at compile time.
+    warnings.filterwarnings("ignore", r"variable '.*' is not in scope", NumbaIRAssumptionWarning)
+
+    _TYPED = dict(inline="always", jit_options=dict(error_model="numpy", fastmath={"contract"}))
+    # the overloads only forward to inline-compiled helpers: selects written in an overload's own body
+    # trip a Numba SSA check (NumbaIRAssumptionWarning) when it is inlined
+    _cs, _ch, _es, _eh = (_jit_inline(f) for f in (_cell_square, _cell_hex, _cell_edge_square, _cell_edge_hex))
+    _bs, _bh = _jit_inline(_black_square), _jit_inline(_black_hex)
+
+    @overload(lattice_cell, **_TYPED)
+    def _lattice_cell_typed(u, v, lat):
+        if isinstance(lat, types.NoneType):
+            return lambda u, v, lat: _cs(u, v, lat)
+        return lambda u, v, lat: _ch(u, v, lat)
+
+    @overload(cell_edge, **_TYPED)
+    def _cell_edge_typed(u, v, ncols, nrows, lat):
+        if isinstance(lat, types.NoneType):
+            return lambda u, v, ncols, nrows, lat: _es(u, v, ncols, nrows, lat)
+        return lambda u, v, ncols, nrows, lat: _eh(u, v, ncols, nrows, lat)
+
+    @overload(under_black_matrix, **_TYPED)
+    def _black_typed(u, v, p, hw, lat):
+        if isinstance(lat, types.NoneType):
+            return lambda u, v, p, hw, lat: _bs(u, v, p, hw, lat)
+        return lambda u, v, p, hw, lat: _bh(u, v, p, hw, lat)
+
+
 @_jit_inline
 def cell(x, y, s, lat):
     if lat is None:
@@ -358,21 +453,15 @@ def cell_starts(m, s, buf, g, shift_coef, lat):
     inv_rm, sq, sqw = s[S_INVKR], s[S_SQUARE], s[S_SQW]
     inv_ra = 1.0 / rp
     rp2 = rp * rp
+    if lat is not None:
+        hex_fold(m, g)
     for j in range(m):
         u2, u3 = g[G_HZ, j], g[G_LL, j]
-        if lat is None:
-            mx = ax0 + (g[G_COL, j] + u2) * p
-            my = ay0 + (g[G_ROW, j] + u3) * p
-            hx, hy = (u2 - 0.5) * p, (u3 - 0.5) * p
-        else:
-            bb = u3 - 0.5
-            _, _, du, dv = hex_locate((u2 - 0.5) + 0.5 * bb, SQRT3_2 * bb)
-            hx, hy = du * p, dv * p
-            row = g[G_ROW, j]
-            mx = ax0 + (g[G_COL, j] + 0.5 * (row - 2.0 * np.floor(0.5 * row))) * p + hx
-            my = ay0 + row * (SQRT3_2 * p) + hy
+        mx = ax0 + (g[G_COL, j] + u2) * p
+        my = ay0 + (g[G_ROW, j] + u3) * p
         x = r00 * mx + r01 * my + shx
         y = r10 * mx + r11 * my + shy
+        hx, hy = (u2 - 0.5) * p, (u3 - 0.5) * p
         hcx, hcy = r00 * hx + r01 * hy, r10 * hx + r11 * hy
         bx, by = sq * (2.0 * g[G_HX, j] - 1.0), sq * (2.0 * g[G_HY, j] - 1.0)
         ax, ay, jac = aperture_point(shift_coef, inv_rm, inv_ra, hcx, hcy, bx, by)
@@ -383,6 +472,20 @@ def cell_starts(m, s, buf, g, shift_coef, lat):
         w = (N * N) * (N * N) * sqw * jac
         buf[0, j], buf[1, j], buf[2, j], buf[3, j], buf[4, j], buf[5, j] = x, y, zs, L, M, N
         buf[6, j] = w if ax * ax + ay * ay <= rp2 else 0.0
+
+
+@_jit_inline
+def hex_fold(m, g):
+    """Hex cells (as scene.hex_cell_draws): each ray's cell draws (u2, u3) and cell (row, col) rewritten so
+    that the square cell's formulas (x0 + (col + u2) p, offset (u2 - 1/2) p) give the point of its
+    hexagon, (x0, y0) being U(1,1)'s centre."""
+    for j in range(m):
+        bb = g[G_LL, j] - 0.5
+        _, _, du, dv = hex_locate((g[G_HZ, j] - 0.5) + 0.5 * bb, SQRT3_2 * bb)
+        row = g[G_ROW, j]
+        g[G_HZ, j], g[G_LL, j] = du + 0.5, dv + 0.5
+        g[G_COL, j] = g[G_COL, j] + 0.5 * (row - 2.0 * np.floor(0.5 * row)) - 0.5
+        g[G_ROW, j] = row * SQRT3_2 - 0.5
 
 
 @_jit_inline
@@ -507,11 +610,7 @@ def rot_n(r00, r01, r02, r10, r11, r12, r20, r21, r22, x, y, z):
 def cell_f(x, y, ax0, ay0, invp, ncols, nrows, lat):
     """Flat lens index as a float, -1.0 off the array (NaN too): branch-free, unlike `cell`. Square cells,
     or hexagons where `lat` is not None ((ax0, ay0) is then U(1,1)'s centre)."""
-    if lat is None:
-        col = np.floor((x - ax0) * invp)  # np.floor stays a float: math.floor's int64 does not vectorize on AVX2
-        row = np.floor((y - ay0) * invp)
-    else:
-        row, col, _, _ = hex_locate((x - ax0) * invp, (y - ay0) * invp)
+    row, col = lattice_cell((x - ax0) * invp, (y - ay0) * invp, lat)
     on = (col >= 0.0) & (col < ncols) & (row >= 0.0) & (row < nrows)
     return row * ncols + col if on else -1.0
 
@@ -577,18 +676,8 @@ def surface_hit_edge(px, py, pz, L, M, N, ox, oy, oz, c, fx, fy, rot, k, ax0, ay
     if rot is not None:
         gx, gy, _ = rot_n(r00, r01, r02, r10, r11, r12, r20, r21, r22, hx, hy, hz)
     gx, gy = gx + fx, gy + fy
-    u = (gx - ax0) * invp
-    v = (gy - ay0) * invp
-    if lat is None:
-        fu = u - np.floor(u)
-        fv = v - np.floor(v)
-        eu = fu if fu < 1.0 - fu else 1.0 - fu  # selects: the builtin min's NaN handling does not vectorize
-        ev = fv if fv < 1.0 - fv else 1.0 - fv
-        edge = p * (eu if eu < ev else ev)
-        return hx, hy, hz, L, M, N, t, cell_f(gx, gy, ax0, ay0, invp, ncols, nrows, lat), edge
-    row, col, du, dv = hex_locate(u, v)
-    on = (col >= 0.0) & (col < ncols) & (row >= 0.0) & (row < nrows)
-    return hx, hy, hz, L, M, N, t, (row * ncols + col if on else -1.0), p * hex_edge(du, dv)
+    kf, edge = cell_edge((gx - ax0) * invp, (gy - ay0) * invp, ncols, nrows, lat)
+    return hx, hy, hz, L, M, N, t, kf, p * edge
 
 
 @_jit_inline
@@ -672,15 +761,7 @@ def black_matrix(m, buf, s, lat):
     a cell edge (as raytrace.MicrolensArray.black_matrix)."""
     ax0, ay0, invp, p, hw = s[S_AX0], s[S_AY0], s[S_INVP], s[S_P], s[S_HALFBM]
     for j in range(m):
-        u = (buf[0, j] - ax0) * invp
-        v = (buf[1, j] - ay0) * invp
-        if lat is None:
-            fu = u - np.floor(u)
-            fv = v - np.floor(v)
-            masked = (p * min(fu, 1.0 - fu) < hw) | (p * min(fv, 1.0 - fv) < hw)
-        else:
-            _, _, du, dv = hex_locate(u, v)
-            masked = p * hex_edge(du, dv) < hw
+        masked = under_black_matrix((buf[0, j] - ax0) * invp, (buf[1, j] - ay0) * invp, p, hw, lat)
         buf[6, j] = 0.0 if masked else buf[6, j]
 
 

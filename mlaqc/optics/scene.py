@@ -190,15 +190,12 @@ def sample_image_cells(region: ImageRegion, cells: CellGrid, u: np.ndarray, row:
     says; points outside the disc get weight 0, those inside the square's area over the disc's, so that
     the mean over the square is the mean over the disc."""
     p = cells.pitch_mm
+    u2, u3 = u[2], u[3]
     if cells.packing == "hex":
-        du, dv = hex_cell_offsets(u[2], u[3])
-        hx, hy = du * p, dv * p
-        mx = cells.x0_mm + (col + 0.5 * (row - 2.0 * np.floor(0.5 * row))) * p + hx
-        my = cells.y0_mm + row * (SQRT3_2 * p) + hy
-    else:
-        mx = cells.x0_mm + (col + u[2]) * p
-        my = cells.y0_mm + (row + u[3]) * p
-        hx, hy = (u[2] - 0.5) * p, (u[3] - 0.5) * p
+        u2, u3, row, col = hex_cell_draws(u2, u3, row, col)
+    mx = cells.x0_mm + (col + u2) * p
+    my = cells.y0_mm + (row + u3) * p
+    hx, hy = (u2 - 0.5) * p, (u3 - 0.5) * p
     px = cells.r00 * mx + cells.r01 * my + cells.shift_x_mm
     py = cells.r10 * mx + cells.r11 * my + cells.shift_y_mm
     rp = region.exit_radius_mm
@@ -223,6 +220,14 @@ def hex_cell_offsets(a, b):
     bb = b - 0.5
     _, _, du, dv = hex_cell((a - 0.5) + 0.5 * bb, SQRT3_2 * bb)
     return du, dv
+
+
+def hex_cell_draws(u2, u3, row, col):
+    """Hex cells: the draws (u2, u3) and cell (row, col) rewritten so that the square cell's formulas
+    (x0 + (col + u2) p, offset (u2 - 1/2) p, the same in y) give the point of the hexagon
+    (`hex_cell_offsets`; (x0, y0) is U(1,1)'s centre). The compiled engine does the same (hex_fold)."""
+    du, dv = hex_cell_offsets(u2, u3)
+    return du + 0.5, dv + 0.5, col + 0.5 * (row - 2.0 * np.floor(0.5 * row)) - 0.5, row * SQRT3_2 - 0.5
 
 
 def aperture_point(c, inv_rm, inv_ra, hx, hy, bx, by):
