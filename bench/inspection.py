@@ -21,9 +21,8 @@ import tempfile
 import time
 from pathlib import Path
 
-from mlaqc.inspection.calibrate import calibrate
-from mlaqc.inspection.pipeline import inspect_image, load_frame
-from mlaqc.optics.config import default_config
+from mlaqc.inspection.pipeline import calibrate_for, inspect_image, load_frame
+from mlaqc.optics.config import default_config, load_config
 from mlaqc.optics.errormap import ErrorMap, random_defects
 from mlaqc.optics.simulate import simulate, write_simulation
 
@@ -32,20 +31,28 @@ BAR_REUSED_S = 0.12  # issue #11: one frame, calibration reused from a white ima
 BAR_WITH_TF_S = 0.5  # issue #12: the white frame plus the second measurement, per array
 
 
+def _tag(cfg) -> str:
+    """'' for the Table 1 camera's frames (the names they always had), else the config's shape and packing."""
+    d = default_config().mla
+    same = (cfg.mla.count_h, cfg.mla.count_w, cfg.mla.packing) == (d.count_h, d.count_w, d.packing)
+    return "" if same else f"_{cfg.mla.packing}_{cfg.mla.count_w}x{cfg.mla.count_h}"
+
+
 def frame_path(cfg) -> Path:
     """A 50 rays/pixel DNG with 40 seeded defects, rendered once and kept in the temp folder."""
-    path = Path(tempfile.gettempdir()) / "mlaqc_bench_inspect.dng"
+    path = Path(tempfile.gettempdir()) / f"mlaqc_bench_inspect{_tag(cfg)}.dng"
     if not path.exists():
-        sim = simulate(cfg, None, random_defects(102, 102, 40, seed=77), rays_per_pixel=50, seed=77)
+        sim = simulate(cfg, None, random_defects(cfg.mla.count_h, cfg.mla.count_w, 40, seed=77, packing=cfg.mla.packing),
+                       rays_per_pixel=50, seed=77)
         write_simulation(path, sim, cfg)
     return path
 
 
 def white_path(cfg) -> Path:
     """A defect-free 50 rays/pixel white DNG (the calibration frame), rendered once into the temp folder."""
-    path = Path(tempfile.gettempdir()) / "mlaqc_bench_white.dng"
+    path = Path(tempfile.gettempdir()) / f"mlaqc_bench_white{_tag(cfg)}.dng"
     if not path.exists():
-        sim = simulate(cfg, None, ErrorMap.zeros(cfg.mla.count_h, cfg.mla.count_w), rays_per_pixel=50, seed=78)
+        sim = simulate(cfg, None, ErrorMap.zeros(cfg.mla.count_h, cfg.mla.count_w, cfg.mla.packing), rays_per_pixel=50, seed=78)
         write_simulation(path, sim, cfg)
     return path
 
@@ -135,15 +142,16 @@ def main() -> int:
     ap.add_argument("--runs", type=int, default=7)
     ap.add_argument("--through-focus", action="store_true",
                     help="also the white frame with the shipped protocol's pinhole frames (renders them once)")
+    ap.add_argument("--config", "-c", help="camera config TOML (default: Table 1; e.g. fixtures/hex_camera.toml)")
     args = ap.parse_args()
-    cfg = default_config()
+    cfg = load_config(args.config) if args.config else default_config()
     path, white = frame_path(cfg), white_path(cfg)
     inspect_image(load_frame(path, cfg), cfg)  # warm caches (reference, signatures, FFT plans, compiled kernels)
-    print(f"frame: {path} (2048x2048, 10,404 lenses, 40 seeded defects); best of {args.runs} runs per figure")
+    print(f"frame: {path} ({cfg.sensor.width_px}x{cfg.sensor.height_px}, {cfg.mla.count_h * cfg.mla.count_w:,} "
+          f"{cfg.mla.packing} lenses, 40 seeded defects); best of {args.runs} runs per figure")
     stages, total, cpu, median, res = timed_runs(path, cfg, None, args.runs)
     report("self-calibrated: load + calibrate + divide + indexes + identify", stages, total, cpu, median, BAR_SELF_S)
-    grid = calibrate(load_frame(white, cfg), expected_pitch_px=cfg.layout.subimage_pitch_px,
-                     expected_shape=(cfg.mla.count_h, cfg.mla.count_w))
+    grid = calibrate_for(load_frame(white, cfg), cfg)
     stages, total, cpu, median, res = timed_runs(path, cfg, grid, args.runs)
     report(f"grid reused from a white image ({white.name}): load + divide + indexes + identify",
            stages, total, cpu, median, BAR_REUSED_S)

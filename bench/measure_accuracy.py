@@ -28,12 +28,12 @@ from mlaqc.optics.simulate import simulate, write_simulation
 RADII = (-0.10, -0.07, -0.05, -0.03, 0.03, 0.05, 0.07, 0.10)
 
 
-def seeded(rows: int, cols: int, count: int, seed: int) -> ErrorMap:
+def seeded(rows: int, cols: int, count: int, seed: int, packing: str = "square") -> ErrorMap:
     """`count` lenses, three apart, a third each radius (±3..10 %), pitch (1-3 µm) and decenter (5-10 µm),
     in random directions."""
     rng = np.random.default_rng(seed)
     cells = [(m, n) for m in range(2, rows - 2, 3) for n in range(2, cols - 2, 3)]
-    em = ErrorMap.zeros(rows, cols)
+    em = ErrorMap.zeros(rows, cols, packing)
     for i, k in enumerate(rng.permutation(len(cells))[:count]):
         m, n = cells[k]
         if i % 3 == 0:
@@ -69,7 +69,7 @@ def main() -> int:
     cfg = default_config()
     cfg = dataclasses.replace(cfg, mla=dataclasses.replace(cfg.mla, boundaries=args.boundaries))
     rows, cols = cfg.mla.count_h, cfg.mla.count_w
-    em = with_paper_examples(seeded(rows, cols, args.defects, args.seed))
+    em = with_paper_examples(seeded(rows, cols, args.defects, args.seed, cfg.mla.packing))
     path = Path(tempfile.gettempdir()) / f"mlaqc_measure_{args.boundaries}_{args.rays_per_pixel:g}_{args.seed}_{args.defects}_p.tif"
     if not path.exists():
         t0 = time.perf_counter()

@@ -46,8 +46,8 @@ def placements(rows: int, cols: int) -> list[tuple[int, int]]:
     return [(cm + SPACING * i, cn + SPACING * j) for i in (-1, 0, 1) for j in (-1, 0, 1)]
 
 
-def error_map(rows: int, cols: int, which: range = range(9)) -> tuple[ErrorMap, dict]:
-    em = ErrorMap.zeros(rows, cols)
+def error_map(rows: int, cols: int, which: range = range(9), packing: str = "square") -> tuple[ErrorMap, dict]:
+    em = ErrorMap.zeros(rows, cols, packing)
     truth = {}
     for k, ((m, n), (kind, mag, d)) in enumerate(zip(placements(rows, cols), NINE)):
         if k not in which:
@@ -117,7 +117,7 @@ def main() -> int:
     for first in range(0, 9, args.per_frame):
         which = range(first, min(first + args.per_frame, 9))
         seed = args.seed + first
-        em, truth = error_map(rows, cols, which)
+        em, truth = error_map(rows, cols, which, cfg.mla.packing)
         tag = "" if args.per_frame == 9 else f"_{which.start}-{which.stop - 1}"
         path = Path(tempfile.gettempdir()) / (f"mlaqc_paper9_{config_key(cfg)}_{render_cfg.mla.boundaries}_"
                                               f"{args.rays_per_pixel:g}_{seed}{tag}.tif")

@@ -5,6 +5,8 @@ peak memory on the default camera, for each engine and thread count; then the is
     python bench/trace.py --quick    # fewer rays
     python bench/trace.py --huge     # also 10^9 rays in the memory table
     python bench/trace.py --boundaries   # only: sag-intersection vs grid lens boundaries, interleaved runs
+    python bench/trace.py --arrays       # only: square grid / sag, hex grid / sag, hex circles, interleaved
+    python bench/trace.py --packing hex --aperture circle   # the main tables on another array
 
 Wall-clock rates depend on what else runs on the machine; the CPU time per ray (single thread) does not
 much, so it is printed too: compare that between revisions on a shared machine.
@@ -21,7 +23,9 @@ import subprocess
 import sys
 import time
 
-from mlaqc.optics.config import CameraConfig, default_config
+from pathlib import Path
+
+from mlaqc.optics.config import CameraConfig, default_config, load_config
 from mlaqc.optics.errormap import ErrorMap, random_defects
 from mlaqc.optics.render import Renderer
 from mlaqc.optics.scene import WhiteScene
@@ -29,9 +33,46 @@ from mlaqc.optics.scene import WhiteScene
 DEFECTS = dict(types=("pitch", "decenter", "radius", "thickness"))
 
 
-def camera() -> tuple[CameraConfig, ErrorMap]:
-    """The benchmark camera: Table 1, 200 defective lenses, Fresnel on."""
-    return default_config(), random_defects(102, 102, 200, seed=3, **DEFECTS)
+FIXTURES = Path(__file__).resolve().parent.parent / "fixtures"
+
+
+def camera(packing: str = "square", aperture: str = "cell", boundaries: str | None = None) -> tuple[CameraConfig, ErrorMap]:
+    """The benchmark camera: Table 1, 200 defective lenses, Fresnel on; hex: fixtures/hex_camera.toml (102
+    x 116 lenses on the same sensor); aperture 'circle': 90 µm circles, opaque gaps."""
+    cfg = default_config() if packing == "square" else load_config(FIXTURES / "hex_camera.toml")
+    mla = {"boundaries": boundaries} if boundaries else {}
+    if aperture == "circle":
+        mla.update(aperture="circle", aperture_diameter_um=90.0, gap="opaque")
+    cfg = dataclasses.replace(cfg, mla=dataclasses.replace(cfg.mla, **mla))
+    return cfg, random_defects(cfg.mla.count_h, cfg.mla.count_w, 200, seed=3, packing=packing, **DEFECTS)
+
+
+ARRAYS = {"square grid": ("square", "cell", "grid"), "square sag-intersection": ("square", "cell", "sag-intersection"),
+          "hex grid": ("hex", "cell", "grid"), "hex sag-intersection": ("hex", "cell", "sag-intersection"),
+          "hex circle 90 µm": ("hex", "circle", None), "square circle 90 µm": ("square", "circle", None)}
+
+
+def compare_arrays(rays: int, repeats: int) -> None:
+    """rays/s (numba, one thread and all cores) of every array kind, runs interleaved so that the machine's
+    load hits all alike; medians, and each against the square grid's (the issue's bars: hex and
+    sag-intersection within 1.2x, i.e. >= 0.83x)."""
+    renderers = {name: Renderer(*camera(*spec), engine="numba") for name, spec in ARRAYS.items()}
+    for r in renderers.values():
+        r.render(WhiteScene(), rays=200_000, seed=0)  # compile / warm up
+    cores = os.cpu_count() or 1
+    print(f"arrays, numba, {rays:,} rays a run, {repeats} interleaved runs each (median; CPU ns/ray "
+          "single-threaded is the load-independent figure); 200 defective lenses each")
+    names = list(renderers)
+    for threads in sorted({1, cores}):
+        got = {b: [] for b in names}
+        for k in range(repeats):
+            for b in (names if k % 2 == 0 else names[::-1]):
+                got[b].append(rate(renderers[b], rays, threads, seed=10 + k))
+        med = {b: (float(np_median([g[0] for g in got[b]])), float(np_median([g[2] for g in got[b]]))) for b in names}
+        ref = med["square grid"]
+        for b in names:
+            print(f"  {b:24s} {threads} thread(s): {med[b][0]:6.2f} M rays/s, {med[b][1]:6.1f} CPU ns/ray, "
+                  f"x{med[b][0] / ref[0]:.2f} rays/s (x{ref[1] / med[b][1]:.2f} by CPU) of square grid")
 
 
 def rate(renderer: Renderer, rays: int, threads: int | None, seed: int = 1) -> tuple[float, float, float]:
@@ -104,6 +145,9 @@ def main() -> int:
     ap.add_argument("--huge", action="store_true", help="add 10^9 rays to the memory table")
     ap.add_argument("--memory-child", type=int, help=argparse.SUPPRESS)
     ap.add_argument("--boundaries", action="store_true", help="only sag-intersection vs grid boundaries' rays/s")
+    ap.add_argument("--arrays", action="store_true", help="only rays/s of square / hex, grid / sag, circles")
+    ap.add_argument("--packing", choices=("square", "hex"), default="square", help="the main tables' array packing")
+    ap.add_argument("--aperture", choices=("cell", "circle"), default="cell", help="the main tables' lens aperture")
     args = ap.parse_args()
     if args.memory_child:
         memory_child(args.memory_child)
@@ -111,10 +155,14 @@ def main() -> int:
     if args.boundaries:
         compare_boundaries(10_000_000 if args.quick else 40_000_000, 3 if args.quick else 5)
         return 0
-    cfg, errors = camera()
+    if args.arrays:
+        compare_arrays(5_000_000 if args.quick else 20_000_000, 3 if args.quick else 5)
+        return 0
+    cfg, errors = camera(args.packing, args.aperture)
     cores = os.cpu_count() or 1
-    print(f"machine: {cores} cores, load average {os.getloadavg()[0]:.1f}; camera: Table 1 (102x102 lenses, "
-          f"2048x2048 px), 200 defective lenses, Fresnel on, {cfg.mla.boundaries} lens boundaries")
+    print(f"machine: {cores} cores, load average {os.getloadavg()[0]:.1f}; camera: Table 1 optics "
+          f"({cfg.mla.count_w}x{cfg.mla.count_h} {cfg.mla.packing} lenses, aperture {cfg.mla.aperture}, 2048x2048 px), "
+          f"200 defective lenses, Fresnel on, {cfg.mla.boundaries} lens boundaries")
     print(f"{'engine':8s} {'threads':>7s} {'rays':>12s} {'M rays/s':>9s} {'seconds':>8s} {'CPU ns/ray':>11s}")
     rays = 10_000_000 if args.quick else 40_000_000
     for engine in ("numba", "numpy"):

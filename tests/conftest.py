@@ -24,7 +24,8 @@ os.environ.pop("MLAQC_SCHEDULER", None)  # a developer's cluster must not take o
 # (`pytest`, `pytest tests`), not for a run of named files or tests, which compiles only what it uses;
 # MLAQC_TEST_WARMUP=1 or 0 turns it on or off whatever the run.
 
-# (per-lens tilt: MLA rotation array, global MLA rotation: camera rotation array, texture, boundaries)
+# (per-lens tilt: MLA rotation array, global MLA rotation: camera rotation array, texture, boundaries
+#  [, MLA: 'hex', 'circle', 'hex-circle'])
 TRACER_VARIANTS = (
     (False, False, False, "grid"),
     (False, True, False, "grid"),
@@ -35,6 +36,14 @@ TRACER_VARIANTS = (
     (True, False, False, "grid"),
     (False, False, False, "sag-intersection"),
     (True, True, False, "sag-intersection"),
+    # hex packing and circle apertures (#22): kernels of their own (the lattice and circle arguments)
+    (False, False, False, "grid", "hex"),
+    (False, False, False, "sag-intersection", "hex"),
+    (True, True, False, "grid", "hex"),
+    (True, True, False, "sag-intersection", "hex"),
+    (False, False, False, "grid", "hex-circle"),
+    (True, True, False, "grid", "hex-circle"),
+    (True, True, False, "grid", "circle"),
 )
 WARM_JOBS = ("inspection", *TRACER_VARIANTS)
 
@@ -52,8 +61,9 @@ def warm_job(job) -> tuple[float, str]:
     return time.perf_counter() - start, ""
 
 
-def _render_variant(tilted: bool, rotated: bool, texture: bool, boundaries: str) -> None:
-    """A few rays through a 2 x 2-lens camera with the tracer's kernel for that variant."""
+def _render_variant(tilted: bool, rotated: bool, texture: bool, boundaries: str, mla: str = "square") -> None:
+    """A few rays through a 2 x 2-lens camera with the tracer's kernel for that variant (`mla`: 'square',
+    'hex', 'circle' or 'hex-circle')."""
     import numpy as np
 
     from mlaqc.optics.config import config_from_dict
@@ -61,9 +71,12 @@ def _render_variant(tilted: bool, rotated: bool, texture: bool, boundaries: str)
     from mlaqc.optics.render import Renderer
     from mlaqc.optics.scene import TextureScene, WhiteScene
 
-    cfg = config_from_dict({"mla": {"count_w": 2, "count_h": 2, "boundaries": boundaries},
-                            "sensor": {"width_px": 48, "height_px": 48}})
-    errors = ErrorMap.zeros(2, 2)
+    packing = "hex" if mla.startswith("hex") else "square"
+    lenses = {"count_w": 2, "count_h": 2, "boundaries": boundaries, "packing": packing}
+    if mla.endswith("circle"):
+        lenses.update(aperture="circle", aperture_diameter_um=90.0)
+    cfg = config_from_dict({"mla": lenses, "sensor": {"width_px": 48, "height_px": 48}})
+    errors = ErrorMap.zeros(2, 2, packing)
     if tilted:
         errors = errors.with_lens(1, 1, tilt_x_deg=0.5)
     if rotated:

@@ -108,3 +108,51 @@ def test_prnu_is_a_fixed_pattern_of_the_stated_rms():
 def test_bad_formation_config_is_one_sentence(table, what):
     with pytest.raises(InputError, match=what):
         config_from_dict({"formation": table})
+
+
+def _psf_and_scale(cfg):
+    """The fine PSF of `cfg`'s aperture (formation._fine_psf) and its sample step in µm on the sensor."""
+    from mlaqc.optics.formation import _fine_psf, aperture_shape
+
+    lam_um = cfg.geometry.wavelength_nm * 1e-3
+    z_um = cfg.layout.sensor_gap_mm * 1e3 + 0.5 * cfg.mla.thickness_um
+    psf, fine_px = _fine_psf(lam_um, z_um, cfg.sensor.pixel_um, cfg.mla.pitch_um, aperture_corner_radius_um(cfg),
+                             aperture_shape(cfg), cfg.mla.aperture_diameter_um or 0.0)
+    return psf, fine_px * cfg.sensor.pixel_um, lam_um, z_um
+
+
+def test_circle_aperture_psf_is_the_airy_pattern():
+    """A 90 µm circular aperture: I(r) / I(0) = (2 J1(k) / k)^2 with k = pi D r / (lambda z), first dark
+    ring at 1.22 lambda z / D."""
+    from scipy.special import j1
+
+    cfg = config_from_dict({"mla": {"aperture": "circle", "aperture_diameter_um": 90.0}})
+    psf, step_um, lam_um, z_um = _psf_and_scale(cfg)
+    c = psf.shape[0] // 2
+    r_um = np.arange(1, 40) * step_um
+    k = np.pi * 90.0 * r_um / (lam_um * z_um)
+    airy = (2 * j1(k) / k) ** 2
+    for profile in (psf[c, c + 1:c + 40], psf[c + 1:c + 40, c]):  # along x and along y: round
+        assert np.allclose(profile / psf[c, c], airy, rtol=0, atol=0.01)
+    first = 1.22 * lam_um * z_um / 90.0
+    ring = (r_um > 0.5 * first) & (r_um < 1.5 * first)
+    zero = r_um[ring][np.argmin(psf[c, c + 1:c + 40][ring])]
+    assert zero == pytest.approx(first, abs=step_um)
+
+
+def test_hex_cell_psf_has_the_hexagons_sixfold_symmetry_and_differs_from_the_square():
+    """The hexagonal cell's PSF is unchanged by rotations of 60° and 120° (the aperture is; the square's
+    is not), and it is not the square cell's PSF."""
+    from scipy.ndimage import map_coordinates
+
+    cfg = config_from_dict({"mla": {"packing": "hex", "corners": "clear"}})
+    psf, step_um, lam_um, z_um = _psf_and_scale(cfg)
+    c = psf.shape[0] // 2
+    rr, th = np.meshgrid(np.arange(2, 40, 0.5), np.radians(np.arange(0, 360, 7.5)))
+    for turn in (60.0, 120.0):
+        a = map_coordinates(psf, [c + rr * np.sin(th), c + rr * np.cos(th)], order=3)
+        b = map_coordinates(psf, [c + rr * np.sin(th + np.radians(turn)), c + rr * np.cos(th + np.radians(turn))],
+                            order=3)
+        assert np.abs(a - b).max() < 0.02 * psf[c, c]
+    square, _, _, _ = _psf_and_scale(_clear(CFG))
+    assert np.abs(psf - square).max() > 0.05 * psf.max()

@@ -135,8 +135,8 @@ def through_focus_text(tf) -> str:
 def shared_grid(args: argparse.Namespace, cfg: CameraConfig, dark=None):
     """The calibration every raw reuses: loaded from --grid, fitted on --white (its frames averaged, the
     master dark `dark` subtracted), or None (self-calibrate)."""
-    from mlaqc.inspection.calibrate import calibrate, load_grid
-    from mlaqc.inspection.pipeline import load_frame
+    from mlaqc.inspection.calibrate import load_grid
+    from mlaqc.inspection.pipeline import calibrate_for, load_frame
 
     if args.grid:
         grid = load_grid(args.grid)
@@ -145,12 +145,15 @@ def shared_grid(args: argparse.Namespace, cfg: CameraConfig, dark=None):
             raise InputError(f"grid file {args.grid!r} is for {grid.cols}x{grid.rows} lenses on a "
                              f"{grid.image_shape[1]}x{grid.image_shape[0]} px frame, but the camera has "
                              f"{cfg.mla.count_w}x{cfg.mla.count_h} lenses on {want[1]}x{want[0]} px")
+        packing = getattr(grid, "packing", "square")
+        if packing != cfg.mla.packing:
+            raise InputError(f"grid file {args.grid!r} is for a {packing} lattice but the camera's MLA is "
+                             f"{cfg.mla.packing} (mla.packing)")
         return grid
     if args.white:
         white = [args.white] if isinstance(args.white, str) else list(args.white)
         img = load_frame(white[0] if len(white) == 1 else white, cfg, stated_levels(args), dark=dark)
-        return calibrate(img, expected_pitch_px=cfg.layout.subimage_pitch_px,
-                         expected_shape=(cfg.mla.count_h, cfg.mla.count_w))
+        return calibrate_for(img, cfg)
     return None
 
 

@@ -1,7 +1,8 @@
 """Identification: flag lenses whose indexes leave the normal population, then say what is wrong.
 
 Detection compares every lens with its own neighbourhood (5 x 5 local median, which cancels vignetting,
-exposure and slow field variation). What a frame does the same way everywhere is modelled and removed,
+exposure and slow field variation; on a hex lattice the same 5 x 5 window of offset coordinates, see
+`local_deviations`). What a frame does the same way everywhere is modelled and removed,
 not flagged: the pattern the sub-pixel phase of the lens centres draws in every index (`PhaseModel`),
 and the bias and spread of the edge classes. Each index is judged against the frame's own noise,
 measured per lens class with a tail-aware spread and never below a floor set by the smallest reportable
@@ -26,6 +27,13 @@ neighbours' tilt contrast against the lens' own shift types it (mlaqc.models.pos
 the frame's noise separates the two, and the frame reports from what size on it does. And a radius error
 whose opposite sign fits about as well carries the other reading in `alternatives` (the microlens'
 spherical aberration puts best focus in front of the paraxial focus the sensor sits at).
+
+Hex lattices (`packing="hex"`, mlaqc.optics.lattice): a lens' neighbours are the lattice's six, each
+along its own direction (echoes, the pitch/decenter contrast); the outer lenses, whose windows miss the
+strip of the rows beyond, are left out of every other lens' baseline, and the row ends that stick out
+are compared with each other (`_hex_edge_columns`, `hex_row_ends`). A shift across the rows registers
+at about half its size (the pitch-wide discs overlap the rows above and below): the features are read
+with the y offset and tilt scaled by the table's gains (`signatures.gains_y`).
 """
 
 from __future__ import annotations
@@ -42,8 +50,9 @@ from mlaqc.inspection.filters import max_filter_nearest, max_of_neighbours
 from mlaqc.inspection.metrics_kernels import median_baselines
 from mlaqc.inspection.results import Defect, LensMetrics
 from mlaqc.models.position_split import PositionSplit, contrast_sigma, neighbour_contrast, split_limits, type_position
-from mlaqc.models.signatures import FEATURES, KIND_BY_NAME, RINGS, SignatureTable, lens_features
+from mlaqc.models.signatures import FEATURES, KIND_BY_NAME, RINGS, SignatureTable, gains_y, lens_features
 from mlaqc.optics.config import QC
+from mlaqc.optics.lattice import Lattice
 from mlaqc.parallel import thread_map
 
 UNEXPLAINED = 0.75  # a best fit leaving more than this share of the deviation's chi-square: type 'unknown' (measured: tracer defects leave 0.1-0.7, foreign anomalies 0.8-0.95)
@@ -52,19 +61,29 @@ _CHI2_AMBIGUOUS = 9.0  # an opposite-sign reading closer than this (3 sigma) is 
 FOCUS_KINDS = ("radius", "thickness")  # errors that defocus the lens: what the focus test looks for
 
 
-def local_deviation(values: np.ndarray, size: int = 5, axis: str = "") -> np.ndarray:
+def local_deviation(values: np.ndarray, size: int = 5, axis: str = "", packing: str = "square") -> np.ndarray:
     """values minus a NaN-robust local baseline: the median over size x size lenses inside the array
     (leaving out lenses not measured, and the outermost ones for lenses two or more in: see
     `_refine_baselines`); along an edge the running median of that edge (its lenses miss the same
     neighbours). A corner lens misses neighbours on two sides: for an x index (axis='x') it is compared
     along its left/right edge, otherwise along its top/bottom edge (and flagged only at 1.5 x the
     threshold, see `identify`)."""
-    return local_deviations([values], [axis], size)[0]
+    return local_deviations([values], [axis], size, packing)[0]
 
 
-def local_deviations(planes: list[np.ndarray], axes: list[str], size: int = 5) -> list[np.ndarray]:
+def local_deviations(planes: list[np.ndarray], axes: list[str], size: int = 5,
+                     packing: str = "square") -> list[np.ndarray]:
     """`local_deviation` of several (rows, cols) index maps at once: one compiled median pass over all of
-    them (scipy's median_filter cost 16 ms per map); even sizes or all-NaN maps take the scipy route."""
+    them (scipy's median_filter cost 16 ms per map); even sizes or all-NaN maps take the scipy route.
+
+    Hex (`packing`): the window is the same size x size block of offset coordinates (U(m,n) indexes). It
+    is local (every lens in it lies within 2.6 pitches) but not point-symmetric: rows m +- 1 sit half a
+    pitch to one side. Its median is still the lens' own value on a linear trend along x, y or the
+    lattice directions, and off by at most 0.33 pitch times the trend's slope per pitch in between (a
+    trend of 1 % per pitch reads 0.0033), far below any index' noise; the slow maps it removes
+    (vignetting, exposure, distortion) change by much less per pitch. The left and right columns,
+    whose lenses alternately stick out (missing 3 of 6 neighbours) and sit in (missing 1), take the
+    running median of the lenses of their own row parity (`_hex_edge_columns`)."""
     fills = []
     for values in planes:
         finite = np.isfinite(values)
@@ -82,12 +101,40 @@ def local_deviations(planes: list[np.ndarray], axes: list[str], size: int = 5) -
             median_baselines(stack, int(size), x_axis, base)
     else:
         base = np.stack([_scipy_baseline(f, size, a) for f, a in zip(stack, axes)])
-    _refine_baselines(stack, np.isfinite(np.array(planes, dtype=np.float64)), base, size, [a == "x" for a in axes])
+    finite = np.isfinite(np.array(planes, dtype=np.float64))
+    # hex: a window 2 px taller than the 0.87-pitch row step holds a strip of the rows above and below,
+    # so the outer lenses, missing theirs, differ from the others far more than on a square lattice
+    # (measured: SSIM 0.56 against 0.97): they are left out of every other lens' neighbourhood
+    _refine_baselines(stack, finite, base, size, [a == "x" for a in axes], 1 if packing == "hex" else 2)
+    if packing == "hex":
+        _hex_edge_columns(stack, finite, base, size, [a == "x" for a in axes])
     return [values - b for values, b in zip(planes, base)]
 
 
-def _refine_baselines(stack: np.ndarray, finite: np.ndarray, base: np.ndarray, size: int,
+def _hex_edge_columns(stack: np.ndarray, finite: np.ndarray, base: np.ndarray, size: int,
                       x_axis: list[bool]) -> None:
+    """Hex lattice: the baselines of the first and last columns, in place, as the running median (size
+    lenses, clipped) of the finite lenses of the same column and row parity: a shifted row's end lens
+    misses other neighbours than an unshifted row's, and the two carry different biases. Corners are
+    left to the rows for planes not along x (as `median_baselines` leaves them)."""
+    _, rows, cols = stack.shape
+    if rows < 2 * size or cols < size:
+        return
+    half = size // 2
+    x_planes = np.asarray(x_axis, bool)
+    for col in (0, cols - 1):
+        for parity in (0, 1):
+            r = np.arange(parity, rows, 2)
+            idx = np.clip(np.arange(len(r))[:, None] + np.arange(-half, half + 1)[None, :], 0, len(r) - 1)
+            vals = stack[:, r, col][:, idx]
+            med, ok = _nan_medians(np.where(finite[:, r, col][:, idx], vals, np.nan))
+            corner = (r == 0) | (r == rows - 1)
+            write = ok & (~corner[None, :] | x_planes[:, None])
+            base[:, r, col] = np.where(write, med, base[:, r, col])
+
+
+def _refine_baselines(stack: np.ndarray, finite: np.ndarray, base: np.ndarray, size: int,
+                      x_axis: list[bool], outer_from: int = 2) -> None:
     """Recompute, in place, the baselines of the few lenses whose neighbourhood (the compiled pass'
     window, clipped to the array as scipy's mode 'nearest') holds lenses that do not belong in it, as the
     median of the others (`stack`: the maps, read only where `finite`). A lens not measured (NaN: off
@@ -95,7 +142,8 @@ def _refine_baselines(stack: np.ndarray, finite: np.ndarray, base: np.ndarray, s
     lenses, which miss neighbours and carry their own bias, are left out of the neighbourhoods of the
     lenses two or more rows in (those next to the edge are their own class, judged against their own
     spread, and keep them). Without this a lens beside the not-inspected part of an edge, or two lenses
-    in from the edge, is judged against a baseline pulled towards another population."""
+    in from the edge, is judged against a baseline pulled towards another population. `outer_from`: the
+    ring (distance to the edge) from which on the outermost lenses are left out (hex: 1, every lens)."""
     n_f, rows, cols = stack.shape
     half = size // 2
     edges = rows >= size and cols >= size
@@ -106,13 +154,13 @@ def _refine_baselines(stack: np.ndarray, finite: np.ndarray, base: np.ndarray, s
     outer = edges & (ring == 0)
     # left out of a window: NaN lenses; the outermost ones too for lenses two or more in
     near_nan = max_filter_nearest(~finite.all(axis=0), size)
-    near_outer = max_filter_nearest(outer, size) & (ring >= 2) if edges else np.zeros_like(outer)
+    near_outer = max_filter_nearest(outer, size) & (ring >= outer_from) if edges else np.zeros_like(outer)
     m, n = np.nonzero((near_nan | near_outer) & ~outer)
     if m.size:
         off = np.arange(-half, half + 1)
         ii, jj = np.broadcast_arrays(m[:, None, None] + off[None, :, None], n[:, None, None] + off[None, None, :])
         ii, jj = np.clip(ii, 0, rows - 1).reshape(m.size, -1), np.clip(jj, 0, cols - 1).reshape(m.size, -1)
-        drop = ~finite[:, ii, jj] | (outer[ii, jj] & (ring[m, n] >= 2)[:, None])[None]
+        drop = ~finite[:, ii, jj] | (outer[ii, jj] & (ring[m, n] >= outer_from)[:, None])[None]
         med, ok = _nan_medians(np.where(drop, np.nan, stack[:, ii, jj]))
         base[:, m, n] = np.where(ok, med, base[:, m, n])
     if not edges:
@@ -174,7 +222,12 @@ def robust_sigma(dev: np.ndarray) -> float:
 @functools.lru_cache(maxsize=8)
 def edge_classes(shape: tuple[int, int]) -> np.ndarray:
     """Per lens its distance to the array's edge in lenses, clipped at 2 (0 = outer row/column, 1 = the
-    next, 2 = inner): edge lenses miss neighbours, so their indexes have their own bias and spread."""
+    next, 2 = inner): edge lenses miss neighbours, so their indexes have their own bias and spread.
+    The same on a hex lattice: one step to a neighbour changes the row or the column index by at most
+    one, and straight along a row or column reaches the edge, so the fewest steps from U(m,n) off the
+    array are min(m, rows + 1 - m, n, cols + 1 - n) there too (each shifted row's end lens, missing one
+    neighbour, is in the outer class with the unshifted rows' ends, which miss three; their baselines
+    are kept apart, see `_hex_edge_columns`)."""
     rows, cols = shape
     m, n = np.ogrid[:rows, :cols]
     return _frozen(np.minimum(np.minimum(m, n), np.minimum(rows - 1 - m, cols - 1 - n)).clip(max=2))
@@ -392,12 +445,13 @@ _AXES = [k.split("_")[1][0] if k in ("offset_x_px", "offset_y_px", "asym_x", "as
 
 
 def deviations(metrics: LensMetrics, phase: PhaseModel | None = None,
-               planes: list[np.ndarray] | None = None) -> tuple[dict[str, np.ndarray], dict[str, float]]:
+               planes: list[np.ndarray] | None = None,
+               packing: str = "square") -> tuple[dict[str, np.ndarray], dict[str, float]]:
     """Local deviations of the classification features (their sub-pixel phase pattern removed when the
     lenses' `phase` is given; or `planes`, already computed in _NAMES order) and their robust spreads
     over the inner lenses."""
     if planes is None:
-        planes = local_deviations([metrics[k] for k in _NAMES], _AXES)
+        planes = local_deviations([metrics[k] for k in _NAMES], _AXES, packing=packing)
         if phase is not None:
             planes = remove_phase_pattern(planes, phase)
     dev = dict(zip(_NAMES, planes))
@@ -416,7 +470,7 @@ class RingNoise:
 
 
 def ring_noise(metrics: LensMetrics, phase: PhaseModel | None = None, floor: np.ndarray | None = None,
-               planes: list[np.ndarray] | None = None) -> RingNoise:
+               planes: list[np.ndarray] | None = None, packing: str = "square") -> RingNoise:
     """Local deviations of the ring profile, whitened by their covariance over the array's inner lenses
     (those within 4 robust sigma on every ring: a defect must not widen the noise it is judged against).
 
@@ -428,7 +482,7 @@ def ring_noise(metrics: LensMetrics, phase: PhaseModel | None = None, floor: np.
     smallest noise the covariance may claim, so a noise-free frame cannot make the whitening explode;
     `planes`: the rings' deviations, already computed."""
     if planes is None:
-        planes = local_deviations([metrics[r] for r in RINGS], [""] * len(RINGS))
+        planes = local_deviations([metrics[r] for r in RINGS], [""] * len(RINGS), packing=packing)
         if phase is not None:
             planes = remove_phase_pattern(planes, phase)
     dev = np.stack(planes, axis=-1)
@@ -558,37 +612,62 @@ def detection_score(dev: dict[str, np.ndarray], noise: Noise, focus=None) -> np.
 
 
 def spill(score: np.ndarray, flagged: np.ndarray, ratio: float = 0.65, asym: tuple | None = None,
-          facing_ratio: float = 0.95, offset: tuple | None = None) -> np.ndarray:
+          facing_ratio: float = 0.95, offset: tuple | None = None, packing: str = "square") -> np.ndarray:
     """Flagged lenses that are the echo of a stronger flagged neighbour: a defect disturbs its neighbours'
     windows (its light spills over). An echo scores under `ratio` times the neighbour; or, when the
     lenses' intensity tilts `asym` (x, y) are given, under `facing_ratio` times it with its tilt along
     the line to that neighbour (light that crossed into or out of its window), as where sub-images touch;
-    or, with the lenses' `offset` (x, y), under `facing_ratio` times a neighbour that moved along that line."""
-    strongest = max_of_neighbours(np.where(flagged, score, 0.0))
+    or, with the lenses' `offset` (x, y), under `facing_ratio` times a neighbour that moved along that line.
+    The neighbours are the lattice's (`Lattice.neighbours`: square 8, hex 6), each along its own
+    direction from the lens."""
+    rows, cols = score.shape
+    lat = Lattice(packing, rows, cols)
+    nbr = lat.neighbours(diagonal=True)  # (K, k) flat indices, -1 off the array
+    flag_score = np.where(flagged, score, 0.0)
+    strongest = max_of_neighbours(flag_score) if packing == "square" else _max_over(flag_score, nbr)
     echo = flagged & (score < ratio * strongest)
     if asym is None and offset is None:
         return echo
     m, n = np.nonzero(flagged & ~echo & (strongest > 0))  # the few lenses that have a flagged neighbour
-    padded = np.pad(np.where(flagged, score, 0.0), 1)
-    moved = [np.pad(np.nan_to_num(o), 1) for o in offset] if offset is not None else None
-    for dm in (-1, 0, 1):
-        for dn in (-1, 0, 1):
-            if dm == 0 and dn == 0:
-                continue
-            other = padded[m + 1 + dm, n + 1 + dn]
-            # image convention: +x right, +y down; the neighbour at (dm, dn) lies along (dn, dm). Light
-            # that crossed in tilts the window towards it, light that left tilts it away: either way along
-            along = np.zeros(m.shape, bool)
-            if asym is not None:
-                along |= _aligned(asym[0][m, n], asym[1][m, n], dn, dm)
-            if moved is not None:
-                along |= _aligned(moved[0][m + 1 + dm, n + 1 + dn], moved[1][m + 1 + dm, n + 1 + dn], dn, dm)
-            hit = along & (score[m, n] < facing_ratio * other)
-            echo[m[hit], n[hit]] = True
+    if not m.size:
+        return echo
+    flat = m * cols + n
+    others = nbr[flat]  # (L, k)
+    # image convention: +x right, +y down, as the lattice's (u, v): the direction to each neighbour
+    du, dv = _neighbour_vectors(lat, m, others)
+    flat_score = np.concatenate([flag_score.ravel(), [0.0]])  # index -1: off the array, scores 0
+    moved = [np.concatenate([np.nan_to_num(o).ravel(), [0.0]]) for o in offset] if offset is not None else None
+    for j in range(others.shape[1]):
+        other = flat_score[others[:, j]]
+        # light that crossed in tilts the window towards the neighbour, light that left tilts it away:
+        # either way along the line to it
+        along = np.zeros(m.shape, bool)
+        if asym is not None:
+            along |= _aligned(asym[0][m, n], asym[1][m, n], du[:, j], dv[:, j])
+        if moved is not None:
+            along |= _aligned(moved[0][others[:, j]], moved[1][others[:, j]], du[:, j], dv[:, j])
+        hit = along & (score[m, n] < facing_ratio * other)
+        echo[m[hit], n[hit]] = True
     return echo
 
 
-def _aligned(vx: np.ndarray, vy: np.ndarray, dx: int, dy: int) -> np.ndarray:
+def _max_over(a: np.ndarray, nbr: np.ndarray) -> np.ndarray:
+    """Per lens the largest value of `a` over its neighbours `nbr` (flat indices, -1 off the array, which
+    counts 0, as `max_of_neighbours`' constant border)."""
+    flat = np.concatenate([a.ravel(), np.zeros(1, a.dtype)])
+    return flat[nbr].max(axis=1).reshape(a.shape)
+
+
+def _neighbour_vectors(lat: Lattice, r: np.ndarray, others: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(du, dv) (L, k) in pitches from lenses of rows `r` to their neighbours (by the lattice's steps for
+    the row's parity, also where the neighbour is off the array)."""
+    steps = lat.neighbour_steps(diagonal=True)[r % 2]  # (L, k, 2) (dr, dc)
+    u0, v0 = lat.uv(r[:, None], np.zeros_like(r)[:, None])
+    u1, v1 = lat.uv(r[:, None] + steps[..., 0], steps[..., 1])
+    return u1 - u0, v1 - v0
+
+
+def _aligned(vx: np.ndarray, vy: np.ndarray, dx, dy) -> np.ndarray:
     """Where the vectors (vx, vy) lie within 45° of the line along (dx, dy), either way."""
     vx, vy = np.nan_to_num(vx), np.nan_to_num(vy)
     return np.abs(vx * dx + vy * dy) > 0.7 * np.maximum(np.hypot(vx, vy), 1e-12) * np.hypot(dx, dy)
@@ -761,14 +840,16 @@ def _lowest_from_which_all(mags: np.ndarray, ok: np.ndarray) -> float | None:
     return float(f"{mags[first]:.4g}")
 
 
-def _all_deviations(metrics: LensMetrics, position, phase: PhaseModel | None, ring_floor: np.ndarray):
+def _all_deviations(metrics: LensMetrics, position, phase: PhaseModel | None, ring_floor: np.ndarray,
+                    packing: str = "square"):
     """Every index map's local deviation, phase pattern removed, in one pass (the maps share the work):
     (classification deviations, their spreads, ring noise, detection deviations — the classification
     ones with the offsets from the lower-noise `position` signal where it is given — and the local
     baselines' trend over the array, each map's baseline minus its median per edge class)."""
     values = [metrics[k] for k in _NAMES] + [metrics[r] for r in RINGS] + list(position or ())
-    planes = local_deviations(values, _AXES + [""] * len(RINGS) + (["x", "y"] if position is not None else []))
-    trend = class_centred([v - p for v, p in zip(values, planes)])
+    planes = local_deviations(values, _AXES + [""] * len(RINGS) + (["x", "y"] if position is not None else []),
+                              packing=packing)
+    trend = class_centred([v - p for v, p in zip(values, planes)], packing)
     if phase is not None:
         planes = remove_phase_pattern(planes, phase)
         trend = remove_phase_trend(trend, phase)
@@ -780,13 +861,16 @@ def _all_deviations(metrics: LensMetrics, position, phase: PhaseModel | None, ri
     return dev, sig, rings, detect_dev, dict(zip(names, trend))
 
 
-def class_centred(planes: list[np.ndarray]) -> list[np.ndarray]:
-    """Each (rows, cols) map minus its median over each edge class (edge lenses carry their own bias)."""
+def class_centred(planes: list[np.ndarray], packing: str = "square") -> list[np.ndarray]:
+    """Each (rows, cols) map minus its median over each edge class (edge lenses carry their own bias);
+    on hex the row ends that stick out (`hex_row_ends`) are a class of their own."""
     cls = edge_classes(planes[0].shape)
+    if packing == "hex":
+        cls = np.where(hex_row_ends(planes[0].shape), 3, cls)
     out = []
     for p in planes:
         q = np.array(p, dtype=np.float64)
-        for c in range(3):
+        for c in range(4):
             sel = (cls == c) & np.isfinite(q)
             if sel.any():
                 q[sel] -= np.median(q[sel])
@@ -794,15 +878,39 @@ def class_centred(planes: list[np.ndarray]) -> list[np.ndarray]:
     return out
 
 
-def _split_reading(split: PositionSplit, dev: dict[str, np.ndarray], m: int, n: int, shift_px: float,
+@functools.lru_cache(maxsize=8)
+def hex_row_ends(shape: tuple[int, int]) -> np.ndarray:
+    """On a hex lattice, the row ends that stick out half a pitch past the rows above and below (the
+    unshifted rows' first lenses, the shifted rows' last): they miss 3 of their 6 neighbours, the other
+    ends 1, and their sub-images differ the more (measured: flux 0.905 against 0.985)."""
+    rows, cols = shape
+    r = np.arange(rows)
+    ends = np.zeros(shape, bool)
+    ends[r % 2 == 0, 0] = True
+    ends[r % 2 == 1, cols - 1] = True
+    return _frozen(ends)
+
+
+def _isotropic(dev: dict[str, np.ndarray], sig: dict[str, float], gains_y: tuple[float, float]):
+    """The classification deviations with the y components of the registration offset and the intensity
+    tilt divided by the table's gains across the rows (`shift_gain_y`, `asym_gain_y`; hex: a shift
+    across the rows registers at about half its size, and tilts the sub-image more), so that a lens
+    shift reads alike in every direction, as the table (rendered along x) reads it; their spreads with
+    them. Unchanged where the gains are 1 (square)."""
+    out, out_sig = dict(dev), dict(sig)
+    for name, gain in zip(("offset_y_px", "asym_y"), gains_y):
+        if gain != 1.0 and gain > 0:
+            out[name], out_sig[name] = dev[name] / gain, sig[name] / gain
+    return out, out_sig
+
+
+def _split_reading(split: PositionSplit, contrast: np.ndarray, m: int, n: int, shift_px: float,
                    sigma: float, readings: tuple):
-    """A 'position' lens typed by its neighbours' tilt contrast (`type_position`): (kind, magnitude,
-    direction, alternatives), the chosen kind's reading from `readings` (pitch, decenter), or unchanged
-    'position' with both readings where this frame cannot tell."""
-    c = neighbour_contrast(dev["asym_x"][max(m - 1, 0):m + 2, max(n - 1, 0):n + 2],
-                           dev["asym_y"][max(m - 1, 0):m + 2, max(n - 1, 0):n + 2])
-    contrast = float(c[min(m, 1), min(n, 1)]) if c.shape == (3, 3) else float("nan")
-    kind, _ = type_position(split, contrast, shift_px, sigma)
+    """A 'position' lens typed by its neighbours' tilt contrast (`contrast`: `neighbour_contrast` of the
+    asymmetry deviations, `type_position`): (kind, magnitude, direction, alternatives), the chosen
+    kind's reading from `readings` (pitch, decenter), or unchanged 'position' with both readings where
+    this frame cannot tell."""
+    kind, _ = type_position(split, float(contrast[m, n]), shift_px, sigma)
     if kind == "position":
         return "position", readings[0][1], readings[0][3], readings
     chosen = readings[0] if kind == "pitch" else readings[1]
@@ -842,7 +950,8 @@ def _beyond_reportable(table: SignatureTable, kind: str, mag: float, power: floa
 
 
 def identify(metrics: LensMetrics, missing: np.ndarray, qc: QC, table: SignatureTable, position=None,
-             phase=None, outside: np.ndarray | None = None, split: PositionSplit | None = None) -> Identification:
+             phase=None, outside: np.ndarray | None = None, split: PositionSplit | None = None,
+             packing: str = "square") -> Identification:
     """Flag, classify and size the defective lenses of one frame, and say what it could detect.
 
     `position`: optional (dx, dy) per-lens position residuals measured on this frame (the calibration's
@@ -854,7 +963,8 @@ def identify(metrics: LensMetrics, missing: np.ndarray, qc: QC, table: Signature
     own noise, floored) and its best reading is at least the minimum reportable error of its kind;
     classification always uses the registration features the table was built with. `split`: the optics'
     pitch/decenter split (mlaqc.models.position_split; None with grid boundaries), which types a
-    'position' lens as pitch or decenter where this frame's noise allows."""
+    'position' lens as pitch or decenter where this frame's noise allows. `packing`: the lattice the
+    (rows, cols) maps index (mlaqc.optics.lattice), which says who a lens' neighbours are."""
     det_floor, ring_floor = noise_floors(table, qc)
     phase = phase_model(phase) if phase is not None else None
     outside = np.zeros(missing.shape, bool) if outside is None else outside
@@ -862,24 +972,26 @@ def identify(metrics: LensMetrics, missing: np.ndarray, qc: QC, table: Signature
         metrics = LensMetrics({k: np.where(outside, np.nan, v) for k, v in metrics.values.items()})
         position = None if position is None else tuple(np.where(outside, np.nan, p) for p in position)
         missing = missing & ~outside
-    dev, sig, rings, detect_dev, trend = _all_deviations(metrics, position, phase, ring_floor)
+    dev, sig, rings, detect_dev, trend = _all_deviations(metrics, position, phase, ring_floor, packing)
     noise = detection_noise(detect_dev, rings, det_floor)
     score = detection_score(detect_dev, noise, focus_score(rings, table))
     threshold = np.full(score.shape, qc.detect_sigma)
     threshold[[0, 0, -1, -1], [0, -1, 0, -1]] *= 1.5  # corner windows hold dark margin on two sides: noisier
     flagged = ((score > threshold) & ~outside) | missing
     flagged &= ~spill(score, flagged, asym=(dev["asym_x"], dev["asym_y"]),
-                      offset=(detect_dev["offset_x_px"], detect_dev["offset_y_px"])) | missing
-    sigmas = _feature_sigmas(sig)
+                      offset=(detect_dev["offset_x_px"], detect_dev["offset_y_px"]), packing=packing) | missing
+    feat_dev, feat_sig = _isotropic(dev, sig, gains_y(table))  # what the lens' features are read from
+    sigmas = _feature_sigmas(feat_sig)
     error_type = np.full(flagged.shape, "", dtype=object)
     defects = []
     lenses = list(zip(*np.nonzero(flagged & ~missing)))
-    features = [_feature_vector(dev, rings, m, n) for m, n in lenses]
+    features = [_feature_vector(feat_dev, rings, m, n) for m, n in lenses]
     vecs = np.array([f[0] for f in features]) if features else np.zeros((0, len(sigmas) + len(RINGS)))
     fits = dict(zip(lenses, fit_all(table, vecs, sigmas, rings.whiten)))
     shifts = dict(zip(lenses, features))
     mins = min_reportable(qc)
-    split_sigma = contrast_sigma(dev["asym_x"], dev["asym_y"]) if split is not None else float("nan")
+    split_sigma = contrast_sigma(dev["asym_x"], dev["asym_y"], packing) if split is not None else float("nan")
+    contrast = neighbour_contrast(dev["asym_x"], dev["asym_y"], packing) if split is not None else None
     below = 0
     for m, n in zip(*np.nonzero(flagged)):
         indexes = metrics.at(m + 1, n + 1)
@@ -890,7 +1002,7 @@ def identify(metrics: LensMetrics, missing: np.ndarray, qc: QC, table: Signature
         vec, shift_dir = shifts[(m, n)]
         kind, mag, unit, direction, alts = classify(table, vec, shift_dir, sigmas, fits[(m, n)], rings.whiten)
         if kind == "position" and split is not None:
-            kind, mag, direction, alts = _split_reading(split, dev, m, n, vec[0], split_sigma, alts)
+            kind, mag, direction, alts = _split_reading(split, contrast, m, n, vec[0], split_sigma, alts)
         uv = _unit_noise(vec, sigmas, rings.whiten)
         dof = len(uv) - 1  # what noise alone leaves in the best fit's chi-square, on average
         misfit = min(c for _, c in fits[(m, n)].values()) - dof

@@ -31,7 +31,7 @@ from mlaqc.inspection.measure_kernels import coarse_chi2, focal_scan
 from mlaqc.inspection.identify import (RINGS, Identification, _kind_curve, _unit_noise, class_centred, response,
                                        robust_sigma)
 from mlaqc.parallel import run_parts
-from mlaqc.models.signatures import FEATURES, SignatureTable
+from mlaqc.models.signatures import FEATURES, SignatureTable, shift_gain_y
 from mlaqc.optics.config import CameraConfig
 from mlaqc.optics.paraxial import thick_lens
 
@@ -103,10 +103,10 @@ def _centre(found: Identification, table: SignatureTable, cfg: CameraConfig, dis
     gain differs (measured 0.84 on analytic discs against 0.96 on the tracer's)."""
     r = found.readings
     if disc is not None:
-        dx, dy = class_centred([np.asarray(disc[0], float), np.asarray(disc[1], float)])
+        dx, dy = class_centred([np.asarray(disc[0], float), np.asarray(disc[1], float)], cfg.mla.packing)
         um_per_px = cfg.mla.pitch_um / cfg.layout.subimage_pitch_px
     else:
-        dx, dy = r["offset_x_px"], r["offset_y_px"]
+        dx, dy = r["offset_x_px"], r["offset_y_px"] / shift_gain_y(table)  # (hex: y registers low)
         px_per_um = abs(float(response(table, "pitch", 1.0)[0])) if "pitch" in table.magnitudes else 0.0
         um_per_px = 1.0 / px_per_um if px_per_um > 0 else np.nan
     sigma_px = 0.5 * (_pair_sigma(dx) + _pair_sigma(dy))
@@ -115,7 +115,8 @@ def _centre(found: Identification, table: SignatureTable, cfg: CameraConfig, dis
 
 def _pair_sigma(a: np.ndarray) -> float:
     """A map's noise per lens from the differences of neighbours along rows and columns (a smooth trend
-    cancels in them): robust spread over sqrt(2)."""
+    cancels in them): robust spread over sqrt(2). On a hex lattice too every such pair is a pair of
+    neighbours: U(m,n) and U(m+1,n) are one pitch apart on either row parity."""
     d = np.concatenate([np.diff(a, axis=0).ravel(), np.diff(a, axis=1).ravel()])
     d = d[np.isfinite(d)]
     return robust_sigma(d) / np.sqrt(2.0) if d.size > 20 else np.nan

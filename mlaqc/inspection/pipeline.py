@@ -59,6 +59,26 @@ def load_frame(path: str | Path | Sequence[str | Path], cfg: CameraConfig, level
 SAG = "sag-intersection"
 
 
+def calibrate_for(img: np.ndarray, cfg: CameraConfig) -> Grid:
+    """The grid of a white frame of `cfg`'s camera: its sub-image pitch, lens count and packing
+    (`calibrate(..., packing=)`). A calibration without the packing keyword (before hex support) is
+    called as before for a square array, and refuses a hex one."""
+    kwargs = {"expected_pitch_px": cfg.layout.subimage_pitch_px, "expected_shape": (cfg.mla.count_h, cfg.mla.count_w)}
+    if _calibrate_takes_packing():
+        kwargs["packing"] = cfg.mla.packing
+    elif cfg.mla.packing != "square":
+        raise InputError(f"this build's calibration handles square arrays only, and the config's MLA is "
+                         f"{cfg.mla.packing} (mla.packing)")
+    return calibrate(img, **kwargs)
+
+
+def _calibrate_takes_packing() -> bool:
+    """Whether `calibrate` has the `packing` keyword (the hex calibration)."""
+    import inspect
+
+    return "packing" in inspect.signature(calibrate).parameters
+
+
 def inspect_image(img: np.ndarray, cfg: CameraConfig, *, grid: Grid | None = None, source: str = "",
                   model: ReferenceModel | None = None, table: SignatureTable | SignatureSet | None = None,
                   notes: tuple[str, ...] = ()) -> InspectionResult:
@@ -107,9 +127,11 @@ def _inspect_image(img: np.ndarray, cfg: CameraConfig, *, grid: Grid | None = No
         model, table = model or cached_model, table or cached_table
     lap("models")
     own_grid = grid is None
+    if not own_grid and getattr(grid, "packing", "square") != cfg.mla.packing:
+        raise InputError(f"the grid is for a {getattr(grid, 'packing', 'square')} lattice but the camera's MLA is "
+                         f"{cfg.mla.packing} (mla.packing)")
     if own_grid:
-        grid = calibrate(img, expected_pitch_px=cfg.layout.subimage_pitch_px,
-                         expected_shape=(cfg.mla.count_h, cfg.mla.count_w))
+        grid = calibrate_for(img, cfg)
         lap("calibrate")
     half = int(np.floor(cfg.layout.subimage_pitch_px / 2))
     subs = divide(img, grid, 2 * half + 1)
@@ -127,7 +149,7 @@ def _inspect_image(img: np.ndarray, cfg: CameraConfig, *, grid: Grid | None = No
         table = table.matched(float(getattr(grid, "edge_width_px", np.nan)))
     phase = (np.mod(grid.grid_x_px, 1.0), np.mod(grid.grid_y_px, 1.0))
     found = identify(metrics, grid.missing | ~np.isfinite(metrics["flux"]), cfg.qc, table, position, phase,
-                     outside=grid.clipped, split=position_split(cfg))
+                     outside=grid.clipped, split=position_split(cfg), packing=cfg.mla.packing)
     defects, flagged, error_type = found.defects, found.flagged, found.error_type
     lap("identify")
     measured = measure_lenses(found, table, cfg, (grid.residual_x_px, grid.residual_y_px) if own_grid else None)
@@ -191,8 +213,7 @@ def inspect_file(raw: str | Path | Sequence[str | Path], cfg: CameraConfig, *,
     grid = None
     if white is not None:
         wimg = load_frame(white, cfg, levels, dark=dark)
-        grid = calibrate(wimg, expected_pitch_px=cfg.layout.subimage_pitch_px,
-                         expected_shape=(cfg.mla.count_h, cfg.mla.count_w))
+        grid = calibrate_for(wimg, cfg)
     load_s = max(net_clock() - t0, 0.0)
     source = raw if isinstance(raw, (str, Path)) else list(raw)[0]
     result = inspect_image(img, cfg, grid=grid, source=str(source), notes=tuple(notes))
@@ -234,7 +255,8 @@ def scan_frame_hook(frame) -> dict:
     the camera's own when it reports one (the mock does), else the one the through-focus step used, else
     the default. Dark frames in the scan folder (`darks.scan_dark_frames`) are subtracted (their master
     built once). Returns a summary the scan writes beside the raw as `<raw>.inspect.json`; with pinhole
-    frames it has `through_focus`: their names and the pairs' summary (as report.json's)."""
+    frames it has `through_focus`: their names and the pairs' summary (as report.json's); `lattice`: the
+    lattice U(m,n) indexes, with its convention."""
     from mlaqc.optics.config import config_from_dict, default_config
 
     header = frame.header
@@ -254,6 +276,7 @@ def scan_frame_hook(frame) -> dict:
                        for d in result.defects],
            "grid": {"pitch_px": list(result.grid.pitch_px), "rotation_deg": result.grid.rotation_deg,
                     "rms_residual_px": result.grid.rms_residual_px},
+           "lattice": result.lattice_facts(),
            "assembly": _plain(result.assembly.to_json_dict()) if result.assembly is not None else None,
            "timings_s": result.timings_s}
     tf = getattr(result, "through_focus", None)

@@ -2,7 +2,8 @@
 its design centre projected through the camera's geometry.
 
 The geometry (the tracer's, mlaqc/optics/raytrace.py `Camera`): lens U(m,n)'s design centre
-on the MLA is (x_l, y_l) = ((n - 1/2) p - N_W p / 2, (m - 1/2) p - N_H p / 2) about the optical axis. The
+on the MLA is its lattice position about the optical axis (`Lattice.centres`: square ((n - 1/2) p - N_W p / 2,
+(m - 1/2) p - N_H p / 2); hex with its rows sqrt(3)/2 p apart and every other one shifted p/2). The
 MLA is turned by R = Rz(-rotation) Ry(tilt_y) Rx(tilt_x) about its centre and shifted by (shift_x,
 shift_y); the sensor sits f' + distance behind the MLA mid-plane (f' the design gap). A white sub-image's
 centre is close to the projection of the lens' centre from the main lens' exit pupil (b in front of the
@@ -19,6 +20,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from mlaqc.optics.lattice import Lattice
 from mlaqc.optics.raytrace import _rotation
 
 FIELDS = ("mla_sensor_distance_um", "mla_rotation_deg", "mla_tilt_x_deg", "mla_tilt_y_deg",
@@ -69,8 +71,10 @@ def pupil_distance_mm(cfg) -> float:
     ax, ay = ax[inside], ay[inside]
     z_aim = cfg.main_lens.thickness_mm
     bs = []
+    square = cfg.mla.packing == "square"
+    width_mm = cfg.mla.count_w * cfg.mla.pitch_um * 1e-3 if square else Lattice.of(cfg).extent[0]
     for frac in (0.25, 0.5):
-        xl = frac * cfg.mla.count_w * cfg.mla.pitch_um * 1e-3
+        xl = frac * width_mm
         dx, dy, dz = ax - xl, ay, np.full(ax.shape, z_aim - lay.z_mla_mm)
         norm = np.sqrt(dx * dx + dy * dy + dz * dz)
         r = Rays(np.full(ax.shape, xl), np.zeros(ax.shape), np.full(ax.shape, lay.z_mla_mm), dx / norm, dy / norm,
@@ -87,10 +91,13 @@ def pupil_distance_mm(cfg) -> float:
 def lens_centres(grid, cfg, pupil_mm: float) -> tuple[Lenses, np.ndarray, np.ndarray]:
     """The lenses fit to be read (found, whole) and their measured sub-image centres (px)."""
     mla, sensor = cfg.mla, cfg.sensor
-    p = mla.pitch_um * 1e-3
-    m, n = np.meshgrid(np.arange(grid.rows), np.arange(grid.cols), indexing="ij")
-    xl = (n + 0.5) * p - 0.5 * mla.count_w * p
-    yl = (m + 0.5) * p - 0.5 * mla.count_h * p
+    if mla.packing == "square":  # (the arithmetic the shipped assembly calibrations were read with)
+        p = mla.pitch_um * 1e-3
+        m, n = np.meshgrid(np.arange(grid.rows), np.arange(grid.cols), indexing="ij")
+        xl = (n + 0.5) * p - 0.5 * mla.count_w * p
+        yl = (m + 0.5) * p - 0.5 * mla.count_h * p
+    else:
+        xl, yl = Lattice.of(cfg).centres()
     mx, my = np.asarray(grid.measured_x_px, float), np.asarray(grid.measured_y_px, float)
     ok = np.isfinite(mx) & np.isfinite(my) & ~np.asarray(grid.missing, bool) & ~np.asarray(grid.clipped, bool)
     lenses = Lenses(xl[ok], yl[ok], pupil_mm, cfg.layout.z_sensor_mm - cfg.layout.z_mla_mm, sensor.pixel_um * 1e-3,

@@ -9,6 +9,8 @@ from typing import Any
 
 import numpy as np
 
+from mlaqc.optics.lattice import Lattice
+
 # Every per-lens index: name -> (unit, one-line meaning). Column order of lenses.csv follows this.
 METRICS: dict[str, tuple[str, str]] = {
     "flux": ("rel", "sub-image flux relative to an ideal lens at that place (exposure-normalized)"),
@@ -164,6 +166,16 @@ class InspectionResult:
     def failed(self) -> bool:
         return self.verdict == "FAIL"
 
+    @property
+    def lattice(self) -> Lattice:
+        """The lattice the per-lens arrays index (the grid's packing; square for grids made before hex)."""
+        return Lattice(getattr(self.grid, "packing", "square") or "square", *self.flagged.shape)
+
+    def lattice_facts(self) -> dict[str, Any]:
+        """What report.json states about the lattice: `Lattice.to_json_dict()` (packing, rows, cols, row
+        step, convention), for its "lattice" entry under "conventions"."""
+        return self.lattice.to_json_dict()
+
 
 def detection_limit_text(limit: dict[str, Any]) -> str:
     """One line for people: the smallest pitch, decenter and radius errors this frame detects."""
@@ -182,7 +194,8 @@ def detection_limit_text(limit: dict[str, Any]) -> str:
         return text
     split = limit["pitch_vs_decenter"]
     if split is None:
-        return text + "; pitch vs decenter: not told apart (grid lens boundaries: reported as 'position')"
+        return text + ("; pitch vs decenter: not told apart (grid lens boundaries or circular apertures: no boundary "
+                       "is shared; reported as 'position')")
     return text + (f"; tells pitch from decenter from {split['pitch_um']:.3g} µm pitch / {split['decenter_um']:.3g} µm "
                    "decenter (sag-intersection lens boundaries)")
 

@@ -853,6 +853,10 @@ def _check_inputs(frames, grid: Grid, cfg: CameraConfig):
     if (grid.rows, grid.cols) != (cfg.mla.count_h, cfg.mla.count_w):
         raise InputError(f"the grid has {grid.rows} x {grid.cols} lenses but the camera's MLA has "
                          f"{cfg.mla.count_h} x {cfg.mla.count_w}")
+    if cfg.mla.packing != "square" or getattr(grid, "packing", "square") != "square":
+        # its pinhole lattice, shells and traced model patch are laid out in square lens steps
+        raise InputError(f"the through-focus analysis reads square arrays only; this one is "
+                         f"{cfg.mla.packing} (mla.packing)")
     frames = list(frames)
     if len(frames) < 2:
         raise InputError("a through-focus reading needs at least one +u / -u pair of frames")

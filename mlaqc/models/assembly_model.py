@@ -190,17 +190,16 @@ _LOADED: dict[str, AssemblyModel] = {}
 
 def render_grid(cfg: CameraConfig, glob: dict[str, float], *, rays_per_pixel: float, seed: int):
     """Render `cfg`'s white frame with global errors `glob` and calibrate it (its Grid)."""
-    from mlaqc.inspection.calibrate import calibrate
+    from mlaqc.inspection.pipeline import calibrate_for
     from mlaqc.optics.errormap import ErrorMap
     from mlaqc.optics.sensor import white_level
     from mlaqc.optics.simulate import simulate
 
-    em = ErrorMap.zeros(cfg.mla.count_h, cfg.mla.count_w).with_globals(**glob)
+    em = ErrorMap.zeros(cfg.mla.count_h, cfg.mla.count_w, cfg.mla.packing).with_globals(**glob)
     raw = simulate(cfg, errors=em, rays_per_pixel=rays_per_pixel, seed=seed).raw
     blk = cfg.sensor.black_level_dn
     img = (raw.astype(np.float32) - blk) / (white_level(cfg.sensor) - blk)
-    return calibrate(img, expected_pitch_px=cfg.layout.subimage_pitch_px,
-                     expected_shape=(cfg.mla.count_h, cfg.mla.count_w))
+    return calibrate_for(img, cfg)
 
 
 def read_grid(grid, cfg: CameraConfig, pupil_mm: float) -> tuple[np.ndarray, np.ndarray]:

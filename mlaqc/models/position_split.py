@@ -8,14 +8,14 @@ the rays that leave the lens through that strip change, which lights one half of
 intensity tilt. Both move the lens' own sub-image alike (decenter by about half as much per µm), so the
 neighbours' tilts, taken against the lens' own shift, separate them:
 
-    contrast C = the four neighbours' tilts towards the lens (`neighbour_contrast`)
+    contrast C = the edge neighbours' tilts towards the lens (`neighbour_contrast`: 4 square, 6 hex)
 
 is small for a pitch error and about four times larger for a decenter of the same shift. With `grid` boundaries no boundary
 moves and no neighbour changes at all: a white image cannot separate them (bench/type_separation.py:
 1.5 sigma at best), and `position_split` returns None, so the lens stays 'position'.
 
 `PositionSplit` holds C per pixel of the lens' own sub-image shift for each kind, measured on the
-tracer's 9 x 9-lens patch (mlaqc.models.signatures) with the sensor formation applied; cached on disk by
+tracer's 9 x 9-lens patch (hex: 9 x 11, `signatures.patch_shape`) (mlaqc.models.signatures) with the sensor formation applied; cached on disk by
 the optics' signature key.
 """
 
@@ -29,10 +29,12 @@ from mlaqc.models.reference import build_reference
 from mlaqc.models.store import stored_json
 from mlaqc.optics.config import CameraConfig
 from mlaqc.optics.errormap import ErrorMap
+from mlaqc.optics.lattice import Lattice
 
 FORMAT_VERSION = 1
 SPLIT_KINDS = {"pitch": 2.0, "decenter": 4.0}  # rendered magnitudes, µm: the same sub-image shift for both
 SPLIT_DIRECTIONS_DEG = (0.0, 45.0)  # along an axis and diagonal: C varies by about 15 % between them
+HEX_SPLIT_DIRECTIONS_DEG = (0.0, 30.0)  # hex: towards a neighbour and between two
 
 
 @dataclass(frozen=True)
@@ -56,25 +58,40 @@ class PositionSplit:
                    {k: float(v) for k, v in d["shift_px_per_um"].items()}, str(d["key"]))
 
 
-def neighbour_contrast(asym_x: np.ndarray, asym_y: np.ndarray) -> np.ndarray:
-    """C of every lens: its left and upper neighbours' tilts towards it minus its right and lower ones'
-    (image axes, y down); NaN where a neighbour is off the array. Measured on the tracer, a decenter makes
-    both neighbours along its axis brighter on the side facing the lens whichever way it points, so C
-    does not depend on the direction (a pitch error leaves the neighbours untilted)."""
+def neighbour_contrast(asym_x: np.ndarray, asym_y: np.ndarray, packing: str = "square") -> np.ndarray:
+    """C of every lens: the sum over its edge neighbours (square: left, right, upper, lower; hex: its 6)
+    of each neighbour's tilt projected on the unit vector from that neighbour to the lens (image axes,
+    y down); NaN where a neighbour is off the array. On a square lattice: the left and upper
+    neighbours' tilts towards it minus the right and lower ones'. Measured on the tracer, a decenter
+    makes both neighbours along its axis brighter on the side facing the lens whichever way it points,
+    so C does not depend on the direction (a pitch error leaves the neighbours untilted)."""
     c = np.full(asym_x.shape, np.nan)
-    c[1:-1, 1:-1] = (asym_x[1:-1, :-2] - asym_x[1:-1, 2:]) + (asym_y[:-2, 1:-1] - asym_y[2:, 1:-1])
-    return c
+    if packing == "square":
+        c[1:-1, 1:-1] = (asym_x[1:-1, :-2] - asym_x[1:-1, 2:]) + (asym_y[:-2, 1:-1] - asym_y[2:, 1:-1])
+        return c
+    rows, cols = asym_x.shape
+    lat = Lattice(packing, rows, cols)
+    nbr = lat.neighbours(diagonal=False)  # (K, 6)
+    r = np.arange(rows * cols) // cols
+    steps = lat.neighbour_steps(diagonal=False)[r % 2]  # (K, 6, 2) (dr, dc)
+    u_n, v_n = lat.uv(r[:, None] + steps[..., 0], steps[..., 1])
+    u_0, v_0 = lat.uv(r[:, None], np.zeros((rows * cols, 1)))
+    ux, uy = u_0 - u_n, v_0 - v_n  # neighbour -> lens, one pitch long
+    ax, ay = asym_x.ravel()[nbr], asym_y.ravel()[nbr]
+    total = (ax * ux + ay * uy).sum(axis=1)
+    return np.where((nbr >= 0).all(axis=1), total, np.nan).reshape(rows, cols)
 
 
 def _patch_metrics(cfg: CameraConfig, fields: dict[str, float], rays_per_pixel: float, seed: int, model):
     from mlaqc.inspection.metrics import compute_metrics
-    from mlaqc.models.signatures import PATCH, _blurred, nominal_windows, patch_config, um_per_px_at_mla
+    from mlaqc.models.signatures import _blurred, nominal_windows, patch_centre, patch_config, um_per_px_at_mla
     from mlaqc.optics.render import Renderer
     from mlaqc.optics.scene import WhiteScene
 
     patch = patch_config(cfg)
-    c = PATCH // 2
-    errors = ErrorMap.zeros(PATCH, PATCH).with_lens(c + 1, c + 1, **fields) if fields else ErrorMap.zeros(PATCH, PATCH)
+    r, c = patch_centre(patch)
+    errors = ErrorMap.zeros(patch.mla.count_h, patch.mla.count_w, patch.mla.packing)
+    errors = errors.with_lens(r + 1, c + 1, **fields) if fields else errors
     img = _blurred(Renderer(patch, errors).render(WhiteScene(), rays_per_pixel=rays_per_pixel, seed=seed).photons, patch, 0.0)
     win, cx, cy = nominal_windows(img / img.max(), patch)
     return compute_metrics(win, cx, cy, model, um_per_px_at_mla=um_per_px_at_mla(patch))
@@ -83,18 +100,18 @@ def _patch_metrics(cfg: CameraConfig, fields: dict[str, float], rays_per_pixel: 
 def build_position_split(cfg: CameraConfig, *, rays_per_pixel: float = 1500.0, seed: int = 5) -> PositionSplit:
     """Render the patch healthy, with a pitch error and with a decenter along +x (common random numbers)
     and read each kind's contrast and own shift."""
-    from mlaqc.models.signatures import PATCH, patch_config, signature_key
+    from mlaqc.models.signatures import patch_centre, patch_config, signature_key
 
     model = build_reference(patch_config(cfg), rays_per_lens=2_000_000)  # as the signature tables are
-    c = PATCH // 2
+    r, c = patch_centre(patch_config(cfg))
     base = _patch_metrics(cfg, {}, rays_per_pixel, seed, model)
     contrast, shift = {}, {}
     for kind, mag in SPLIT_KINDS.items():
         ks, kc = [], []
-        for direction in SPLIT_DIRECTIONS_DEG:
+        for direction in (HEX_SPLIT_DIRECTIONS_DEG if cfg.mla.packing == "hex" else SPLIT_DIRECTIONS_DEG):
             m = _patch_metrics(cfg, {f"{kind}_um": mag, f"{kind}_dir_deg": direction}, rays_per_pixel, seed, model)
-            ds = float(np.hypot(m["offset_x_px"][c, c] - base["offset_x_px"][c, c], m["offset_y_px"][c, c] - base["offset_y_px"][c, c]))
-            dc = float(neighbour_contrast(m["asym_x"] - base["asym_x"], m["asym_y"] - base["asym_y"])[c, c])
+            ds = float(np.hypot(m["offset_x_px"][r, c] - base["offset_x_px"][r, c], m["offset_y_px"][r, c] - base["offset_y_px"][r, c]))
+            dc = float(neighbour_contrast(m["asym_x"] - base["asym_x"], m["asym_y"] - base["asym_y"], cfg.mla.packing)[r, c])
             ks.append(ds / mag)
             kc.append(dc / ds if ds else 0.0)
         shift[kind], contrast[kind] = float(np.mean(ks)), float(np.mean(kc))
@@ -106,9 +123,9 @@ _SPLITS: dict[str, PositionSplit] = {}
 
 def position_split(cfg: CameraConfig) -> PositionSplit | None:
     """The split of `cfg`'s optics (the package's for Table 1 optics, else the disk cache, else rendered,
-    about 10 s, and cached), or None with grid boundaries,
-    where no neighbour sees either error."""
-    if cfg.mla.boundaries != "sag-intersection":
+    about 10 s, and cached), or None with grid boundaries or circular apertures (each centred on its own
+    front vertex, as a chrome mask makes them: no boundary is shared), where no neighbour sees either error."""
+    if cfg.mla.boundaries != "sag-intersection" or cfg.mla.aperture == "circle":
         return None
     from mlaqc.models.signatures import signature_key
 
@@ -122,10 +139,10 @@ def position_split(cfg: CameraConfig) -> PositionSplit | None:
 SPLIT_Z = 4.0  # the two kinds' predictions must lie this many sigma apart before a lens is typed (2 sigma each side: 2.3 % wrong)
 
 
-def contrast_sigma(asym_x_dev: np.ndarray, asym_y_dev: np.ndarray) -> float:
+def contrast_sigma(asym_x_dev: np.ndarray, asym_y_dev: np.ndarray, packing: str = "square") -> float:
     """The frame's spread of C (robust, over every lens) from the asymmetry deviations; a
     tiny floor keeps a noise-free frame's z finite."""
-    c = neighbour_contrast(asym_x_dev, asym_y_dev)
+    c = neighbour_contrast(asym_x_dev, asym_y_dev, packing)
     c = c[np.isfinite(c)]
     if c.size == 0:
         return float("inf")

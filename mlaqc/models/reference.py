@@ -20,6 +20,7 @@ from mlaqc.atomic import write_bytes_atomic
 from mlaqc.models.store import stored
 from mlaqc.optics.config import CameraConfig
 from mlaqc.optics.errormap import ErrorMap
+from mlaqc.optics.lattice import Lattice
 from mlaqc.optics.render import Renderer
 from mlaqc.optics.scene import WhiteScene
 
@@ -101,18 +102,23 @@ def _load(path: Path, key: str) -> ReferenceModel:
 def build_reference(cfg: CameraConfig, *, rays_per_lens: int = 4_000_000, seed: int = 20180501,
                     client=None) -> ReferenceModel:
     """Render the reference: the sub-image of the lens nearest the axis on a sensor with pixels 8x finer
-    (rays through that lens and its eight neighbours, so the window holds what a real one holds), then
+    (rays through that lens and its neighbours within 1.5 pitches, so the window holds what a real one
+    holds: square 8, hex 6), then
     the flux of every ideal lens from a full-frame render, smoothed by a low-order fit."""
     os_ = OVERSAMPLE
     s = cfg.sensor
     rows, cols = cfg.mla.count_h, cfg.mla.count_w
     p = cfg.mla.pitch_um * 1e-3
-    m0, n0 = rows // 2, cols // 2  # 0-based lens just up-left of (or on) the axis
-    x_c = (n0 + 0.5) * p - 0.5 * cols * p
-    y_c = (m0 + 0.5) * p - 0.5 * rows * p
+    m0, n0 = rows // 2, cols // 2  # 0-based lens just up-left of (or on) the axis (square)
+    if cfg.mla.packing == "square":
+        x_c = (n0 + 0.5) * p - 0.5 * cols * p
+        y_c = (m0 + 0.5) * p - 0.5 * rows * p
+    else:  # the lens whose centre is nearest the axis, from the lattice
+        m0, n0 = (int(v) for v in Lattice.of(cfg).nearest(0.0, 0.0)[:2])
+        x_c, y_c = (float(v) for v in Lattice.of(cfg).position(m0, n0))
     fine = dataclasses.replace(cfg, sensor=dataclasses.replace(s, pixel_um=s.pixel_um / os_,
                                                                 **_fine_crop(cfg, x_c, y_c)))
-    renderer = Renderer(fine, ErrorMap.zeros(rows, cols))
+    renderer = Renderer(fine, ErrorMap.zeros(rows, cols, cfg.mla.packing))
     tile = (x_c - 1.5 * p, x_c + 1.5 * p, y_c - 1.5 * p, y_c + 1.5 * p)
     fine_img = np.zeros(fine.sensor.width_px * fine.sensor.height_px)
     for i in range(max(1, rays_per_lens * 9 // (1 << 20))):
@@ -175,18 +181,51 @@ def _flux_map(cfg: CameraConfig, rays_per_pixel: float = 4.0, client=None) -> np
 
         res = render_on_cluster(client, Renderer(cfg), WhiteScene(), rays_per_pixel=rays_per_pixel, seed=7)
     rows, cols = cfg.mla.count_h, cfg.mla.count_w
+    if cfg.mla.packing == "square":
+        sums, (m, n), inner = _square_cell_sums(res.photons, cfg)
+        r2 = (m / max(rows, 1)) ** 2 + (n / max(cols, 1)) ** 2
+        basis = np.stack([np.ones_like(r2), r2, r2 * r2, (m / rows) ** 2 - (n / cols) ** 2]).reshape(4, -1).T
+    else:
+        sums, (m, n), inner = _lattice_cell_sums(res.photons, cfg)
+        r2 = m ** 2 + n ** 2
+        basis = np.stack([np.ones_like(r2), r2, r2 * r2, m ** 2 - n ** 2]).reshape(4, -1).T
+    coef, *_ = np.linalg.lstsq(basis[inner.ravel()], sums.ravel()[inner.ravel()], rcond=None)
+    fit = (basis @ coef).reshape(rows, cols)
+    return fit / fit[rows // 2, cols // 2]
+
+
+def _square_cell_sums(photons: np.ndarray, cfg: CameraConfig):
+    """Per-cell photon sums of a square array's white render (separable: pixel rows and columns map to
+    lens rows and columns), the lenses' index offsets (m, n) from the array's centre, and the cells
+    not cut by the sensor edge (all but the border ones)."""
+    rows, cols = cfg.mla.count_h, cfg.mla.count_w
     pitch = cfg.layout.subimage_pitch_px
-    h, w = res.photons.shape
+    h, w = photons.shape
     yy = ((np.arange(h) - (h - 1) / 2) / pitch + rows / 2).astype(int)
     xx = ((np.arange(w) - (w - 1) / 2) / pitch + cols / 2).astype(int)
     ok_y, ok_x = (yy >= 0) & (yy < rows), (xx >= 0) & (xx < cols)
     idx = (yy[ok_y][:, None] * cols + xx[ok_x][None, :]).ravel()
-    sums = np.bincount(idx, weights=res.photons[np.ix_(ok_y, ok_x)].ravel(), minlength=rows * cols).reshape(rows, cols)
+    sums = np.bincount(idx, weights=photons[np.ix_(ok_y, ok_x)].ravel(), minlength=rows * cols).reshape(rows, cols)
     m, n = np.meshgrid(np.arange(rows) - (rows - 1) / 2, np.arange(cols) - (cols - 1) / 2, indexing="ij")
-    r2 = (m / max(rows, 1)) ** 2 + (n / max(cols, 1)) ** 2
-    basis = np.stack([np.ones_like(r2), r2, r2 * r2, (m / rows) ** 2 - (n / cols) ** 2]).reshape(4, -1).T
     inner = np.ones((rows, cols), bool)
     inner[[0, -1], :] = inner[:, [0, -1]] = False  # border cells may be cut by the sensor edge
-    coef, *_ = np.linalg.lstsq(basis[inner.ravel()], sums.ravel()[inner.ravel()], rcond=None)
-    fit = (basis @ coef).reshape(rows, cols)
-    return fit / fit[rows // 2, cols // 2]
+    return sums, (m, n), inner
+
+
+def _lattice_cell_sums(photons: np.ndarray, cfg: CameraConfig):
+    """Per-cell photon sums of a white render on any lattice (each pixel to the cell of the sub-image
+    lattice it lies in, `Lattice.nearest`), the lenses' centres (y, x) over the array's height and width,
+    and the cells not cut by the sensor edge (all but the outer ring)."""
+    lat = Lattice(cfg.mla.packing, cfg.mla.count_h, cfg.mla.count_w, cfg.layout.subimage_pitch_px)
+    h, w = photons.shape
+    sums = np.zeros(lat.rows * lat.cols)
+    for i0 in range(0, h, 256):  # 256 pixel rows at a time: a few MB of indices
+        y = np.arange(i0, min(i0 + 256, h))[:, None] - (h - 1) / 2
+        x = np.arange(w)[None, :] - (w - 1) / 2
+        r, c, inside = lat.nearest(*np.broadcast_arrays(x, y))
+        sums += np.bincount((r * lat.cols + c)[inside], weights=photons[i0:i0 + len(y)][inside], minlength=sums.size)
+    x_c, y_c = lat.centres()
+    width, height = lat.extent
+    inner = np.ones(lat.shape, bool)
+    inner[[0, -1], :] = inner[:, [0, -1]] = False
+    return sums.reshape(lat.shape), (y_c / height, x_c / width), inner

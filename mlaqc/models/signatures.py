@@ -1,6 +1,6 @@
 """Signature table of the inverse model: how each error type, at each magnitude, changes a lens' indexes.
 
-Rendered by the tracer on a 9 x 9-lens patch of the camera (same optics, geometry and pixels), the error
+Rendered by the tracer on a 9 x 9-lens patch of the camera (hex: 9 columns x 11 rows, `patch_shape`) (same optics, geometry and pixels), the error
 on the centre lens and the same random draws with and without it, so the differences are nearly free of
 Monte-Carlo noise. Directional errors are rendered at direction 0; their features are taken along and
 across the shift they cause, so a measured lens is compared after rotating into its own shift direction.
@@ -27,6 +27,7 @@ from mlaqc.models.store import stored_json
 from mlaqc.optics.config import CameraConfig
 from mlaqc.optics.errormap import ErrorMap
 from mlaqc.optics.formation import apply_formation, blur_key, formation_kernels
+from mlaqc.optics.lattice import SQRT3_2, Lattice
 from mlaqc.optics.render import Renderer
 from mlaqc.optics.scene import WhiteScene
 
@@ -148,15 +149,35 @@ def signature_key(cfg: CameraConfig) -> str:
     mla = {k: v for k, v in mla_hash_view(d["mla"]).items() if k not in ("count_w", "count_h")}
     keep = {"main_lens": d["main_lens"], "mla": mla, "geometry": d["geometry"], "pixel_um": d["sensor"]["pixel_um"],
             "fresnel": d["trace"]["fresnel"], "version": TABLE_VERSION, **blur_key(cfg)}
+    if cfg.mla.packing == "hex":  # hex tables also hold the Y_PROBE's gain
+        keep["y_probe"] = Y_PROBE
     return hashlib.sha256(json.dumps(keep, sort_keys=True).encode()).hexdigest()[:16]
 
 
+def patch_shape(packing: str, lenses: int = PATCH) -> tuple[int, int]:
+    """(rows, cols) of the patch: lenses x lenses square; hex `lenses` columns and enough rows (odd) to
+    reach as far up and down as the columns reach sideways (rows are sqrt(3)/2 pitch apart: 11 for 9)."""
+    if packing != "hex":
+        return lenses, lenses
+    half = int(np.ceil((lenses // 2) / SQRT3_2))
+    return 2 * half + 1, lenses
+
+
+def patch_centre(cfg: CameraConfig) -> tuple[int, int]:
+    """0-based (row, col) of the patch's centre lens (the one the errors are put on): every neighbour
+    it has, and the next ring's, are in the patch."""
+    return cfg.mla.count_h // 2, cfg.mla.count_w // 2
+
+
 def patch_config(cfg: CameraConfig, lenses: int = PATCH) -> CameraConfig:
-    """The same camera cut down to a lenses x lenses MLA on a sensor just large enough."""
-    side = int(np.ceil(lenses * cfg.layout.subimage_pitch_px)) + 16
-    side += side % 2
-    return dataclasses.replace(cfg, mla=dataclasses.replace(cfg.mla, count_w=lenses, count_h=lenses),
-                               sensor=dataclasses.replace(cfg.sensor, width_px=side, height_px=side))
+    """The same camera cut down to a patch of `lenses` columns (`patch_shape`) on a sensor just large
+    enough (the array's outline, `Lattice.extent`, plus 8 px a side)."""
+    rows, cols = patch_shape(cfg.mla.packing, lenses)
+    width, height = Lattice(cfg.mla.packing, rows, cols, cfg.layout.subimage_pitch_px).extent
+    w_px, h_px = (int(np.ceil(v)) + 16 for v in (width, height))
+    w_px, h_px = w_px + w_px % 2, h_px + h_px % 2
+    return dataclasses.replace(cfg, mla=dataclasses.replace(cfg.mla, count_w=cols, count_h=rows),
+                               sensor=dataclasses.replace(cfg.sensor, width_px=w_px, height_px=h_px))
 
 
 def nominal_windows(img: np.ndarray, cfg: CameraConfig, half: int = 10):
@@ -164,11 +185,10 @@ def nominal_windows(img: np.ndarray, cfg: CameraConfig, half: int = 10):
     coordinates: for simulated images whose grid is known exactly (signatures, tests)."""
     from mlaqc.inspection.subimages import cut_windows
 
-    rows, cols = cfg.mla.count_h, cfg.mla.count_w
-    pitch = cfg.layout.subimage_pitch_px
-    m, n = np.meshgrid(np.arange(rows), np.arange(cols), indexing="ij")
-    gx = (img.shape[1] - 1) / 2 + (n - (cols - 1) / 2) * pitch
-    gy = (img.shape[0] - 1) / 2 + (m - (rows - 1) / 2) * pitch
+    lat = Lattice(cfg.mla.packing, cfg.mla.count_h, cfg.mla.count_w, cfg.layout.subimage_pitch_px)
+    x, y = lat.centres()
+    gx = (img.shape[1] - 1) / 2 + x
+    gy = (img.shape[0] - 1) / 2 + y
     win, _, ox, oy = cut_windows(img, gx, gy, 2 * half + 1, 2 * half + 1)
     return win, gx - ox, gy - oy
 
@@ -194,14 +214,38 @@ def lens_features(metrics, m: int, n: int, direction_deg: float | None = None) -
                      metrics["blur"][m, n], metrics["flux"][m, n], metrics["ssim"][m, n], metrics["sharpness"][m, n]])
 
 
-def patch_errors(kinds=KINDS) -> list[ErrorMap]:
+def patch_errors(kinds=KINDS, packing: str = "square") -> list[ErrorMap]:
     """The patch's error maps in table order: the perfect patch, then each kind at each magnitude on the
-    centre lens."""
-    c = PATCH // 2
-    maps = [ErrorMap.zeros(PATCH, PATCH)]
+    centre lens (`patch_centre`); on hex then the Y_PROBE (see `shift_gain_y`)."""
+    rows, cols = patch_shape(packing)
+    r, c = rows // 2, cols // 2
+    maps = [ErrorMap.zeros(rows, cols, packing)]
     for kind in kinds:
-        maps += [ErrorMap.zeros(PATCH, PATCH).with_lens(c + 1, c + 1, **kind.fields(v)) for v in kind.magnitudes]
+        maps += [ErrorMap.zeros(rows, cols, packing).with_lens(r + 1, c + 1, **kind.fields(v)) for v in kind.magnitudes]
+    if packing == "hex" and any(k.name == "pitch" for k in kinds):
+        maps.append(ErrorMap.zeros(rows, cols, packing).with_lens(r + 1, c + 1, **Y_PROBE))
     return maps
+
+
+# A pitch error across the rows (90 deg), rendered on hex patches only: see `shift_gain_y`.
+Y_PROBE = {"pitch_um": 2.0, "pitch_dir_deg": 90.0}
+
+
+def shift_gain_y(table: SignatureTable) -> float:
+    """How much less a lens shift across the rows (y) moves its registered sub-image than one along them
+    (x), on hex: 1 on a square lattice. Hex sub-images of a pitch-wide disc overlap the rows above and
+    below (rows are 0.87 pitch apart), so a shift in y moves the lens' rim under its neighbours' light,
+    which the registration against the whole window sees only in part (measured on the small hex
+    camera: 0.21 px against 0.38 px for 2 µm; a sub-window without the overlap strips sees almost none
+    of it). The table's directional kinds are rendered along x; `identify` scales the y offsets by
+    1 / this before reading them, so that a shift reads the same in every direction."""
+    return float(table.settings.get("shift_gain_y", 1.0) or 1.0)
+
+
+def gains_y(table: SignatureTable) -> tuple[float, float]:
+    """(`shift_gain_y`, asym_gain_y): the Y_PROBE's registered shift and intensity tilt over the same
+    pitch error's along x (1, 1 on a square lattice)."""
+    return shift_gain_y(table), float(table.settings.get("asym_gain_y", 1.0) or 1.0)
 
 
 def _render_patch(patch: CameraConfig, errors: ErrorMap, rays_per_pixel: float, seed: int) -> np.ndarray:
@@ -213,7 +257,7 @@ def render_patches(cfg: CameraConfig, *, rays_per_pixel: float = 400.0, kinds=KI
     """The geometric renders of `patch_errors(kinds)`, one after the other on this machine's cores, or
     one task each on a Dask `client`'s workers (the same images: renders are deterministic)."""
     patch = patch_config(cfg)
-    maps = patch_errors(kinds)
+    maps = patch_errors(kinds, cfg.mla.packing)
     if client is None:
         images = []
         for i, errors in enumerate(maps, 1):
@@ -241,7 +285,7 @@ def build_signatures(cfg: CameraConfig, *, rays_per_pixel: float = 400.0, kinds=
     the renders of `render_patches` with the same settings, when they are at hand already."""
     patch = patch_config(cfg)
     model = model or build_reference(patch, rays_per_lens=2_000_000)
-    c = PATCH // 2
+    r, c = patch_centre(patch)
     um_px = um_per_px_at_mla(patch)
     if images is None:
         images = render_patches(cfg, rays_per_pixel=rays_per_pixel, kinds=kinds, seed=seed, progress=progress)
@@ -261,16 +305,25 @@ def build_signatures(cfg: CameraConfig, *, rays_per_pixel: float = 400.0, kinds=
         phi = 0.0
         if kind.directional:  # features are taken along the shift that an error at direction 0 causes
             big = mets[len(mets) // 2:]
-            phi = float(np.degrees(np.angle(sum(np.exp(1j * np.arctan2(-m_["offset_y_px"][c, c], m_["offset_x_px"][c, c]))
+            phi = float(np.degrees(np.angle(sum(np.exp(1j * np.arctan2(-m_["offset_y_px"][r, c], m_["offset_x_px"][r, c]))
                                                     for m_ in big))))
-        base_phi = lens_features(base, c, c, phi)
+        base_phi = lens_features(base, r, c, phi)
         mags[kind.name] = np.asarray(kind.magnitudes, float)
-        feats[kind.name] = np.asarray([lens_features(m_, c, c, phi) - base_phi for m_ in mets])
-        rings[kind.name] = np.asarray([[m_[r][c, c] - base[r][c, c] for r in RINGS] for m_ in mets])
+        feats[kind.name] = np.asarray([lens_features(m_, r, c, phi) - base_phi for m_ in mets])
+        rings[kind.name] = np.asarray([[m_[k][r, c] - base[k][r, c] for k in RINGS] for m_ in mets])
         phi0[kind.name] = phi
-    return SignatureTable(mags, feats, phi0, signature_key(cfg), rings,
-                          {"rays_per_pixel": rays_per_pixel, "seed": seed, "patch_lenses": PATCH,
-                           "extra_blur_px": extra_blur_px, "edge_width_px": edge_width})
+    settings = {"rays_per_pixel": rays_per_pixel, "seed": seed, "patch_lenses": PATCH,
+                "extra_blur_px": extra_blur_px, "edge_width_px": edge_width}
+    if len(images) > first and "pitch" in mags:  # the hex Y_PROBE: its shift over the same pitch along x
+        probe = metrics_of(images[first])
+        along = float(np.interp(Y_PROBE["pitch_um"], mags["pitch"], feats["pitch"][:, 0]))
+        across = float(np.hypot(probe["offset_x_px"][r, c] - base["offset_x_px"][r, c],
+                                probe["offset_y_px"][r, c] - base["offset_y_px"][r, c]))
+        settings["shift_gain_y"] = across / along if along > 0 else 1.0
+        tilt = float(np.interp(Y_PROBE["pitch_um"], mags["pitch"], feats["pitch"][:, 2]))
+        tilt_y = float(np.hypot(probe["asym_x"][r, c] - base["asym_x"][r, c], probe["asym_y"][r, c] - base["asym_y"][r, c]))
+        settings["asym_gain_y"] = tilt_y / abs(tilt) if abs(tilt) > 0 else 1.0
+    return SignatureTable(mags, feats, phi0, signature_key(cfg), rings, settings)
 
 
 def build_signature_set(cfg: CameraConfig, *, rays_per_pixel: float = 400.0, progress=None,
@@ -298,10 +351,9 @@ def _blurred(img: np.ndarray, cfg: CameraConfig, extra_blur_px: float | None) ->
 
 def _edge_width(img: np.ndarray, cfg: CameraConfig) -> float:
     """The rim width the calibration measures on a healthy patch render (what a frame's grid reports)."""
-    from mlaqc.inspection.calibrate import calibrate
+    from mlaqc.inspection.pipeline import calibrate_for
 
-    grid = calibrate((img / img.max()).astype(np.float32), expected_pitch_px=cfg.layout.subimage_pitch_px,
-                     expected_shape=(cfg.mla.count_h, cfg.mla.count_w))
+    grid = calibrate_for((img / img.max()).astype(np.float32), cfg)
     return float(grid.edge_width_px)
 
 

@@ -1,8 +1,9 @@
 """Sensor-side image formation the geometric tracer leaves out: microlens diffraction, pixel crosstalk
 and pixel response non-uniformity (PRNU), applied to the rendered photon image before read-out.
 
-Diffraction is a convolution with the Fraunhofer PSF of one microlens' clear aperture (the square cell
-less the corners where its two surfaces cross, `mla.corners = "opaque"`), seen from the sensor gap, at
+Diffraction is a convolution with the Fraunhofer PSF of one microlens' clear aperture (its cell, square
+or hexagonal, or its circle with `mla.aperture = "circle"`, less the corners where its two surfaces
+cross, `mla.corners = "opaque"`), seen from the sensor gap, at
 the config's wavelength, integrated over the pixel area. For a white image this is exact to the extent
 that (1) every lens has the same aperture (a lens' error changes its PSF negligibly), (2) the light is
 one wavelength (a real source's bandwidth smooths the PSF's rings), (3) the PSF does not change over a
@@ -68,7 +69,7 @@ def diffraction_psf(cfg: CameraConfig, step_px: float = 1.0) -> np.ndarray:
     reference model's 8x finer render."""
     z_um = cfg.layout.sensor_gap_mm * 1e3 + 0.5 * cfg.mla.thickness_um  # aperture (≈ mid-lens) to sensor
     psf, fine_px = _fine_psf(cfg.geometry.wavelength_nm * 1e-3, z_um, cfg.sensor.pixel_um, cfg.mla.pitch_um,
-                             aperture_corner_radius_um(cfg))
+                             aperture_corner_radius_um(cfg), aperture_shape(cfg), cfg.mla.aperture_diameter_um or 0.0)
     half = int(round(KERNEL_HALF_PX / step_px))
     out = np.arange(-half, half + 1) * step_px
     fine = (np.arange(psf.shape[0]) - psf.shape[0] // 2) * fine_px
@@ -77,9 +78,31 @@ def diffraction_psf(cfg: CameraConfig, step_px: float = 1.0) -> np.ndarray:
     return kern / kern.sum()
 
 
+def aperture_shape(cfg: CameraConfig) -> str:
+    """The microlens' aperture outline: 'square' or 'hex' (its cell, 100 % fill) or 'circle'."""
+    return "circle" if cfg.mla.aperture == "circle" else cfg.mla.packing
+
+
+def aperture_mask(x_um: np.ndarray, y_um: np.ndarray, shape: str, pitch_um: float, diameter_um: float,
+                  corner_um: float) -> np.ndarray:
+    """True inside the aperture centred on the lens axis: the square cell, the pointy-top hexagonal cell
+    (flat sides at x = ±p/2 facing the row neighbours, mlaqc.optics.lattice) or the circle of
+    `diameter_um`, less the corners beyond `corner_um`."""
+    half = 0.5 * pitch_um
+    if shape == "circle":
+        inside = x_um * x_um + y_um * y_um <= (0.5 * diameter_um) ** 2
+    elif shape == "hex":
+        s = math.sqrt(3.0) / 2.0
+        inside = ((np.abs(x_um) <= half) & (np.abs(0.5 * x_um + s * y_um) <= half)
+                  & (np.abs(0.5 * x_um - s * y_um) <= half))
+    else:
+        inside = (np.abs(x_um) <= half) & (np.abs(y_um) <= half)
+    return inside & (x_um * x_um + y_um * y_um <= corner_um ** 2)
+
+
 @functools.lru_cache(maxsize=8)
 def _fine_psf(wavelength_um: float, z_um: float, pixel_um: float, pitch_um: float,
-              corner_um: float) -> tuple[np.ndarray, float]:
+              corner_um: float, shape: str = "square", diameter_um: float = 0.0) -> tuple[np.ndarray, float]:
     """The Fraunhofer PSF (intensity, summing to 1) by FFT of the aperture, sampled every 1/15 px over
     ±(KERNEL_HALF_PX + 1) px, and that step in px. An N-point FFT over a pupil window W samples the sensor
     plane every λ z / W: W is chosen to give `_SAMPLES_PER_PX` samples per pixel."""
@@ -90,8 +113,7 @@ def _fine_psf(wavelength_um: float, z_um: float, pixel_um: float, pitch_um: floa
                          "(switch formation.diffraction off)")
     coords = (np.arange(_PUPIL_SAMPLES) - _PUPIL_SAMPLES // 2) * step_um
     x, y = np.meshgrid(coords, coords)
-    half = 0.5 * pitch_um
-    aperture = (np.abs(x) <= half) & (np.abs(y) <= half) & (x * x + y * y <= corner_um ** 2)
+    aperture = aperture_mask(x, y, shape, pitch_um, diameter_um, corner_um)
     field = np.fft.fftshift(np.fft.fft2(np.fft.ifftshift(aperture.astype(np.float64))))
     intensity = np.abs(field) ** 2
     c, reach = _PUPIL_SAMPLES // 2, (KERNEL_HALF_PX + 1) * _SAMPLES_PER_PX

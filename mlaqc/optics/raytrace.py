@@ -12,8 +12,12 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from mlaqc.errors import InputError
 from mlaqc.optics.config import CameraConfig
 from mlaqc.optics.errormap import ErrorMap
+from mlaqc.optics.lattice import SQRT3_2, Lattice, neighbour_offsets
+
+INV_ROW_STEP_HEX = 1.0 / SQRT3_2  # hex rows per unit of v (pitches)
 
 
 @dataclass
@@ -143,6 +147,7 @@ class LensChoice:
     rear: np.ndarray  # lens whose rear surface it left (meaningless where corner)
     corner: np.ndarray  # True where the front hit is outside every lens' material (`mla.corners`)
     after_front: Rays  # the rays just after the front surface (MLA frame), for checks of the rear choice
+    gap: np.ndarray | None = None  # True where the front hit is outside every lens' circle (`mla.gap`)
 
 
 class MicrolensArray:
@@ -179,22 +184,33 @@ class MicrolensArray:
     def __init__(self, cfg: CameraConfig, errors: ErrorMap | None = None) -> None:
         mla = cfg.mla
         rows, cols = mla.count_h, mla.count_w
-        errors = errors if errors is not None else ErrorMap.zeros(rows, cols)
+        errors = errors if errors is not None else ErrorMap.zeros(rows, cols, mla.packing)
         if errors.shape != (rows, cols):
             raise ValueError(f"error map shape {errors.shape} does not match the MLA {rows}x{cols}")
+        if errors.packing != mla.packing:
+            raise InputError(f"the error map is for a {errors.packing} lattice but the camera's MLA is "
+                             f"{mla.packing} (mla.packing)")
         e = errors.lens
         self.rows, self.cols = rows, cols
+        self.lattice = Lattice.of(cfg)
+        self.hex = self.lattice.hex
         self.p = mla.pitch_um * 1e-3
         self.inv_p = 1.0 / self.p
-        self.x0 = -0.5 * cols * self.p
-        self.y0 = -0.5 * rows * self.p
+        if self.hex:  # (x0, y0): U(1,1)'s centre; (x - x0) / p, (y - y0) / p are lattice units (hex_cell)
+            u0, v0 = self.lattice.centre_uv()
+            self.x0, self.y0 = -u0 * self.p, -v0 * self.p
+            cx, cy = self.lattice.centres()
+        else:  # (x0, y0): the first cell's corner (the formulas of the square-only tracer, bit for bit)
+            self.x0 = -0.5 * cols * self.p
+            self.y0 = -0.5 * rows * self.p
+            cy, cx = np.meshgrid((np.arange(rows) + 0.5) * self.p + self.y0, (np.arange(cols) + 0.5) * self.p + self.x0,
+                                 indexing="ij")
         self.n = mla.refractive_index
         self.mu_in = 1.0 / self.n
         self.clear_corners = mla.corners == "clear"
         self.fresnel = cfg.trace.fresnel
         t = mla.thickness_um * 1e-3
         self.z_front = -0.5 * t
-        cy, cx = np.meshgrid((np.arange(rows) + 0.5) * self.p + self.y0, (np.arange(cols) + 0.5) * self.p + self.x0, indexing="ij")
         ux, uy = direction_vector(e["pitch_dir_deg"])
         vx, vy = direction_vector(e["decenter_dir_deg"])
         self.fx = (cx + e["pitch_um"] * 1e-3 * ux).ravel()
@@ -208,7 +224,10 @@ class MicrolensArray:
         if self.tilted:
             rots = [_rotation(ax, ay, 0.0) for ax, ay in zip(e["tilt_x_deg"].ravel(), e["tilt_y_deg"].ravel())]
             self.rot = np.stack(rots)  # (K, 3, 3), lens frame -> MLA frame
-        self.sag = mla.boundaries == "sag-intersection"
+        self.circle = mla.aperture == "circle"
+        self.clear_gap = mla.gap == "clear"
+        self.r_circle = 0.5 * (mla.aperture_diameter_um or 0.0) * 1e-3
+        self.sag = mla.boundaries == "sag-intersection" and not self.circle
         self.half_black_mm = 0.5 * mla.black_matrix_um * 1e-3
         self.gx, self.gy = cx.ravel(), cy.ravel()  # design centres
         self.c1_design = 1.0 / (mla.radius_front_um * 1e-3)
@@ -216,6 +235,7 @@ class MicrolensArray:
         self.z_rear_design = self.z_front + t
         zero = np.zeros(rows * cols)
         self.margin_front, self.margin_rear = self.boundary_margins_mm() if self.sag else (zero, zero)
+        self.circle_reach = self.circle_reach_mm() if self.circle else 0.0
 
     def sphere_offsets_mm(self, rear: bool) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Per lens, how its front or rear sphere departs from the design one, in the MLA frame: the
@@ -261,29 +281,74 @@ class MicrolensArray:
         u, w, radius = self.sphere_offsets_mm(rear)
         r0 = abs(1.0 / (self.c2_design if rear else self.c1_design))
         ra = np.abs(radius)
-        rows, cols, p = self.rows, self.cols, self.p
         flawed = (u > 1e-9) | (np.abs(w) > 1e-9) | (np.abs(ra - r0) > 1e-12 * r0)  # mm; rounding is not an error
-        margin = np.zeros(rows * cols)
-        for dr in (-1, 0, 1):
-            for dc in (-1, 0, 1):
-                if dr == 0 and dc == 0:
-                    continue
-                r_k, c_k = np.divmod(np.arange(rows * cols), cols)
-                r_i, c_i = r_k + dr, c_k + dc
-                ok = (r_i >= 0) & (r_i < rows) & (c_i >= 0) & (c_i < cols)
-                k = np.flatnonzero(ok)
-                i = r_i[k] * cols + c_i[k]
-                pair = flawed[k] | flawed[i]
-                k, i = k[pair], i[pair]
-                if k.size:
-                    d = _pair_margin(p, r0, u[i], np.abs(w[i]), ra[i], u[k], np.abs(w[k]), ra[k])
-                    np.maximum.at(margin, k, d)
+        margin = np.zeros(self.rows * self.cols)
+        for nb in self.lattice.neighbours(diagonal=True).T:  # square 8, hex 6 (the max is order-free)
+            k = np.flatnonzero(nb >= 0)
+            i = nb[k]
+            pair = flawed[k] | flawed[i]
+            k, i = k[pair], i[pair]
+            if k.size:
+                d = _pair_margin(self.p, r0, u[i], np.abs(w[i]), ra[i], u[k], np.abs(w[k]), ra[k], self.hex)
+                np.maximum.at(margin, k, d)
         return margin
 
+    def circle_reach_mm(self) -> float:
+        """How far (mm) beyond the circles' radius from its design centre a front hit can still lie in some
+        lens' circle: the largest lateral move of a front vertex (pitch error; a tilt's swing), plus how far
+        apart two spheres' hits of one ray can lie (their height difference, at most the rim sag, times the
+        ray's slope, taken <= 1), + 1 nm. Hits farther out are in the gap (`_hit_circle`)."""
+        move = np.hypot(self.fx - self.gx, self.fy - self.gy)
+        rim = self.r_circle + float(move.max(initial=0.0))
+        sag = float(_sag_abs(np.abs(1.0 / self.c1), min(rim, 0.999 * np.abs(1.0 / self.c1).min())).max())
+        if self.tilted:
+            cos_tilt = np.clip(self.rot[:, 2, 2], -1.0, 1.0)
+            move = move + (abs(self.z_front) + sag) * np.sqrt(1.0 - cos_tilt ** 2) + rim * (1.0 - cos_tilt)
+        return float(move.max(initial=0.0)) + sag + 1e-6
+
+    def _hit_circle(self, k, r: Rays):
+        """'circle' apertures: the lens whose circle (radius r_circle about its front vertex, in its frame)
+        holds the ray's hit on that lens' front sphere: lens k (the front-plane crossing's cell) first,
+        then the candidates around the cell of k's hit (`neighbours` order). Only hits within
+        r_circle + circle_reach of their cell's design centre can lie in another lens' circle; the others
+        outside k's circle are in the gap. Returns k, local hit, direction, normal, hit, gap."""
+        local, ldir, nrm, t = self._surface(k, r.x, r.y, r.z, r.L, r.M, r.N, rear=False)
+        r2 = self.r_circle * self.r_circle
+        with np.errstate(invalid="ignore"):
+            gap = ~(local[0] * local[0] + local[1] * local[1] <= r2)
+            gx, gy, _, _, _, _ = self._from_lens(k, *local, *ldir)
+            k2, _ = self.cell_of(gx, gy)
+            near = np.hypot(gx - self.gx[k2], gy - self.gy[k2]) <= self.r_circle + self.circle_reach
+        todo = np.flatnonzero(gap & near & np.isfinite(t))
+        if todo.size:
+            sub = [a[todo] for a in (r.x, r.y, r.z, r.L, r.M, r.N)]
+            kb = k[todo].copy()
+            found = np.zeros(todo.size, dtype=bool)
+            for kc, ok in self.neighbours(gx[todo], gy[todo]):
+                lc, _, _, tc = self._surface(kc, *sub, rear=False)
+                with np.errstate(invalid="ignore"):
+                    take = ok & ~found & (lc[0] * lc[0] + lc[1] * lc[1] <= r2) & np.isfinite(tc)
+                kb = np.where(take, kc, kb)
+                found |= take
+            sel, kb = todo[found], kb[found]
+            if sel.size:
+                k = k.copy()
+                k[sel] = kb
+                l2, d2, n2, t2 = self._surface(kb, *(a[sel] for a in (r.x, r.y, r.z, r.L, r.M, r.N)), rear=False)
+                local, ldir, nrm = (tuple(_put(a, sel, b) for a, b in zip(g1, g2)) for g1, g2 in ((local, l2), (ldir, d2), (nrm, n2)))
+                t = _put(t, sel, t2)
+                gap = gap.copy()
+                gap[sel] = False
+        return k, local, ldir, nrm, np.isfinite(t), gap
+
     def cell_of(self, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Flat lens index of each point (clipped into range) and whether it lies on the array."""
-        col = np.floor((x - self.x0) * self.inv_p)
-        row = np.floor((y - self.y0) * self.inv_p)
+        """Flat lens index of each point's design cell (square or hexagon; clipped into range) and whether
+        it lies on the array."""
+        if self.hex:
+            row, col, _, _ = hex_cell((x - self.x0) * self.inv_p, (y - self.y0) * self.inv_p)
+        else:
+            col = np.floor((x - self.x0) * self.inv_p)
+            row = np.floor((y - self.y0) * self.inv_p)
         inside = (col >= 0) & (col < self.cols) & (row >= 0) & (row < self.rows)
         k = np.where(inside, row * self.cols + col, 0).astype(np.int64)
         return k, inside
@@ -346,7 +411,11 @@ class MicrolensArray:
         k, on_array = self.cell_of(r.x, r.y)
         if self.half_black_mm > 0.0:
             on_array = on_array & ~self.black_matrix(r.x, r.y)
-        if self.sag:
+        gap = False
+        if self.circle:
+            k, local, ldir, nrm, hit, gap = self._hit_circle(k, r)
+            corner = ~self._inside_lens(k, *local) & ~gap  # the gap is flat substrate: no corner there
+        elif self.sag:
             k, local, ldir, nrm, hit = self._hit_sag(k, r, rear=False)
             corner = self._corner_sag(k, *local)
         else:
@@ -354,31 +423,37 @@ class MicrolensArray:
             corner = ~self._inside_lens(k, *local)
         k_front = k
         L, M, N, ci, ct, ok = refract(*ldir, *nrm, self.mu_in)
-        if self.clear_corners:
-            L, M, N = (np.where(corner, a, b) for a, b in zip(ldir, (L, M, N)))
-            keep = on_array & hit
-        else:
-            keep = on_array & hit & ~corner
-        w = r.w * (np.where(corner, 1.0, fresnel_transmittance(ci, ct, 1.0, self.n)) if self.fresnel else 1.0)
+        absorbed = (corner & (not self.clear_corners)) | (gap & (not self.clear_gap))
+        straight = corner | gap  # no lens: a clear corner or gap passes undeviated, without Fresnel loss
+        if self.clear_corners or (self.circle and self.clear_gap):
+            L, M, N = (np.where(straight, a, b) for a, b in zip(ldir, (L, M, N)))
+        keep = on_array & hit & ~absorbed
+        w = r.w * (np.where(straight, 1.0, fresnel_transmittance(ci, ct, 1.0, self.n)) if self.fresnel else 1.0)
         r.x, r.y, r.z, r.L, r.M, r.N = self._from_lens(k, *local, L, M, N)
         front_state = (r.x, r.y, r.z, r.L, r.M, r.N)
         after_front = Rays(*front_state, np.where(keep & ok, w, 0.0)) if record else None
-        k, local, ldir, nrm, hit2 = (self._hit_sag if self.sag else self._hit)(k, r, rear=True)
+        if self.circle:  # the circle's lens, front and rear
+            local, ldir, nrm, t2 = self._surface(k, r.x, r.y, r.z, r.L, r.M, r.N, rear=True)
+            hit2 = np.isfinite(t2)
+        else:
+            k, local, ldir, nrm, hit2 = (self._hit_sag if self.sag else self._hit)(k, r, rear=True)
         L, M, N, ci, ct, ok2 = refract(*ldir, *nrm, self.n)
         if self.fresnel:
-            w = w * np.where(corner, 1.0, fresnel_transmittance(ci, ct, self.n, 1.0))
+            w = w * np.where(straight, 1.0, fresnel_transmittance(ci, ct, self.n, 1.0))
         out = self._from_lens(k, *local, L, M, N)
-        if self.clear_corners:  # no lens there: the ray goes on straight from the front plane
-            out = tuple(np.where(corner, a, b) for a, b in zip(front_state, out))
-            hit2, ok2 = hit2 | corner, ok2 | corner
+        if self.clear_corners or (self.circle and self.clear_gap):  # no lens there: straight on from the front
+            out = tuple(np.where(straight, a, b) for a, b in zip(front_state, out))
+            hit2, ok2 = hit2 | straight, ok2 | straight
         r.x, r.y, r.z, r.L, r.M, r.N = out
         with np.errstate(invalid="ignore"):
             r.w = np.where(keep & ok & hit2 & ok2, w, 0.0)
-        return LensChoice(k_front, k, corner, after_front) if record else None
+        return LensChoice(k_front, k, corner, after_front, gap & np.ones_like(corner)) if record else None
 
     def black_matrix(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
         """True where a point of the front vertex plane (MLA frame) lies under the black matrix: within
-        half its width of a design grid line."""
+        half its width of a design cell edge (grid line or hexagon side)."""
+        if self.hex:
+            return self.edge_distance(x, y) < self.half_black_mm
         u = (x - self.x0) * self.inv_p
         v = (y - self.y0) * self.inv_p
         fu, fv = u - np.floor(u), v - np.floor(v)
@@ -388,20 +463,31 @@ class MicrolensArray:
         """Distance (mm) of MLA-plane points from the nearest edge of the design cell they lie in."""
         u = (x - self.x0) * self.inv_p
         v = (y - self.y0) * self.inv_p
+        if self.hex:
+            _, _, du, dv = hex_cell(u, v)
+            return self.p * hex_edge(du, dv)
         fu, fv = u - np.floor(u), v - np.floor(v)
         return self.p * np.minimum(np.minimum(fu, 1.0 - fu), np.minimum(fv, 1.0 - fv))
 
     def neighbours(self, x: np.ndarray, y: np.ndarray) -> list[tuple[np.ndarray, np.ndarray]]:
-        """The 3 x 3 candidate lenses around the cell of each point (clipped onto the array), row-major:
-        a list of 9 (flat index, exists) pairs; the order is the tie-break (first wins)."""
-        col = np.clip(np.floor((x - self.x0) * self.inv_p), 0, self.cols - 1)
-        row = np.clip(np.floor((y - self.y0) * self.inv_p), 0, self.rows - 1)
+        """The candidate lenses around the design cell of each point (clipped onto the array): square the
+        3 x 3 cells row-major, hex the cell then its 6 neighbours (lattice.neighbour_offsets order); a list
+        of (flat index, exists) pairs; the order is the tie-break (first wins)."""
+        if self.hex:
+            r, c, _, _ = hex_cell((x - self.x0) * self.inv_p, (y - self.y0) * self.inv_p)
+            row, col = np.clip(r, 0, self.rows - 1), np.clip(c, 0, self.cols - 1)
+            odd = (row % 2).astype(bool)
+            steps = [(0, 0, 0)] + [(dr, dc0, dc1) for (dr, dc0), (_, dc1) in
+                                   zip(neighbour_offsets("hex", 0), neighbour_offsets("hex", 1))]
+            pairs = [(row + dr, col + np.where(odd, dc1, dc0)) for dr, dc0, dc1 in steps]
+        else:
+            col = np.clip(np.floor((x - self.x0) * self.inv_p), 0, self.cols - 1)
+            row = np.clip(np.floor((y - self.y0) * self.inv_p), 0, self.rows - 1)
+            pairs = [(row + dr, col + dc) for dr in (-1.0, 0.0, 1.0) for dc in (-1.0, 0.0, 1.0)]
         out = []
-        for dr in (-1.0, 0.0, 1.0):
-            for dc in (-1.0, 0.0, 1.0):
-                rr, cc = row + dr, col + dc
-                ok = (rr >= 0) & (rr < self.rows) & (cc >= 0) & (cc < self.cols)
-                out.append((np.where(ok, rr * self.cols + cc, 0).astype(np.int64), ok))
+        for rr, cc in pairs:
+            ok = (rr >= 0) & (rr < self.rows) & (cc >= 0) & (cc < self.cols)
+            out.append((np.where(ok, rr * self.cols + cc, 0).astype(np.int64), ok))
         return out
 
     def _hit_sag(self, k, r: Rays, rear: bool):
@@ -470,6 +556,33 @@ class MicrolensArray:
         return (arg >= 0.0) & (z_back > hz)
 
 
+def hex_cell(u, v):
+    """The hexagonal cell (Voronoi) of points (u, v) in lattice units from U(1,1)'s centre: row, column
+    (floats; may lie off the array) and the offset (du, dv) from that lens' centre, in pitches. The
+    point lies between rows r0 and r0 + 1; of the nearest lattice points of those two rows the nearer
+    wins (r0 on a tie, as Lattice.nearest). Plain arithmetic and selects: the compiled tracer
+    (raytrace_kernels.hex_cell_f) does the same operations."""
+    r0 = np.floor(v * INV_ROW_STEP_HEX)
+    off0 = 0.5 * (r0 - 2.0 * np.floor(0.5 * r0))  # 1/2 on odd 0-based rows
+    off1 = 0.5 - off0
+    c0 = np.floor(u - off0 + 0.5)
+    c1 = np.floor(u - off1 + 0.5)
+    du0, dv0 = u - (c0 + off0), v - r0 * SQRT3_2
+    du1, dv1 = u - (c1 + off1), v - (r0 + 1.0) * SQRT3_2
+    take = du1 * du1 + dv1 * dv1 < du0 * du0 + dv0 * dv0
+    return (np.where(take, r0 + 1.0, r0), np.where(take, c1, c0), np.where(take, du1, du0),
+            np.where(take, dv1, dv0))
+
+
+def hex_edge(du, dv):
+    """Distance (pitches) from a point at offset (du, dv) from its hexagon's centre to the hexagon's
+    nearest side: the sides face the 6 neighbours, half a pitch out along (1, 0) and (1/2, ±sqrt(3)/2)."""
+    a = np.abs(du)
+    b = np.abs(0.5 * du + SQRT3_2 * dv)
+    c = np.abs(0.5 * du - SQRT3_2 * dv)
+    return 0.5 - np.maximum(a, np.maximum(b, c))
+
+
 def _sag_abs(radius, rho):
     """Sag magnitude of a sphere of radius |radius| at height rho (NaN beyond the sphere)."""
     return radius - np.sqrt(radius * radius - rho * rho)
@@ -481,14 +594,17 @@ def _height_error(rho, u, w, radius, r0):
     return w + np.abs(_sag_abs(radius, r) - _sag_abs(r0, r)) + u * r / np.sqrt(r0 * r0 - r * r)
 
 
-def _pair_margin(p: float, r0: float, u_i, w_i, r_i, u_k, w_k, r_k) -> np.ndarray:
+def _pair_margin(p: float, r0: float, u_i, w_i, r_i, u_k, w_k, r_k, hexagonal: bool = False) -> np.ndarray:
     """Smallest d (mm) beyond which neighbour i cannot reach into cell k (see boundary_margins_mm); p
-    where the bound fails anywhere up to d = p."""
-    e_k = _height_error(np.full_like(u_k, p / math.sqrt(2.0)), u_k, w_k, r_k, r0)
+    where the bound fails anywhere up to d = p. A cell's farthest point from its centre: the square's
+    corner p/sqrt(2), the hexagon's vertex p/sqrt(3)."""
+    rho_max = p / math.sqrt(3.0) if hexagonal else p / math.sqrt(2.0)
+    rho2_max = p * p / 3.0 if hexagonal else 0.5 * p * p
+    e_k = _height_error(np.full_like(u_k, rho_max), u_k, w_k, r_k, r0)
 
     def rhs_d(d):  # the d at which the design height gap 2 p d / 2R0 equals E_i + E_k
         with np.errstate(invalid="ignore"):
-            return (_height_error(np.sqrt(0.5 * p * p + 2.0 * p * d), u_i, w_i, r_i, r0) + e_k) * r0 / p
+            return (_height_error(np.sqrt(rho2_max + 2.0 * p * d), u_i, w_i, r_i, r0) + e_k) * r0 / p
 
     d = np.zeros_like(u_k)
     for _ in range(60):  # increasing from 0 to the smallest root; contraction ratio ~ |u|/R0 + |eps|
@@ -520,7 +636,7 @@ class Camera:
     def __init__(self, cfg: CameraConfig, errors: ErrorMap | None = None) -> None:
         self.cfg = cfg
         self.layout = cfg.layout
-        self.errors = errors if errors is not None else ErrorMap.zeros(cfg.mla.count_h, cfg.mla.count_w)
+        self.errors = errors if errors is not None else ErrorMap.zeros(cfg.mla.count_h, cfg.mla.count_w, cfg.mla.packing)
         self.main = MainLens(cfg)
         self.mla = MicrolensArray(cfg, self.errors)
         g = self.errors.globals

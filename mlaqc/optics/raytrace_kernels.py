@@ -21,6 +21,8 @@ import numpy as np
 
 from mlaqc.compiled import compile_notice
 from mlaqc.optics import lowdisc
+from mlaqc.optics.lattice import SQRT3_2
+from mlaqc.optics.raytrace import INV_ROW_STEP_HEX
 from mlaqc.optics.scene import FOUR_OVER_PI
 from mlaqc.optics.scene import aperture_point as _aperture_point
 from mlaqc.optics.unitcircle import GAMMA, HALF_PI, MIX1, MIX2, TO_UNIT
@@ -66,7 +68,9 @@ IMAGE_SIDE, POINT, OBJECT_SIDE = 0, 1, 2
  S_SOBOL, S_CR0, S_CC0, S_CBW, S_CB, S_J0, S_PCOLS, S_R00, S_R01, S_R10, S_R11,
  S_INVKR, S_SQUARE, S_SQW,
  # half the black matrix' width (mm; sag-intersection boundaries are a kernel of their own, kernel_sag)
- S_HALFBM, S_COUNT) = range(54)
+ S_HALFBM,
+ # circle apertures: radius^2, (radius + reach)^2 (raytrace.MicrolensArray.circle_reach_mm), clear gaps
+ S_RCIRC2, S_RNEAR2, S_CLEARGAP, S_COUNT) = range(57)
 # Rows of the per-block scratch table `g`: the gathered parameters of each ray's lens (tab rows 0..6), its
 # current hit and direction in the lens frame, the distance t to it (NaN on a miss), and its pixel.
 # Sag-intersection mode also gathers the lens' front and rear margins (G_MF, G_MR).
@@ -116,12 +120,151 @@ def main_surface(x, y, z, L, M, N, zv, c, n1, n2, mu, rim2, fresnel):
 
 
 @_jit_inline
-def cell(x, y, s):
-    col = math.floor((x - s[S_AX0]) * s[S_INVP])
-    row = math.floor((y - s[S_AY0]) * s[S_INVP])
+def hex_locate(u, v):
+    """As raytrace.hex_cell, for one point (lattice units from U(1,1)): row, column (floats) and the
+    offset (du, dv) from that lens' centre, in pitches."""
+    r0 = np.floor(v * INV_ROW_STEP_HEX)
+    off0 = 0.5 * (r0 - 2.0 * np.floor(0.5 * r0))
+    off1 = 0.5 - off0
+    c0 = np.floor(u - off0 + 0.5)
+    c1 = np.floor(u - off1 + 0.5)
+    du0, dv0 = u - (c0 + off0), v - r0 * SQRT3_2
+    du1, dv1 = u - (c1 + off1), v - (r0 + 1.0) * SQRT3_2
+    take = du1 * du1 + dv1 * dv1 < du0 * du0 + dv0 * dv0
+    return (r0 + 1.0 if take else r0), (c1 if take else c0), (du1 if take else du0), (dv1 if take else dv0)
+
+
+@_jit_inline
+def hex_edge(du, dv):
+    """As raytrace.hex_edge: distance (pitches) from an offset in a hexagonal cell to its nearest side."""
+    a = abs(du)
+    b = abs(0.5 * du + SQRT3_2 * dv)
+    c = abs(0.5 * du - SQRT3_2 * dv)
+    mx = a if a > b else b
+    mx = mx if mx > c else c
+    return 0.5 - mx
+
+
+# Helpers that differ between square and hex cells, chosen when Numba types the call from `lat` (None:
+# square): a branch on `lat` inside a pass' loop, even one that can never be taken, keeps LLVM from
+# vectorizing that loop (measured: the hex sag-intersection passes ran scalar, 3x slower). Without Numba
+# the stubs branch at run time.
+def _cell_square(u, v, lat):
+    return np.floor(v), np.floor(u)  # np.floor stays a float: math.floor's int64 does not vectorize on AVX2
+
+
+def _cell_hex(u, v, lat):
+    row, col, _, _ = hex_locate(u, v)
+    return row, col
+
+
+def lattice_cell(u, v, lat):
+    """Row and column (floats) of the cell holding lattice point (u, v): u, v in pitches from the first
+    cell's corner (square) or from U(1,1)'s centre (hex)."""
+    return _cell_square(u, v, lat) if lat is None else _cell_hex(u, v, lat)
+
+
+def _cell_edge_square(u, v, ncols, nrows, lat):
+    col = np.floor(u)
+    row = np.floor(v)
+    fu = u - col
+    fv = v - row
+    eu = fu if fu < 1.0 - fu else 1.0 - fu  # selects: the builtin min's NaN handling does not vectorize
+    ev = fv if fv < 1.0 - fv else 1.0 - fv
+    on = (col >= 0.0) & (col < ncols) & (row >= 0.0) & (row < nrows)
+    return (row * ncols + col if on else -1.0), (eu if eu < ev else ev)
+
+
+def _cell_edge_hex(u, v, ncols, nrows, lat):
+    row, col, du, dv = hex_locate(u, v)
+    on = (col >= 0.0) & (col < ncols) & (row >= 0.0) & (row < nrows)
+    return (row * ncols + col if on else -1.0), hex_edge(du, dv)
+
+
+def cell_edge(u, v, ncols, nrows, lat):
+    """Flat cell index (float, -1.0 off the array) of lattice point (u, v) and its distance (pitches) from
+    the cell's nearest edge."""
+    return _cell_edge_square(u, v, ncols, nrows, lat) if lat is None else _cell_edge_hex(u, v, ncols, nrows, lat)
+
+
+def _black_square(u, v, p, hw, lat):
+    fu = u - np.floor(u)
+    fv = v - np.floor(v)
+    return (p * min(fu, 1.0 - fu) < hw) | (p * min(fv, 1.0 - fv) < hw)
+
+
+def _black_hex(u, v, p, hw, lat):
+    _, _, du, dv = hex_locate(u, v)
+    return p * hex_edge(du, dv) < hw
+
+
+def under_black_matrix(u, v, p, hw, lat):
+    """Lattice point (u, v) lies within hw (mm) of its cell's edge (pitch p mm)."""
+    return _black_square(u, v, p, hw, lat) if lat is None else _black_hex(u, v, p, hw, lat)
+
+
+if AVAILABLE:
+    import warnings
+
+    from numba import types
+    from numba.core.errors import NumbaIRAssumptionWarning
+    from numba.extending import overload
+
+    # Inlining cell_edge's selects into the sag-intersection passes trips a pedantic SSA check of Numba's
+    # (the variables are in scope: the kernels agree with the NumPy reference ray by ray); it is not the
+    # user's to see at compile time.
+    warnings.filterwarnings("ignore", r"variable '.*' is not in scope", NumbaIRAssumptionWarning)
+
+    _TYPED = dict(inline="always", jit_options=dict(error_model="numpy", fastmath={"contract"}))
+    # the overloads only forward to inline-compiled helpers: selects written in an overload's own body
+    # trip a Numba SSA check (NumbaIRAssumptionWarning) when it is inlined
+    _cs, _ch, _es, _eh = (_jit_inline(f) for f in (_cell_square, _cell_hex, _cell_edge_square, _cell_edge_hex))
+    _bs, _bh = _jit_inline(_black_square), _jit_inline(_black_hex)
+
+    @overload(lattice_cell, **_TYPED)
+    def _lattice_cell_typed(u, v, lat):
+        if isinstance(lat, types.NoneType):
+            return lambda u, v, lat: _cs(u, v, lat)
+        return lambda u, v, lat: _ch(u, v, lat)
+
+    @overload(cell_edge, **_TYPED)
+    def _cell_edge_typed(u, v, ncols, nrows, lat):
+        if isinstance(lat, types.NoneType):
+            return lambda u, v, ncols, nrows, lat: _es(u, v, ncols, nrows, lat)
+        return lambda u, v, ncols, nrows, lat: _eh(u, v, ncols, nrows, lat)
+
+    @overload(under_black_matrix, **_TYPED)
+    def _black_typed(u, v, p, hw, lat):
+        if isinstance(lat, types.NoneType):
+            return lambda u, v, p, hw, lat: _bs(u, v, p, hw, lat)
+        return lambda u, v, p, hw, lat: _bh(u, v, p, hw, lat)
+
+
+@_jit_inline
+def cell(x, y, s, lat):
+    if lat is None:
+        col = math.floor((x - s[S_AX0]) * s[S_INVP])
+        row = math.floor((y - s[S_AY0]) * s[S_INVP])
+    else:
+        rf, cf, _, _ = hex_locate((x - s[S_AX0]) * s[S_INVP], (y - s[S_AY0]) * s[S_INVP])
+        row, col = int(rf), int(cf)
     if col >= 0 and col < s[S_COLS] and row >= 0 and row < s[S_ROWS]:
         return int(row * s[S_COLS] + col)
     return -1
+
+
+@_jit_inline
+def candidate(i, row0, col0, lat):
+    """Candidate i of the lenses around cell (row0, col0), as raytrace.MicrolensArray.neighbours: square
+    the 3 x 3 cells row-major (i < 9), hex the cell then its 6 neighbours (i < 7, lattice order)."""
+    if lat is None:
+        return row0 + i // 3 - 1, col0 + i % 3 - 1
+    lo = -1 if row0 % 2 == 0 else 0
+    if i == 0:
+        return row0, col0
+    if i <= 2:
+        return row0, col0 + 2 * i - 3
+    return row0 + (-1 if i <= 4 else 1), col0 + lo + (i - 3) % 2
 
 
 @_jit_inline
@@ -266,14 +409,14 @@ def cos_sin_2pi(u):
 
 
 @_jit_inline
-def stage1_image_side(start, m, s, key, buf, fres, texture, g, sobol, shift_coef):
+def stage1_image_side(start, m, s, key, buf, fres, texture, g, sobol, shift_coef, lat):
     """Rays from the rear aperture to the MLA, traced back through the main lens for their weight.
 
     Branch-free loops (sampling, rear surface, front surface) that vectorize; split because one loop
     holding the whole chain of square roots and divisions was bound by its latency. `g` is scratch and,
     for the low-discrepancy sampler, holds the draws and cells already (sobol_draws)."""
     if sobol and s[S_PCOLS] > 0.0:  # a block of cells
-        cell_starts(m, s, buf, g, shift_coef)
+        cell_starts(m, s, buf, g, shift_coef, lat)
         m = compact(m, buf)
     else:  # a tile of the MLA's bounding box
         if not sobol:
@@ -300,15 +443,18 @@ def compact(m, buf):
 
 
 @_jit_inline
-def cell_starts(m, s, buf, g, shift_coef):
-    """Rays of the stratified sampler: start in their MLA cell, aperture point a' on the square moved by
-    Phi(h, a'), weight times the Jacobian (as scene.sample_image_cells)."""
+def cell_starts(m, s, buf, g, shift_coef, lat):
+    """Rays of the stratified sampler: start in their MLA cell (hex, `lat` not None: the rhombus folded
+    into the hexagon), aperture point a' on the square moved by Phi(h, a'), weight times the Jacobian (as
+    scene.sample_image_cells)."""
     p, ax0, ay0 = s[S_P], s[S_AX0], s[S_AY0]
     r00, r01, r10, r11, shx, shy = s[S_R00], s[S_R01], s[S_R10], s[S_R11], s[S_SHIFTX], s[S_SHIFTY]
     rp, zs, dz = s[S_RPUPIL], s[S_ZSTART], s[S_ZSTART] - s[S_ZEXIT]
     inv_rm, sq, sqw = s[S_INVKR], s[S_SQUARE], s[S_SQW]
     inv_ra = 1.0 / rp
     rp2 = rp * rp
+    if lat is not None:
+        hex_fold(m, g)
     for j in range(m):
         u2, u3 = g[G_HZ, j], g[G_LL, j]
         mx = ax0 + (g[G_COL, j] + u2) * p
@@ -326,6 +472,20 @@ def cell_starts(m, s, buf, g, shift_coef):
         w = (N * N) * (N * N) * sqw * jac
         buf[0, j], buf[1, j], buf[2, j], buf[3, j], buf[4, j], buf[5, j] = x, y, zs, L, M, N
         buf[6, j] = w if ax * ax + ay * ay <= rp2 else 0.0
+
+
+@_jit_inline
+def hex_fold(m, g):
+    """Hex cells (as scene.hex_cell_draws): each ray's cell draws (u2, u3) and cell (row, col) rewritten so
+    that the square cell's formulas (x0 + (col + u2) p, offset (u2 - 1/2) p) give the point of its
+    hexagon, (x0, y0) being U(1,1)'s centre."""
+    for j in range(m):
+        bb = g[G_LL, j] - 0.5
+        _, _, du, dv = hex_locate((g[G_HZ, j] - 0.5) + 0.5 * bb, SQRT3_2 * bb)
+        row = g[G_ROW, j]
+        g[G_HZ, j], g[G_LL, j] = du + 0.5, dv + 0.5
+        g[G_COL, j] = g[G_COL, j] + 0.5 * (row - 2.0 * np.floor(0.5 * row)) - 0.5
+        g[G_ROW, j] = row * SQRT3_2 - 0.5
 
 
 @_jit_inline
@@ -447,16 +607,16 @@ def rot_n(r00, r01, r02, r10, r11, r12, r20, r21, r22, x, y, z):
 
 
 @_jit_inline
-def cell_f(x, y, ax0, ay0, invp, ncols, nrows):
-    """Flat lens index as a float, -1.0 off the array (NaN too): branch-free, unlike `cell`."""
-    col = np.floor((x - ax0) * invp)  # np.floor stays a float: math.floor's int64 does not vectorize on AVX2
-    row = np.floor((y - ay0) * invp)
+def cell_f(x, y, ax0, ay0, invp, ncols, nrows, lat):
+    """Flat lens index as a float, -1.0 off the array (NaN too): branch-free, unlike `cell`. Square cells,
+    or hexagons where `lat` is not None ((ax0, ay0) is then U(1,1)'s centre)."""
+    row, col = lattice_cell((x - ax0) * invp, (y - ay0) * invp, lat)
     on = (col >= 0.0) & (col < ncols) & (row >= 0.0) & (row < nrows)
     return row * ncols + col if on else -1.0
 
 
 @_jit
-def surface_hit(px, py, pz, L, M, N, ox, oy, oz, c, fx, fy, rot, k, ax0, ay0, invp, ncols, nrows):
+def surface_hit(px, py, pz, L, M, N, ox, oy, oz, c, fx, fy, rot, k, ax0, ay0, invp, ncols, nrows, lat):
     """A ray given in lens k's frame (before its own rotation) meets the lens surface with vertex at
     (ox, oy, oz) and curvature c: hit point and direction in the rotated lens frame, the distance t (NaN on
     a miss), and the MLA cell the hit lies in (to flag hits that belong to a neighbour)."""
@@ -469,7 +629,7 @@ def surface_hit(px, py, pz, L, M, N, ox, oy, oz, c, fx, fy, rot, k, ax0, ay0, in
     gx, gy = hx, hy
     if rot is not None:
         gx, gy, _ = rot_n(r00, r01, r02, r10, r11, r12, r20, r21, r22, hx, hy, hz)
-    return hx, hy, hz, L, M, N, t, cell_f(gx + fx, gy + fy, ax0, ay0, invp, ncols, nrows)
+    return hx, hy, hz, L, M, N, t, cell_f(gx + fx, gy + fy, ax0, ay0, invp, ncols, nrows, lat)
 
 
 @_jit_inline
@@ -480,14 +640,14 @@ def gather(j, k, tab, g):
 
 
 @_jit_inline
-def retrace_neighbours(m, flag, kk, buf, g, tab, rot, s, rear):
+def retrace_neighbours(m, flag, kk, buf, g, tab, rot, s, rear, lat):
     """Rays whose hit left their cell (near a cell edge, a few per cent) are re-traced once with the
     lens of the cell they hit, as raytrace.MicrolensArray._hit does (scalar pass: it is rare)."""
     for j in range(m):
         if flag[j]:
             gx, gy, _, _, _, _ = from_lens(kk[j], g[G_HX, j], g[G_HY, j], g[G_HZ, j], g[G_LL, j], g[G_LM, j],
                                            g[G_LN, j], tab, rot)
-            k = cell(gx, gy, s)
+            k = cell(gx, gy, s, lat)
             kk[j] = k
             gather(j, k, tab, g)
             f = lens_surface(k, buf[0, j], buf[1, j], buf[2, j], buf[3, j], buf[4, j], buf[5, j], rear, tab, rot,
@@ -503,7 +663,7 @@ def hit_xy(k, hx, hy, hz, tab, rot):
 
 
 @_jit_inline
-def surface_hit_edge(px, py, pz, L, M, N, ox, oy, oz, c, fx, fy, rot, k, ax0, ay0, invp, p, ncols, nrows):
+def surface_hit_edge(px, py, pz, L, M, N, ox, oy, oz, c, fx, fy, rot, k, ax0, ay0, invp, p, ncols, nrows, lat):
     """As surface_hit, plus the hit's distance (mm) from the nearest edge of the cell it lies in: the
     sag-intersection fast path doubts hits in another cell or within a margin of the edge."""
     if rot is not None:
@@ -516,26 +676,24 @@ def surface_hit_edge(px, py, pz, L, M, N, ox, oy, oz, c, fx, fy, rot, k, ax0, ay
     if rot is not None:
         gx, gy, _ = rot_n(r00, r01, r02, r10, r11, r12, r20, r21, r22, hx, hy, hz)
     gx, gy = gx + fx, gy + fy
-    u = (gx - ax0) * invp
-    v = (gy - ay0) * invp
-    fu = u - np.floor(u)
-    fv = v - np.floor(v)
-    eu = fu if fu < 1.0 - fu else 1.0 - fu  # selects: the builtin min's NaN handling does not vectorize
-    ev = fv if fv < 1.0 - fv else 1.0 - fv
-    edge = p * (eu if eu < ev else ev)
-    return hx, hy, hz, L, M, N, t, cell_f(gx, gy, ax0, ay0, invp, ncols, nrows), edge
+    kf, edge = cell_edge((gx - ax0) * invp, (gy - ay0) * invp, ncols, nrows, lat)
+    return hx, hy, hz, L, M, N, t, kf, p * edge
 
 
 @_jit_inline
-def centre_cell(gx, gy, s):
+def centre_cell(gx, gy, s, lat):
     """Row and column of the cell holding an MLA-frame point, clipped onto the array."""
-    col = min(max(math.floor((gx - s[S_AX0]) * s[S_INVP]), 0), int(s[S_COLS]) - 1)
-    row = min(max(math.floor((gy - s[S_AY0]) * s[S_INVP]), 0), int(s[S_ROWS]) - 1)
-    return row, col
+    if lat is None:
+        col = math.floor((gx - s[S_AX0]) * s[S_INVP])
+        row = math.floor((gy - s[S_AY0]) * s[S_INVP])
+    else:
+        rf, cf, _, _ = hex_locate((gx - s[S_AX0]) * s[S_INVP], (gy - s[S_AY0]) * s[S_INVP])
+        row, col = int(rf), int(cf)
+    return min(max(row, 0), int(s[S_ROWS]) - 1), min(max(col, 0), int(s[S_COLS]) - 1)
 
 
 @_jit_inline
-def retrace_sag(m, flag, kk, buf, g, tab, rot, s, rear, cflag, margins):
+def retrace_sag(m, flag, kk, buf, g, tab, rot, s, rear, cflag, margins, lat):
     """Flagged rays (near a cell edge) take the front sphere they meet first / the rear sphere they meet
     last among the 3 x 3 lenses around their hit's cell: lens kk's hit (in g) unless another is strictly
     earlier / later, the first in row-major order winning a tie (as raytrace.MicrolensArray.extreme_lens;
@@ -545,19 +703,18 @@ def retrace_sag(m, flag, kk, buf, g, tab, rot, s, rear, cflag, margins):
         if flag[j]:
             k0 = kk[j]
             gx, gy = hit_xy(k0, g[G_HX, j], g[G_HY, j], g[G_HZ, j], tab, rot)
-            row0, col0 = centre_cell(gx, gy, s)
+            row0, col0 = centre_cell(gx, gy, s, lat)
             best, bt = k0, g[G_T, j]
             bx, by, bz, bL, bM, bN = g[G_HX, j], g[G_HY, j], g[G_HZ, j], g[G_LL, j], g[G_LM, j], g[G_LN, j]
-            for dr in range(-1, 2):
-                for dc in range(-1, 2):
-                    rr, cc = row0 + dr, col0 + dc
-                    kc = rr * cols + cc
-                    if rr < 0 or rr >= rows or cc < 0 or cc >= cols or kc == k0:
-                        continue
-                    hx, hy, hz, lL, lM, lN, t = lens_surface(kc, buf[0, j], buf[1, j], buf[2, j], buf[3, j], buf[4, j],
-                                                             buf[5, j], rear, tab, rot, s[S_ZFRONT])
-                    if t == t and (t > bt if rear else t < bt):
-                        best, bt, bx, by, bz, bL, bM, bN = kc, t, hx, hy, hz, lL, lM, lN
+            for i in range(9 if lat is None else 7):
+                rr, cc = candidate(i, row0, col0, lat)
+                kc = rr * cols + cc
+                if rr < 0 or rr >= rows or cc < 0 or cc >= cols or kc == k0:
+                    continue
+                hx, hy, hz, lL, lM, lN, t = lens_surface(kc, buf[0, j], buf[1, j], buf[2, j], buf[3, j], buf[4, j],
+                                                         buf[5, j], rear, tab, rot, s[S_ZFRONT])
+                if t == t and (t > bt if rear else t < bt):
+                    best, bt, bx, by, bz, bL, bM, bN = kc, t, hx, hy, hz, lL, lM, lN
             if best != k0:
                 kk[j] = best
                 gather(j, best, tab, g)
@@ -578,7 +735,7 @@ def inside_rear(k, px, py, pz, tab):
 
 
 @_jit_inline
-def corners_sag(m, cflag, kk, g, tab, rot, s, corner_of):
+def corners_sag(m, cflag, kk, g, tab, rot, s, corner_of, lat):
     """Sag-intersection corners of the flagged rays (front hit within the rear margin of its cell's edge,
     or re-traced): the front hit lies in no rear region of the 3 x 3 lenses around its cell (as
     raytrace.MicrolensArray._corner_sag; elsewhere lens kk's rear decides, in pass B). Scalar: rare."""
@@ -586,35 +743,30 @@ def corners_sag(m, cflag, kk, g, tab, rot, s, corner_of):
     for j in range(m):
         if cflag[j]:
             gx, gy, gz, _, _, _ = from_lens(kk[j], g[G_HX, j], g[G_HY, j], g[G_HZ, j], 0.0, 0.0, 0.0, tab, rot)
-            row0, col0 = centre_cell(gx, gy, s)
+            row0, col0 = centre_cell(gx, gy, s, lat)
             inside = False
-            for dr in range(-1, 2):
-                for dc in range(-1, 2):
-                    rr, cc = row0 + dr, col0 + dc
-                    if rr < 0 or rr >= rows or cc < 0 or cc >= cols:
-                        continue
-                    kc = rr * cols + cc
-                    px, py, pz, _, _, _ = to_lens(kc, gx, gy, gz, 0.0, 0.0, 0.0, tab, rot)
-                    inside = inside or inside_rear(kc, px, py, pz, tab)
+            for i in range(9 if lat is None else 7):
+                rr, cc = candidate(i, row0, col0, lat)
+                if rr < 0 or rr >= rows or cc < 0 or cc >= cols:
+                    continue
+                kc = rr * cols + cc
+                px, py, pz, _, _, _ = to_lens(kc, gx, gy, gz, 0.0, 0.0, 0.0, tab, rot)
+                inside = inside or inside_rear(kc, px, py, pz, tab)
             corner_of[j] = not inside
 
 
 @_jit_inline
-def black_matrix(m, buf, s):
+def black_matrix(m, buf, s, lat):
     """Absorb rays crossing the front vertex plane (buf, MLA frame) within half the black matrix' width of
-    a grid line (as raytrace.MicrolensArray.black_matrix)."""
+    a cell edge (as raytrace.MicrolensArray.black_matrix)."""
     ax0, ay0, invp, p, hw = s[S_AX0], s[S_AY0], s[S_INVP], s[S_P], s[S_HALFBM]
     for j in range(m):
-        u = (buf[0, j] - ax0) * invp
-        v = (buf[1, j] - ay0) * invp
-        fu = u - np.floor(u)
-        fv = v - np.floor(v)
-        masked = (p * min(fu, 1.0 - fu) < hw) | (p * min(fv, 1.0 - fv) < hw)
+        masked = under_black_matrix((buf[0, j] - ax0) * invp, (buf[1, j] - ay0) * invp, p, hw, lat)
         buf[6, j] = 0.0 if masked else buf[6, j]
 
 
 @_jit_inline
-def front_sag(m, buf, s, tab, rot, g, kk, flag, cflag, corner_of):
+def front_sag(m, buf, s, tab, rot, g, kk, flag, cflag, corner_of, lat):
     """Pass B in sag-intersection mode (branch-free): lens kk's front hit; flag hits in another cell or
     within the front margin of the cell's edge (re-traced), and those within the rear margin (their
     corner test needs the neighbours' rear regions); the corner test with lens kk's rear for the rest."""
@@ -623,7 +775,7 @@ def front_sag(m, buf, s, tab, rot, g, kk, flag, cflag, corner_of):
         fx, fy, c, k = g[G_FX, j], g[G_FY, j], g[G_C1, j], kk[j]
         px, py, pz, L, M, N = buf[0, j] - fx, buf[1, j] - fy, buf[2, j], buf[3, j], buf[4, j], buf[5, j]
         hx, hy, hz, L, M, N, t, k2, edge = surface_hit_edge(px, py, pz, L, M, N, 0.0, 0.0, zfront, c, fx, fy, rot, k,
-                                                            ax0, ay0, invp, p, ncols, nrows)
+                                                            ax0, ay0, invp, p, ncols, nrows, lat)
         g[G_HX, j], g[G_HY, j], g[G_HZ, j], g[G_LL, j], g[G_LM, j], g[G_LN, j], g[G_T, j] = hx, hy, hz, L, M, N, t
         live = (buf[6, j] > 0.0) & (t == t)
         moved = k2 != k
@@ -637,7 +789,7 @@ def front_sag(m, buf, s, tab, rot, g, kk, flag, cflag, corner_of):
 
 
 @_jit_inline
-def rear_sag(m, buf, s, tab, rot, g, kk, flag, corner_of):
+def rear_sag(m, buf, s, tab, rot, g, kk, flag, corner_of, lat):
     """Pass C' in sag-intersection mode (branch-free): lens kk's rear hit; flag live non-corner rays whose
     hit is in another cell or within the rear margin of the cell's edge."""
     ax0, ay0, invp, p, ncols, nrows = s[S_AX0], s[S_AY0], s[S_INVP], s[S_P], s[S_COLS], s[S_ROWS]
@@ -645,7 +797,7 @@ def rear_sag(m, buf, s, tab, rot, g, kk, flag, corner_of):
         x, y, z, L, M, N = buf[0, j], buf[1, j], buf[2, j], buf[3, j], buf[4, j], buf[5, j]
         fx, fy, vx, vy, c2, vz, k = g[G_FX, j], g[G_FY, j], g[G_DX, j], g[G_DY, j], g[G_C2, j], g[G_ZR, j], kk[j]
         hx, hy, hz, L, M, N, t, k2, edge = surface_hit_edge(x - fx, y - fy, z, L, M, N, vx, vy, vz, c2, fx, fy, rot, k,
-                                                            ax0, ay0, invp, p, ncols, nrows)
+                                                            ax0, ay0, invp, p, ncols, nrows, lat)
         g[G_HX, j], g[G_HY, j], g[G_HZ, j], g[G_LL, j], g[G_LM, j], g[G_LN, j], g[G_T, j] = hx, hy, hz, L, M, N, t
         live = (buf[6, j] > 0.0) & (not corner_of[j]) & (t == t)
         flag[j] = live & ((k2 != k) | (edge < g[G_MR, j]))
@@ -662,7 +814,7 @@ def grot_entries(grot):
 
 
 @_jit_inline
-def pass_enter(m, buf, s, tab, grot, g, kk):
+def pass_enter(m, buf, s, tab, grot, g, kk, lat):
     """Pass A: into the MLA frame, onto the front plane, which cell; the black matrix; gather the lenses."""
     zfront, shx, shy, zmla = s[S_ZFRONT], s[S_SHIFTX], s[S_SHIFTY], s[S_ZMLA]
     ax0, ay0, invp, ncols, nrows = s[S_AX0], s[S_AY0], s[S_INVP], s[S_COLS], s[S_ROWS]
@@ -676,29 +828,29 @@ def pass_enter(m, buf, s, tab, grot, g, kk):
         x += t * L
         y += t * M
         z += t * N
-        kf = cell_f(x, y, ax0, ay0, invp, ncols, nrows)
+        kf = cell_f(x, y, ax0, ay0, invp, ncols, nrows, lat)
         alive = (w > 0.0) & (kf >= 0.0)  # w > 0 also rejects NaN
         kk[j] = np.int32(kf) if alive else np.int32(0)  # int32: converts four at a time on AVX2
         buf[0, j], buf[1, j], buf[2, j], buf[3, j], buf[4, j], buf[5, j] = x, y, z, L, M, N
         buf[6, j] = w if alive else 0.0
     if s[S_HALFBM] > 0.0:
-        black_matrix(m, buf, s)
+        black_matrix(m, buf, s, lat)
     for j in range(m):
         gather(j, kk[j], tab, g)
 
 
 @_jit_inline
-def pass_front_grid(m, buf, s, tab, rot, g, kk, flag):
+def pass_front_grid(m, buf, s, tab, rot, g, kk, flag, lat):
     """Pass B (grid): front surface of the cell's lens; re-trace hits that fall in another cell."""
     zfront, ax0, ay0, invp, ncols, nrows = s[S_ZFRONT], s[S_AX0], s[S_AY0], s[S_INVP], s[S_COLS], s[S_ROWS]
     for j in range(m):
         fx, fy, c = g[G_FX, j], g[G_FY, j], g[G_C1, j]
         px, py, pz, L, M, N = buf[0, j] - fx, buf[1, j] - fy, buf[2, j], buf[3, j], buf[4, j], buf[5, j]
         hx, hy, hz, L, M, N, t, k2 = surface_hit(px, py, pz, L, M, N, 0.0, 0.0, zfront, c, fx, fy, rot, kk[j],
-                                                 ax0, ay0, invp, ncols, nrows)
+                                                 ax0, ay0, invp, ncols, nrows, lat)
         g[G_HX, j], g[G_HY, j], g[G_HZ, j], g[G_LL, j], g[G_LM, j], g[G_LN, j], g[G_T, j] = hx, hy, hz, L, M, N, t
         flag[j] = (buf[6, j] > 0.0) & (t == t) & (k2 >= 0.0) & (k2 != kk[j])
-    retrace_neighbours(m, flag, kk, buf, g, tab, rot, s, False)
+    retrace_neighbours(m, flag, kk, buf, g, tab, rot, s, False, lat)
 
 
 @_jit_inline
@@ -734,18 +886,20 @@ def pass_front_refract(m, buf, s, rot, clear, fres, n_mla, mu_in, g, kk, corner_
 
 
 @_jit_inline
-def pass_rear_grid(m, buf, s, tab, rot, g, kk, flag, corner_of):
-    """Pass C' (grid): rear surface of the same lens; re-trace hits that fall in another cell."""
+def pass_rear_grid(m, buf, s, tab, rot, g, kk, flag, corner_of, lat, retrace):
+    """Pass C' (grid): rear surface of the same lens; re-trace hits that fall in another cell (not for
+    circle apertures, `retrace` False: the circle's lens, front and rear)."""
     ax0, ay0, invp, ncols, nrows = s[S_AX0], s[S_AY0], s[S_INVP], s[S_COLS], s[S_ROWS]
     for j in range(m):
         x, y, z, L, M, N = buf[0, j], buf[1, j], buf[2, j], buf[3, j], buf[4, j], buf[5, j]
         fx, fy, vx, vy, c2, vz = g[G_FX, j], g[G_FY, j], g[G_DX, j], g[G_DY, j], g[G_C2, j], g[G_ZR, j]
         px, py, pz = x - fx, y - fy, z
         hx, hy, hz, L, M, N, t, k2 = surface_hit(px, py, pz, L, M, N, vx, vy, vz, c2, fx, fy, rot, kk[j],
-                                                 ax0, ay0, invp, ncols, nrows)
+                                                 ax0, ay0, invp, ncols, nrows, lat)
         g[G_HX, j], g[G_HY, j], g[G_HZ, j], g[G_LL, j], g[G_LM, j], g[G_LN, j], g[G_T, j] = hx, hy, hz, L, M, N, t
-        flag[j] = (buf[6, j] > 0.0) & (not corner_of[j]) & (t == t) & (k2 >= 0.0) & (k2 != kk[j])
-    retrace_neighbours(m, flag, kk, buf, g, tab, rot, s, True)
+        flag[j] = retrace & (buf[6, j] > 0.0) & (not corner_of[j]) & (t == t) & (k2 >= 0.0) & (k2 != kk[j])
+    if retrace:
+        retrace_neighbours(m, flag, kk, buf, g, tab, rot, s, True, lat)
 
 
 @_jit_inline
@@ -812,8 +966,78 @@ def pass_leave(m, buf, s, rot, grot, fres, n_mla, g, kk, corner_of, rows, cols, 
 
 
 @_jit_inline
+def front_circle(m, buf, s, tab, rot, g, kk, flag, corner_of, clear, lat, circ):
+    """Pass B (circle apertures, branch-free): lens kk's front hit; gap (flag) where it lies outside kk's
+    circle, doubted (kept in flag, scanned by retrace_circle) where it lies within radius + reach of its
+    cell's design centre (`circ`: design centres, raytrace.MicrolensArray._hit_circle); the corner test
+    with lens kk's rear (corner_of)."""
+    zfront, ax0, ay0, invp, ncols, nrows = s[S_ZFRONT], s[S_AX0], s[S_AY0], s[S_INVP], s[S_COLS], s[S_ROWS]
+    r2 = s[S_RCIRC2]
+    for j in range(m):
+        fx, fy, c = g[G_FX, j], g[G_FY, j], g[G_C1, j]
+        px, py, pz, L, M, N = buf[0, j] - fx, buf[1, j] - fy, buf[2, j], buf[3, j], buf[4, j], buf[5, j]
+        hx, hy, hz, L, M, N, t, k2 = surface_hit(px, py, pz, L, M, N, 0.0, 0.0, zfront, c, fx, fy, rot, kk[j],
+                                                 ax0, ay0, invp, ncols, nrows, lat)
+        g[G_HX, j], g[G_HY, j], g[G_HZ, j], g[G_LL, j], g[G_LM, j], g[G_LN, j], g[G_T, j] = hx, hy, hz, L, M, N, t
+        flag[j] = not (hx * hx + hy * hy <= r2)
+        g[G_ROW, j] = k2  # the hit's cell, for retrace_circle
+        rx, ry = hx - g[G_DX, j], hy - g[G_DY, j]
+        c2 = g[G_C2, j]
+        rho2 = rx * rx + ry * ry
+        arg = 1.0 - c2 * c2 * rho2
+        corner_of[j] = not ((arg >= 0.0) & (g[G_ZR, j] + c2 * rho2 / (1.0 + math.sqrt(max(arg, 0.0))) > hz))
+
+
+@_jit_inline
+def retrace_circle(m, flag, kk, buf, g, tab, rot, s, lat, circ, corner_of):
+    """Gap rays (flag) near a circle's reach: the first candidate around the hit's cell whose circle holds
+    the ray's hit on its own front sphere takes the ray (flag cleared); others stay in the gap. Scalar."""
+    rows, cols, r2, near2 = int(s[S_ROWS]), int(s[S_COLS]), s[S_RCIRC2], s[S_RNEAR2]
+    for j in range(m):
+        if flag[j] and buf[6, j] > 0.0 and g[G_T, j] == g[G_T, j]:
+            gx, gy = hit_xy(kk[j], g[G_HX, j], g[G_HY, j], g[G_HZ, j], tab, rot)
+            k2 = int(g[G_ROW, j])
+            if k2 >= 0:
+                ex, ey = gx - circ[0, k2], gy - circ[1, k2]
+                if not (ex * ex + ey * ey <= near2):
+                    continue
+            row0, col0 = centre_cell(gx, gy, s, lat)
+            for i in range(9 if lat is None else 7):
+                rr, cc = candidate(i, row0, col0, lat)
+                if rr < 0 or rr >= rows or cc < 0 or cc >= cols:
+                    continue
+                kc = rr * cols + cc
+                hx, hy, hz, lL, lM, lN, t = lens_surface(kc, buf[0, j], buf[1, j], buf[2, j], buf[3, j], buf[4, j],
+                                                         buf[5, j], False, tab, rot, s[S_ZFRONT])
+                if t == t and hx * hx + hy * hy <= r2:
+                    kk[j] = kc
+                    gather(j, kc, tab, g)
+                    g[G_HX, j], g[G_HY, j], g[G_HZ, j], g[G_LL, j], g[G_LM, j], g[G_LN, j], g[G_T, j] = hx, hy, hz, lL, lM, lN, t
+                    rx, ry = hx - tab[2, kc], hy - tab[3, kc]
+                    c2 = tab[5, kc]
+                    rho2 = rx * rx + ry * ry
+                    arg = 1.0 - c2 * c2 * rho2
+                    corner_of[j] = not ((arg >= 0.0) & (tab[6, kc] + c2 * rho2 / (1.0 + math.sqrt(max(arg, 0.0))) > hz))
+                    flag[j] = False
+                    break
+
+
+@_jit_inline
+def circle_fate(m, buf, s, clear, g, flag, corner_of):
+    """Circle apertures: a corner or gap ray (flag) goes on undeviated (corner_of) where clear, and is
+    absorbed where opaque (`mla.corners`, `mla.gap`)."""
+    clear_gap = s[S_CLEARGAP] != 0.0
+    for j in range(m):
+        gap = flag[j]
+        corner = corner_of[j] & (not gap)  # the gap is flat substrate: no corner there
+        absorbed = (corner & (not clear)) | (gap & (not clear_gap))
+        buf[6, j] = 0.0 if absorbed else buf[6, j]
+        corner_of[j] = corner | gap
+
+
+@_jit_inline
 def stage2_block(m, buf, s, tab, rot, grot, clear, fres, n_mla, mu_in, g, kk, flag, corner_of, rows, cols, wts,
-                 nout, box):
+                 nout, box, lat, circ):
     """Stage 2 for one block, grid boundaries: MLA (per-lens errors, neighbour re-trace) -> sensor pixel,
     appending hits.
 
@@ -821,30 +1045,36 @@ def stage2_block(m, buf, s, tab, rot, grot, clear, fres, n_mla, mu_in, g, kk, fl
     version was bound by the latency of its chain of divisions and square roots); the rare re-trace near
     cell edges is a scalar pass of its own. Operations are those of raytrace.MicrolensArray, in the same
     order, so both engines agree to rounding."""
-    pass_enter(m, buf, s, tab, grot, g, kk)
-    pass_front_grid(m, buf, s, tab, rot, g, kk, flag)
-    pass_front_refract(m, buf, s, rot, clear, fres, n_mla, mu_in, g, kk, corner_of, False)
-    pass_rear_grid(m, buf, s, tab, rot, g, kk, flag, corner_of)
+    pass_enter(m, buf, s, tab, grot, g, kk, lat)
+    if circ is None:
+        pass_front_grid(m, buf, s, tab, rot, g, kk, flag, lat)
+        pass_front_refract(m, buf, s, rot, clear, fres, n_mla, mu_in, g, kk, corner_of, False)
+    else:  # circle apertures: the lens whose circle holds the hit; gaps and corners from front_circle
+        front_circle(m, buf, s, tab, rot, g, kk, flag, corner_of, clear, lat, circ)
+        retrace_circle(m, flag, kk, buf, g, tab, rot, s, lat, circ, corner_of)
+        circle_fate(m, buf, s, clear, g, flag, corner_of)
+        pass_front_refract(m, buf, s, rot, True, fres, n_mla, mu_in, g, kk, corner_of, True)
+    pass_rear_grid(m, buf, s, tab, rot, g, kk, flag, corner_of, lat, circ is None)
     return pass_leave(m, buf, s, rot, grot, fres, n_mla, g, kk, corner_of, rows, cols, wts, nout, box)
 
 
 @_jit_inline
 def stage2_block_sag(m, buf, s, tab, rot, grot, clear, fres, n_mla, mu_in, g, kk, flag, corner_of, rows, cols, wts,
-                     nout, box, cflag, margins):
+                     nout, box, cflag, margins, lat):
     """Stage 2 for one block, sag-intersection boundaries: as stage2_block, with passes B and C' that also
     flag hits within a per-cell margin of the edge (front_sag, rear_sag) for the 3 x 3 neighbour pass
     (retrace_sag), and corners from the union of the rear regions (corners_sag). A kernel of its own
     (kernel_sag), so that grid kernels compile none of it."""
-    pass_enter(m, buf, s, tab, grot, g, kk)
+    pass_enter(m, buf, s, tab, grot, g, kk, lat)
     for j in range(m):  # in a loop of its own, as gather: an indexed load keeps a pass from vectorizing
         k = kk[j]
         g[G_MF, j], g[G_MR, j] = margins[T_MARGIN_FRONT, k], margins[T_MARGIN_REAR, k]
-    front_sag(m, buf, s, tab, rot, g, kk, flag, cflag, corner_of)
-    retrace_sag(m, flag, kk, buf, g, tab, rot, s, False, cflag, margins)
-    corners_sag(m, cflag, kk, g, tab, rot, s, corner_of)
+    front_sag(m, buf, s, tab, rot, g, kk, flag, cflag, corner_of, lat)
+    retrace_sag(m, flag, kk, buf, g, tab, rot, s, False, cflag, margins, lat)
+    corners_sag(m, cflag, kk, g, tab, rot, s, corner_of, lat)
     pass_front_refract(m, buf, s, rot, clear, fres, n_mla, mu_in, g, kk, corner_of, True)
-    rear_sag(m, buf, s, tab, rot, g, kk, flag, corner_of)
-    retrace_sag(m, flag, kk, buf, g, tab, rot, s, True, cflag, margins)
+    rear_sag(m, buf, s, tab, rot, g, kk, flag, corner_of, lat)
+    retrace_sag(m, flag, kk, buf, g, tab, rot, s, True, cflag, margins, lat)
     return pass_leave(m, buf, s, rot, grot, fres, n_mla, g, kk, corner_of, rows, cols, wts, nout, box)
 
 
@@ -872,13 +1102,14 @@ def block_scratch():
 
 
 @_jit_inline
-def stage1_block(start, m, mode, s, key, buf, fres, texture, g, sobol, shift_coef, seeds, shifts, jtab, ia, icf):
+def stage1_block(start, m, mode, s, key, buf, fres, texture, g, sobol, shift_coef, seeds, shifts, jtab, ia, icf,
+                 lat):
     """Stage 1 for one block, shared by both kernels: draws, rays to the MLA's side of the main lens, the
     texture's radiance; returns the block's ray count (the image-side sampler compacts it)."""
     if sobol:
         sobol_draws(start, m, s, seeds, shifts, jtab, g, ia, icf)
     if mode == IMAGE_SIDE:
-        m = stage1_image_side(start, m, s, key, buf, fres, texture, g, sobol, shift_coef)
+        m = stage1_image_side(start, m, s, key, buf, fres, texture, g, sobol, shift_coef, lat)
     else:
         stage1_forward(start, m, mode, s, key, buf, fres, texture, g, sobol)
     if texture is not None:
@@ -888,22 +1119,23 @@ def stage1_block(start, m, mode, s, key, buf, fres, texture, g, sobol, shift_coe
 
 
 @_jit
-def kernel(s, key, count, tab, rot, grot, texture, shift_coef, rows, cols, wts, box):
-    """Trace `count` rays drawn with `key` (grid boundaries); appends the (row, col, weight) of those that
+def kernel(s, key, count, tab, rot, grot, texture, shift_coef, rows, cols, wts, box, lat, circ):
+    """Trace `count` rays drawn with `key` (grid boundaries, or circle apertures where `circ` (the design
+    centres) is not None; hex cells where `lat` is not None); appends the (row, col, weight) of those that
     landed, in ray order, grows box = [row min, row max, col min, col max] and returns how many landed."""
     mode, fres, clear, n_mla, sobol, seeds, shifts, jtab = kernel_settings(s, key)
     buf, g, kk, flag, corner_of, ia, icf = block_scratch()
     nout = 0
     for start in range(0, count, BLOCK):
         m = stage1_block(start, min(BLOCK, count - start), mode, s, key, buf, fres, texture, g, sobol, shift_coef,
-                         seeds, shifts, jtab, ia, icf)
+                         seeds, shifts, jtab, ia, icf, lat)
         nout = stage2_block(m, buf, s, tab, rot, grot, clear, fres, n_mla, 1.0 / n_mla, g, kk, flag, corner_of,
-                            rows, cols, wts, nout, box)
+                            rows, cols, wts, nout, box, lat, circ)
     return nout
 
 
 @_jit
-def kernel_sag(s, key, count, tab, rot, grot, texture, shift_coef, rows, cols, wts, box, margins):
+def kernel_sag(s, key, count, tab, rot, grot, texture, shift_coef, rows, cols, wts, box, margins, lat):
     """As kernel (the same loop), with sag-intersection boundaries (`margins`: per-lens front and rear
     margins, mm)."""
     cflag = np.empty(BLOCK, np.bool_)
@@ -912,9 +1144,9 @@ def kernel_sag(s, key, count, tab, rot, grot, texture, shift_coef, rows, cols, w
     nout = 0
     for start in range(0, count, BLOCK):
         m = stage1_block(start, min(BLOCK, count - start), mode, s, key, buf, fres, texture, g, sobol, shift_coef,
-                         seeds, shifts, jtab, ia, icf)
+                         seeds, shifts, jtab, ia, icf, lat)
         nout = stage2_block_sag(m, buf, s, tab, rot, grot, clear, fres, n_mla, 1.0 / n_mla, g, kk, flag, corner_of,
-                                rows, cols, wts, nout, box, cflag, margins)
+                                rows, cols, wts, nout, box, cflag, margins, lat)
     return nout
 
 
@@ -942,6 +1174,8 @@ class FastCamera:
         # None (not an identity) where unused: Numba then compiles a kernel without those branches.
         self.rot = np.ascontiguousarray(mla.rot) if mla.tilted else None
         self.grot = np.ascontiguousarray(camera.rot) if camera.rotated else None
+        self.lat = np.zeros(1) if mla.hex else None  # a marker: hex cells (its value is unused)
+        self.circ = np.ascontiguousarray(np.stack([mla.gx, mla.gy])) if mla.circle else None
         s = np.zeros(S_COUNT)
         s[S_C1], s[S_C2], s[S_T], s[S_N], s[S_RIM2] = main.c1, main.c2, main.z2, main.n, main.rim2
         s[S_FRES] = float(cfg.trace.fresnel)
@@ -950,6 +1184,8 @@ class FastCamera:
         s[S_P], s[S_AX0], s[S_AY0], s[S_ROWS], s[S_COLS] = mla.p, mla.x0, mla.y0, mla.rows, mla.cols
         s[S_ZFRONT], s[S_NMLA], s[S_CLEAR] = mla.z_front, mla.n, float(mla.clear_corners)
         s[S_HALFBM] = mla.half_black_mm
+        s[S_RCIRC2], s[S_RNEAR2] = mla.r_circle ** 2, (mla.r_circle + mla.circle_reach) ** 2
+        s[S_CLEARGAP] = float(mla.clear_gap)
         s[S_ZMLA], s[S_ZSENS] = camera.z_mla, camera.z_sensor
         s[S_SHIFTX], s[S_SHIFTY] = camera.shift_x, camera.shift_y
         s[S_PIX], s[S_SX0], s[S_SY0], s[S_W], s[S_H] = camera.pixel, camera.sx0, camera.sy0, camera.width, camera.height
@@ -990,8 +1226,7 @@ class FastCamera:
         w = np.empty(n)
         box = np.array([2 ** 31, -1, 2 ** 31, -1], np.int64)
         args = (s, np.uint64(key), n, self.tab, self.rot, self.grot, tex, self.shift_coef, rows, cols, w, box)
-        if self.margins is not None:
-            args += (self.margins,)
+        args += (self.margins, self.lat) if self.margins is not None else (self.lat, self.circ)
         trace = kernel if self.margins is None else kernel_sag
         if self._warm:
             k = trace(*args)

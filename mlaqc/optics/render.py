@@ -36,7 +36,7 @@ from mlaqc.optics import lowdisc
 from mlaqc.optics.raytrace import Camera, Rays
 from mlaqc.optics.unitcircle import counter_uniforms
 from mlaqc.optics.scene import (CellGrid, ImageRegion, PointScene, Scene, SourceRegion, TextureScene, WhiteScene,
-                                sample_image_cells, sample_image_side, sample_plane, sample_points, texture_weight)
+                                hex_cell_offsets, sample_image_cells, sample_image_side, sample_plane, sample_points, texture_weight)
 
 Progress = Callable[[int, int], None]
 MAX_RAYS = 10 ** 11
@@ -79,8 +79,11 @@ class _Job:
 def _mla_half_extent(camera: Camera) -> tuple[float, float]:
     """Half-width and half-height (mm) of the MLA's bounding box, its rotation about the axis included."""
     cfg = camera.cfg
-    hx = 0.5 * cfg.mla.count_w * cfg.mla.pitch_um * 1e-3
-    hy = 0.5 * cfg.mla.count_h * cfg.mla.pitch_um * 1e-3
+    if camera.mla.hex:
+        hx, hy = (0.5 * e for e in camera.mla.lattice.extent)
+    else:
+        hx = 0.5 * cfg.mla.count_w * cfg.mla.pitch_um * 1e-3
+        hy = 0.5 * cfg.mla.count_h * cfg.mla.pitch_um * 1e-3
     angle = math.radians(abs(camera.errors.globals["mla_rotation_deg"]))
     return hx * math.cos(angle) + hy * math.sin(angle), hy * math.cos(angle) + hx * math.sin(angle)
 
@@ -100,7 +103,7 @@ def cell_grid(camera: Camera, region: ImageRegion) -> CellGrid:
     coef, r_max, reach = _SHIFTS[key]
     return CellGrid(mla.x0, mla.y0, mla.p, mla.rows, mla.cols, float(rot[0, 0]), float(rot[0, 1]),
                     float(rot[1, 0]), float(rot[1, 1]), camera.shift_x, camera.shift_y,
-                    coef, r_max, region.exit_radius_mm + 1.01 * reach)
+                    coef, r_max, region.exit_radius_mm + 1.01 * reach, camera.cfg.mla.packing)
 
 
 def aperture_shift(cfg: CameraConfig, region: ImageRegion, n: int = 40_000,
@@ -114,8 +117,12 @@ def aperture_shift(cfg: CameraConfig, region: ImageRegion, n: int = 40_000,
     of a pixel. Returns c, the cell's corner radius r_max and the largest |Phi| over cell and aperture."""
     cam = Camera(cfg)
     mla = cam.mla
-    cx = mla.x0 + (mla.cols // 2 + 0.5) * mla.p
-    cy = mla.y0 + (mla.rows // 2 + 0.5) * mla.p
+    if mla.hex:  # the hit's own lens; Phi is fitted on the square round it (a superset of the hexagon)
+        k = (mla.rows // 2) * mla.cols + mla.cols // 2
+        cx, cy = float(mla.gx[k]), float(mla.gy[k])
+    else:
+        cx = mla.x0 + (mla.cols // 2 + 0.5) * mla.p
+        cy = mla.y0 + (mla.rows // 2 + 0.5) * mla.p
     r_max, ra = 0.5 * math.sqrt(2.0) * mla.p, region.exit_radius_mm
     dz = region.z_mla_mm - region.z_exit_mm
 
@@ -129,6 +136,8 @@ def aperture_shift(cfg: CameraConfig, region: ImageRegion, n: int = 40_000,
 
     rng = np.random.default_rng(seed)
     h = (rng.random((2, n)) - 0.5) * mla.p
+    if mla.hex:  # h uniform in the hexagonal cell
+        h = np.stack(hex_cell_offsets(h[0] / mla.p + 0.5, h[1] / mla.p + 0.5)) * mla.p
     a = (2.0 * rng.random((2, n)) - 1.0) * ra
     a = a[:, np.hypot(a[0], a[1]) < 0.98 * ra]
     h = h[:, :a.shape[1]]

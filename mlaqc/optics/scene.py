@@ -18,7 +18,8 @@ from pathlib import Path
 import numpy as np
 
 from mlaqc.errors import InputError
-from mlaqc.optics.raytrace import Rays
+from mlaqc.optics.lattice import SQRT3_2
+from mlaqc.optics.raytrace import Rays, hex_cell
 from mlaqc.optics.unitcircle import cos_sin_2pi
 
 
@@ -106,9 +107,14 @@ class ImageRegion:
 class CellGrid:
     """The MLA's cells, one ring of padding cells included, as the stratified image-side sampler draws them.
 
-    Cell (row, col), -1 <= row <= rows and -1 <= col <= cols, is the square [x0 + col*p, x0 + (col+1)*p) x
-    [y0 + row*p, ...) of the MLA frame; (x, y) of the MLA frame map to the start plane (camera frame, z of
-    the MLA) by the MLA's rotation and shift, projected along the axis (area scale |det| of that 2 x 2 map).
+    Cell (row, col), -1 <= row <= rows and -1 <= col <= cols, is on a square array the square [x0 + col*p,
+    x0 + (col+1)*p) x [y0 + row*p, ...) of the MLA frame; on a hex array (`packing`) the hexagon round the
+    lattice point (x0 + (col + [row odd]/2) p, y0 + row p sqrt(3)/2) ((x0, y0): U(1,1)'s centre), drawn
+    as the rhombus spanned by the lattice vectors (p, 0) and (p/2, p sqrt(3)/2) round that point, folded
+    into the hexagon by lattice translations (`cell_offsets`: both tile the plane, so the fold is one to
+    one and keeps area: uniform on the rhombus is uniform on the hexagon, and the cell's stratification is
+    kept piece by piece). (x, y) of the MLA frame map to the start plane (camera frame, z of the MLA) by
+    the MLA's rotation and shift, projected along the axis (area scale |det| of that 2 x 2 map).
 
     The aperture point is drawn as a' on a square of half-side `square_half_mm` and moved to
     a = a' + Phi(h, a') (`aperture_point`), h the start's offset from its cell centre: a ray then lands
@@ -133,6 +139,7 @@ class CellGrid:
     shift_coef: tuple[float, ...] = (1.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)  # Phi's coefficients (aperture_point)
     shift_r_mm: float = 1.0  # the cell corner radius Phi is scaled by
     square_half_mm: float = 0.0  # 0: the rear aperture's radius
+    packing: str = "square"
 
     @property
     def padded_cols(self) -> int:
@@ -146,7 +153,8 @@ class CellGrid:
     def area_mm2(self) -> float:
         """Start-plane area of all padded cells."""
         det = abs(self.r00 * self.r11 - self.r01 * self.r10)
-        return self.padded_cols * self.padded_rows * self.pitch_mm ** 2 * det
+        cell = self.pitch_mm ** 2 * (SQRT3_2 if self.packing == "hex" else 1.0)
+        return self.padded_cols * self.padded_rows * cell * det
 
     def cell_id(self, row, col):
         """Flat index of padded cell (row, col) (row, col from -1)."""
@@ -182,11 +190,14 @@ def sample_image_cells(region: ImageRegion, cells: CellGrid, u: np.ndarray, row:
     says; points outside the disc get weight 0, those inside the square's area over the disc's, so that
     the mean over the square is the mean over the disc."""
     p = cells.pitch_mm
-    mx = cells.x0_mm + (col + u[2]) * p
-    my = cells.y0_mm + (row + u[3]) * p
+    u2, u3 = u[2], u[3]
+    if cells.packing == "hex":
+        u2, u3, row, col = hex_cell_draws(u2, u3, row, col)
+    mx = cells.x0_mm + (col + u2) * p
+    my = cells.y0_mm + (row + u3) * p
+    hx, hy = (u2 - 0.5) * p, (u3 - 0.5) * p
     px = cells.r00 * mx + cells.r01 * my + cells.shift_x_mm
     py = cells.r10 * mx + cells.r11 * my + cells.shift_y_mm
-    hx, hy = (u[2] - 0.5) * p, (u[3] - 0.5) * p
     rp = region.exit_radius_mm
     sq = cells.square_half_mm or rp
     hcx, hcy = cells.r00 * hx + cells.r01 * hy, cells.r10 * hx + cells.r11 * hy
@@ -200,6 +211,23 @@ def sample_image_cells(region: ImageRegion, cells: CellGrid, u: np.ndarray, row:
     inside = ax * ax + ay * ay <= rp * rp
     w = np.where(inside, (cos_t * cos_t) * (cos_t * cos_t) * (FOUR_OVER_PI * (sq / rp) ** 2) * jac, 0.0)
     return Rays(px, py, np.full(len(px), region.z_mla_mm), dx * inv, dy * inv, cos_t, w)
+
+
+def hex_cell_offsets(a, b):
+    """Offset (pitches) from its lens' centre of a point uniform in a hexagonal cell, from two uniforms:
+    the point (a - 1/2) (1, 0) + (b - 1/2) (1/2, sqrt(3)/2) of the rhombus round the centre, moved by the
+    lattice vector that brings it into the centre's hexagon (CellGrid)."""
+    bb = b - 0.5
+    _, _, du, dv = hex_cell((a - 0.5) + 0.5 * bb, SQRT3_2 * bb)
+    return du, dv
+
+
+def hex_cell_draws(u2, u3, row, col):
+    """Hex cells: the draws (u2, u3) and cell (row, col) rewritten so that the square cell's formulas
+    (x0 + (col + u2) p, offset (u2 - 1/2) p, the same in y) give the point of the hexagon
+    (`hex_cell_offsets`; (x0, y0) is U(1,1)'s centre). The compiled engine does the same (hex_fold)."""
+    du, dv = hex_cell_offsets(u2, u3)
+    return du + 0.5, dv + 0.5, col + 0.5 * (row - 2.0 * np.floor(0.5 * row)) - 0.5, row * SQRT3_2 - 0.5
 
 
 def aperture_point(c, inv_rm, inv_ra, hx, hy, bx, by):

@@ -54,7 +54,7 @@ def simulate(cfg: CameraConfig, scene: Scene | None = None, errors: ErrorMap | N
     """Render `scene` through the camera with `errors` and read it out with the sensor model; with a Dask
     `client` the rays are traced on its workers (the same image, bit for bit)."""
     scene = scene if scene is not None else WhiteScene()
-    errors = errors if errors is not None else ErrorMap.zeros(cfg.mla.count_h, cfg.mla.count_w)
+    errors = errors if errors is not None else ErrorMap.zeros(cfg.mla.count_h, cfg.mla.count_w, cfg.mla.packing)
     renderer = renderer or Renderer(cfg, errors)
     if client is not None:
         from mlaqc.optics.distributed import render_on_cluster

@@ -64,6 +64,7 @@ import numpy as np
 
 from mlaqc.errors import InputError
 from mlaqc.optics.config import CameraConfig
+from mlaqc.optics.lattice import Lattice
 from mlaqc.optics.paraxial import image_distance
 from mlaqc.optics.scene import PointScene, Scene, WhiteScene
 
@@ -217,7 +218,8 @@ def paraxial_blur_radius_mm(cfg: CameraConfig, tf: ThroughFocus) -> float:
 
 def inner_radius_lenses(cfg: CameraConfig, tf: ThroughFocus) -> float:
     """Distance (lens pitches) from a disc's centre within which a whole lens aperture is lit."""
-    return blur_radius_mm(cfg, tf) / (cfg.mla.pitch_um * 1e-3) - math.sqrt(0.5)
+    corner = 1.0 / math.sqrt(3.0) if cfg.mla.packing == "hex" else math.sqrt(0.5)  # the cell's farthest point
+    return blur_radius_mm(cfg, tf) / (cfg.mla.pitch_um * 1e-3) - corner
 
 
 RIM_MARGIN_LENSES = 0.15  # a lens counts as fully lit this far inside the disc's traced rim
@@ -245,7 +247,11 @@ def pinhole_lenses(cfg: CameraConfig, tf: ThroughFocus) -> np.ndarray:
 
 
 def lens_centres_mm(cfg: CameraConfig, rc: np.ndarray) -> np.ndarray:
-    """Design centres (x, y) mm on the MLA of lenses given as (row, col) rows."""
+    """Design centres (x, y) mm on the MLA of lenses given as (row, col) rows (off the array too): the
+    lattice's (mlaqc.optics.lattice; hex rows p sqrt(3)/2 apart, odd 0-based rows shifted p/2)."""
+    if cfg.mla.packing != "square":
+        x, y = Lattice.of(cfg).position(rc[:, 0], rc[:, 1])
+        return np.stack([x, y], axis=1)
     p = cfg.mla.pitch_um * 1e-3
     x = (rc[:, 1] - 0.5 * (cfg.mla.count_w - 1)) * p
     y = (rc[:, 0] - 0.5 * (cfg.mla.count_h - 1)) * p
