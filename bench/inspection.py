@@ -21,7 +21,8 @@ import tempfile
 import time
 from pathlib import Path
 
-from mlaqc.inspection.pipeline import calibrate_for, inspect_image, load_frame
+from mlaqc.inspection.calibrate import calibrate_for
+from mlaqc.inspection.pipeline import inspect_image, load_frame
 from mlaqc.optics.config import default_config, load_config
 from mlaqc.optics.errormap import ErrorMap, random_defects
 from mlaqc.optics.simulate import simulate, write_simulation

@@ -836,22 +836,6 @@ def aperture_px(cfg: Any, pitch_px: float) -> float | None:
     return float(mla.aperture_diameter_um) / float(mla.pitch_um) * pitch_px
 
 
-def calibrate_white(white: np.ndarray, cfg: Any, calibrate: Any) -> Any:
-    """The grid of a white frame on the config's lattice: the pipeline's `calibrate_for` (sub-image pitch,
-    lens count and packing) where it exists; else the square calibration as before (a hex config is then
-    refused in one sentence)."""
-    from mlaqc.inspection import pipeline
-
-    calibrate_for = getattr(pipeline, "calibrate_for", None)
-    if calibrate_for is not None:
-        return calibrate_for(white, cfg)
-    if getattr(cfg.mla, "packing", "square") != "square":
-        raise InputError(f"this build's calibration handles square arrays only, and the config's MLA is "
-                         f"{cfg.mla.packing} (mla.packing)")
-    return calibrate(white, expected_pitch_px=cfg.layout.subimage_pitch_px,
-                     expected_shape=(cfg.mla.count_h, cfg.mla.count_w))
-
-
 def hex_overlay(grid: Any, gx: np.ndarray, gy: np.ndarray) -> dict[str, Any]:
     """A hex grid's cells for the overlay (runs in the worker): the lattice's affine fit to the predicted
     centres, one cell's corner offsets and every lens' hexagon as one NaN-separated polyline."""
@@ -902,7 +886,7 @@ class InspectionWorker(QObject):
             self.progress.emit(job, pct, text)
 
         try:
-            from mlaqc.inspection.calibrate import calibrate
+            from mlaqc.inspection.calibrate import calibrate_for
             from mlaqc.inspection.pipeline import inspect_image, load_frame
 
             cfg = req.cfg
@@ -939,7 +923,7 @@ class InspectionWorker(QObject):
                 stage(15, "loading the white image")
                 white = load_frame(req.white, cfg, dark=dark)
             stage(25, "calibrating the microlens grid")
-            grid = calibrate_white(white, cfg, calibrate)
+            grid = calibrate_for(white, cfg)
             stage(60, "measuring and identifying every lens")
             result = inspect_image(img, cfg, grid=grid, source=source, notes=tuple(notes))
             if info is not None:

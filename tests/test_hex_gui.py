@@ -220,30 +220,11 @@ def test_circular_apertures_are_drawn_in_the_grid_overlay(qtbot):
     w.close()
 
 
-def test_the_worker_calibrates_on_the_configs_lattice(monkeypatch):
-    from mlaqc.errors import InputError
-    from mlaqc.inspection import pipeline
-    from gui.workers import calibrate_white
-
-    cfg = load_config(HEX_SMALL)
-    seen = []
-    monkeypatch.setattr(pipeline, "calibrate_for", lambda img, c: seen.append(c.mla.packing) or "grid", raising=False)
-    assert calibrate_white(np.zeros((4, 4)), cfg, None) == "grid" and seen == ["hex"]
-    monkeypatch.delattr(pipeline, "calibrate_for")
-    with pytest.raises(InputError, match="square arrays only.*hex"):
-        calibrate_white(np.zeros((4, 4)), cfg, None)
-
-
 @pytest.mark.timeout(300)
 def test_a_scan_with_inspection_finds_the_seeded_defects_of_each_hex_array(tmp_path):
-    """Needs the hex calibration (the pipeline's calibrate_for); skipped in a build without it."""
     import json
 
     from drivers.scan import default_inspect_hook, load_plan, run_scan
-    from mlaqc.inspection import pipeline
-
-    if not hasattr(pipeline, "calibrate_for"):
-        pytest.skip("this build's calibration handles square arrays only")
     plan = tmp_path / "plan.toml"
     plan.write_text('[scan]\nsettle_s = 0.0\n[[positions]]\nx_mm = 10.0\ny_mm = 10.0\nlabel = "W(1,1)"\n'
                     '[[positions]]\nx_mm = 15.0\ny_mm = 10.0\nlabel = "W(1,2)"\n')

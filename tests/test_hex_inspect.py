@@ -254,22 +254,10 @@ def test_a_grid_on_another_lattice_is_refused_in_one_sentence():
         inspect_image(img, HEX, grid=grid, model=object(), table=object())
 
 
-def test_a_calibration_without_packing_refuses_a_hex_config(monkeypatch):
-    from mlaqc.inspection import pipeline
-
-    def old_calibrate(img, *, expected_pitch_px=None, expected_shape=None):
-        return "square grid"
-
-    monkeypatch.setattr(pipeline, "calibrate", old_calibrate)
-    assert pipeline.calibrate_for(np.zeros((4, 4)), SQUARE) == "square grid"
-    with pytest.raises(InputError, match="square arrays only"):
-        pipeline.calibrate_for(np.zeros((4, 4)), HEX)
-
-
 def test_inspect_with_a_grid_file_of_another_lattice_exits_2_writing_nothing(tmp_path, capsys):
     """A square array's grid.json given to a hex camera of the same lens count: one sentence, exit 2."""
     from mlaqc.cli import main
-    from mlaqc.inspection.pipeline import calibrate_for
+    from mlaqc.inspection.calibrate import calibrate_for
     from mlaqc.optics.render import Renderer
     from mlaqc.optics.scene import WhiteScene
 
@@ -344,7 +332,7 @@ def test_a_perfect_hex_array_reads_no_placement_error():
     """The projection fit's design centres are the hex lattice's: a perfect array's frame reads no shift
     or rotation, and its centres fit to the calibration's own noise (the square formula would leave
     every other row half a pitch off)."""
-    from mlaqc.inspection.pipeline import calibrate_for
+    from mlaqc.inspection.calibrate import calibrate_for
     from mlaqc.inspection.projection import fit_projection, pupil_distance_mm
     from mlaqc.optics.render import Renderer
     from mlaqc.optics.scene import WhiteScene

@@ -136,7 +136,8 @@ def shared_grid(args: argparse.Namespace, cfg: CameraConfig, dark=None):
     """The calibration every raw reuses: loaded from --grid, fitted on --white (its frames averaged, the
     master dark `dark` subtracted), or None (self-calibrate)."""
     from mlaqc.inspection.calibrate import load_grid
-    from mlaqc.inspection.pipeline import calibrate_for, load_frame
+    from mlaqc.inspection.calibrate import calibrate_for
+    from mlaqc.inspection.pipeline import load_frame
 
     if args.grid:
         grid = load_grid(args.grid)

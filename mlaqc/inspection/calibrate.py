@@ -1082,6 +1082,12 @@ def _without_background(img: np.ndarray, lattice: _Lattice, discs: _Discs, activ
     return img - surface
 
 
+def calibrate_for(img: np.ndarray, cfg: Any) -> Grid:
+    """The grid of a white frame of a CameraConfig's camera: its sub-image pitch, lens count and packing."""
+    return calibrate(img, expected_pitch_px=cfg.layout.subimage_pitch_px,
+                     expected_shape=(cfg.mla.count_h, cfg.mla.count_w), packing=cfg.mla.packing)
+
+
 def _candidates(shape: tuple[int, int], lattice: _Lattice):
     """Every lattice point whose sub-image centre lies within half a pitch of the frame."""
     h, w = shape

@@ -13,7 +13,7 @@ import numpy as np
 from mlaqc.compiled import net_clock
 from mlaqc.errors import InputError
 from mlaqc.inspection.assembly import measure_assembly
-from mlaqc.inspection.calibrate import Grid, calibrate
+from mlaqc.inspection.calibrate import Grid, calibrate_for
 from mlaqc.inspection.combine import SOURCE_KEY
 from mlaqc.inspection.combine import verdict as overall_verdict
 from mlaqc.inspection.identify import identify
@@ -57,26 +57,6 @@ def load_frame(path: str | Path | Sequence[str | Path], cfg: CameraConfig, level
 
 
 SAG = "sag-intersection"
-
-
-def calibrate_for(img: np.ndarray, cfg: CameraConfig) -> Grid:
-    """The grid of a white frame of `cfg`'s camera: its sub-image pitch, lens count and packing
-    (`calibrate(..., packing=)`). A calibration without the packing keyword (before hex support) is
-    called as before for a square array, and refuses a hex one."""
-    kwargs = {"expected_pitch_px": cfg.layout.subimage_pitch_px, "expected_shape": (cfg.mla.count_h, cfg.mla.count_w)}
-    if _calibrate_takes_packing():
-        kwargs["packing"] = cfg.mla.packing
-    elif cfg.mla.packing != "square":
-        raise InputError(f"this build's calibration handles square arrays only, and the config's MLA is "
-                         f"{cfg.mla.packing} (mla.packing)")
-    return calibrate(img, **kwargs)
-
-
-def _calibrate_takes_packing() -> bool:
-    """Whether `calibrate` has the `packing` keyword (the hex calibration)."""
-    import inspect
-
-    return "packing" in inspect.signature(calibrate).parameters
 
 
 def inspect_image(img: np.ndarray, cfg: CameraConfig, *, grid: Grid | None = None, source: str = "",

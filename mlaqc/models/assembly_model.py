@@ -190,7 +190,7 @@ _LOADED: dict[str, AssemblyModel] = {}
 
 def render_grid(cfg: CameraConfig, glob: dict[str, float], *, rays_per_pixel: float, seed: int):
     """Render `cfg`'s white frame with global errors `glob` and calibrate it (its Grid)."""
-    from mlaqc.inspection.pipeline import calibrate_for
+    from mlaqc.inspection.calibrate import calibrate_for
     from mlaqc.optics.errormap import ErrorMap
     from mlaqc.optics.sensor import white_level
     from mlaqc.optics.simulate import simulate

@@ -351,7 +351,7 @@ def _blurred(img: np.ndarray, cfg: CameraConfig, extra_blur_px: float | None) ->
 
 def _edge_width(img: np.ndarray, cfg: CameraConfig) -> float:
     """The rim width the calibration measures on a healthy patch render (what a frame's grid reports)."""
-    from mlaqc.inspection.pipeline import calibrate_for
+    from mlaqc.inspection.calibrate import calibrate_for
 
     grid = calibrate_for((img / img.max()).astype(np.float32), cfg)
     return float(grid.edge_width_px)
