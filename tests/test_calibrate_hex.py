@@ -449,3 +449,17 @@ def test_seeded_anomalies_of_every_kind_leave_the_others_centred():
             if 0 <= b[0] < SHAPE[0] and 0 <= b[1] < SHAPE[1]:
                 away[b] = False
     assert per_axis_rms(g, x, y, away & ~g.clipped) < 0.01
+
+
+@pytest.mark.parametrize("rim_sigma", [0.5, 1.2])
+def test_discs_whose_transform_vanishes_on_the_first_shell(rim_sigma):
+    """A disc of radius R has its transform's first zero at 2 pi |k| R = 3.8317; at R = 0.528 p that is
+    the hex first shell |k| = 2 / (sqrt 3 p) (a defocused small camera's sub-images come close), and only
+    the second shell (|k| = 2 / p) stands out of the spectrum: the lattice is taken from it."""
+    radius = 3.8317 * PITCH * math.sqrt(3.0) / (4.0 * math.pi)
+    m = hex_model(rotation_deg=0.3, radius_px=radius, rim_sigma_px=rim_sigma, phase_px=(0.2, -0.35))
+    g = calibrate(frame(m), expected_pitch_px=PITCH, expected_shape=SHAPE, packing="hex")
+    x, y = m.centres()
+    sel = m.inside() & ~g.clipped
+    assert g.lenses_missing == 0 and g.pitch_px == pytest.approx((PITCH, PITCH), rel=1e-3)
+    assert per_axis_rms(g, x, y, sel) <= 0.01 * rim_sigma / 0.5 ** 0.5  # a blurred rim carries less position

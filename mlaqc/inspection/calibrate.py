@@ -648,21 +648,30 @@ def _hex_lattice(img: np.ndarray, a: np.ndarray, kvec: np.ndarray, kmag: np.ndar
     offset; the basis is then a1 along the rows (the lattice vector nearest +x), a2 at +60 degrees."""
     full_h, full_w = img.shape
     _refuse_mismatch(kvec, pv, "hex")
-    first = kvec[0]
+    first, shell = kvec[0], 1
     if expected_pitch_px is not None:  # binned px here
         near = np.abs(kmag * expected_pitch_px * SQRT3_2 - 1.0) <= PITCH_TOLERANCE
-        if not near.any():
+        # discs whose transform has a zero at the first shell (a defocused array's) leave only the second
+        # shell (|k| = 2 / p) among the strong peaks
+        near2 = np.abs(kmag * expected_pitch_px * 0.5 - 1.0) <= PITCH_TOLERANCE
+        if not near.any() and not near2.any():
             raise InputError(f"the microlens pitch in the image ({b / (kmag[0] * SQRT3_2):.2f} px) is far from the "
                              f"expected {b * expected_pitch_px:.2f} px; check the camera config and the image")
-        first = kvec[np.argmax(near)]
+        first, shell = (kvec[np.argmax(near)], 1) if near.any() else (kvec[np.argmax(near2)], 2)
     mag = np.hypot(kvec[:, 0], kvec[:, 1])
     cosang = np.abs(kvec @ first) / (mag * np.hypot(*first))
     partner = (np.abs(cosang - 0.5) < 0.15) & (np.abs(mag / np.hypot(*first) - 1) < 0.1)
     if not partner.any():
         raise InputError("the white image shows no hexagonal microlens lattice (only one periodic direction found)")
     second = kvec[np.argmax(np.where(partner, pv, -1))]
-    k1, f1 = _refine_peak(a, first)
-    k2, f2 = _refine_peak(a, second)
+    if shell == 1:
+        k1, f1 = _refine_peak(a, first)
+        k2, f2 = _refine_peak(a, second)
+    else:  # second-shell peaks q1, q2 60 degrees apart: first-shell (2 q1 - q2) / 3 and (q1 + q2) / 3
+        q1, _ = _refine_peak(a, first)
+        q2, _ = _refine_peak(a, second)
+        k1, k2 = (2.0 * q1 - q2) / 3.0, (q1 + q2) / 3.0
+        f1, f2 = (complex(_dtft(a, k[:1], k[1:])[0, 0]) for k in (k1, k2))
     prime = np.linalg.inv(np.array([k1, k2])) * b  # columns: a lattice basis (k_i . a_j = delta_ij), frame px
     phase = -np.angle([f1, f2]) / (2.0 * np.pi)
     h, w = (full_h // b * b, full_w // b * b) if b > 1 else (full_h, full_w)
