@@ -235,7 +235,7 @@ class MicrolensArray:
         self.z_rear_design = self.z_front + t
         zero = np.zeros(rows * cols)
         self.margin_front, self.margin_rear = self.boundary_margins_mm() if self.sag else (zero, zero)
-        self.circle_reach = self.circle_reach_mm() if self.circle else 0.0
+        self.circle_reach = self.circle_reach_mm() if self.circle else np.zeros(rows * cols)
 
     def sphere_offsets_mm(self, rear: bool) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Per lens, how its front or rear sphere departs from the design one, in the MLA frame: the
@@ -293,18 +293,21 @@ class MicrolensArray:
                 np.maximum.at(margin, k, d)
         return margin
 
-    def circle_reach_mm(self) -> float:
-        """How far (mm) beyond the circles' radius from its design centre a front hit can still lie in some
-        lens' circle: the largest lateral move of a front vertex (pitch error; a tilt's swing), plus how far
-        apart two spheres' hits of one ray can lie (their height difference, at most the rim sag, times the
-        ray's slope, taken <= 1), + 1 nm. Hits farther out are in the gap (`_hit_circle`)."""
+    def circle_reach_mm(self) -> np.ndarray:
+        """Per cell, how far (mm) beyond the circles' radius from the cell's design centre a front hit can
+        still lie in some lens' circle: the largest lateral move of a front vertex (pitch error; a tilt's
+        swing) among the cell's lens and its neighbours, plus how far apart two spheres' hits of one ray can
+        lie (their height difference, at most the rim sag, times the ray's slope, taken <= 1), + 1 nm. Hits
+        farther out are in the gap (`_hit_circle`): a point of a cell is nearest that cell's design centre."""
         move = np.hypot(self.fx - self.gx, self.fy - self.gy)
         rim = self.r_circle + float(move.max(initial=0.0))
         sag = float(_sag_abs(np.abs(1.0 / self.c1), min(rim, 0.999 * np.abs(1.0 / self.c1).min())).max())
         if self.tilted:
             cos_tilt = np.clip(self.rot[:, 2, 2], -1.0, 1.0)
             move = move + (abs(self.z_front) + sag) * np.sqrt(1.0 - cos_tilt ** 2) + rim * (1.0 - cos_tilt)
-        return float(move.max(initial=0.0)) + sag + 1e-6
+        nb = self.lattice.neighbours(diagonal=True)
+        near = np.max(np.where(nb >= 0, move[np.maximum(nb, 0)], 0.0), axis=1, initial=0.0)
+        return np.maximum(move, near) + sag + 1e-6
 
     def _hit_circle(self, k, r: Rays):
         """'circle' apertures: the lens whose circle (radius r_circle about its front vertex, in its frame)
@@ -317,8 +320,8 @@ class MicrolensArray:
         with np.errstate(invalid="ignore"):
             gap = ~(local[0] * local[0] + local[1] * local[1] <= r2)
             gx, gy, _, _, _, _ = self._from_lens(k, *local, *ldir)
-            k2, _ = self.cell_of(gx, gy)
-            near = np.hypot(gx - self.gx[k2], gy - self.gy[k2]) <= self.r_circle + self.circle_reach
+            k2, on = self.cell_of(gx, gy)  # off the array: every candidate round the clipped cell is tried
+            near = ~on | ((gx - self.gx[k2]) ** 2 + (gy - self.gy[k2]) ** 2 <= (self.r_circle + self.circle_reach[k2]) ** 2)
         todo = np.flatnonzero(gap & near & np.isfinite(t))
         if todo.size:
             sub = [a[todo] for a in (r.x, r.y, r.z, r.L, r.M, r.N)]

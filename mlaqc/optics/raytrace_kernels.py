@@ -69,8 +69,8 @@ IMAGE_SIDE, POINT, OBJECT_SIDE = 0, 1, 2
  S_INVKR, S_SQUARE, S_SQW,
  # half the black matrix' width (mm; sag-intersection boundaries are a kernel of their own, kernel_sag)
  S_HALFBM,
- # circle apertures: radius^2, (radius + reach)^2 (raytrace.MicrolensArray.circle_reach_mm), clear gaps
- S_RCIRC2, S_RNEAR2, S_CLEARGAP, S_COUNT) = range(57)
+ # circle apertures: radius^2, clear gaps (per-cell reach: the `circ` table)
+ S_RCIRC2, S_CLEARGAP, S_COUNT) = range(56)
 # Rows of the per-block scratch table `g`: the gathered parameters of each ray's lens (tab rows 0..6), its
 # current hit and direction in the lens frame, the distance t to it (NaN on a miss), and its pixel.
 # Sag-intersection mode also gathers the lens' front and rear margins (G_MF, G_MR).
@@ -992,14 +992,14 @@ def front_circle(m, buf, s, tab, rot, g, kk, flag, corner_of, clear, lat, circ):
 def retrace_circle(m, flag, kk, buf, g, tab, rot, s, lat, circ, corner_of):
     """Gap rays (flag) near a circle's reach: the first candidate around the hit's cell whose circle holds
     the ray's hit on its own front sphere takes the ray (flag cleared); others stay in the gap. Scalar."""
-    rows, cols, r2, near2 = int(s[S_ROWS]), int(s[S_COLS]), s[S_RCIRC2], s[S_RNEAR2]
+    rows, cols, r2 = int(s[S_ROWS]), int(s[S_COLS]), s[S_RCIRC2]
     for j in range(m):
         if flag[j] and buf[6, j] > 0.0 and g[G_T, j] == g[G_T, j]:
             gx, gy = hit_xy(kk[j], g[G_HX, j], g[G_HY, j], g[G_HZ, j], tab, rot)
             k2 = int(g[G_ROW, j])
             if k2 >= 0:
                 ex, ey = gx - circ[0, k2], gy - circ[1, k2]
-                if not (ex * ex + ey * ey <= near2):
+                if not (ex * ex + ey * ey <= circ[2, k2]):
                     continue
             row0, col0 = centre_cell(gx, gy, s, lat)
             for i in range(9 if lat is None else 7):
@@ -1175,7 +1175,8 @@ class FastCamera:
         self.rot = np.ascontiguousarray(mla.rot) if mla.tilted else None
         self.grot = np.ascontiguousarray(camera.rot) if camera.rotated else None
         self.lat = np.zeros(1) if mla.hex else None  # a marker: hex cells (its value is unused)
-        self.circ = np.ascontiguousarray(np.stack([mla.gx, mla.gy])) if mla.circle else None
+        self.circ = (np.ascontiguousarray(np.stack([mla.gx, mla.gy, (mla.r_circle + mla.circle_reach) ** 2]))
+                     if mla.circle else None)  # design centres, per-cell (radius + reach)^2
         s = np.zeros(S_COUNT)
         s[S_C1], s[S_C2], s[S_T], s[S_N], s[S_RIM2] = main.c1, main.c2, main.z2, main.n, main.rim2
         s[S_FRES] = float(cfg.trace.fresnel)
@@ -1184,7 +1185,7 @@ class FastCamera:
         s[S_P], s[S_AX0], s[S_AY0], s[S_ROWS], s[S_COLS] = mla.p, mla.x0, mla.y0, mla.rows, mla.cols
         s[S_ZFRONT], s[S_NMLA], s[S_CLEAR] = mla.z_front, mla.n, float(mla.clear_corners)
         s[S_HALFBM] = mla.half_black_mm
-        s[S_RCIRC2], s[S_RNEAR2] = mla.r_circle ** 2, (mla.r_circle + mla.circle_reach) ** 2
+        s[S_RCIRC2] = mla.r_circle ** 2
         s[S_CLEARGAP] = float(mla.clear_gap)
         s[S_ZMLA], s[S_ZSENS] = camera.z_mla, camera.z_sensor
         s[S_SHIFTX], s[S_SHIFTY] = camera.shift_x, camera.shift_y
