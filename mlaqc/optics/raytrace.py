@@ -531,13 +531,14 @@ class MicrolensArray:
 
     def _corner_sag(self, k, hx, hy, hz) -> np.ndarray:
         """'sag-intersection' corners: the front hit (lens k's frame) lies outside the union of the lenses'
-        rear regions. Far from its cell's edge (rear margin) only lens k's rear can hold it."""
+        rear regions. Far from its cell's edge (rear margin) only lens k's rear can hold it; inside lens k's
+        own rear region it is in the union (no scan of the neighbours)."""
         corner = ~self._inside_lens(k, hx, hy, hz)
         gx, gy, gz, _, _, _ = self._from_lens(k, hx, hy, hz, 0.0, 0.0, 0.0)  # a point: no direction
         k2, inside = self.cell_of(gx, gy)
         with np.errstate(invalid="ignore"):
             near = (k2 != k) | ~inside | (self.edge_distance(gx, gy) < self.margin_rear[k])
-        todo = np.flatnonzero(near & np.isfinite(hz))
+        todo = np.flatnonzero(near & np.isfinite(hz) & corner)  # inside lens k's own rear region: no corner
         if todo.size:
             px, py, pz = gx[todo], gy[todo], gz[todo]
             any_in = np.zeros(todo.size, dtype=bool)

@@ -693,7 +693,7 @@ def centre_cell(gx, gy, s, lat):
 
 
 @_jit_inline
-def retrace_sag(m, flag, kk, buf, g, tab, rot, s, rear, cflag, margins, lat):
+def retrace_sag(m, flag, kk, buf, g, tab, rot, s, rear, cflag, margins, lat, corner_of):
     """Flagged rays (near a cell edge) take the front sphere they meet first / the rear sphere they meet
     last among the 3 x 3 lenses around their hit's cell: lens kk's hit (in g) unless another is strictly
     earlier / later, the first in row-major order winning a tie (as raytrace.MicrolensArray.extreme_lens;
@@ -720,6 +720,8 @@ def retrace_sag(m, flag, kk, buf, g, tab, rot, s, rear, cflag, margins, lat):
                 gather(j, best, tab, g)
                 g[G_MR, j] = margins[T_MARGIN_REAR, best]
                 g[G_HX, j], g[G_HY, j], g[G_HZ, j], g[G_LL, j], g[G_LM, j], g[G_LN, j], g[G_T, j] = bx, by, bz, bL, bM, bN, bt
+                if not rear:
+                    corner_of[j] = True  # lens k0's corner test is stale: corners_sag decides
             if not rear:
                 cflag[j] = True
 
@@ -737,11 +739,12 @@ def inside_rear(k, px, py, pz, tab):
 @_jit_inline
 def corners_sag(m, cflag, kk, g, tab, rot, s, corner_of, lat):
     """Sag-intersection corners of the flagged rays (front hit within the rear margin of its cell's edge,
-    or re-traced): the front hit lies in no rear region of the 3 x 3 lenses around its cell (as
+    or re-traced) outside their own lens' rear region (inside it, a hit is in the union: the scan is
+    skipped): the front hit lies in no rear region of the candidates around its cell (as
     raytrace.MicrolensArray._corner_sag; elsewhere lens kk's rear decides, in pass B). Scalar: rare."""
     rows, cols = int(s[S_ROWS]), int(s[S_COLS])
     for j in range(m):
-        if cflag[j]:
+        if cflag[j] and corner_of[j]:  # inside its own lens' rear region, a hit is in the union: no corner
             gx, gy, gz, _, _, _ = from_lens(kk[j], g[G_HX, j], g[G_HY, j], g[G_HZ, j], 0.0, 0.0, 0.0, tab, rot)
             row0, col0 = centre_cell(gx, gy, s, lat)
             inside = False
@@ -1070,11 +1073,11 @@ def stage2_block_sag(m, buf, s, tab, rot, grot, clear, fres, n_mla, mu_in, g, kk
         k = kk[j]
         g[G_MF, j], g[G_MR, j] = margins[T_MARGIN_FRONT, k], margins[T_MARGIN_REAR, k]
     front_sag(m, buf, s, tab, rot, g, kk, flag, cflag, corner_of, lat)
-    retrace_sag(m, flag, kk, buf, g, tab, rot, s, False, cflag, margins, lat)
+    retrace_sag(m, flag, kk, buf, g, tab, rot, s, False, cflag, margins, lat, corner_of)
     corners_sag(m, cflag, kk, g, tab, rot, s, corner_of, lat)
     pass_front_refract(m, buf, s, rot, clear, fres, n_mla, mu_in, g, kk, corner_of, True)
     rear_sag(m, buf, s, tab, rot, g, kk, flag, corner_of, lat)
-    retrace_sag(m, flag, kk, buf, g, tab, rot, s, True, cflag, margins, lat)
+    retrace_sag(m, flag, kk, buf, g, tab, rot, s, True, cflag, margins, lat, corner_of)
     return pass_leave(m, buf, s, rot, grot, fres, n_mla, g, kk, corner_of, rows, cols, wts, nout, box)
 
 
