@@ -7,7 +7,10 @@ branch-free over the block so that LLVM vectorizes it (4 doubles per AVX2 instru
 rays overlap in the pipeline; a single loop carrying one ray's whole chain of square roots and divisions
 was bound by their latency. The rare neighbour re-trace near cell edges is a scalar pass of its own, in
 both lens boundary models ('grid': the lens of the hit's cell; 'sag-intersection': the first / last of
-the 3 x 3 spheres met, for hits within a per-cell margin of the edge).
+the 3 x 3 spheres met (hex: the cell and its 6 neighbours), for hits within a per-cell margin of the
+edge), and for circle apertures (the circle holding the hit, for gap hits near a neighbour's circle).
+Hex cells and circle apertures are kernel variants: `lat` and `circ` are None on square / cell arrays,
+and what differs is chosen when Numba compiles (overloads on `lat`), never by a branch inside a pass.
 Hits are appended in ray order and summed per pixel in compiled code, as np.bincount would. It releases
 the GIL, so the renderer's thread pool keeps every core busy. The NumPy path stays the reference; this
 module is used when Numba is importable.
