@@ -153,9 +153,11 @@ class LensChoice:
 class MicrolensArray:
     """The MLA with every lens' own errors, traced lens by lens in one vectorized pass.
 
-    Each lens is looked up from the ray's crossing point (cell = floor((coord - origin) / p)), its
-    parameters gathered from flat per-lens tables, and both its surfaces intersected in its own frame.
-    Where the two surfaces of a lens cross (its corners) there is no lens (`mla.corners`).
+    Each lens is looked up from the ray's crossing point (its design cell: the square floor((coord -
+    origin) / p), or on a hex array (`mla.packing`) the hexagon of the nearest lattice point, `hex_cell`;
+    centres from mlaqc.optics.lattice), its parameters gathered from flat per-lens tables, and both its
+    surfaces intersected in its own frame. Where the two surfaces of a lens cross (its corners) there is no
+    lens (`mla.corners`).
 
     Lens boundaries (`mla.boundaries`):
 
@@ -172,13 +174,22 @@ class MicrolensArray:
       the perpendicular bisector of their vertices (a lens shifted by Δ moves its boundaries by Δ/2, a
       rear-surface decenter δ moves only the rear boundaries by δ/2); unequal radii or vertex heights
       (radius, thickness, tilt errors) move the boundary to where the two sags are equal. Candidates are
-      the 3 x 3 lenses around the cell of the hit; only rays whose hit lies within a per-cell margin of
+      the 3 x 3 lenses around the cell of the hit (hex: the cell and its 6 neighbours); only rays whose hit
+      lies within a per-cell margin of
       their cell's edge (or in another cell) need them (`boundary_margins_mm`), the others keep the lens
       of their cell. Corners: the front hit lies outside the union of the lenses' rear regions (no lens
       has material there); on the design array that is the grid mode's corner.
 
-    `mla.black_matrix_um` (both modes): an opaque mask of that width centred on the design grid lines in
-    the front vertex plane; a ray crossing that plane within half the width of a grid line is absorbed.
+    Circle apertures (`mla.aperture = "circle"`, either packing; `boundaries` does not apply: circles do
+    not meet): a ray belongs to the lens whose circle (diameter `mla.aperture_diameter_um`, about its
+    front vertex, in its frame: it moves with the lens) holds its hit on that lens' front sphere, and
+    leaves by the same lens' rear. A hit in no circle meets the flat substrate between them (`mla.gap`):
+    'opaque' absorbs it, 'clear' lets it go on undeviated and without Fresnel loss, as a clear corner does
+    (a thin flat plate's lateral shift and its ~2 x 4.8 % reflection are left out).
+
+    `mla.black_matrix_um` (all modes): an opaque mask of that width centred on the design cell edges (grid
+    lines or hexagon sides) in the front vertex plane; a ray crossing that plane within half the width of
+    an edge is absorbed.
     """
 
     def __init__(self, cfg: CameraConfig, errors: ErrorMap | None = None) -> None:
@@ -235,7 +246,7 @@ class MicrolensArray:
         self.z_rear_design = self.z_front + t
         zero = np.zeros(rows * cols)
         self.margin_front, self.margin_rear = self.boundary_margins_mm() if self.sag else (zero, zero)
-        self.circle_reach = self.circle_reach_mm() if self.circle else 0.0
+        self.circle_reach = self.circle_reach_mm() if self.circle else np.zeros(rows * cols)
 
     def sphere_offsets_mm(self, rear: bool) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Per lens, how its front or rear sphere departs from the design one, in the MLA frame: the
@@ -265,14 +276,16 @@ class MicrolensArray:
         sag_R(r) = R - sqrt(R^2 - r^2), sag'(r) = r / sqrt(R0^2 - r^2) (u, w, R: `sphere_offsets_mm`).
         With Q = rho_i^2 - rho_k^2 the design heights differ by
             H(rho_i) - H(rho_k) = Q / (sqrt(R0^2 - rho_k^2) + sqrt(R0^2 - rho_i^2)) >= Q / 2R0,
-        so lens k is strictly lowest at x if Q / 2R0 > E_i(rho_i) + E_k(rho_k). In cell k rho_k <= p/sqrt(2)
-        and rho_i^2 <= p^2/2 + Q; at distance >= d from the cell's edges Q >= 2 p d (edge neighbours;
-        >= 4 p d diagonally). Per pair (k, i) the smallest d* with g(d) = 2 p d / 2R0 - E_i - E_k > 0 is
+        so lens k is strictly lowest at x if Q / 2R0 > E_i(rho_i) + E_k(rho_k). In a square cell k
+        rho_k <= p/sqrt(2) and rho_i^2 <= p^2/2 + Q; at distance >= d from the cell's edges Q >= 2 p d (edge
+        neighbours; >= 4 p d diagonally). In a hexagonal cell rho_k <= p/sqrt(3) (its vertices) and
+        rho_i^2 <= p^2/3 + Q, and Q >= 2 p d holds for all 6 neighbours (each is one pitch away across a
+        side: Q = 2 p times the distance to that side). Per pair (k, i) the smallest d* with g(d) = 2 p d / 2R0 - E_i - E_k > 0 is
         found by fixed-point iteration (to first order the boundary moves by (|u_i| + |u_k|)/sqrt(2) at a
         cell corner, |u|/2 mid-edge, and by R0 |w_i - w_k| / p for a vertex height difference: a 1 µm
         thickness error moves the rear boundaries ~4.7 µm); g is then checked on a grid up to d = p, and
         a cell whose bound fails there gets margin p (every ray brute-forced). Margin = max over the 8
-        neighbours of d* (+ 1 nm). Cells whose whole neighbourhood is error-free get 0: equal lenses meet
+        (hex: 6) neighbours of d* (+ 1 nm). Cells whose whole neighbourhood is error-free get 0: equal lenses meet
         exactly on the grid lines. Lenses two cells away are assumed never to win (errors well below p).
         """
         return self._margins(False), self._margins(True)
@@ -293,18 +306,21 @@ class MicrolensArray:
                 np.maximum.at(margin, k, d)
         return margin
 
-    def circle_reach_mm(self) -> float:
-        """How far (mm) beyond the circles' radius from its design centre a front hit can still lie in some
-        lens' circle: the largest lateral move of a front vertex (pitch error; a tilt's swing), plus how far
-        apart two spheres' hits of one ray can lie (their height difference, at most the rim sag, times the
-        ray's slope, taken <= 1), + 1 nm. Hits farther out are in the gap (`_hit_circle`)."""
+    def circle_reach_mm(self) -> np.ndarray:
+        """Per cell, how far (mm) beyond the circles' radius from the cell's design centre a front hit can
+        still lie in some lens' circle: the largest lateral move of a front vertex (pitch error; a tilt's
+        swing) among the cell's lens and its neighbours, plus how far apart two spheres' hits of one ray can
+        lie (their height difference, at most the rim sag, times the ray's slope, taken <= 1), + 1 nm. Hits
+        farther out are in the gap (`_hit_circle`): a point of a cell is nearest that cell's design centre."""
         move = np.hypot(self.fx - self.gx, self.fy - self.gy)
         rim = self.r_circle + float(move.max(initial=0.0))
         sag = float(_sag_abs(np.abs(1.0 / self.c1), min(rim, 0.999 * np.abs(1.0 / self.c1).min())).max())
         if self.tilted:
             cos_tilt = np.clip(self.rot[:, 2, 2], -1.0, 1.0)
             move = move + (abs(self.z_front) + sag) * np.sqrt(1.0 - cos_tilt ** 2) + rim * (1.0 - cos_tilt)
-        return float(move.max(initial=0.0)) + sag + 1e-6
+        nb = self.lattice.neighbours(diagonal=True)
+        near = np.max(np.where(nb >= 0, move[np.maximum(nb, 0)], 0.0), axis=1, initial=0.0)
+        return np.maximum(move, near) + sag + 1e-6
 
     def _hit_circle(self, k, r: Rays):
         """'circle' apertures: the lens whose circle (radius r_circle about its front vertex, in its frame)
@@ -317,8 +333,8 @@ class MicrolensArray:
         with np.errstate(invalid="ignore"):
             gap = ~(local[0] * local[0] + local[1] * local[1] <= r2)
             gx, gy, _, _, _, _ = self._from_lens(k, *local, *ldir)
-            k2, _ = self.cell_of(gx, gy)
-            near = np.hypot(gx - self.gx[k2], gy - self.gy[k2]) <= self.r_circle + self.circle_reach
+            k2, on = self.cell_of(gx, gy)  # off the array: every candidate round the clipped cell is tried
+            near = ~on | ((gx - self.gx[k2]) ** 2 + (gy - self.gy[k2]) ** 2 <= (self.r_circle + self.circle_reach[k2]) ** 2)
         todo = np.flatnonzero(gap & near & np.isfinite(t))
         if todo.size:
             sub = [a[todo] for a in (r.x, r.y, r.z, r.L, r.M, r.N)]
@@ -528,13 +544,14 @@ class MicrolensArray:
 
     def _corner_sag(self, k, hx, hy, hz) -> np.ndarray:
         """'sag-intersection' corners: the front hit (lens k's frame) lies outside the union of the lenses'
-        rear regions. Far from its cell's edge (rear margin) only lens k's rear can hold it."""
+        rear regions. Far from its cell's edge (rear margin) only lens k's rear can hold it; inside lens k's
+        own rear region it is in the union (no scan of the neighbours)."""
         corner = ~self._inside_lens(k, hx, hy, hz)
         gx, gy, gz, _, _, _ = self._from_lens(k, hx, hy, hz, 0.0, 0.0, 0.0)  # a point: no direction
         k2, inside = self.cell_of(gx, gy)
         with np.errstate(invalid="ignore"):
             near = (k2 != k) | ~inside | (self.edge_distance(gx, gy) < self.margin_rear[k])
-        todo = np.flatnonzero(near & np.isfinite(hz))
+        todo = np.flatnonzero(near & np.isfinite(hz) & corner)  # inside lens k's own rear region: no corner
         if todo.size:
             px, py, pz = gx[todo], gy[todo], gz[todo]
             any_in = np.zeros(todo.size, dtype=bool)

@@ -7,7 +7,10 @@ branch-free over the block so that LLVM vectorizes it (4 doubles per AVX2 instru
 rays overlap in the pipeline; a single loop carrying one ray's whole chain of square roots and divisions
 was bound by their latency. The rare neighbour re-trace near cell edges is a scalar pass of its own, in
 both lens boundary models ('grid': the lens of the hit's cell; 'sag-intersection': the first / last of
-the 3 x 3 spheres met, for hits within a per-cell margin of the edge).
+the 3 x 3 spheres met (hex: the cell and its 6 neighbours), for hits within a per-cell margin of the
+edge), and for circle apertures (the circle holding the hit, for gap hits near a neighbour's circle).
+Hex cells and circle apertures are kernel variants: `lat` and `circ` are None on square / cell arrays,
+and what differs is chosen when Numba compiles (overloads on `lat`), never by a branch inside a pass.
 Hits are appended in ray order and summed per pixel in compiled code, as np.bincount would. It releases
 the GIL, so the renderer's thread pool keeps every core busy. The NumPy path stays the reference; this
 module is used when Numba is importable.
@@ -69,8 +72,8 @@ IMAGE_SIDE, POINT, OBJECT_SIDE = 0, 1, 2
  S_INVKR, S_SQUARE, S_SQW,
  # half the black matrix' width (mm; sag-intersection boundaries are a kernel of their own, kernel_sag)
  S_HALFBM,
- # circle apertures: radius^2, (radius + reach)^2 (raytrace.MicrolensArray.circle_reach_mm), clear gaps
- S_RCIRC2, S_RNEAR2, S_CLEARGAP, S_COUNT) = range(57)
+ # circle apertures: radius^2, clear gaps (per-cell reach: the `circ` table)
+ S_RCIRC2, S_CLEARGAP, S_COUNT) = range(56)
 # Rows of the per-block scratch table `g`: the gathered parameters of each ray's lens (tab rows 0..6), its
 # current hit and direction in the lens frame, the distance t to it (NaN on a miss), and its pixel.
 # Sag-intersection mode also gathers the lens' front and rear margins (G_MF, G_MR).
@@ -693,7 +696,7 @@ def centre_cell(gx, gy, s, lat):
 
 
 @_jit_inline
-def retrace_sag(m, flag, kk, buf, g, tab, rot, s, rear, cflag, margins, lat):
+def retrace_sag(m, flag, kk, buf, g, tab, rot, s, rear, cflag, margins, lat, corner_of):
     """Flagged rays (near a cell edge) take the front sphere they meet first / the rear sphere they meet
     last among the 3 x 3 lenses around their hit's cell: lens kk's hit (in g) unless another is strictly
     earlier / later, the first in row-major order winning a tie (as raytrace.MicrolensArray.extreme_lens;
@@ -720,6 +723,8 @@ def retrace_sag(m, flag, kk, buf, g, tab, rot, s, rear, cflag, margins, lat):
                 gather(j, best, tab, g)
                 g[G_MR, j] = margins[T_MARGIN_REAR, best]
                 g[G_HX, j], g[G_HY, j], g[G_HZ, j], g[G_LL, j], g[G_LM, j], g[G_LN, j], g[G_T, j] = bx, by, bz, bL, bM, bN, bt
+                if not rear:
+                    corner_of[j] = True  # lens k0's corner test is stale: corners_sag decides
             if not rear:
                 cflag[j] = True
 
@@ -737,11 +742,12 @@ def inside_rear(k, px, py, pz, tab):
 @_jit_inline
 def corners_sag(m, cflag, kk, g, tab, rot, s, corner_of, lat):
     """Sag-intersection corners of the flagged rays (front hit within the rear margin of its cell's edge,
-    or re-traced): the front hit lies in no rear region of the 3 x 3 lenses around its cell (as
+    or re-traced) outside their own lens' rear region (inside it, a hit is in the union: the scan is
+    skipped): the front hit lies in no rear region of the candidates around its cell (as
     raytrace.MicrolensArray._corner_sag; elsewhere lens kk's rear decides, in pass B). Scalar: rare."""
     rows, cols = int(s[S_ROWS]), int(s[S_COLS])
     for j in range(m):
-        if cflag[j]:
+        if cflag[j] and corner_of[j]:  # inside its own lens' rear region, a hit is in the union: no corner
             gx, gy, gz, _, _, _ = from_lens(kk[j], g[G_HX, j], g[G_HY, j], g[G_HZ, j], 0.0, 0.0, 0.0, tab, rot)
             row0, col0 = centre_cell(gx, gy, s, lat)
             inside = False
@@ -992,14 +998,14 @@ def front_circle(m, buf, s, tab, rot, g, kk, flag, corner_of, clear, lat, circ):
 def retrace_circle(m, flag, kk, buf, g, tab, rot, s, lat, circ, corner_of):
     """Gap rays (flag) near a circle's reach: the first candidate around the hit's cell whose circle holds
     the ray's hit on its own front sphere takes the ray (flag cleared); others stay in the gap. Scalar."""
-    rows, cols, r2, near2 = int(s[S_ROWS]), int(s[S_COLS]), s[S_RCIRC2], s[S_RNEAR2]
+    rows, cols, r2 = int(s[S_ROWS]), int(s[S_COLS]), s[S_RCIRC2]
     for j in range(m):
         if flag[j] and buf[6, j] > 0.0 and g[G_T, j] == g[G_T, j]:
             gx, gy = hit_xy(kk[j], g[G_HX, j], g[G_HY, j], g[G_HZ, j], tab, rot)
             k2 = int(g[G_ROW, j])
             if k2 >= 0:
                 ex, ey = gx - circ[0, k2], gy - circ[1, k2]
-                if not (ex * ex + ey * ey <= near2):
+                if not (ex * ex + ey * ey <= circ[2, k2]):
                     continue
             row0, col0 = centre_cell(gx, gy, s, lat)
             for i in range(9 if lat is None else 7):
@@ -1070,11 +1076,11 @@ def stage2_block_sag(m, buf, s, tab, rot, grot, clear, fres, n_mla, mu_in, g, kk
         k = kk[j]
         g[G_MF, j], g[G_MR, j] = margins[T_MARGIN_FRONT, k], margins[T_MARGIN_REAR, k]
     front_sag(m, buf, s, tab, rot, g, kk, flag, cflag, corner_of, lat)
-    retrace_sag(m, flag, kk, buf, g, tab, rot, s, False, cflag, margins, lat)
+    retrace_sag(m, flag, kk, buf, g, tab, rot, s, False, cflag, margins, lat, corner_of)
     corners_sag(m, cflag, kk, g, tab, rot, s, corner_of, lat)
     pass_front_refract(m, buf, s, rot, clear, fres, n_mla, mu_in, g, kk, corner_of, True)
     rear_sag(m, buf, s, tab, rot, g, kk, flag, corner_of, lat)
-    retrace_sag(m, flag, kk, buf, g, tab, rot, s, True, cflag, margins, lat)
+    retrace_sag(m, flag, kk, buf, g, tab, rot, s, True, cflag, margins, lat, corner_of)
     return pass_leave(m, buf, s, rot, grot, fres, n_mla, g, kk, corner_of, rows, cols, wts, nout, box)
 
 
@@ -1175,7 +1181,8 @@ class FastCamera:
         self.rot = np.ascontiguousarray(mla.rot) if mla.tilted else None
         self.grot = np.ascontiguousarray(camera.rot) if camera.rotated else None
         self.lat = np.zeros(1) if mla.hex else None  # a marker: hex cells (its value is unused)
-        self.circ = np.ascontiguousarray(np.stack([mla.gx, mla.gy])) if mla.circle else None
+        self.circ = (np.ascontiguousarray(np.stack([mla.gx, mla.gy, (mla.r_circle + mla.circle_reach) ** 2]))
+                     if mla.circle else None)  # design centres, per-cell (radius + reach)^2
         s = np.zeros(S_COUNT)
         s[S_C1], s[S_C2], s[S_T], s[S_N], s[S_RIM2] = main.c1, main.c2, main.z2, main.n, main.rim2
         s[S_FRES] = float(cfg.trace.fresnel)
@@ -1184,7 +1191,7 @@ class FastCamera:
         s[S_P], s[S_AX0], s[S_AY0], s[S_ROWS], s[S_COLS] = mla.p, mla.x0, mla.y0, mla.rows, mla.cols
         s[S_ZFRONT], s[S_NMLA], s[S_CLEAR] = mla.z_front, mla.n, float(mla.clear_corners)
         s[S_HALFBM] = mla.half_black_mm
-        s[S_RCIRC2], s[S_RNEAR2] = mla.r_circle ** 2, (mla.r_circle + mla.circle_reach) ** 2
+        s[S_RCIRC2] = mla.r_circle ** 2
         s[S_CLEARGAP] = float(mla.clear_gap)
         s[S_ZMLA], s[S_ZSENS] = camera.z_mla, camera.z_sensor
         s[S_SHIFTX], s[S_SHIFTY] = camera.shift_x, camera.shift_y

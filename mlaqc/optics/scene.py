@@ -227,7 +227,7 @@ def hex_cell_draws(u2, u3, row, col):
     (x0 + (col + u2) p, offset (u2 - 1/2) p, the same in y) give the point of the hexagon
     (`hex_cell_offsets`; (x0, y0) is U(1,1)'s centre). The compiled engine does the same (hex_fold)."""
     du, dv = hex_cell_offsets(u2, u3)
-    return du + 0.5, dv + 0.5, col + 0.5 * (row - 2.0 * np.floor(0.5 * row)) - 0.5, row * SQRT3_2 - 0.5
+    return du + 0.5, dv + 0.5, row * SQRT3_2 - 0.5, col + 0.5 * (row - 2.0 * np.floor(0.5 * row)) - 0.5
 
 
 def aperture_point(c, inv_rm, inv_ra, hx, hy, bx, by):
