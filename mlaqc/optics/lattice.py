@@ -31,6 +31,7 @@ from mlaqc.errors import InputError
 
 PACKINGS = ("square", "hex")
 SQRT3_2 = math.sqrt(3.0) / 2.0
+INV_ROW_STEP_HEX = 1.0 / SQRT3_2  # hex rows per unit of v (pitches)
 
 CONVENTIONS = {
     "square": "U(m,n): row m from the top, column n from the left, 1-based; centres (n-1, m-1) pitches "
@@ -190,6 +191,33 @@ class Lattice:
         """The lattice as report.json and grid.json state it."""
         return {"packing": self.packing, "rows": self.rows, "cols": self.cols,
                 "row_step_pitch": _row_step(self.packing), "convention": CONVENTIONS[self.packing]}
+
+
+def hex_cell(u, v):
+    """The hexagonal cell (Voronoi) of points (u, v) in lattice units from U(1,1)'s centre: row, column
+    (floats; may lie off the array) and the offset (du, dv) from that lens' centre, in pitches. The
+    point lies between rows r0 and r0 + 1; of the nearest lattice points of those two rows the nearer
+    wins (r0 on a tie, as Lattice.nearest). Plain arithmetic and selects: the compiled tracer
+    (mlaqc.optics.raytrace_kernels.hex_locate) does the same operations."""
+    r0 = np.floor(v * INV_ROW_STEP_HEX)
+    off0 = 0.5 * (r0 - 2.0 * np.floor(0.5 * r0))  # 1/2 on odd 0-based rows
+    off1 = 0.5 - off0
+    c0 = np.floor(u - off0 + 0.5)
+    c1 = np.floor(u - off1 + 0.5)
+    du0, dv0 = u - (c0 + off0), v - r0 * SQRT3_2
+    du1, dv1 = u - (c1 + off1), v - (r0 + 1.0) * SQRT3_2
+    take = du1 * du1 + dv1 * dv1 < du0 * du0 + dv0 * dv0
+    return (np.where(take, r0 + 1.0, r0), np.where(take, c1, c0), np.where(take, du1, du0),
+            np.where(take, dv1, dv0))
+
+
+def hex_edge(du, dv):
+    """Distance (pitches) from a point at offset (du, dv) from its hexagon's centre to the hexagon's
+    nearest side: the sides face the 6 neighbours, half a pitch out along (1, 0) and (1/2, ±sqrt(3)/2)."""
+    a = np.abs(du)
+    b = np.abs(0.5 * du + SQRT3_2 * dv)
+    c = np.abs(0.5 * du - SQRT3_2 * dv)
+    return 0.5 - np.maximum(a, np.maximum(b, c))
 
 
 def packing_of(data: Any, source: str) -> str:

@@ -15,9 +15,15 @@ import numpy as np
 from mlaqc.errors import InputError
 from mlaqc.optics.config import CameraConfig
 from mlaqc.optics.errormap import ErrorMap
-from mlaqc.optics.lattice import SQRT3_2, Lattice, neighbour_offsets
 
-INV_ROW_STEP_HEX = 1.0 / SQRT3_2  # hex rows per unit of v (pitches)
+# INV_ROW_STEP_HEX, hex_cell: also imported from here by the compiled engine and the sampler
+from mlaqc.optics.lattice import (  # noqa: F401
+    INV_ROW_STEP_HEX,
+    Lattice,
+    hex_cell,
+    hex_edge,
+    neighbour_offsets,
+)
 
 
 @dataclass
@@ -571,33 +577,6 @@ class MicrolensArray:
         with np.errstate(invalid="ignore"):
             z_back = self.z_rear[k] + c2 * rho2 / (1.0 + np.sqrt(arg))
         return (arg >= 0.0) & (z_back > hz)
-
-
-def hex_cell(u, v):
-    """The hexagonal cell (Voronoi) of points (u, v) in lattice units from U(1,1)'s centre: row, column
-    (floats; may lie off the array) and the offset (du, dv) from that lens' centre, in pitches. The
-    point lies between rows r0 and r0 + 1; of the nearest lattice points of those two rows the nearer
-    wins (r0 on a tie, as Lattice.nearest). Plain arithmetic and selects: the compiled tracer
-    (raytrace_kernels.hex_cell_f) does the same operations."""
-    r0 = np.floor(v * INV_ROW_STEP_HEX)
-    off0 = 0.5 * (r0 - 2.0 * np.floor(0.5 * r0))  # 1/2 on odd 0-based rows
-    off1 = 0.5 - off0
-    c0 = np.floor(u - off0 + 0.5)
-    c1 = np.floor(u - off1 + 0.5)
-    du0, dv0 = u - (c0 + off0), v - r0 * SQRT3_2
-    du1, dv1 = u - (c1 + off1), v - (r0 + 1.0) * SQRT3_2
-    take = du1 * du1 + dv1 * dv1 < du0 * du0 + dv0 * dv0
-    return (np.where(take, r0 + 1.0, r0), np.where(take, c1, c0), np.where(take, du1, du0),
-            np.where(take, dv1, dv0))
-
-
-def hex_edge(du, dv):
-    """Distance (pitches) from a point at offset (du, dv) from its hexagon's centre to the hexagon's
-    nearest side: the sides face the 6 neighbours, half a pitch out along (1, 0) and (1/2, ±sqrt(3)/2)."""
-    a = np.abs(du)
-    b = np.abs(0.5 * du + SQRT3_2 * dv)
-    c = np.abs(0.5 * du - SQRT3_2 * dv)
-    return 0.5 - np.maximum(a, np.maximum(b, c))
 
 
 def _sag_abs(radius, rho):
