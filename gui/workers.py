@@ -682,7 +682,8 @@ class InspectionView:
         if self._tree is None:
             return None
         dist, i = self._tree.query((x, y))
-        if not math.isfinite(dist) or dist > 0.72 * self.pitch_px:
+        reach = 1.0 / math.sqrt(3.0) if self.hex else 0.72  # the cell's circumradius (square: with some slack)
+        if not math.isfinite(dist) or dist > reach * self.pitch_px:
             return None
         flat = int(self._tree_index[i])
         cols = self.centres_x.shape[1]

@@ -1433,7 +1433,7 @@ def _fit_model(u, v, x, y, centre, lattice: _Lattice, start, shape, span=None):
     """Robust least-squares fit of the global model to the measured centres at design coordinates (u, v)
     (pitches from U(1,1); `span`: their extent, default the square's (cols - 1, rows - 1)).
 
-    Returns (homography for raw lattice coordinates, radial k, radial scale, used mask, rms residual)."""
+    Returns (homography for the design coordinates `Lattice.uv` (square: (n-1, m-1)), radial k, radial scale, used mask, rms residual)."""
 
     rows, cols = shape
     su, sv = (cols - 1, rows - 1) if span is None else span

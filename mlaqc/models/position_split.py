@@ -15,7 +15,7 @@ moves and no neighbour changes at all: a white image cannot separate them (bench
 1.5 sigma at best), and `position_split` returns None, so the lens stays 'position'.
 
 `PositionSplit` holds C per pixel of the lens' own sub-image shift for each kind, measured on the
-tracer's 9 x 9-lens patch (hex: 9 x 11, `signatures.patch_shape`) (mlaqc.models.signatures) with the sensor formation applied; cached on disk by
+tracer's 9 x 9-lens patch (hex: 11 rows x 9 columns, `signatures.patch_shape`) (mlaqc.models.signatures) with the sensor formation applied; cached on disk by
 the optics' signature key.
 """
 

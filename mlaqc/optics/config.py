@@ -56,11 +56,15 @@ class MLA:
     replicated 100 %-fill array, where each lens ends where its sag meets its neighbours' sags (a ray
     enters the front sphere it meets first and leaves the rear sphere it meets last; see
     mlaqc.optics.raytrace). 'grid': an idealised array whose lens is that of the design-grid cell a hit
-    point lies in (a pitch error moves the surfaces, not the square aperture), for idealised studies; on
+    point lies in (a pitch error moves the surfaces, not the cell's square or hexagonal aperture), for idealised studies; on
     it a pitch error and a decenter cannot be told apart (inspection reports them as 'position').
 
-    `black_matrix_um`: width of an opaque mask centred on the design grid lines in the front vertex
-    plane (0 = none); rays crossing that plane within half the width of a grid line are absorbed.
+    `black_matrix_um`: width of an opaque mask centred on the design cells' edges (grid lines; hexagon
+    sides on hex) in the front vertex plane (0 = none); rays crossing that plane within half the width of
+    an edge are absorbed.
+
+    Width: on hex the sensor must hold `count_w` pitches (the unshifted rows); the shifted rows' end
+    lenses may hang half a pitch over it and are then read as clipped.
     """
 
     count_w: int = 102

@@ -5,7 +5,7 @@ Conventions (DESIGN.md §2-3):
 - Direction angles (alpha, beta) are in degrees, counterclockwise from the image's +x (towards larger n)
   towards the image's top (smaller m), as the raw image is displayed (the paper's y-z frame).
 - pitch: the whole lens (both surfaces) shifted in the MLA plane. With `mla.boundaries = "grid"` the
-  square cell aperture stays on the nominal grid, only the optics move; with "sag-intersection" the lens
+  cell aperture (square or hexagon) stays on the nominal grid, only the optics move; with "sag-intersection" the lens
   ends where its sags meet its neighbours', so its boundaries move by about half the shift.
 - decenter: the rear (sensor-side) surface shifted against the front one.
 - radius_front/back: relative radius errors, r -> r * (1 + eps).

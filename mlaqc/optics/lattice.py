@@ -16,7 +16,8 @@ Positions in "lattice units" (u, v) are in pitches from U(1,1)'s centre, u along
 bounding box of the lens centres; the MLA frame of the tracer).
 
 A third packing would add its name to PACKINGS and its rules in `_row_step`, `_row_offset`,
-`neighbour_offsets`, `cell_vertices` and `nearest`; nothing outside this module needs to know.
+`neighbour_offsets`, `cell_vertices` and `nearest`; besides this module, the compiled tracer's cell lookup,
+the calibration's Fourier peaks and the signature patch's shape know the packing (docs/architecture.md).
 """
 
 from __future__ import annotations

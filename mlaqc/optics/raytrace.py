@@ -16,7 +16,7 @@ from mlaqc.errors import InputError
 from mlaqc.optics.config import CameraConfig
 from mlaqc.optics.errormap import ErrorMap
 
-# INV_ROW_STEP_HEX, hex_cell: also imported from here by the compiled engine and the sampler
+# INV_ROW_STEP_HEX, hex_cell: the NumPy reference's hex cell rule (the compiled engine has its own copy, hex_locate)
 from mlaqc.optics.lattice import (  # noqa: F401
     INV_ROW_STEP_HEX,
     Lattice,
@@ -515,7 +515,7 @@ class MicrolensArray:
     def _hit_sag(self, k, r: Rays, rear: bool):
         """'sag-intersection' lookup: lens k's surface first; rays whose hit is near their cell's edge
         (within the cell's margin) or in another cell take the first-met front / last-met rear sphere of
-        the 3 x 3 lenses around the hit's cell."""
+        the 3 x 3 lenses around the hit's cell (hex: the cell and its 6 neighbours)."""
         local, ldir, nrm, t = self._surface(k, r.x, r.y, r.z, r.L, r.M, r.N, rear)
         gx, gy, _, _, _, _ = self._from_lens(k, *local, *ldir)
         k2, inside = self.cell_of(gx, gy)
@@ -534,7 +534,7 @@ class MicrolensArray:
         return k, local, ldir, nrm, np.isfinite(t)
 
     def extreme_lens(self, k, t_k, gx, gy, x, y, z, L, M, N, rear: bool) -> np.ndarray:
-        """Brute force over the 3 x 3 lenses around the cell of (gx, gy): the front sphere met first
+        """Brute force over the candidate lenses around the cell of (gx, gy) (`neighbours`): the front sphere met first
         (smallest t) or the rear sphere met last (largest t), starting from lens k met at t_k (it keeps
         a tie; among the others the first in row-major order wins); misses are skipped."""
         best_k = np.array(k, dtype=np.int64, copy=True)

@@ -111,7 +111,7 @@ class CellGrid:
     x0 + (col+1)*p) x [y0 + row*p, ...) of the MLA frame; on a hex array (`packing`) the hexagon round the
     lattice point (x0 + (col + [row odd]/2) p, y0 + row p sqrt(3)/2) ((x0, y0): U(1,1)'s centre), drawn
     as the rhombus spanned by the lattice vectors (p, 0) and (p/2, p sqrt(3)/2) round that point, folded
-    into the hexagon by lattice translations (`cell_offsets`: both tile the plane, so the fold is one to
+    into the hexagon by lattice translations (`hex_cell_offsets`: both tile the plane, so the fold is one to
     one and keeps area: uniform on the rhombus is uniform on the hexagon, and the cell's stratification is
     kept piece by piece). (x, y) of the MLA frame map to the start plane (camera frame, z of the MLA) by
     the MLA's rotation and shift, projected along the axis (area scale |det| of that 2 x 2 map).

@@ -238,7 +238,11 @@ def _pair_radius(cfg: CameraConfig, u_mm: float, f_number: float) -> float:
 
 
 def pinhole_lenses(cfg: CameraConfig, tf: ThroughFocus) -> np.ndarray:
-    """(n, 2) int array of (row, col): the lenses at the centres of the lit discs, inside the array."""
+    """(n, 2) int array of (row, col): the lenses at the centres of the lit discs, inside the array.
+    Square arrays only: the pinhole lattice and its exposure are laid out in row and column steps."""
+    if cfg.mla.packing != "square":
+        raise InputError(f"through-focus pinhole frames are laid out for square arrays only, and the config's MLA "
+                         f"is {cfg.mla.packing} (mla.packing)")
     s, (ox, oy) = tf.spacing_lenses, tf.offset_lenses
     rows = np.arange(oy % s, cfg.mla.count_h, s)
     cols = np.arange(ox % s, cfg.mla.count_w, s)
