@@ -684,8 +684,27 @@ def _hex_lattice(img: np.ndarray, a: np.ndarray, kvec: np.ndarray, kmag: np.ndar
     if expected_pitch_px is not None and np.any(np.abs(pitch / (b * expected_pitch_px) - 1) > PITCH_TOLERANCE):
         raise InputError(f"the microlens pitch in the image ({pitch[0]:.2f} x {pitch[1]:.2f} px) is far from the expected "
                          f"{b * expected_pitch_px:.2f} px; check the camera config and the image")
-    origin = _resolve_half_period(img, basis, base, "hex")
+    candidates = [base + basis @ np.array([sx, sy]) for sx in (0.0, 0.5) for sy in (0.0, 0.5)]
+    candidates += _second_shell_origins(a, basis / b, centre, b)
+    origin = _six_fold_origin(img, basis, candidates)
     return _Lattice(basis, origin, "hex")
+
+
+def _second_shell_origins(a: np.ndarray, basis: np.ndarray, centre: np.ndarray, b: int) -> list[np.ndarray]:
+    """Lattice origins (frame px) the second shell's phases allow (`basis`: binned px). Where the
+    sub-image radius crosses the first shell's zero within the frame (a tilted, defocused array: its
+    sub-images grow across the field) the first-shell phases mix both signs and say nothing; the second
+    shell's, P1 = 2 f1 + f2 and P2 = f1 + 2 f2 (f: the origin in lattice units), fix f up to thirds of a
+    period and the transform's common sign: 9 candidates, sorted out by their six-fold symmetry."""
+    k1, k2 = np.linalg.inv(basis)
+    phases = [-np.angle(_dtft(a, q[:1], q[1:])[0, 0]) / (2.0 * np.pi) for q in (2.0 * k1 + k2, k1 + 2.0 * k2)]
+    out = []
+    for sign in (0.0, 0.5):
+        for n1 in range(3):
+            p1, p2 = phases[0] + sign + n1, phases[1] + sign
+            f = np.array([(2.0 * p1 - p2) / 3.0, (2.0 * p2 - p1) / 3.0])
+            out.append(centre + (basis * b) @ f)
+    return out
 
 
 def _second_shell_basis(a: np.ndarray, basis: np.ndarray, first_level: float) -> np.ndarray:
@@ -694,15 +713,15 @@ def _second_shell_basis(a: np.ndarray, basis: np.ndarray, first_level: float) ->
     |DTFT|). Discs of about half the pitch, as an f-number-matched camera makes, have their first-shell
     peaks next to a zero of the disc's transform (2 pi |k| R ~ 3.7 against 3.83): weak, good to a few 1e-4
     of the pitch only; the second shell is then about twice as strong and twice as far out (discs of
-    ~0.3 p have it at the zero instead). Kept only if both refined peaks stay within a bin of where the
-    first shell puts them."""
+    ~0.3 p have it at the zero instead; a defocused array whose radius crosses that zero across the frame
+    even has its first-shell peaks pulled off by a few bins). Kept if both refined peaks lie within 10 %
+    of where the first shell puts them (no other peak of the spectrum is that close)."""
     b1, b2 = np.linalg.inv(basis)
-    h, w = a.shape
     guess = (2.0 * b1 + b2, b1 + 2.0 * b2)
     (q1, g1), (q2, g2) = (_refine_peak(a, q) for q in guess)
     if min(abs(g1), abs(g2)) <= first_level:
         return basis
-    if max(abs((q - g)[0]) * w + abs((q - g)[1]) * h for q, g in zip((q1, q2), guess)) > 1.0:
+    if max(float(np.hypot(*(q - g)) / np.hypot(*g)) for q, g in zip((q1, q2), guess)) > 0.1:
         return basis
     return np.linalg.inv(np.array([(2.0 * q1 - q2) / 3.0, (2.0 * q2 - q1) / 3.0]))
 
@@ -731,7 +750,7 @@ def _resolve_half_period(img: np.ndarray, basis: np.ndarray, base: np.ndarray, p
     transform); pick the shift whose points are bright with dark cell corners around them (hex: the
     shift about whose points the frame has the lattice's six-fold symmetry, `_six_fold_origin`)."""
     if packing == "hex":
-        return _six_fold_origin(img, basis, base)
+        return _six_fold_origin(img, basis, [base + basis @ np.array([sx, sy]) for sx in (0.0, 0.5) for sy in (0.0, 0.5)])
     h, w = img.shape
     jj, ii = np.meshgrid(np.arange(-6, 7), np.arange(-6, 7))
     best, score_best = base, -np.inf
@@ -751,9 +770,9 @@ def _resolve_half_period(img: np.ndarray, basis: np.ndarray, base: np.ndarray, p
     return best
 
 
-def _six_fold_origin(img: np.ndarray, basis: np.ndarray, base: np.ndarray) -> np.ndarray:
-    """Of the four half-period shifts of a hex lattice, the one whose points are centres of six-fold
-    symmetry: on rings round a sub-image centre the frame repeats every 60 degrees, round the other three
+def _six_fold_origin(img: np.ndarray, basis: np.ndarray, candidates: list[np.ndarray]) -> np.ndarray:
+    """Of the candidate origins of a hex lattice (the four half-period shifts, and the second shell's
+    `_second_shell_origins`), the one whose points are centres of six-fold symmetry: on rings round a sub-image centre the frame repeats every 60 degrees, round the other three
     (midpoints between two neighbours) only every 180. Brightness tests fail here: discs larger than half
     the pitch light their overlaps twice and, beyond ~0.56 p, the cell corners too. Measured on the
     analytic model for radii 0.15 - 0.65 p, noise-free and at 15 % noise. Rings at 0.2, 0.3 and 0.4 p,
@@ -762,22 +781,20 @@ def _six_fold_origin(img: np.ndarray, basis: np.ndarray, base: np.ndarray) -> np
     jj, ii = np.meshgrid(np.arange(-10, 11), np.arange(-10, 11))
     pitch = float(np.hypot(*basis[:, 0]))
     angle = math.atan2(basis[1, 0], basis[0, 0]) + np.radians(np.arange(12) * 30.0)
-    best, score_best = base, np.inf
-    for sx in (0.0, 0.5):
-        for sy in (0.0, 0.5):
-            o = base + basis @ np.array([sx, sy])
-            pts = o[:, None] + basis @ np.stack([jj.ravel(), ii.ravel()])
-            score = 0.0
-            for rho in (0.2 * pitch, 0.3 * pitch, 0.4 * pitch):
-                rx = pts[0][:, None] + rho * np.cos(angle)[None, :]
-                ry = pts[1][:, None] + rho * np.sin(angle)[None, :]
-                ok = np.all((rx > 1) & (rx < w - 2) & (ry > 1) & (ry < h - 2), axis=1)
-                if not ok.any():
-                    continue
-                f = _bilinear(img, rx[ok], ry[ok])
-                score += float(np.mean(np.abs(f - np.roll(f, -2, axis=1))) / (np.mean(np.abs(f)) + 1e-12))
-            if score < score_best:
-                best, score_best = o, score
+    best, score_best = candidates[0], np.inf
+    for o in candidates:
+        pts = o[:, None] + basis @ np.stack([jj.ravel(), ii.ravel()])
+        score = 0.0
+        for rho in (0.2 * pitch, 0.3 * pitch, 0.4 * pitch):
+            rx = pts[0][:, None] + rho * np.cos(angle)[None, :]
+            ry = pts[1][:, None] + rho * np.sin(angle)[None, :]
+            ok = np.all((rx > 1) & (rx < w - 2) & (ry > 1) & (ry < h - 2), axis=1)
+            if not ok.any():
+                continue
+            f = _bilinear(img, rx[ok], ry[ok])
+            score += float(np.mean(np.abs(f - np.roll(f, -2, axis=1))) / (np.mean(np.abs(f)) + 1e-12))
+        if score < score_best:
+            best, score_best = o, score
     return best
 
 
