@@ -6,6 +6,7 @@ reported detection limits; then the bars.
     python bench/robustness.py              # analytic cells + tracer at 50 and 400 rays/pixel (~8 min)
     python bench/robustness.py --full       # + the tracer at 2,000 rays/pixel (renders ~3 min once, cached)
     python bench/robustness.py --quick      # a few analytic cells only
+    python bench/robustness.py --quick --config fixtures/hex_camera.toml   # analytic cells of a hex array
 
 Analytic frames come from tests/analytic_frames.py (discs with a blurred rim on a rotated grid, cos⁴
 vignetting, PRNU, crosstalk; no code shared with the tracer), written in real containers (8-bit PNG,
@@ -36,7 +37,7 @@ from identify_accuracy import seeded  # noqa: E402
 
 from mlaqc.inspection.pipeline import inspect_file  # noqa: E402
 from mlaqc.inspection.rawio import write_raw  # noqa: E402
-from mlaqc.optics.config import default_config  # noqa: E402
+from mlaqc.optics.config import default_config, load_config  # noqa: E402
 from mlaqc.optics.sensor import white_level  # noqa: E402
 from mlaqc.optics.simulate import simulate  # noqa: E402
 
@@ -128,14 +129,16 @@ def analytic_cells(quick: bool) -> list[dict]:
     return cells
 
 
-def run_analytic(spec: dict, seed: int, tmp: Path) -> Cell:
-    cfg = default_config()
+def run_analytic(spec: dict, seed: int, tmp: Path, cfg=None) -> Cell:
+    cfg = cfg or default_config()
     extra = spec.get("model", {})
     name = (f"analytic rot {spec['rotation_deg']:+.1f}° phase {spec['phase'][0]:.2f},{spec['phase'][1]:.2f} "
             f"{spec['rim']} noise {spec['noise']:.0%} {spec['container']}"
             + "".join(f" {k.split('_')[0]} {v:g}" for k, v in extra.items())
             + (f" exposure {spec['white_fraction']:.0%}" if "white_fraction" in spec else ""))
-    model = am.AnalyticModel(rotation_deg=spec["rotation_deg"], phase_px=spec["phase"], rim=spec["rim"], **extra)
+    model = am.AnalyticModel(rotation_deg=spec["rotation_deg"], phase_px=spec["phase"], rim=spec["rim"],
+                             shape=(cfg.sensor.height_px, cfg.sensor.width_px), lenses=(cfg.mla.count_h, cfg.mla.count_w),
+                             packing=cfg.mla.packing, **extra)
     rng = np.random.default_rng(seed)
     anomalies = am.random_anomalies(model, 24, rng)
     model = model.with_anomalies(anomalies)
@@ -283,13 +286,16 @@ def main() -> int:
     ap.add_argument("--quick", action="store_true", help="a few analytic cells only")
     ap.add_argument("--full", action="store_true", help="also the tracer at 2,000 rays/pixel")
     ap.add_argument("--seed", type=int, default=5, help="seed of the analytic anomalies and noise")
+    ap.add_argument("--config", "-c", help="camera config of the analytic cells (its MLA's packing and size; the "
+                    "tracer cells are Table 1's)")
     args = ap.parse_args()
+    cfg = load_config(args.config)
     cells = []
     with tempfile.TemporaryDirectory() as tmp:
         for k, spec in enumerate(analytic_cells(args.quick)):
-            cells.append(run_analytic(spec, args.seed + k, Path(tmp)))
+            cells.append(run_analytic(spec, args.seed + k, Path(tmp), cfg))
             print_cells(cells[-1:])
-    if not args.quick:
+    if not args.quick and args.config is None:
         for rpp in (50, 400) + ((2000,) if args.full else ()):
             cells.append(run_tracer(rpp, 3))
             print_cells(cells[-1:])
