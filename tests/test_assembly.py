@@ -169,3 +169,21 @@ def test_the_model_is_inverted_exactly_and_its_slopes_are_its_derivative():
     numeric = np.stack([(model.raw(true + h * e) - model.raw(true - h * e)) / (2 * h) for e in np.eye(6)], axis=1)
     assert np.allclose(model.slopes(true), numeric, atol=1e-6)
     assert AssemblyModel.from_json_dict(model.to_json_dict()) == model
+
+
+def test_a_calibration_frame_that_cannot_be_calibrated_is_named(monkeypatch):
+    """Building the assembly calibration stops at the first frame the grid cannot be found in, and says
+    which placement it was (not only the calibration's own sentence)."""
+    import mlaqc.models.assembly_model as am
+    from mlaqc.errors import InputError
+
+    def render(cfg, glob, **kw):
+        if glob.get("mla_tilt_y_deg"):
+            raise InputError("only 5 of the expected microlenses were found")
+        return object()  # read by the read_grid below
+
+    monkeypatch.setattr(am, "render_grid", render)
+    monkeypatch.setattr(am, "read_grid", lambda grid, cfg, b: (np.zeros(am.COMPONENTS), np.ones(am.COMPONENTS)))
+    cfg = load_config(Path(__file__).resolve().parent.parent / "fixtures" / "small_camera.toml")
+    with pytest.raises(InputError, match=r"frame at mla_tilt_y_deg = -0\.6 could not be calibrated: only 5"):
+        am.build_assembly_model(cfg)

@@ -34,6 +34,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from mlaqc.errors import InputError
+
 from mlaqc.inspection.projection import FIELDS, raw_components
 from mlaqc.models.reference import mla_hash_view
 from mlaqc.models.store import stored_json
@@ -223,7 +225,12 @@ def build_assembly_model(cfg: CameraConfig, *, rays_per_pixel: float = RAYS_PER_
 
     def read(glob):
         nonlocal done
-        out = read_grid(render_grid(cfg, glob, rays_per_pixel=rays_per_pixel, seed=seed), cfg, b)
+        try:
+            grid = render_grid(cfg, glob, rays_per_pixel=rays_per_pixel, seed=seed)
+        except InputError as exc:
+            placed = ", ".join(f"{k} = {v:g}" for k, v in glob.items()) or "the design placement"
+            raise InputError(f"the assembly calibration's frame at {placed} could not be calibrated: {exc}") from None
+        out = read_grid(grid, cfg, b)
         done += 1
         if progress is not None:
             progress(done, total)
