@@ -146,9 +146,8 @@ def shared_grid(args: argparse.Namespace, cfg: CameraConfig, dark=None):
             raise InputError(f"grid file {args.grid!r} is for {grid.cols}x{grid.rows} lenses on a "
                              f"{grid.image_shape[1]}x{grid.image_shape[0]} px frame, but the camera has "
                              f"{cfg.mla.count_w}x{cfg.mla.count_h} lenses on {want[1]}x{want[0]} px")
-        packing = getattr(grid, "packing", "square")
-        if packing != cfg.mla.packing:
-            raise InputError(f"grid file {args.grid!r} is for a {packing} lattice but the camera's MLA is "
+        if grid.packing != cfg.mla.packing:  # said here, before any frame is read, naming the file
+            raise InputError(f"grid file {args.grid!r} is for a {grid.packing} lattice but the camera's MLA is "
                              f"{cfg.mla.packing} (mla.packing)")
         return grid
     if args.white:

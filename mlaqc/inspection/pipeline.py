@@ -107,8 +107,8 @@ def _inspect_image(img: np.ndarray, cfg: CameraConfig, *, grid: Grid | None = No
         model, table = model or cached_model, table or cached_table
     lap("models")
     own_grid = grid is None
-    if not own_grid and getattr(grid, "packing", "square") != cfg.mla.packing:
-        raise InputError(f"the grid is for a {getattr(grid, 'packing', 'square')} lattice but the camera's MLA is "
+    if not own_grid and grid.packing != cfg.mla.packing:
+        raise InputError(f"the grid is for a {grid.packing} lattice but the camera's MLA is "
                          f"{cfg.mla.packing} (mla.packing)")
     if own_grid:
         grid = calibrate_for(img, cfg)

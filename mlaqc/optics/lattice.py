@@ -156,17 +156,7 @@ class Lattice:
         if not self.hex:
             r, c = np.floor(v + 0.5), np.floor(u + 0.5)
         else:
-            r0 = np.floor(v / SQRT3_2)  # the point lies between rows r0 and r0 + 1: the nearest is in one
-            best_r, best_c, best_d = r0, r0, np.full(np.shape(u), np.inf)
-            for dr in (0.0, 1.0):
-                rr = r0 + dr
-                cc = np.floor(u - 0.5 * (rr.astype(np.int64) % 2) + 0.5)
-                du = u - cc - 0.5 * (rr.astype(np.int64) % 2)
-                dv = v - rr * SQRT3_2
-                d = du * du + dv * dv
-                take = d < best_d
-                best_r, best_c, best_d = np.where(take, rr, best_r), np.where(take, cc, best_c), np.where(take, d, best_d)
-            r, c = best_r, best_c
+            r, c, _, _ = hex_cell(u, v)
         inside = (r >= 0) & (r < self.rows) & (c >= 0) & (c < self.cols)
         return r.astype(np.int64), c.astype(np.int64), inside
 
@@ -198,7 +188,7 @@ def hex_cell(u, v):
     """The hexagonal cell (Voronoi) of points (u, v) in lattice units from U(1,1)'s centre: row, column
     (floats; may lie off the array) and the offset (du, dv) from that lens' centre, in pitches. The
     point lies between rows r0 and r0 + 1; of the nearest lattice points of those two rows the nearer
-    wins (r0 on a tie, as Lattice.nearest). Plain arithmetic and selects: the compiled tracer
+    wins (r0 on a tie; Lattice.nearest is this). Plain arithmetic and selects: the compiled tracer
     (mlaqc.optics.raytrace_kernels.hex_locate) does the same operations."""
     r0 = np.floor(v * INV_ROW_STEP_HEX)
     off0 = 0.5 * (r0 - 2.0 * np.floor(0.5 * r0))  # 1/2 on odd 0-based rows
