@@ -422,8 +422,9 @@ def coverage_offsets(cfg: CameraConfig, tf: ThroughFocus) -> list[tuple[int, int
     """Lattice shifts (`offset_lenses`) that put every lens fully inside some lit disc: a square
     sub-lattice of step t with t / sqrt(2) <= the inner radius (the farthest a lens can be from its
     nearest pinhole), within `pair_radius_lenses` (what the analysis reads) of both frames of the +u / -u
-    pair. Hex: the same grid of axial steps, t from the hex covering radius t / sqrt(3), made smaller
-    until every lens' distance to its nearest shifted pinhole is checked <= the radius (`_hex_covers`).
+    pair. Hex: the same grid of axial steps, t from the hex covering radius (t / sqrt(3) <= the radius),
+    made smaller until every lens of the array is checked within the radius of a pinhole on the array
+    (`_hex_covers`: the hex array's edges are not the sub-lattice's, so an edge lens can need a finer set).
     Empty when a disc cannot hold a whole lens (|u| too small for f/N)."""
     r_in = pair_radius_lenses(cfg, tf)
     if r_in < 0:
@@ -433,7 +434,7 @@ def coverage_offsets(cfg: CameraConfig, tf: ThroughFocus) -> list[tuple[int, int
         for t in range(max(1, min(s, int(math.floor(r_in * math.sqrt(3.0))))), 0, -1):
             steps = sorted({min(k * t, s - 1) for k in range(math.ceil(s / t))})
             offsets = [(ox, oy) for oy in steps for ox in steps]
-            if _hex_covers(offsets, s, r_in):
+            if _hex_covers(cfg, tf, offsets, r_in):
                 return offsets
         return []
     t = max(1, min(s, int(math.floor(r_in * math.sqrt(2.0)))))
@@ -442,16 +443,20 @@ def coverage_offsets(cfg: CameraConfig, tf: ThroughFocus) -> list[tuple[int, int
     return [(ox, oy) for oy in steps for ox in steps]
 
 
-def _hex_covers(offsets: list[tuple[int, int]], s: int, r_in: float) -> bool:
-    """Whether every lens (each of the s^2 axial residues (q, r) mod s) lies within r_in pitches of a
-    pinhole of some offset (the pinholes of an offset: its residue plus any i s a1 + j s a2)."""
-    a, b = np.meshgrid(np.arange(s), np.arange(s), indexing="ij")
-    best = np.full(a.shape, np.inf)
-    for oq, orow in offsets:
-        for i in (-1, 0, 1):
-            for j in (-1, 0, 1):
-                dq, dr = a - oq - i * s, b - orow - j * s
-                best = np.minimum(best, np.sqrt(dq * dq + dr * dr + dq * dr))
+def _hex_covers(cfg: CameraConfig, tf: ThroughFocus, offsets: list[tuple[int, int]], r_in: float) -> bool:
+    """Whether every lens of the array lies within r_in pitches (Lattice positions) of a pinhole of some
+    offset, counting only the pinholes on the array (an edge lens' nearest lattice point may lie off it)."""
+    from scipy.spatial import cKDTree
+
+    lat = Lattice(cfg.mla.packing, cfg.mla.count_h, cfg.mla.count_w)
+    x, y = lat.centres()
+    pts = np.stack([x.ravel(), y.ravel()], axis=1)
+    best = np.full(len(pts), np.inf)
+    for off in offsets:
+        pins = pinhole_lenses(cfg, replace(tf, offset_lenses=off))
+        if len(pins):
+            px, py = lat.position(pins[:, 0], pins[:, 1])
+            best = np.minimum(best, cKDTree(np.stack([px, py], axis=1)).query(pts)[0])
     return bool(np.all(best <= r_in + 1e-9))
 
 
