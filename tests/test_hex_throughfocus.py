@@ -237,3 +237,56 @@ def test_a_hex_square_mismatch_is_refused_in_one_sentence(hex_grid):
     with pytest.raises(InputError, match=r"^the white frame's grid is a hex lattice but the camera config's MLA is square") as err:
         measure_through_focus(frames, hex_grid, square_cfg)
     assert str(err.value).count(". ") == 0
+
+
+# --------------------------------------------------------------------------------------------- end to end
+
+
+def test_inspect_a_hex_array_with_through_focus_frames_flags_and_signs_a_radius_error_at_best_focus(tmp_path, capsys):
+    """+10 % radius sits near the camera's best focus, where the white frame hardly sees it; the shipped pair
+    whose hex pinhole lattice has a pinhole on that lens (offset (0, 0): lens (13, 11), 1-based) reads it
+    with its sign, and the joint verdict flags it and no healthy lens."""
+    hexcfg = str(FIXTURES / "hex_small_camera.toml")
+    em = ErrorMap.zeros(ROWS, COLS, "hex").with_lens(13, 11, radius_front_rel=0.10, radius_back_rel=0.10)
+    em.save(tmp_path / "errs.json")
+    assert any((tfm.pinhole_lenses(HEX, shipped()) == (12, 10)).all(axis=1))
+    base = ["simulate", "-c", hexcfg, "-e", str(tmp_path / "errs.json"), "-q"]
+    assert main(base + ["--rays-per-pixel", "100", "--out", str(tmp_path / "white.tiff")]) == 0
+    frames = []
+    for u in (5, -5):
+        frames.append(str(tmp_path / f"tf{u}.tiff"))
+        assert main(base + ["--scene", "through-focus", "--focus-offset-mm", str(u), "--rays", "3000000",
+                            "--out", frames[-1]]) == 0
+    code = main(["inspect", str(tmp_path / "white.tiff"), "-c", hexcfg, "-t", *frames, "-o", str(tmp_path / "rep")])
+    assert code == 1 and "through-focus:" in capsys.readouterr().err
+    report = json.loads((tmp_path / "rep" / "report.json").read_text())
+    d = {(x["row"], x["col"]): x for x in report["defects"]}
+    assert d[(13, 11)]["error_type"] == "radius" and d[(13, 11)]["magnitude"] > 0.05
+    assert d[(13, 11)]["indexes"]["through_focus_z"] > 6
+    assert len(d) == 1
+    truth = float(focal_rel_of_radius(HEX, 0.10))
+    assert report["through_focus"]["lenses"]["tf_focal_rel"][12][10] == pytest.approx(truth, rel=0.15)
+    # the same frames with the square small camera's config: one sentence naming both lattices, exit 2, no report
+    assert main(["inspect", str(tmp_path / "white.tiff"), "-c", str(FIXTURES / "small_camera.toml"), "-t", *frames,
+                 "-o", str(tmp_path / "rep2")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "hexagonal microlens lattice" in err[0] and "'square'" in err[0]
+    assert not (tmp_path / "rep2").exists()
+
+
+def test_scan_inspect_reads_the_hex_mock_cameras_pinhole_frames(tmp_path):
+    """`mlaqc scan --inspect` on the mock camera's hex wafer (mock://?config=hex_small): the carrier's hex mask
+    gives one +u / -u pair whose 42 pinholes (4 lenses apart on 24 x 28 lenses) are read with the white frame."""
+    plan = tmp_path / "plan.toml"
+    plan.write_text("[scan]\nsettle_s = 0.0\nretry_delay_s = 0.0\ncapture_timeout_s = 5.0\nexposure_us = 5000.0\n"
+                    "[[positions]]\nx_mm = 10.0\ny_mm = 10.0\nlabel = \"a\"\n"
+                    "[through_focus]\nfocus_offsets_mm = [5.0, -5.0]\nf_number = 11.0\nspacing_lenses = 4\n"
+                    "offsets = [[1, 3]]\nexposure_us = 10000.0\nsettle_s = 0.0\niris = \"camera\"\nwhite_frames = true\n")
+    out = tmp_path / "scan"
+    assert main(["scan", "--camera", "mock://?defects=0&rpp=1&config=hex_small", "--stage", "mock://?aux=z,a,b",
+                 "--plan", str(plan), "--out", str(out), "--inspect", "-q"]) in (0, 1)
+    got = json.loads((out / "pos_00001.tiff.inspect.json").read_text())
+    summary = got["through_focus"]["summary"]
+    assert len(summary["pairs"]) == 1 and summary["pairs"][0]["offset"] == [1, 3]
+    assert summary["pairs"][0]["lenses"] == summary["lenses_covered"] == len(tfm.pinhole_lenses(HEX, shipped(offset=(1, 3))))
+    assert abs(summary["focal_rel_median"]) < 0.003
