@@ -65,6 +65,17 @@ spot. Both frames of a lens use one window (the larger), so the floor cancels. L
 both frames (nearer the disc's traced rim than RIM_MARGIN_LENSES), saturated, off the sensor or unlit are
 left out of that pair; a lens read in several pairs gets their inverse-variance mean.
 
+Hex arrays (mla.packing = "hex"): the pinholes sit on the hex sub-lattice (mlaqc.optics.throughfocus), a
+lens' nearest pinhole and its (dx, dy) offset come from the Lattice positions (dx in half pitches, dy in
+rows of sqrt(3)/2), its shell is dq^2 + dr^2 + dq dr in axial steps (0, 1, 3, 4, 7, ...), the lit aperture
+is the hexagonal cell (or the circle of `aperture = "circle"`), and the model is traced on a hex patch
+with its centre lens under the pinhole: per shell the lens at 0-30 degrees from the field direction, and
+that lens turned 60 degrees for the field's orientation term. A lens is mapped onto the traced one by the
+same mirrors and x / y swap as on a square array; the swap turns a hexagonal cell by 90 degrees, which
+keeps its second moment (a regular hexagon's is isotropic) but not its exact pixel pattern: the shipped
+protocol (every lens read under its own pinhole) sizes ±5 / ±10 % within 15 % on the small hex camera
+(tests/test_hex_throughfocus.py, bench/throughfocus_accuracy.py -c fixtures/hex_small_camera.toml).
+
 Frames: prepare them with `prepare_spots` (black-subtracted and normalized, nothing else): the pipeline's
 `prepare` suppresses hot pixels, and a focused spot's peak is one to it.
 
@@ -333,7 +344,7 @@ class ModelCurves:
     field_mm: np.ndarray = field(default_factory=lambda: np.zeros(1))  # (R,) field radii, from 0
     field_a: np.ndarray = field(default_factory=lambda: np.zeros((1, 1)))  # (S, R) px^2
     field_b: np.ndarray = field(default_factory=lambda: np.zeros((1, 1)))  # (S, R) px^2
-    offsets: np.ndarray = field(default_factory=lambda: np.zeros((1, 2), np.int64))  # (S, 2) traced lens (a, b), a >= b >= 0
+    offsets: np.ndarray = field(default_factory=lambda: np.zeros((1, 2), np.int64))  # (S, 2) traced lens (a, b), a >= b >= 0 (hex: float x, y pitches)
     spot_m2: np.ndarray | None = None  # (S, R, 2, E, P, P) px^2: [.., frame (+u, -u), eps, y phase, x phase]
     key: str = ""  # `model_key` of a traced model
 
