@@ -62,9 +62,14 @@ def seeded_map(cfg, per_size: int, seed: int) -> tuple[ErrorMap, dict[tuple[int,
     rng = np.random.default_rng(seed)
     rows, cols = cfg.mla.count_h, cfg.mla.count_w
     em, truth, taken = ErrorMap.zeros(rows, cols, cfg.mla.packing), {}, np.zeros((rows, cols), bool)
+    tries = 0
     for eps in SIZES:
         k = 0
         while k < per_size:
+            tries += 1
+            if tries > 100_000:
+                raise SystemExit(f"cannot place {per_size} lenses per size, three apart, on a {rows} x {cols} array: "
+                                 "use a smaller --per-size")
             m, n = int(rng.integers(2, rows - 2)), int(rng.integers(2, cols - 2))
             if taken[max(m - 3, 0):m + 4, max(n - 3, 0):n + 4].any():
                 continue
@@ -183,7 +188,8 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--u", default=f"{FOCUS_OFFSET_MM:g}", help="focus offsets |u| in mm, comma-separated (default: the "
                     "shipped protocol's)")
-    ap.add_argument("--per-size", type=int, default=4, help="seeded lenses per error size (default 4)")
+    ap.add_argument("--per-size", type=int, default=None,
+                    help="seeded lenses per error size (default 4; 2 on arrays of fewer than 2500 lenses, which hold no more three apart)")
     ap.add_argument("--rays-per-lens", type=float, default=20000.0, help="rays per lit lens (default 2e4)")
     ap.add_argument("--min-pairs", type=int, default=9, help="render at least this many pairs per |u| (default 9)")
     ap.add_argument("--white-rpp", type=float, default=50.0, help="rays per pixel of the white frame (default 50)")
@@ -201,6 +207,8 @@ def main() -> None:
     if args.quick:
         args.per_size, args.rays_per_lens, args.white_rpp = 2, 1e4, 20.0
     cfg = load_config(args.config) if args.config else default_config()
+    if args.per_size is None:
+        args.per_size = 4 if cfg.mla.count_h * cfg.mla.count_w >= 2500 else 2
     name = args.config or "Table 1 camera"
     if args.geometry_only:
         for u in (float(v) for v in args.u.split(",")):

@@ -92,14 +92,17 @@ def test_the_coverage_offsets_put_every_hex_lens_inside_a_lit_disc(cfg, u, f, s)
         t = replace(tf, offset_lenses=off)
         pins = tfm.pinhole_lenses(cfg, t)
         px, py = lat.position(pins[:, 0], pins[:, 1])
+        dmin = np.full(x.shape, np.inf)
         for k in range(0, len(px), 256):
             d = np.hypot(x[..., None] - px[k:k + 256], y[..., None] - py[k:k + 256])
-            best = np.minimum(best, d.min(axis=-1))
+            dmin = np.minimum(dmin, d.min(axis=-1))
+        best = np.minimum(best, dmin)
         lit, near, dxy = coverage(cfg, t)
         read |= lit
-        # the analysis' offsets are the lens' offset from its own pinhole
+        # the analysis' offsets are the lens' offset from its own pinhole, the nearest one
         np.testing.assert_allclose(dxy[..., 0], x - px[near], atol=1e-9)
         np.testing.assert_allclose(dxy[..., 1], y - py[near], atol=1e-9)
+        np.testing.assert_allclose(np.hypot(dxy[..., 0], dxy[..., 1]), dmin, atol=1e-9)
     assert best.max() <= r_in + 1e-9 and read.all()
     if s == 4:  # the disc holds only the lens under its pinhole: all 16 offsets
         assert len(offsets) == 16
