@@ -26,9 +26,11 @@ step s = `spacing_lenses`: lens steps s a1 and s a2 with a1 = (1, 0) (along a ro
 pinhole has 6 pinhole neighbours s pitches away, as its lens has 6 lens neighbours one pitch away.
 `offset_lenses` = (q, r) then shifts that sub-lattice by q a1 + r a2 ("axial" lens steps: lens (row,
 col) has q = col - row // 2, 0-based), and the s^2 offsets 0 <= q, r < s are its s^2 distinct cosets,
-as the s^2 (x, y) offsets are on a square array (`pinhole_lenses`). Lens (row r, col c) has its design centre at x = (c - (cols - 1) / 2) p,
-y = (r - (rows - 1) / 2) p on the MLA (camera frame: x right, y down); the main lens inverts, so an
-object point at -x / m images at x.
+as the s^2 (x, y) offsets are on a square array (`pinhole_lenses`).
+
+Lens (row r, col c) of a square array has its design centre at x = (c - (cols - 1) / 2) p,
+y = (r - (rows - 1) / 2) p on the MLA (camera frame: x right, y down; hex: `Lattice.position`); the main
+lens inverts, so an object point at -x / m images at x.
 
 `photons_per_pinhole` defaults to None: the protocol's exposure, `pinhole_photons(cfg, tf)`, derived from
 the optics rather than tuned. `spot_peak_per_photon` traces the pinhole nearest the axis (and the lattice
@@ -271,8 +273,8 @@ def lens_centres_mm(cfg: CameraConfig, rc: np.ndarray) -> np.ndarray:
 
 
 def sub_lattice_steps(packing: str, reach: float) -> list[tuple[int, int]]:
-    """Steps (i, j) of the pinhole lattice (square: i columns, j rows of s; hex: i s a1 + j s a2) whose
-    length, in units of s, is below `reach`; (0, 0) first among them in (j, i) order as listed."""
+    """Steps (i, j) of the pinhole lattice (square: i rows and j columns of s; hex: i s a1 + j s a2) whose
+    length, in units of s, is below `reach` (the set is symmetric: the order of i and j does not matter)."""
     if packing == "hex":
         k = int(math.floor(reach / SQRT3_2)) + 1  # |i a1 + j a2| >= sqrt(3)/2 max(|i|, |j|)
         return [(i, j) for i in range(-k, k + 1) for j in range(-k, k + 1) if math.sqrt(i * i + j * j + i * j) < reach]
