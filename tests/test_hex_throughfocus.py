@@ -182,6 +182,25 @@ def test_simulated_hex_spots_land_where_the_chief_ray_says(tmp_path):
     assert seen >= len(pins) - 4
 
 
+def test_the_derived_exposure_puts_the_hex_pairs_brightest_spot_near_the_fill_fraction():
+    """`pinhole_photons` on the hex camera (its exposure neighbours on the hex sub-lattice): rendered without
+    noise, the brighter frame of the shipped pair peaks a few % under FILL_FRACTION of full well (42 spots hold
+    fewer sub-pixel phases than the best one), the other where the traced peaks put it, none saturated."""
+    from mlaqc.optics.simulate import simulate
+
+    s = HEX.sensor
+    peak = {}
+    for u in (5.0, -5.0):
+        tf = shipped(u)
+        raw = simulate(tfm.frame_config(HEX, tf), tfm.scene(HEX, tf), rays=3_000_000, noise=False, seed=3).raw
+        assert raw.max() < white_level(s)
+        peak[u] = (raw.max() - s.black_level_dn) / s.gain_dn_per_e / s.full_well_e
+    fill = tfm.FILL_FRACTION
+    assert peak[-5.0] > peak[5.0] and 0.87 * fill < peak[-5.0] < 1.05 * fill
+    ratio = tfm.spot_peak_per_photon(HEX, shipped(5.0)) / tfm.spot_peak_per_photon(HEX, shipped(-5.0))
+    assert peak[5.0] / peak[-5.0] == pytest.approx(ratio, rel=0.1)
+
+
 @pytest.fixture(scope="module")
 def hex_grid():
     """The white frame's grid, calibrated on the independent analytic white frame of the hex lattice."""
