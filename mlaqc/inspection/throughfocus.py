@@ -344,7 +344,8 @@ class ModelCurves:
     field_mm: np.ndarray = field(default_factory=lambda: np.zeros(1))  # (R,) field radii, from 0
     field_a: np.ndarray = field(default_factory=lambda: np.zeros((1, 1)))  # (S, R) px^2
     field_b: np.ndarray = field(default_factory=lambda: np.zeros((1, 1)))  # (S, R) px^2
-    offsets: np.ndarray = field(default_factory=lambda: np.zeros((1, 2), np.int64))  # (S, 2) traced lens (a, b), a >= b >= 0 (hex: float x, y pitches)
+    # (S, 2) traced lens (a, b), a >= b >= 0 (hex: float (x, y) pitches, 0 <= phi <= 30 degrees)
+    offsets: np.ndarray = field(default_factory=lambda: np.zeros((1, 2), np.int64))
     spot_m2: np.ndarray | None = None  # (S, R, 2, E, P, P) px^2: [.., frame (+u, -u), eps, y phase, x phase]
     key: str = ""  # `model_key` of a traced model
 
