@@ -138,8 +138,8 @@ def test_the_hex_cells_aperture_moment_is_the_regular_hexagons():
 
 
 def test_the_hex_models_ship():
-    """The shipped protocol's traced model of both hex fixtures is package data (no build on first use)."""
-    for cfg in (HEX, HEX_T1):
+    """The shipped protocol's traced model of the hex fixtures is package data (no build on first use)."""
+    for cfg in (HEX, HEX_T1, load_config(FIXTURES / "hex_circle_camera.toml")):
         tf = shipped()
         key = model_key(cfg, FOCUS_OFFSET_MM, F_NUMBER, tfm.pair_radius_lenses(cfg, tf))
         assert (PACKAGE_DATA / f"throughfocus_{key}.npz").is_file()
