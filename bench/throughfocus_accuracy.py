@@ -23,6 +23,7 @@ frame's grid calibrated on a white render. Printed per |u|:
     python bench/throughfocus_accuracy.py                 # ~10 min on 2 cores
     python bench/throughfocus_accuracy.py --quick         # ~3 min: fewer seeds and rays
     python bench/throughfocus_accuracy.py --u 5 --per-size 6 --rays-per-lens 50000
+    python bench/throughfocus_accuracy.py -c fixtures/hex_small_camera.toml   # any camera: hex arrays too
     # the shipped protocol (issue #12), every pair rendered (the analysis time of a whole array):
     python bench/throughfocus_accuracy.py --per-size 4 --rays-per-lens 1e4 --white-rpp 20 --seed 2 --u 5 \
         --f-number 11 --spacing 4 --all-pairs
@@ -40,12 +41,12 @@ import numpy as np
 
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
-from mlaqc.inspection.calibrate import calibrate  # noqa: E402
+from mlaqc.inspection.calibrate import calibrate_for  # noqa: E402
 from mlaqc.inspection.pipeline import prepare  # noqa: E402
 from mlaqc.inspection.rawio import RawFrame  # noqa: E402
 from mlaqc.inspection.throughfocus import (coverage, focal_rel_of_radius, measure_through_focus,  # noqa: E402
                                           SpotFrame, pair_radius_lenses, prepare_spots, trace_model)
-from mlaqc.optics.config import default_config  # noqa: E402
+from mlaqc.optics.config import default_config, load_config  # noqa: E402
 from mlaqc.optics.errormap import ErrorMap  # noqa: E402
 from mlaqc.optics.formation import apply_formation, formation_kernels  # noqa: E402
 from mlaqc.optics.render import Renderer  # noqa: E402
@@ -60,10 +61,15 @@ def seeded_map(cfg, per_size: int, seed: int) -> tuple[ErrorMap, dict[tuple[int,
     """Random lenses (two in from the edge, three apart) with both radii scaled by 1 + eps."""
     rng = np.random.default_rng(seed)
     rows, cols = cfg.mla.count_h, cfg.mla.count_w
-    em, truth, taken = ErrorMap.zeros(rows, cols), {}, np.zeros((rows, cols), bool)
+    em, truth, taken = ErrorMap.zeros(rows, cols, cfg.mla.packing), {}, np.zeros((rows, cols), bool)
+    tries = 0
     for eps in SIZES:
         k = 0
         while k < per_size:
+            tries += 1
+            if tries > 100_000:
+                raise SystemExit(f"cannot place {per_size} lenses per size, three apart, on a {rows} x {cols} array: "
+                                 "use a smaller --per-size")
             m, n = int(rng.integers(2, rows - 2)), int(rng.integers(2, cols - 2))
             if taken[max(m - 3, 0):m + 4, max(n - 3, 0):n + 4].any():
                 continue
@@ -79,7 +85,7 @@ def white_grid(cfg, rpp: float, seed: int):
     sim = simulate(cfg, rays_per_pixel=rpp, seed=seed)
     s = cfg.sensor
     img = prepare(RawFrame(sim.raw, s.bit_depth, None, s.black_level_dn, white_level(s)))
-    grid = calibrate(img, expected_pitch_px=cfg.layout.subimage_pitch_px, expected_shape=(cfg.mla.count_h, cfg.mla.count_w))
+    grid = calibrate_for(img, cfg)
     print(f"white frame: {rpp:g} rays/pixel, calibrated in {time.perf_counter() - t:.1f} s "
           f"(grid rms residual {grid.rms_residual_px:.4f} px)", flush=True)
     return grid
@@ -182,7 +188,8 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--u", default=f"{FOCUS_OFFSET_MM:g}", help="focus offsets |u| in mm, comma-separated (default: the "
                     "shipped protocol's)")
-    ap.add_argument("--per-size", type=int, default=4, help="seeded lenses per error size (default 4)")
+    ap.add_argument("--per-size", type=int, default=None,
+                    help="seeded lenses per error size (default 4; 2 on arrays of fewer than 2500 lenses, which hold no more three apart)")
     ap.add_argument("--rays-per-lens", type=float, default=20000.0, help="rays per lit lens (default 2e4)")
     ap.add_argument("--min-pairs", type=int, default=9, help="render at least this many pairs per |u| (default 9)")
     ap.add_argument("--white-rpp", type=float, default=50.0, help="rays per pixel of the white frame (default 50)")
@@ -194,17 +201,21 @@ def main() -> None:
                     help="render every coverage offset's pair (a whole array's analysis time), not only those lighting a seeded lens")
     ap.add_argument("--geometry-only", action="store_true",
                     help="print the coverage geometry of each |u| (offsets, frames to cover, lenses read) and stop")
+    ap.add_argument("-c", "--config", default=None, help="camera config TOML (default: Table 1)")
     ap.add_argument("--quick", action="store_true", help="2 lenses per size, 1e4 rays per lens, 20 rays/pixel white")
     args = ap.parse_args()
     if args.quick:
         args.per_size, args.rays_per_lens, args.white_rpp = 2, 1e4, 20.0
-    cfg = default_config()
+    cfg = load_config(args.config) if args.config else default_config()
+    if args.per_size is None:
+        args.per_size = 4 if cfg.mla.count_h * cfg.mla.count_w >= 2500 else 2
+    name = args.config or "Table 1 camera"
     if args.geometry_only:
         for u in (float(v) for v in args.u.split(",")):
             run_u(cfg, None, None, {}, u, 0.0, 0, 0, None, args.f_number, args.spacing)
         return
     em, truth = seeded_map(cfg, args.per_size, args.seed)
-    print(f"Table 1 camera, f/{args.f_number:g}, pinholes {args.spacing} lenses apart; {len(truth)} seeded lenses ({args.per_size} per size), "
+    print(f"{name} ({cfg.mla.packing}, {cfg.mla.count_w} x {cfg.mla.count_h} lenses), f/{args.f_number:g}, pinholes {args.spacing} lenses apart; {len(truth)} seeded lenses ({args.per_size} per size), "
           f"{args.rays_per_lens:g} rays per lit lens, formation + sensor noise at the protocol's exposure "
           f"(healthy peak {FILL_FRACTION:.0%} of full well)", flush=True)
     grid = white_grid(cfg, args.white_rpp, args.seed + 100)

@@ -32,6 +32,7 @@ Plan (TOML; see fixtures/scan_plan_raster.toml and fixtures/scan_plan_list.toml)
     f_number = 11.0             # main lens stopped to f/N for these frames
     spacing_lenses = 4          # pinhole images this many lens pitches apart
     offsets = "cover"           # lattice shifts: "cover" (every lens inside some disc) or [[0, 0], [3, 0], ...]
+                                # (hex arrays: axial steps [q, r], q along a row, r rows down with r/2 pitch of x)
     exposure_us = 10000.0       # optional: exposure of these frames (default: the white frames')
     settle_s = 0.05             # optional: wait after each carrier move (default: scan.settle_s)
     average = 1                 # optional: frames averaged into each file (default: scan.average)

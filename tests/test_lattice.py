@@ -127,12 +127,3 @@ def test_error_maps_record_and_check_their_lattice(tmp_path):
     assert error_map_from_dict(old, "old.json", (5, 5), "square").packing == "square"
     with pytest.raises(InputError, match="packing"):
         error_map_from_dict({**old, "packing": "triangular"}, "bad.json")
-
-
-def test_through_focus_frames_of_a_hex_array_are_refused(tmp_path, capsys):
-    from mlaqc.cli import main
-
-    out = tmp_path / "tf.npy"
-    code = main(["simulate", "--config", f"{FIXTURES}/hex_small_camera.toml", "--scene", "through-focus", "--out", str(out)])
-    assert code == 2 and not out.exists() and not list(tmp_path.iterdir())
-    assert "square arrays only" in capsys.readouterr().err

@@ -39,7 +39,8 @@ URL (every parameter optional)::
   opaque chrome (dark). ``mask`` (the lattices' focus offsets, mm, in field order along B),
   ``mask_spacing`` (lenses), ``z_white_mm``, ``a_centre_mm``, ``b_window_mm``, ``field_pitch_mm``
   describe the mask and where it sits (defaults: `Carrier()`, the shipped protocol's: lattices for
-  u = 5 and -5 mm, 4 lenses apart; stop the iris to f/11 for them), ``pinhole_photons`` the photons each
+  u = 5 and -5 mm, 4 lenses apart; stop the iris to f/11 for them; on a hex config, e.g. ``config=hex_small``,
+  each lattice is the hex sub-lattice 4 lenses apart and A, B step it in axial lens steps), ``pinhole_photons`` the photons each
   pinhole sends into the pupil at the reference exposure (default: the protocol's exposure,
   `mlaqc.optics.throughfocus.pinhole_photons` for the field's |u| at the current f-number and the mask's
   spacing, so that the brighter frame of each +u / -u pair peaks near `FILL_FRACTION` (50 %) of full well

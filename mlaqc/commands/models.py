@@ -53,8 +53,7 @@ def run(args: argparse.Namespace) -> int:
             signature_table(cfg, client=client, rebuild=args.rebuild, progress=bar)
         finally:
             bar.close()
-    # the through-focus analysis reads square arrays only (mlaqc.inspection.throughfocus): no model for hex
-    tf_key = _through_focus_model(cfg, args.rebuild) if cfg.mla.packing == "square" else "(none: square arrays only)"
+    tf_key = _through_focus_model(cfg, args.rebuild)
     asm_bar = ProgressBar("assembly renders", enabled=False if args.quiet else None)
     try:
         asm_key = assembly_model(cfg, rebuild=args.rebuild, progress=asm_bar).key

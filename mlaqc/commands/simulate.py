@@ -40,7 +40,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     tf.add_argument("--pinhole-spacing", type=int, metavar="S",
                     help=f"pinhole images S lens pitches apart (default {SPACING_LENSES})")
     tf.add_argument("--pinhole-offset", metavar="X,Y",
-                    help="shift of the pinhole lattice in whole lens pitches (default 0,0)")
+                    help="shift of the pinhole lattice in whole lens steps (default 0,0); on a hex array Q,R: Q "
+                         "along a row, R rows down (mlaqc.optics.throughfocus)")
     tf.add_argument("--pinhole-photons", type=float, metavar="P",
                     help="photons each pinhole sends into the pupil (default: the protocol's exposure, derived "
                          "from the optics: the brighter frame of the +U / -U pair peaks near 50 %% of full well, "

@@ -65,6 +65,17 @@ spot. Both frames of a lens use one window (the larger), so the floor cancels. L
 both frames (nearer the disc's traced rim than RIM_MARGIN_LENSES), saturated, off the sensor or unlit are
 left out of that pair; a lens read in several pairs gets their inverse-variance mean.
 
+Hex arrays (mla.packing = "hex"): the pinholes sit on the hex sub-lattice (mlaqc.optics.throughfocus), a
+lens' nearest pinhole and its (dx, dy) offset come from the Lattice positions (dx in half pitches, dy in
+rows of sqrt(3)/2), its shell is dq^2 + dr^2 + dq dr in axial steps (0, 1, 3, 4, 7, ...), the lit aperture
+is the hexagonal cell (or the circle of `aperture = "circle"`), and the model is traced on a hex patch
+with its centre lens under the pinhole: per shell the lens at 0-30 degrees from the field direction, and
+that lens turned 60 degrees for the field's orientation term. A lens is mapped onto the traced one by the
+same mirrors and x / y swap as on a square array; the swap turns a hexagonal cell by 90 degrees, which
+keeps its second moment (a regular hexagon's is isotropic) but not its exact pixel pattern: the shipped
+protocol (every lens read under its own pinhole) sizes ±5 / ±10 % within 15 % on the small hex camera
+(tests/test_hex_throughfocus.py, bench/throughfocus_accuracy.py -c fixtures/hex_small_camera.toml).
+
 Frames: prepare them with `prepare_spots` (black-subtracted and normalized, nothing else): the pipeline's
 `prepare` suppresses hot pixels, and a focused spot's peak is one to it.
 
@@ -104,6 +115,7 @@ from mlaqc.inspection.calibrate import Grid
 from mlaqc.inspection.rawio import RawFrame, check_exposure, normalized
 from mlaqc.optics.config import CameraConfig
 from mlaqc.optics.formation import aperture_corner_radius_um
+from mlaqc.optics.lattice import SQRT3_2, Lattice, hex_edge
 from mlaqc.optics.paraxial import thick_lens
 from mlaqc.optics.sensor import white_level
 from mlaqc.optics.throughfocus import (RIM_MARGIN_LENSES, ThroughFocus, frame_config, inner_radius_lenses,  # noqa: F401
@@ -269,10 +281,27 @@ def aperture_moment_mm2(cfg: CameraConfig, samples: int = 801) -> float:
     made by the same aperture."""
     mla = cfg.mla
     r_um = aperture_corner_radius_um(replace(cfg, mla=replace(mla, corners="opaque")))
+    if mla.packing == "hex":
+        return _lit_moment_mm2(cfg, r_um, samples)
     half = 0.5 * (mla.pitch_um - mla.black_matrix_um)
     x = (np.arange(samples) + 0.5) / samples * 2 * half - half
     xx, yy = np.meshgrid(x, x)
     inside = xx * xx + yy * yy <= r_um * r_um
+    return float(np.sum(xx[inside] ** 2) / inside.sum()) * 1e-6
+
+
+def _lit_moment_mm2(cfg: CameraConfig, r_um: float, samples: int) -> float:
+    """`aperture_moment_mm2` of a hex array's lens: its hexagonal cell (less the black matrix) or its
+    circular aperture, inside the surfaces' crossing radius r_um."""
+    mla = cfg.mla
+    half = mla.pitch_um / math.sqrt(3.0)  # the hexagon's corner (its flats are half a pitch out)
+    x = (np.arange(samples) + 0.5) / samples * 2 * half - half
+    xx, yy = np.meshgrid(x, x)
+    inside = xx * xx + yy * yy <= r_um * r_um
+    if mla.aperture == "circle":
+        inside &= np.hypot(xx, yy) <= 0.5 * mla.aperture_diameter_um
+    else:
+        inside &= hex_edge(xx / mla.pitch_um, yy / mla.pitch_um) >= 0.5 * mla.black_matrix_um / mla.pitch_um
     return float(np.sum(xx[inside] ** 2) / inside.sum()) * 1e-6
 
 
@@ -315,7 +344,8 @@ class ModelCurves:
     field_mm: np.ndarray = field(default_factory=lambda: np.zeros(1))  # (R,) field radii, from 0
     field_a: np.ndarray = field(default_factory=lambda: np.zeros((1, 1)))  # (S, R) px^2
     field_b: np.ndarray = field(default_factory=lambda: np.zeros((1, 1)))  # (S, R) px^2
-    offsets: np.ndarray = field(default_factory=lambda: np.zeros((1, 2), np.int64))  # (S, 2) traced lens (a, b), a >= b >= 0
+    # (S, 2) traced lens (a, b), a >= b >= 0 (hex: float (x, y) pitches, 0 <= phi <= 30 degrees)
+    offsets: np.ndarray = field(default_factory=lambda: np.zeros((1, 2), np.int64))
     spot_m2: np.ndarray | None = None  # (S, R, 2, E, P, P) px^2: [.., frame (+u, -u), eps, y phase, x phase]
     key: str = ""  # `model_key` of a traced model
 
@@ -452,7 +482,12 @@ class _Landing:
 
         targets = np.unique(targets)  # numbered in this order
         self.n = patch.mla.count_w
-        self.zero = ErrorMap.zeros(self.n, self.n).with_globals(mla_shift_x_um=1e3 * field_mm)
+        if patch.mla.packing == "hex":  # the centre lens, not the patch's bounding box, under the pinhole
+            rows, cols = patch.mla.count_h, patch.mla.count_w
+            xc = float(Lattice.of(patch).position(rows // 2, cols // 2)[0])
+            self.zero = ErrorMap.zeros(rows, cols, "hex").with_globals(mla_shift_x_um=1e3 * (field_mm - xc))
+        else:
+            self.zero = ErrorMap.zeros(self.n, self.n).with_globals(mla_shift_x_um=1e3 * field_mm)
         self.fc = frame_config(patch, tf)
         self.cam = Camera(self.fc, self.zero)
         x_obj = -field_mm / magnification(self.fc)  # the main lens inverts
@@ -476,9 +511,9 @@ class _Landing:
         from mlaqc.optics.errormap import ErrorMap
         from mlaqc.optics.raytrace import MicrolensArray, Rays
 
-        n = self.n
-        em = ErrorMap(self.zero.shape, {**self.zero.lens, "radius_front_rel": np.full((n, n), e),
-                                        "radius_back_rel": np.full((n, n), e)}, self.zero.globals)
+        shape = self.zero.shape
+        em = ErrorMap(shape, {**self.zero.lens, "radius_front_rel": np.full(shape, e),
+                              "radius_back_rel": np.full(shape, e)}, self.zero.globals, self.zero.packing)
         rr = Rays(*(a.copy() for a in self.base))
         MicrolensArray(self.fc, em).trace(rr)
         with np.errstate(invalid="ignore", divide="ignore"):
@@ -579,24 +614,31 @@ def trace_model(cfg: CameraConfig, u_mm: float, f_number: float, r_in: float) ->
     opt = optics(cfg)
     half = int(math.floor(cfg.layout.subimage_pitch_px / 2))
     psf = formation_kernels(cfg, (1, 1), with_prnu=False).psf
-    # one lens per shell, (a, b) with a >= b >= 0 (a along x), and its mirror (b, a) for the field's
-    # orientation term
-    uniq = {}
-    for a in range(reach + 1):
-        for b in range(a + 1):
-            if a * a + b * b <= r_in * r_in:
-                uniq.setdefault(a * a + b * b, (a, b))
-    shells = np.array(sorted(uniq))
-    S = len(shells)
-    c = n // 2
-    along = np.array([(c + uniq[s][1]) * n + (c + uniq[s][0]) for s in shells])  # row c + b, col c + a
-    across = np.array([(c + uniq[s][0]) * n + (c + uniq[s][1]) for s in shells])
+    if cfg.mla.packing == "hex":
+        shells, along, across, offsets, cos_along, cos_across = _hex_model_lenses(patch, r_in)
+        S = len(shells)
+    else:
+        # one lens per shell, (a, b) with a >= b >= 0 (a along x), and its mirror (b, a) for the field's
+        # orientation term
+        uniq = {}
+        for a in range(reach + 1):
+            for b in range(a + 1):
+                if a * a + b * b <= r_in * r_in:
+                    uniq.setdefault(a * a + b * b, (a, b))
+        shells = np.array(sorted(uniq))
+        S = len(shells)
+        c = n // 2
+        along = np.array([(c + uniq[s][1]) * n + (c + uniq[s][0]) for s in shells])  # row c + b, col c + a
+        across = np.array([(c + uniq[s][0]) * n + (c + uniq[s][1]) for s in shells])
     eps = np.array(MODEL_EPS)
     zero = int(np.argmin(np.abs(eps)))
     tf = ThroughFocus(focus_offset_mm=u_mm, f_number=f_number)
     frames = (replace(tf, focus_offset_mm=u_mm), replace(tf, focus_offset_mm=-u_mm))
     p = cfg.mla.pitch_um * 1e-3
-    corner = 0.5 * p * math.hypot(cfg.mla.count_w - 1, cfg.mla.count_h - 1)
+    if cfg.mla.packing == "hex":
+        corner = 0.5 * p * math.hypot(*Lattice.of(cfg).span_uv)
+    else:
+        corner = 0.5 * p * math.hypot(cfg.mla.count_w - 1, cfg.mla.count_h - 1)
     radii = corner * np.sqrt(np.linspace(0.0, 1.0, FIELD_POINTS))
     targets = np.concatenate([along, across])
     P = MODEL_PHASES
@@ -624,12 +666,50 @@ def trace_model(cfg: CameraConfig, u_mm: float, f_number: float, r_in: float) ->
     paraxial = -4.0 * opt.aperture_i_px2 * (opt.g(u_mm) + opt.g(-u_mm)) * dc
     d0 = d[:, zero] - d[:1, zero]  # (R, 2S): D(0) over the field, from the axis'
     d_along, d_across = d0[:, :S].T, d0[:, S:].T  # (S, R)
-    cos2 = np.array([(uniq[s][0] ** 2 - uniq[s][1] ** 2) / s if s else 0.0 for s in shells])
-    field_b = np.where(np.abs(cos2)[:, None] > 1e-9, (d_along - d_across) / (2.0 * np.where(cos2 == 0, 1.0, cos2))[:, None], 0.0)
-    field_a = 0.5 * (d_along + d_across)
-    offsets = np.array([uniq[s] for s in shells], np.int64)
+    if cfg.mla.packing == "hex":  # D(0) = a + b cos 2 phi at the two lenses' cos 2 phi
+        dc2 = (cos_along - cos_across)[:, None]
+        field_b = np.where(shells[:, None] > 0, (d_along - d_across) / np.where(dc2 == 0, 1.0, dc2), 0.0)
+        field_a = d_along - field_b * cos_along[:, None]
+    else:
+        cos2 = np.array([(uniq[s][0] ** 2 - uniq[s][1] ** 2) / s if s else 0.0 for s in shells])
+        field_b = np.where(np.abs(cos2)[:, None] > 1e-9, (d_along - d_across) / (2.0 * np.where(cos2 == 0, 1.0, cos2))[:, None], 0.0)
+        field_a = 0.5 * (d_along + d_across)
+        offsets = np.array([uniq[s] for s in shells], np.int64)
     return ModelCurves(eps, shells, curves, float(slope / paraxial), radii, field_a, field_b, offsets, spot,
                        model_key(cfg, u_mm, f_number, r_in))
+
+
+def _hex_model_lenses(patch: CameraConfig, r_in: float):
+    """The hex model's traced lenses: per shell (dq^2 + dr^2 + dq dr <= r_in^2, axial steps from the patch's
+    centre lens) the one at 0 <= phi <= 30 degrees from +x (every hex offset maps onto it by the lattice's
+    symmetry) and the same lens turned 60 degrees (a lattice point at another cos 2 phi, for the field's
+    orientation term). Returns shells, their flat patch indices (along, turned), offsets (x, y pitches,
+    float) and both lenses' cos 2 phi."""
+    rows, cols = patch.mla.count_h, patch.mla.count_w
+    r0, q0 = rows // 2, cols // 2 - (rows // 2) // 2
+    k = int(math.floor(r_in)) + 1
+    pick: dict[int, tuple[int, int]] = {}
+    for dr in range(k + 1):
+        for dq in range(-k, k + 1):
+            x, y = dq + 0.5 * dr, SQRT3_2 * dr
+            sh = dq * dq + dr * dr + dq * dr
+            if sh <= r_in * r_in + 1e-9 and x >= 0 and y <= x / math.sqrt(3.0) + 1e-9:
+                pick.setdefault(sh, (dq, dr))
+    shells = np.array(sorted(pick), np.int64)
+
+    def flat(dq: int, dr: int) -> int:
+        r = r0 + dr
+        return r * cols + (q0 + dq) + r // 2
+
+    def cos2(dq: int, dr: int) -> float:
+        x, y = dq + 0.5 * dr, SQRT3_2 * dr
+        return (x * x - y * y) / (x * x + y * y) if dq or dr else 0.0
+
+    steps = [pick[s] for s in shells]
+    turned = [(-dr, dq + dr) for dq, dr in steps]  # 60 degrees round: a1 -> a2, a2 -> a2 - a1
+    return (shells, np.array([flat(*v) for v in steps]), np.array([flat(*v) for v in turned]),
+            np.array([(dq + 0.5 * dr, SQRT3_2 * dr) for dq, dr in steps], np.float64),
+            np.array([cos2(*v) for v in steps]), np.array([cos2(*v) for v in turned]))
 
 
 def paraxial_curves(cfg: CameraConfig, u_mm: float, shells: np.ndarray) -> ModelCurves:
@@ -672,8 +752,7 @@ def true_phases(pos: np.ndarray, m2: np.ndarray, dxy: np.ndarray, pin_mm: np.nda
     spots puts it: the median of the lenses at the same (dx, dy) from their pinhole plus a smooth
     field and a constant per pair (`_field_removed`), fitted over all lenses, so locking averages out."""
     delta = pos[:, :2] - pos[:, 2:]
-    reach = int(np.abs(dxy).max()) if dxy.size else 0
-    cls = (dxy[:, 1] + reach) * (2 * reach + 1) + (dxy[:, 0] + reach)
+    cls = offset_classes(dxy)
     smooth = np.empty_like(delta)
     for j in range(2):
         rest = _field_removed(_class_centred(delta[:, j], cls), pin_mm, frame)
@@ -853,10 +932,10 @@ def _check_inputs(frames, grid: Grid, cfg: CameraConfig):
     if (grid.rows, grid.cols) != (cfg.mla.count_h, cfg.mla.count_w):
         raise InputError(f"the grid has {grid.rows} x {grid.cols} lenses but the camera's MLA has "
                          f"{cfg.mla.count_h} x {cfg.mla.count_w}")
-    if cfg.mla.packing != "square" or getattr(grid, "packing", "square") != "square":
-        # its pinhole lattice, shells and traced model patch are laid out in square lens steps
-        raise InputError(f"the through-focus analysis reads square arrays only; this one is "
-                         f"{cfg.mla.packing} (mla.packing)")
+    grid_packing = getattr(grid, "packing", "square")
+    if grid_packing != cfg.mla.packing:
+        raise InputError(f"the white frame's grid is a {grid_packing} lattice but the camera config's MLA is "
+                         f"{cfg.mla.packing} (mla.packing): read the frames with the config of the array they show")
     frames = list(frames)
     if len(frames) < 2:
         raise InputError("a through-focus reading needs at least one +u / -u pair of frames")
@@ -958,6 +1037,8 @@ def coverage(cfg: CameraConfig, tf: ThroughFocus) -> tuple[np.ndarray, np.ndarra
     if len(pins) == 0 or r_in < 0:
         z = np.zeros((rows, cols), np.int64)
         return np.zeros((rows, cols), bool), z, np.stack([z, z], axis=-1)
+    if cfg.mla.packing == "hex":
+        return _hex_coverage(cfg, pins, r_in)
     pr, pc = np.unique(pins[:, 0]), np.unique(pins[:, 1])
     if len(pins) == len(pr) * len(pc) and np.array_equal(pins, np.stack(np.meshgrid(pr, pc, indexing="ij"), -1).reshape(-1, 2)):
         # a lattice (row-major, as pinhole_lenses lists it): the nearest pinhole is the nearest row's and
@@ -970,6 +1051,37 @@ def coverage(cfg: CameraConfig, tf: ThroughFocus) -> tuple[np.ndarray, np.ndarra
     dxy = np.stack([n - pins[near, 1], m - pins[near, 0]], axis=-1)
     lit = dxy[..., 0] ** 2 + dxy[..., 1] ** 2 <= r_in * r_in
     return lit, near, dxy
+
+
+def _hex_coverage(cfg: CameraConfig, pins: np.ndarray, r_in: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """`coverage` on a hex array: each lens' nearest pinhole by the Lattice positions (a k-d tree) and its
+    (dx, dy) offset in pitches (float: half pitches along x, sqrt(3)/2 along y); lit within r_in."""
+    from scipy.spatial import cKDTree
+
+    lat = Lattice("hex", cfg.mla.count_h, cfg.mla.count_w)
+    x, y = lat.centres()
+    px, py = lat.position(pins[:, 0], pins[:, 1])
+    _, near = cKDTree(np.stack([px, py], axis=1)).query(np.stack([x.ravel(), y.ravel()], axis=1))
+    near = near.reshape(x.shape).astype(np.int64)
+    dxy = np.stack([x - px[near], y - py[near]], axis=-1)
+    lit = shell_of(dxy) <= r_in * r_in + 1e-9
+    return lit, near, dxy
+
+
+def shell_of(dxy: np.ndarray) -> np.ndarray:
+    """Each lens' shell: its squared distance from its pinhole in pitches^2, an integer on both lattices
+    (square dx^2 + dy^2; hex dq^2 + dr^2 + dq dr: 0, 1, 3, 4, 7, ...)."""
+    d2 = dxy[..., 0] ** 2 + dxy[..., 1] ** 2
+    return d2 if dxy.dtype.kind in "iu" else np.rint(d2).astype(np.int64)
+
+
+def offset_classes(dxy: np.ndarray) -> np.ndarray:
+    """(L,) integer label of each lens' (dx, dy) offset from its pinhole: lenses at the same offset share
+    one (hex offsets are counted in half pitches along x and rows along y)."""
+    if dxy.dtype.kind not in "iu":
+        dxy = np.stack([np.rint(2.0 * dxy[:, 0]), np.rint(dxy[:, 1] / SQRT3_2)], axis=1).astype(np.int64)
+    reach = int(np.abs(dxy).max()) if dxy.size else 0
+    return (dxy[:, 1] + reach) * (2 * reach + 1) + (dxy[:, 0] + reach)
 
 
 # --------------------------------------------------------------------------------------------- moments
@@ -1180,7 +1292,7 @@ def pair_spots(frames: Sequence[tuple[np.ndarray, ThroughFocus]], grid: Grid, cf
         pos = np.stack([xp, yp, xm, ym], axis=1)[good]
         return dict(u=u, off=off, rec=plus[1], idx=idx[good], d=(m2p - m2m)[good], var=(vp + vm)[good],
                     m2=np.stack([m2p, m2m], axis=1)[good],
-                    shell=(dxy[..., 0] ** 2 + dxy[..., 1] ** 2).ravel()[idx[good]],
+                    shell=shell_of(dxy).ravel()[idx[good]],
                     dxy=dxy.reshape(-1, 2)[idx[good]], pin=near.ravel()[idx[good]], pos=pos,
                     grid_xy=np.stack([gx[idx[good]], gy[idx[good]]], axis=1),
                     saturated=int(sat.sum()), window=float(np.median(w_common)))
@@ -1280,9 +1392,7 @@ def _centres(got: list[dict], rows: int, cols: int, opt: Optics, cfg: CameraConf
     sx, sy, cnt = np.zeros(rows * cols), np.zeros(rows * cols), np.zeros(rows * cols)
     resid_all = []
     for u, items in by_u.items():
-        d = np.concatenate([p["dxy"] for p, _ in items])
-        reach = int(np.abs(d).max()) if d.size else 0
-        cls = (d[:, 1] + reach) * (2 * reach + 1) + (d[:, 0] + reach)
+        cls = offset_classes(np.concatenate([p["dxy"] for p, _ in items]))
         pins = [lens_centres_mm(cfg, pinhole_lenses(cfg, p["rec"])[p["pin"]]) for p, _ in items]
         lens = [lens_centres_mm(cfg, np.stack(np.divmod(p["idx"], cols), axis=1)) for p, _ in items]
         # the paraxial chief ray through the lens' centre from the pinhole's image, against the white

@@ -20,9 +20,17 @@ protocol's (10 mm, f/8, 9 lenses): tests/test_throughfocus_analysis.py builds it
 
 The pinholes' images form a square lattice `spacing_lenses` lens pitches apart, shifted by
 `offset_lenses` (x, y) lens pitches; `coverage_offsets` lists the lattice shifts that put every lens
-fully inside some disc. Lens (row r, col c) has its design centre at x = (c - (cols - 1) / 2) p,
-y = (r - (rows - 1) / 2) p on the MLA (camera frame: x right, y down); the main lens inverts, so an
-object point at -x / m images at x.
+fully inside some disc. On a hex array (mla.packing = "hex") the pinholes sit on the hex sub-lattice of
+step s = `spacing_lenses`: lens steps s a1 and s a2 with a1 = (1, 0) (along a row) and a2 = (1/2, sqrt(3)/2)
+(one row down, half a pitch right), i.e. s lenses along a row and s rows down with s/2 pitches of x; every
+pinhole has 6 pinhole neighbours s pitches away, as its lens has 6 lens neighbours one pitch away.
+`offset_lenses` = (q, r) then shifts that sub-lattice by q a1 + r a2 ("axial" lens steps: lens (row,
+col) has q = col - row // 2, 0-based), and the s^2 offsets 0 <= q, r < s are its s^2 distinct cosets,
+as the s^2 (x, y) offsets are on a square array (`pinhole_lenses`).
+
+Lens (row r, col c) of a square array has its design centre at x = (c - (cols - 1) / 2) p,
+y = (r - (rows - 1) / 2) p on the MLA (camera frame: x right, y down; hex: `Lattice.position`); the main
+lens inverts, so an object point at -x / m images at x.
 
 `photons_per_pinhole` defaults to None: the protocol's exposure, `pinhole_photons(cfg, tf)`, derived from
 the optics rather than tuned. `spot_peak_per_photon` traces the pinhole nearest the axis (and the lattice
@@ -64,7 +72,7 @@ import numpy as np
 
 from mlaqc.errors import InputError
 from mlaqc.optics.config import CameraConfig
-from mlaqc.optics.lattice import Lattice
+from mlaqc.optics.lattice import SQRT3_2, Lattice, hex_cell
 from mlaqc.optics.paraxial import image_distance
 from mlaqc.optics.scene import PointScene, Scene, WhiteScene
 
@@ -88,7 +96,7 @@ class ThroughFocus:
     focus_offset_mm: float = 10.0  # u: paraxial image of the pinholes this far behind (+) / in front of (-) the MLA
     f_number: float = 8.0  # main lens stopped to efl / N
     spacing_lenses: int = 9  # pinhole images this many lens pitches apart on the MLA
-    offset_lenses: tuple[int, int] = (0, 0)  # (x, y) shift of the lattice, in lens pitches
+    offset_lenses: tuple[int, int] = (0, 0)  # shift of the lattice in lens steps: square (x, y), hex axial (q, r)
     photons_per_pinhole: float | None = None  # photons each pinhole sends into the pupil; None: `pinhole_photons`
 
     def __post_init__(self) -> None:
@@ -238,12 +246,14 @@ def _pair_radius(cfg: CameraConfig, u_mm: float, f_number: float) -> float:
 
 
 def pinhole_lenses(cfg: CameraConfig, tf: ThroughFocus) -> np.ndarray:
-    """(n, 2) int array of (row, col): the lenses at the centres of the lit discs, inside the array.
-    Square arrays only: the pinhole lattice and its exposure are laid out in row and column steps."""
-    if cfg.mla.packing != "square":
-        raise InputError(f"through-focus pinhole frames are laid out for square arrays only, and the config's MLA "
-                         f"is {cfg.mla.packing} (mla.packing)")
+    """(n, 2) int array of (row, col): the lenses at the centres of the lit discs, inside the array, row-major.
+    Square: rows and columns = offset (mod s); hex: the sub-lattice of the module docstring, axial
+    q = col - row // 2 = offset[0] and row = offset[1] (mod s)."""
     s, (ox, oy) = tf.spacing_lenses, tf.offset_lenses
+    if cfg.mla.packing == "hex":
+        r, c = np.meshgrid(np.arange(cfg.mla.count_h), np.arange(cfg.mla.count_w), indexing="ij")
+        on = ((r - oy) % s == 0) & ((c - r // 2 - ox) % s == 0)
+        return np.argwhere(on).astype(np.int64)
     rows = np.arange(oy % s, cfg.mla.count_h, s)
     cols = np.arange(ox % s, cfg.mla.count_w, s)
     r, c = np.meshgrid(rows, cols, indexing="ij")
@@ -260,6 +270,36 @@ def lens_centres_mm(cfg: CameraConfig, rc: np.ndarray) -> np.ndarray:
     x = (rc[:, 1] - 0.5 * (cfg.mla.count_w - 1)) * p
     y = (rc[:, 0] - 0.5 * (cfg.mla.count_h - 1)) * p
     return np.stack([x, y], axis=1)
+
+
+def sub_lattice_steps(packing: str, reach: float) -> list[tuple[int, int]]:
+    """Steps (i, j) of the pinhole lattice (square: i rows and j columns of s; hex: i s a1 + j s a2) whose
+    length, in units of s, is below `reach` (the set is symmetric: the order of i and j does not matter)."""
+    if packing == "hex":
+        k = int(math.floor(reach / SQRT3_2)) + 1  # |i a1 + j a2| >= sqrt(3)/2 max(|i|, |j|)
+        return [(i, j) for i in range(-k, k + 1) for j in range(-k, k + 1) if math.sqrt(i * i + j * j + i * j) < reach]
+    k = int(math.floor(reach))
+    return [(i, j) for i in range(-k, k + 1) for j in range(-k, k + 1) if math.hypot(i, j) < reach]
+
+
+def sub_lattice_lenses(cfg: CameraConfig, lens: tuple[int, int], s: int, steps: list[tuple[int, int]]) -> np.ndarray:
+    """(n, 2) (row, col) of the pinhole-lattice points `steps` (see `sub_lattice_steps`) from lens (row, col),
+    off the array too."""
+    st = np.array(steps, dtype=np.int64).reshape(-1, 2)
+    r0, c0 = lens
+    if cfg.mla.packing == "hex":
+        r = r0 + s * st[:, 1]
+        q = (c0 - r0 // 2) + s * st[:, 0]
+        return np.stack([r, q + r // 2], axis=1)
+    return np.array([r0, c0]) + s * st
+
+
+def axial_shift_lenses(packing: str, offset: tuple[float, float]) -> tuple[float, float]:
+    """(x, y) lens pitches of a pinhole-lattice offset: square (x, y) itself, hex q a1 + r a2."""
+    if packing == "hex":
+        q, r = offset
+        return q + 0.5 * r, SQRT3_2 * r
+    return float(offset[0]), float(offset[1])
 
 
 def scene(cfg: CameraConfig, tf: ThroughFocus) -> PointScene:
@@ -323,13 +363,13 @@ def spot_peak_per_photon(cfg: CameraConfig, tf: ThroughFocus) -> float:
     m = magnification(fc)
     p = cfg.mla.pitch_um * 1e-3
     s = int(tf.spacing_lenses)
-    centre = np.array([cfg.mla.count_h // 2, cfg.mla.count_w // 2])
+    centre = (cfg.mla.count_h // 2, cfg.mla.count_w // 2)
     radius = blur_radius_mm(cfg, tf)
-    lit = radius + math.sqrt(2.0) * p  # the lenses a disc lights lie within this of its centre
+    corner = 2.0 / math.sqrt(3.0) if cfg.mla.packing == "hex" else math.sqrt(2.0)  # twice the cell's corner
+    lit = radius + corner * p  # the lenses a disc lights lie within this of its centre
     reach = (lit + radius) / (s * p)  # in lattice steps
-    k = int(math.floor(reach))
-    steps = [(i, j) for i in range(-k, k + 1) for j in range(-k, k + 1) if math.hypot(i, j) < reach]
-    img = lens_centres_mm(cfg, centre + s * np.array(steps))  # off the array too: a neighbour's light
+    steps = sub_lattice_steps(cfg.mla.packing, reach)
+    img = lens_centres_mm(cfg, sub_lattice_lenses(cfg, centre, s, steps))  # off the array too: a neighbour's light
     cx, cy = img[steps.index((0, 0))]
     g = (np.arange(PEAK_PUPIL_GRID) + 0.5) / PEAK_PUPIL_GRID
     u = np.stack(np.meshgrid(g, g, indexing="ij")).reshape(2, -1)
@@ -381,18 +421,45 @@ def spot_peak_per_photon(cfg: CameraConfig, tf: ThroughFocus) -> float:
 
 
 def coverage_offsets(cfg: CameraConfig, tf: ThroughFocus) -> list[tuple[int, int]]:
-    """Lattice shifts (x, y lens pitches) that put every lens fully inside some lit disc: a square
+    """Lattice shifts (`offset_lenses`) that put every lens fully inside some lit disc: a square
     sub-lattice of step t with t / sqrt(2) <= the inner radius (the farthest a lens can be from its
     nearest pinhole), within `pair_radius_lenses` (what the analysis reads) of both frames of the +u / -u
-    pair. Empty when a disc cannot hold a whole lens (|u| too small for f/N)."""
+    pair. Hex: the same grid of axial steps, t from the hex covering radius (t / sqrt(3) <= the radius),
+    made smaller until every lens of the array is checked within the radius of a pinhole on the array
+    (`_hex_covers`: the hex array's edges are not the sub-lattice's, so an edge lens can need a finer set).
+    Empty when a disc cannot hold a whole lens (|u| too small for f/N)."""
     r_in = pair_radius_lenses(cfg, tf)
     if r_in < 0:
         return []
     s = tf.spacing_lenses
+    if cfg.mla.packing == "hex":
+        for t in range(max(1, min(s, int(math.floor(r_in * math.sqrt(3.0))))), 0, -1):
+            steps = sorted({min(k * t, s - 1) for k in range(math.ceil(s / t))})
+            offsets = [(ox, oy) for oy in steps for ox in steps]
+            if _hex_covers(cfg, tf, offsets, r_in):
+                return offsets
+        return []
     t = max(1, min(s, int(math.floor(r_in * math.sqrt(2.0)))))
     n = math.ceil(s / t)
     steps = sorted({min(k * t, s - 1) for k in range(n)})
     return [(ox, oy) for oy in steps for ox in steps]
+
+
+def _hex_covers(cfg: CameraConfig, tf: ThroughFocus, offsets: list[tuple[int, int]], r_in: float) -> bool:
+    """Whether every lens of the array lies within r_in pitches (Lattice positions) of a pinhole of some
+    offset, counting only the pinholes on the array (an edge lens' nearest lattice point may lie off it)."""
+    from scipy.spatial import cKDTree
+
+    lat = Lattice(cfg.mla.packing, cfg.mla.count_h, cfg.mla.count_w)
+    x, y = lat.centres()
+    pts = np.stack([x.ravel(), y.ravel()], axis=1)
+    best = np.full(len(pts), np.inf)
+    for off in offsets:
+        pins = pinhole_lenses(cfg, replace(tf, offset_lenses=off))
+        if len(pins):
+            px, py = lat.position(pins[:, 0], pins[:, 1])
+            best = np.minimum(best, cKDTree(np.stack([px, py], axis=1)).query(pts)[0])
+    return bool(np.all(best <= r_in + 1e-9))
 
 
 # --------------------------------------------------------------------------------------------- the bench
@@ -450,7 +517,7 @@ def carrier_axes(cfg: CameraConfig, carrier: Carrier, tf: ThroughFocus) -> dict[
     k = carrier.field_of(tf)
     m = magnification(frame_config(cfg, tf))
     p = cfg.mla.pitch_um * 1e-3
-    ox, oy = (o % tf.spacing_lenses for o in tf.offset_lenses)
+    ox, oy = axial_shift_lenses(cfg.mla.packing, tuple(o % tf.spacing_lenses for o in tf.offset_lenses))
     return {"z": carrier.z_white_mm + stage_z_mm(cfg, tf),
             "a": carrier.a_centre_mm - ox * p / m,
             "b": carrier.b_window_mm + k * carrier.field_pitch_mm - oy * p / m}
@@ -523,8 +590,14 @@ def carrier_view(cfg: CameraConfig, carrier: Carrier, axes: dict[str, float], f_
     m = magnification(frame_config(cfg, design))
     p = cfg.mla.pitch_um * 1e-3
     dx, dy = a - carrier.a_centre_mm, b - (carrier.b_window_mm + k * carrier.field_pitch_mm)
-    kx, ky = round(-dx * m / p), round(-dy * m / p)
-    residual = (dx + kx * p / m, dy + ky * p / m)
+    if cfg.mla.packing == "hex":  # the nearest lattice offset: the hex cell the shift falls in, as axial (q, r)
+        row, col, _, _ = hex_cell(-dx * m / p, -dy * m / p)
+        ky = int(row)
+        kx = int(col) - ky // 2
+    else:
+        kx, ky = round(-dx * m / p), round(-dy * m / p)
+    sx, sy = axial_shift_lenses(cfg.mla.packing, (kx, ky))
+    residual = (dx + sx * p / m, dy + sy * p / m)
     nominal = replace(design, offset_lenses=(kx % s, ky % s))
     pts = tuple((x + residual[0], y + residual[1]) for x, y in scene(cfg, nominal).points_mm)
     base = frozen(cfg) if cam is cfg else cam
