@@ -707,23 +707,55 @@ def _second_shell_origins(a: np.ndarray, basis: np.ndarray, centre: np.ndarray, 
     return out
 
 
+# the second shell's peaks are looked for this far (FFT bins, half-bin steps) round where the first shell
+# puts them: a first shell pulled by a bin puts them up to three bins off (2 b1 + b2 carries its pull thrice)
+SHELL_SEARCH_BINS = 4
+# a shell's third peak lies at the sum (first shell) or difference (second) of the other two, to noise (~1e-4
+# of |k|); a shell pulled off by a zero of the discs' transform crossing the field misses it by the pull
+CLOSURE_TOLERANCE = 2e-3
+
+
 def _second_shell_basis(a: np.ndarray, basis: np.ndarray, first_level: float) -> np.ndarray:
     """The hex basis (binned px) refined on the second shell of peaks (|k| = 2 / p: 2 b1 + b2 and b1 + 2 b2,
-    b_i the reciprocal basis) where those are the stronger (`first_level`: the weaker first-shell peak's
-    |DTFT|). Discs of about half the pitch, as an f-number-matched camera makes, have their first-shell
-    peaks next to a zero of the disc's transform (2 pi |k| R ~ 3.7 against 3.83): weak, good to a few 1e-4
-    of the pitch only; the second shell is then about twice as strong and twice as far out (discs of
-    ~0.3 p have it at the zero instead; a defocused array whose radius crosses that zero across the frame
-    even has its first-shell peaks pulled off by a few bins). Kept if both refined peaks lie within 10 %
-    of where the first shell puts them (no other peak of the spectrum is that close)."""
+    b_i the reciprocal basis) where that shell is the better: the stronger (`first_level`: the weaker
+    first-shell peak's |DTFT|), or the only one of the two whose three peaks close (`_shell_closure`).
+    Discs of about half the pitch, as an f-number-matched camera makes, have their first-shell peaks next
+    to a zero of the disc's transform (2 pi |k| R ~ 3.7 against 3.83): weak, good to a few 1e-4 of the pitch
+    only; the second shell is then about twice as strong and twice as far out (discs of ~0.3 p have it at
+    the zero instead). A tilted, defocused array whose sub-images grow through that zero across the frame
+    has the first shell's peaks, sums over the field of both signs, all pulled off by the same few 1e-3
+    cycles/px (1.4 % of |k| on the Table 1 hex array with the sensor 15 µm back and a 0.3 degree tilt):
+    not a lattice (b1 + b2 misses the third peak by the pull), so its second-shell guesses are looked for
+    SHELL_SEARCH_BINS round. Kept if both refined peaks lie within 10 % of where the first shell puts them
+    (no other peak of the spectrum is that close)."""
     b1, b2 = np.linalg.inv(basis)
     guess = (2.0 * b1 + b2, b1 + 2.0 * b2)
-    (q1, g1), (q2, g2) = (_refine_peak(a, q) for q in guess)
-    if min(abs(g1), abs(g2)) <= first_level:
-        return basis
+    (q1, g1), (q2, g2) = (_refine_peak(a, _coarse_peak(a, q)) for q in guess)
     if max(float(np.hypot(*(q - g)) / np.hypot(*g)) for q, g in zip((q1, q2), guess)) > 0.1:
         return basis
-    return np.linalg.inv(np.array([(2.0 * q1 - q2) / 3.0, (2.0 * q2 - q1) / 3.0]))
+    second = np.linalg.inv(np.array([(2.0 * q1 - q2) / 3.0, (2.0 * q2 - q1) / 3.0]))
+    if min(abs(g1), abs(g2)) > first_level:
+        return second
+    if _shell_closure(a, b1, b2, 1.0) > CLOSURE_TOLERANCE >= _shell_closure(a, q1, q2, -1.0):
+        return second
+    return basis
+
+
+def _coarse_peak(a: np.ndarray, k: np.ndarray) -> np.ndarray:
+    """The largest |DTFT| of `a` within SHELL_SEARCH_BINS bins of k, on a half-bin grid (where
+    `_refine_peak`, which reaches under a bin, can start)."""
+    h, w = a.shape
+    off = np.arange(-SHELL_SEARCH_BINS, SHELL_SEARCH_BINS + 0.25, 0.5)
+    f = np.abs(_dtft(a, k[0] + off / w, k[1] + off / h))
+    iy, ix = np.unravel_index(int(np.argmax(f)), f.shape)
+    return np.array([k[0] + off[ix] / w, k[1] + off[iy] / h])
+
+
+def _shell_closure(a: np.ndarray, k1: np.ndarray, k2: np.ndarray, sign: float) -> float:
+    """How far (in |k1|) the three peaks of a shell refined near k1, k2 and k1 + sign k2 miss closing
+    (k3 = k1 + sign k2): ~1e-4 on a lattice, the pull where the shell is pulled off."""
+    q1, q2, q3 = (_refine_peak(a, _coarse_peak(a, k))[0] for k in (k1, k2, k1 + sign * k2))
+    return float(np.hypot(*(q1 + sign * q2 - q3)) / np.hypot(*k1))
 
 
 def _hex_basis(prime: np.ndarray) -> np.ndarray:
