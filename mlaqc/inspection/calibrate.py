@@ -707,7 +707,7 @@ def _second_shell_origins(a: np.ndarray, basis: np.ndarray, centre: np.ndarray, 
     return out
 
 
-# the second shell's peaks are looked for this far (FFT bins, half-bin steps) round where the first shell
+# the second shell's peaks are looked for this far (FFT bins) round where the first shell
 # puts them: a first shell pulled by a bin puts them up to three bins off (2 b1 + b2 carries its pull thrice)
 SHELL_SEARCH_BINS = 4
 # a shell's third peak lies at the sum (first shell) or difference (second) of the other two, to noise (~1e-4
@@ -742,10 +742,11 @@ def _second_shell_basis(a: np.ndarray, basis: np.ndarray, first_level: float) ->
 
 
 def _coarse_peak(a: np.ndarray, k: np.ndarray) -> np.ndarray:
-    """The largest |DTFT| of `a` within SHELL_SEARCH_BINS bins of k, on a half-bin grid (where
-    `_refine_peak`, which reaches under a bin, can start)."""
+    """The largest |DTFT| of `a` within SHELL_SEARCH_BINS bins of k, on the bin grid (within half a bin of
+    the peak, where `_refine_peak`, which reaches 0.8 bin, can start; a finer grid makes the products wide
+    enough for multi-threaded BLAS, which stalls for 0.1 s at a time on a busy machine)."""
     h, w = a.shape
-    off = np.arange(-SHELL_SEARCH_BINS, SHELL_SEARCH_BINS + 0.25, 0.5)
+    off = np.arange(-SHELL_SEARCH_BINS, SHELL_SEARCH_BINS + 0.5, 1.0)
     f = np.abs(_dtft(a, k[0] + off / w, k[1] + off / h))
     iy, ix = np.unravel_index(int(np.argmax(f)), f.shape)
     return np.array([k[0] + off[ix] / w, k[1] + off[iy] / h])
