@@ -8,8 +8,11 @@ Pipeline (DESIGN.md §6), vectorized over all lenses at once (no per-lens Python
    their phases the lattice offset (the remaining half-period ambiguity is settled by where the cell
    corners are dark). Square: the peaks at |k| = 1/p, 90 degrees apart. Hex: two of the six at
    |k| = 2/(sqrt(3) p), 60 degrees apart; the real basis is then a1 along the rows (~x) and a2 at +60
-   degrees (down-right as displayed), both a pitch long ("axial" lattice coordinates (j, i)); the cell
-   offset is the half-period shift about which the frame is six-fold symmetric. A spectrum plainly of
+   degrees (down-right as displayed), both a pitch long ("axial" lattice coordinates (j, i)); the basis
+   is refined on the second shell (|k| = 2/p) where that is the stronger, or where the first shell's
+   three peaks do not close (b1 + b2 off the third: sub-images growing through its zero across the
+   field pull them all the same way); the cell offset is the half-period shift about which the frame
+   is six-fold symmetric. A spectrum plainly of
    the other packing than the config's (shells of equal peaks 60 rather than 90 degrees apart, or the
    reverse) is refused by name.
 2. Every sub-image is measured by a joint least-squares fit of the frame by a sum of discs, one per lens:
