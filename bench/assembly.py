@@ -1,4 +1,5 @@
-"""Assembly readings on the Table 1 camera (issue 24 part 2 bars): python bench/assembly.py [--rays-per-pixel R]"""
+"""Assembly readings on the Table 1 camera (issue 24 part 2 bars), or on another camera (-c, e.g. the Table 1
+hex array: fixtures/hex_camera.toml): python bench/assembly.py [-c CONFIG] [--rays-per-pixel R]"""
 
 import argparse
 import time
@@ -35,7 +36,7 @@ def show(name, glob, a):
 
 def main():
     ap = argparse.ArgumentParser()
-    ap.add_argument("--config", default="fixtures/paper_table1.toml")
+    ap.add_argument("-c", "--config", default="fixtures/paper_table1.toml")
     ap.add_argument("--rays-per-pixel", type=float, default=100.0)
     ap.add_argument("--scales", default="0.25,0.5,1,2")
     args = ap.parse_args()

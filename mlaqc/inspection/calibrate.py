@@ -8,8 +8,11 @@ Pipeline (DESIGN.md §6), vectorized over all lenses at once (no per-lens Python
    their phases the lattice offset (the remaining half-period ambiguity is settled by where the cell
    corners are dark). Square: the peaks at |k| = 1/p, 90 degrees apart. Hex: two of the six at
    |k| = 2/(sqrt(3) p), 60 degrees apart; the real basis is then a1 along the rows (~x) and a2 at +60
-   degrees (down-right as displayed), both a pitch long ("axial" lattice coordinates (j, i)); the cell
-   offset is the half-period shift about which the frame is six-fold symmetric. A spectrum plainly of
+   degrees (down-right as displayed), both a pitch long ("axial" lattice coordinates (j, i)); the basis
+   is refined on the second shell (|k| = 2/p) where that is the stronger, or where the first shell's
+   three peaks do not close (b1 + b2 off the third: sub-images growing through its zero across the
+   field pull them all the same way); the cell offset is the half-period shift about which the frame
+   is six-fold symmetric. A spectrum plainly of
    the other packing than the config's (shells of equal peaks 60 rather than 90 degrees apart, or the
    reverse) is refused by name.
 2. Every sub-image is measured by a joint least-squares fit of the frame by a sum of discs, one per lens:
@@ -707,23 +710,56 @@ def _second_shell_origins(a: np.ndarray, basis: np.ndarray, centre: np.ndarray, 
     return out
 
 
+# the second shell's peaks are looked for this far (FFT bins) round where the first shell
+# puts them: a first shell pulled by a bin puts them up to three bins off (2 b1 + b2 carries its pull thrice)
+SHELL_SEARCH_BINS = 4
+# a shell's third peak lies at the sum (first shell) or difference (second) of the other two, to noise (~1e-4
+# of |k|); a shell pulled off by a zero of the discs' transform crossing the field misses it by the pull
+CLOSURE_TOLERANCE = 2e-3
+
+
 def _second_shell_basis(a: np.ndarray, basis: np.ndarray, first_level: float) -> np.ndarray:
     """The hex basis (binned px) refined on the second shell of peaks (|k| = 2 / p: 2 b1 + b2 and b1 + 2 b2,
-    b_i the reciprocal basis) where those are the stronger (`first_level`: the weaker first-shell peak's
-    |DTFT|). Discs of about half the pitch, as an f-number-matched camera makes, have their first-shell
-    peaks next to a zero of the disc's transform (2 pi |k| R ~ 3.7 against 3.83): weak, good to a few 1e-4
-    of the pitch only; the second shell is then about twice as strong and twice as far out (discs of
-    ~0.3 p have it at the zero instead; a defocused array whose radius crosses that zero across the frame
-    even has its first-shell peaks pulled off by a few bins). Kept if both refined peaks lie within 10 %
-    of where the first shell puts them (no other peak of the spectrum is that close)."""
+    b_i the reciprocal basis) where that shell is the better: the stronger (`first_level`: the weaker
+    first-shell peak's |DTFT|), or the only one of the two whose three peaks close (`_shell_closure`).
+    Discs of about half the pitch, as an f-number-matched camera makes, have their first-shell peaks next
+    to a zero of the disc's transform (2 pi |k| R ~ 3.7 against 3.83): weak, good to a few 1e-4 of the pitch
+    only; the second shell is then about twice as strong and twice as far out (discs of ~0.3 p have it at
+    the zero instead). A tilted, defocused array whose sub-images grow through that zero across the frame
+    has the first shell's peaks, sums over the field of both signs, all pulled off by the same few 1e-3
+    cycles/px (1.4 % of |k| on the Table 1 hex array with the sensor 15 µm back and a 0.3 degree tilt):
+    not a lattice (b1 + b2 misses the third peak by the pull), so its second-shell guesses are looked for
+    SHELL_SEARCH_BINS round. Kept if both refined peaks lie within 10 % of where the first shell puts them
+    (no other peak of the spectrum is that close)."""
     b1, b2 = np.linalg.inv(basis)
     guess = (2.0 * b1 + b2, b1 + 2.0 * b2)
-    (q1, g1), (q2, g2) = (_refine_peak(a, q) for q in guess)
-    if min(abs(g1), abs(g2)) <= first_level:
-        return basis
+    (q1, g1), (q2, g2) = (_refine_peak(a, _coarse_peak(a, q)) for q in guess)
     if max(float(np.hypot(*(q - g)) / np.hypot(*g)) for q, g in zip((q1, q2), guess)) > 0.1:
         return basis
-    return np.linalg.inv(np.array([(2.0 * q1 - q2) / 3.0, (2.0 * q2 - q1) / 3.0]))
+    second = np.linalg.inv(np.array([(2.0 * q1 - q2) / 3.0, (2.0 * q2 - q1) / 3.0]))
+    if min(abs(g1), abs(g2)) > first_level:
+        return second
+    if _shell_closure(a, b1, b2, 1.0) > CLOSURE_TOLERANCE >= _shell_closure(a, q1, q2, -1.0):
+        return second
+    return basis
+
+
+def _coarse_peak(a: np.ndarray, k: np.ndarray) -> np.ndarray:
+    """The largest |DTFT| of `a` within SHELL_SEARCH_BINS bins of k, on the bin grid (within half a bin of
+    the peak, where `_refine_peak`, which reaches 0.8 bin, can start; a finer grid makes the products wide
+    enough for multi-threaded BLAS, which stalls for 0.1 s at a time on a busy machine)."""
+    h, w = a.shape
+    off = np.arange(-SHELL_SEARCH_BINS, SHELL_SEARCH_BINS + 0.5, 1.0)
+    f = np.abs(_dtft(a, k[0] + off / w, k[1] + off / h))
+    iy, ix = np.unravel_index(int(np.argmax(f)), f.shape)
+    return np.array([k[0] + off[ix] / w, k[1] + off[iy] / h])
+
+
+def _shell_closure(a: np.ndarray, k1: np.ndarray, k2: np.ndarray, sign: float) -> float:
+    """How far (in |k1|) the three peaks of a shell refined near k1, k2 and k1 + sign k2 miss closing
+    (k3 = k1 + sign k2): ~1e-4 on a lattice, the pull where the shell is pulled off."""
+    q1, q2, q3 = (_refine_peak(a, _coarse_peak(a, k))[0] for k in (k1, k2, k1 + sign * k2))
+    return float(np.hypot(*(q1 + sign * q2 - q3)) / np.hypot(*k1))
 
 
 def _hex_basis(prime: np.ndarray) -> np.ndarray:
