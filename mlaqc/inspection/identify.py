@@ -32,8 +32,10 @@ Hex lattices (`packing="hex"`, mlaqc.optics.lattice): a lens' neighbours are the
 along its own direction (echoes, the pitch/decenter contrast); the outer lenses, whose windows miss the
 strip of the rows beyond, are left out of every other lens' baseline, and the row ends that stick out
 are compared with each other (`_hex_edge_columns`, `hex_row_ends`). A shift across the rows registers
-at about half its size (the pitch-wide discs overlap the rows above and below): the features are read
-with the y offset and tilt scaled by the table's gains (`signatures.gains_y`).
+at about half its size (the pitch-wide discs overlap the rows above and below), the less the larger it
+is, and blurs and dims its sub-image otherwise: the features are read with the y offset and tilt mapped
+to the along-row scale (`signatures.to_along`), and fitted against the kind's curves rendered along and
+across the rows, mixed by how much of the lens' shift lies across them (`fit_all`).
 """
 
 from __future__ import annotations
@@ -50,7 +52,7 @@ from mlaqc.inspection.filters import max_filter_nearest, max_of_neighbours
 from mlaqc.inspection.metrics_kernels import median_baselines
 from mlaqc.inspection.results import Defect, LensMetrics
 from mlaqc.models.position_split import PositionSplit, contrast_sigma, neighbour_contrast, split_limits, type_position
-from mlaqc.models.signatures import FEATURES, KIND_BY_NAME, RINGS, SignatureTable, gains_y, lens_features
+from mlaqc.models.signatures import FEATURES, KIND_BY_NAME, RINGS, SignatureTable, along_gain_small, lens_features, to_along
 from mlaqc.optics.config import QC
 from mlaqc.optics.lattice import Lattice
 from mlaqc.parallel import thread_map
@@ -245,13 +247,36 @@ def noise_classes(shape: tuple[int, int]) -> np.ndarray:
 
 
 @functools.lru_cache(maxsize=8)
-def _groups(shape: tuple[int, int]) -> tuple[np.ndarray, ...]:
-    """Lens groups that share a systematic pattern: the inner lenses, and each edge class per side."""
+def _groups(shape: tuple[int, int], packing: str = "square") -> tuple[np.ndarray, ...]:
+    """Lens groups that share a systematic pattern: the inner lenses, and each edge class per side; on
+    hex also the second ring per side where it has the lenses to fit it (`HEX_SECOND_RING_MIN`), and
+    the row ends that stick out apart from those that sit in (`hex_row_ends`: their windows hold other
+    neighbours, and their indexes answer otherwise to the sub-pixel phase)."""
     rows, cols = shape
     cls = edge_classes(shape)
     m, n = np.ogrid[:rows, :cols]
     side = np.argmin(np.stack(np.broadcast_arrays(m, rows - 1 - m, n, cols - 1 - n)), axis=0)
-    return tuple(_frozen(g) for g in [cls == 2] + [(cls == c) & (side == s) for c in (0, 1) for s in range(4)])
+    inner = cls == 2
+    second = []
+    if packing == "hex":
+        ring = np.minimum(np.minimum(m, n), np.minimum(rows - 1 - m, cols - 1 - n))
+        second = [g for g in ((ring == 2) & (side == s) for s in range(4)) if g.sum() >= HEX_SECOND_RING_MIN]
+        for g in second:
+            inner = inner & ~g
+    edges = [(cls == c) & (side == s) for c in (0, 1) for s in range(4)]
+    if packing == "hex":  # the row ends that stick out and those that sit in, each on their own
+        ends = hex_row_ends(shape)
+        edges = [part for g in edges for part in ((g & ends, g & ~ends) if (g & ends).any() else (g,))]
+    return tuple(_frozen(g) for g in [inner] + second + edges)
+
+
+# Hex: the second ring's baselines leave the outermost lenses out (`_refine_baselines`), so their windows
+# span 4 rows or columns, not 5, and take up another share of the sub-pixel phase pattern (which drifts
+# 0.15 px per row on an array rotated 0.5°): measured on the analytic model, the second rows' x offset and
+# tilt deviations kept 2.7 times the inner lenses' spread after the inner lenses' pattern was removed
+# (false flags at z 6.3). Each side's second ring is fitted on its own where it has this many lenses
+# (the phase basis needs 40 for one harmonic), else with the inner lenses as before.
+HEX_SECOND_RING_MIN = 40
 
 
 def _frozen(a: np.ndarray) -> np.ndarray:
@@ -285,16 +310,17 @@ class PhaseModel:
 _PHASE_MODELS: dict[bytes, PhaseModel] = {}
 
 
-def phase_model(phase: tuple[np.ndarray, np.ndarray]) -> PhaseModel:
+def phase_model(phase: tuple[np.ndarray, np.ndarray], packing: str = "square") -> PhaseModel:
     """`PhaseModel` of lenses whose grid centres have sub-pixel phases `phase` (x, y); a group gets two
     harmonics from 80 lenses on, one from 40, none below (too few lenses to fit it). Kept for the last
-    few grids: a batch on one saved grid builds it once."""
-    key = hashlib.sha1(np.ascontiguousarray(phase[0]).tobytes() + np.ascontiguousarray(phase[1]).tobytes()).digest()
+    few grids: a batch on one saved grid builds it once. `packing`: the lattice (`_groups`)."""
+    key = hashlib.sha1(np.ascontiguousarray(phase[0]).tobytes() + np.ascontiguousarray(phase[1]).tobytes()
+                       + packing.encode()).digest()
     hit = _PHASE_MODELS.get(key)
     if hit is not None:
         return hit
     groups = []
-    for sel in _groups(phase[0].shape):
+    for sel in _groups(phase[0].shape, packing):
         count = int(sel.sum())
         harmonics = 2 if count >= 80 else 1 if count >= 40 else 0
         if harmonics:
@@ -739,14 +765,21 @@ def _dense_curve(mags: np.ndarray, feats: np.ndarray, per_step: int = 40) -> tup
 
 
 def fit_all(table: SignatureTable, vecs: np.ndarray, sigmas: np.ndarray,
-            whiten: np.ndarray | None = None) -> list[dict[str, tuple[float, float]]]:
+            whiten: np.ndarray | None = None, across: np.ndarray | None = None) -> list[dict[str, tuple[float, float]]]:
     """`fit_kind` of every kind for many lenses' feature changes `vecs` (L, n_features) at once: per lens
-    {kind: (magnitude, chi2)}. Same arithmetic as fit_kind, one array operation per kind."""
+    {kind: (magnitude, chi2)}. Same arithmetic as fit_kind, one array operation per kind. `across` (L,):
+    each lens' share across the rows (`_across_share`; hex tables), which mixes the kind's along and
+    across curves (same magnitudes) into the one its features are fitted against."""
     out: list[dict[str, tuple[float, float]]] = [{} for _ in range(len(vecs))]
     uv = _unit_noise(vecs, sigmas, whiten)
+    other = table.across_table() if across is not None else table
     for kind in table.magnitudes:
         grid_m, grid_f = _kind_curve(table, kind, 0)
-        chi2 = _chi2(uv[:, None, :], _unit_noise(grid_f, sigmas, whiten)[None])
+        pred = _unit_noise(grid_f, sigmas, whiten)[None]
+        if other is not table and kind in table.across:
+            w = np.asarray(across, dtype=np.float64)[:, None, None]
+            pred = (1.0 - w) * pred + w * _unit_noise(_kind_curve(other, kind, 0)[1], sigmas, whiten)[None]
+        chi2 = _chi2(uv[:, None, :], pred)
         best = np.argmin(chi2, axis=1)
         for q, i in enumerate(best):
             out[q][kind] = (float(grid_m[i]), float(chi2[q, i]))
@@ -891,17 +924,24 @@ def hex_row_ends(shape: tuple[int, int]) -> np.ndarray:
     return _frozen(ends)
 
 
-def _isotropic(dev: dict[str, np.ndarray], sig: dict[str, float], gains_y: tuple[float, float]):
+def _isotropic(dev: dict[str, np.ndarray], sig: dict[str, float], table: SignatureTable):
     """The classification deviations with the y components of the registration offset and the intensity
-    tilt divided by the table's gains across the rows (`shift_gain_y`, `asym_gain_y`; hex: a shift
-    across the rows registers at about half its size, and tilts the sub-image more), so that a lens
-    shift reads alike in every direction, as the table (rendered along x) reads it; their spreads with
-    them. Unchanged where the gains are 1 (square)."""
+    tilt mapped to the size the same lens shift gives along the rows (`signatures.to_along`; hex: a
+    shift across the rows registers at about half its size, the less the larger it is, and tilts the
+    sub-image more), so that a lens shift reads alike in every direction, as the table (rendered along
+    x) reads it; their spreads with them. Unchanged on a square lattice (no across curves, gains 1)."""
     out, out_sig = dict(dev), dict(sig)
-    for name, gain in zip(("offset_y_px", "asym_y"), gains_y):
-        if gain != 1.0 and gain > 0:
-            out[name], out_sig[name] = dev[name] / gain, sig[name] / gain
+    for name, column in (("offset_y_px", 0), ("asym_y", 2)):
+        scale = along_gain_small(table, column)
+        if scale != 1.0:
+            out[name], out_sig[name] = to_along(table, dev[name], column), sig[name] * scale
     return out, out_sig
+
+
+def _across_share(shift_dir_deg: np.ndarray) -> np.ndarray:
+    """How much of a lens' shift lies across the rows, sin² of its direction: the weight of the table's
+    across curves (`SignatureTable.across_table`) in the curve its features are fitted against."""
+    return np.sin(np.radians(np.asarray(shift_dir_deg, dtype=np.float64))) ** 2
 
 
 def _split_reading(split: PositionSplit, contrast: np.ndarray, m: int, n: int, shift_px: float,
@@ -966,7 +1006,7 @@ def identify(metrics: LensMetrics, missing: np.ndarray, qc: QC, table: Signature
     'position' lens as pitch or decenter where this frame's noise allows. `packing`: the lattice the
     (rows, cols) maps index (mlaqc.optics.lattice), which says who a lens' neighbours are."""
     det_floor, ring_floor = noise_floors(table, qc)
-    phase = phase_model(phase) if phase is not None else None
+    phase = phase_model(phase, packing) if phase is not None else None
     outside = np.zeros(missing.shape, bool) if outside is None else outside
     if outside.any():
         metrics = LensMetrics({k: np.where(outside, np.nan, v) for k, v in metrics.values.items()})
@@ -980,14 +1020,15 @@ def identify(metrics: LensMetrics, missing: np.ndarray, qc: QC, table: Signature
     flagged = ((score > threshold) & ~outside) | missing
     flagged &= ~spill(score, flagged, asym=(dev["asym_x"], dev["asym_y"]),
                       offset=(detect_dev["offset_x_px"], detect_dev["offset_y_px"]), packing=packing) | missing
-    feat_dev, feat_sig = _isotropic(dev, sig, gains_y(table))  # what the lens' features are read from
+    feat_dev, feat_sig = _isotropic(dev, sig, table)  # what the lens' features are read from
     sigmas = _feature_sigmas(feat_sig)
     error_type = np.full(flagged.shape, "", dtype=object)
     defects = []
     lenses = list(zip(*np.nonzero(flagged & ~missing)))
     features = [_feature_vector(feat_dev, rings, m, n) for m, n in lenses]
     vecs = np.array([f[0] for f in features]) if features else np.zeros((0, len(sigmas) + len(RINGS)))
-    fits = dict(zip(lenses, fit_all(table, vecs, sigmas, rings.whiten)))
+    across = _across_share([f[1] for f in features]) if table.across else None
+    fits = dict(zip(lenses, fit_all(table, vecs, sigmas, rings.whiten, across)))
     shifts = dict(zip(lenses, features))
     mins = min_reportable(qc)
     split_sigma = contrast_sigma(dev["asym_x"], dev["asym_y"], packing) if split is not None else float("nan")
