@@ -74,7 +74,8 @@ def local_deviation(values: np.ndarray, size: int = 5, axis: str = "", packing: 
 
 
 def local_deviations(planes: list[np.ndarray], axes: list[str], size: int = 5,
-                     packing: str = "square") -> list[np.ndarray]:
+                     packing: str = "square", centred: bool = False,
+                     exclude: np.ndarray | None = None) -> list[np.ndarray]:
     """`local_deviation` of several (rows, cols) index maps at once: one compiled median pass over all of
     them (scipy's median_filter cost 16 ms per map); even sizes or all-NaN maps take the scipy route.
 
@@ -85,7 +86,12 @@ def local_deviations(planes: list[np.ndarray], axes: list[str], size: int = 5,
     trend of 1 % per pitch reads 0.0033), far below any index' noise; the slow maps it removes
     (vignetting, exposure, distortion) change by much less per pitch. The left and right columns,
     whose lenses alternately stick out (missing 3 of 6 neighbours) and sit in (missing 1), take the
-    running median of the lenses of their own row parity (`_hex_edge_columns`)."""
+    running median of the lenses of their own row parity (`_hex_edge_columns`). `centred`: the windows
+    that leave the outermost lenses out stay centred on their lens (`_refine_baselines`). `exclude`:
+    lenses left out of every baseline (as a lens not measured is), each still compared with its own."""
+    measured = planes
+    if exclude is not None and exclude.any():
+        planes = [np.where(exclude, np.nan, v) for v in planes]
     fills = []
     for values in planes:
         finite = np.isfinite(values)
@@ -107,10 +113,10 @@ def local_deviations(planes: list[np.ndarray], axes: list[str], size: int = 5,
     # hex: a window 2 px taller than the 0.87-pitch row step holds a strip of the rows above and below,
     # so the outer lenses, missing theirs, differ from the others far more than on a square lattice
     # (measured: SSIM 0.56 against 0.97): they are left out of every other lens' neighbourhood
-    _refine_baselines(stack, finite, base, size, [a == "x" for a in axes], 1 if packing == "hex" else 2)
+    _refine_baselines(stack, finite, base, size, [a == "x" for a in axes], 1 if packing == "hex" else 2, centred)
     if packing == "hex":
         _hex_edge_columns(stack, finite, base, size, [a == "x" for a in axes])
-    return [values - b for values, b in zip(planes, base)]
+    return [values - b for values, b in zip(measured, base)]
 
 
 def _hex_edge_columns(stack: np.ndarray, finite: np.ndarray, base: np.ndarray, size: int,
@@ -136,7 +142,7 @@ def _hex_edge_columns(stack: np.ndarray, finite: np.ndarray, base: np.ndarray, s
 
 
 def _refine_baselines(stack: np.ndarray, finite: np.ndarray, base: np.ndarray, size: int,
-                      x_axis: list[bool], outer_from: int = 2) -> None:
+                      x_axis: list[bool], outer_from: int = 2, centred: bool = False) -> None:
     """Recompute, in place, the baselines of the few lenses whose neighbourhood (the compiled pass'
     window, clipped to the array as scipy's mode 'nearest') holds lenses that do not belong in it, as the
     median of the others (`stack`: the maps, read only where `finite`). A lens not measured (NaN: off
@@ -145,7 +151,13 @@ def _refine_baselines(stack: np.ndarray, finite: np.ndarray, base: np.ndarray, s
     lenses two or more rows in (those next to the edge are their own class, judged against their own
     spread, and keep them). Without this a lens beside the not-inspected part of an edge, or two lenses
     in from the edge, is judged against a baseline pulled towards another population. `outer_from`: the
-    ring (distance to the edge) from which on the outermost lenses are left out (hex: 1, every lens)."""
+    ring (distance to the edge) from which on the outermost lenses are left out (hex: 1, every lens).
+    `centred`: the lenses opposite those left out (the window point-mirrored through the lens: beyond the
+    outermost or a lens not measured) are left out too, two or more lenses in, so the window stays
+    centred on its lens: one reaching a row further to one side reads a
+    slow trend (vignetting: 0.24 % of flux per row near a Table 1 frame's top and bottom) as half a row's
+    worth of deviation, which a frame whose flux noise floor is low (circular apertures: a lens' flux
+    does not answer to its focal errors) flags along the whole second row."""
     n_f, rows, cols = stack.shape
     half = size // 2
     edges = rows >= size and cols >= size
@@ -163,6 +175,8 @@ def _refine_baselines(stack: np.ndarray, finite: np.ndarray, base: np.ndarray, s
         ii, jj = np.broadcast_arrays(m[:, None, None] + off[None, :, None], n[:, None, None] + off[None, None, :])
         ii, jj = np.clip(ii, 0, rows - 1).reshape(m.size, -1), np.clip(jj, 0, cols - 1).reshape(m.size, -1)
         drop = ~finite[:, ii, jj] | (outer[ii, jj] & (ring[m, n] >= outer_from)[:, None])[None]
+        if centred:  # two or more in, also those opposite them (mirrored through the lens): centred on it
+            drop = drop | (drop[..., ::-1] & (ring[m, n] >= 2)[None, :, None])
         med, ok = _nan_medians(np.where(drop, np.nan, stack[:, ii, jj]))
         base[:, m, n] = np.where(ok, med, base[:, m, n])
     if not edges:
@@ -874,14 +888,15 @@ def _lowest_from_which_all(mags: np.ndarray, ok: np.ndarray) -> float | None:
 
 
 def _all_deviations(metrics: LensMetrics, position, phase: PhaseModel | None, ring_floor: np.ndarray,
-                    packing: str = "square"):
+                    packing: str = "square", centred: bool = False, exclude: np.ndarray | None = None):
     """Every index map's local deviation, phase pattern removed, in one pass (the maps share the work):
     (classification deviations, their spreads, ring noise, detection deviations — the classification
     ones with the offsets from the lower-noise `position` signal where it is given — and the local
-    baselines' trend over the array, each map's baseline minus its median per edge class)."""
+    baselines' trend over the array, each map's baseline minus its median per edge class). `centred`,
+    `exclude`: as `local_deviations` takes them."""
     values = [metrics[k] for k in _NAMES] + [metrics[r] for r in RINGS] + list(position or ())
     planes = local_deviations(values, _AXES + [""] * len(RINGS) + (["x", "y"] if position is not None else []),
-                              packing=packing)
+                              packing=packing, centred=centred, exclude=exclude)
     trend = class_centred([v - p for v, p in zip(values, planes)], packing)
     if phase is not None:
         planes = remove_phase_pattern(planes, phase)
@@ -991,7 +1006,7 @@ def _beyond_reportable(table: SignatureTable, kind: str, mag: float, power: floa
 
 def identify(metrics: LensMetrics, missing: np.ndarray, qc: QC, table: SignatureTable, position=None,
              phase=None, outside: np.ndarray | None = None, split: PositionSplit | None = None,
-             packing: str = "square") -> Identification:
+             packing: str = "square", aperture: str = "cell") -> Identification:
     """Flag, classify and size the defective lenses of one frame, and say what it could detect.
 
     `position`: optional (dx, dy) per-lens position residuals measured on this frame (the calibration's
@@ -1004,7 +1019,11 @@ def identify(metrics: LensMetrics, missing: np.ndarray, qc: QC, table: Signature
     classification always uses the registration features the table was built with. `split`: the optics'
     pitch/decenter split (mlaqc.models.position_split; None with grid boundaries), which types a
     'position' lens as pitch or decenter where this frame's noise allows. `packing`: the lattice the
-    (rows, cols) maps index (mlaqc.optics.lattice), which says who a lens' neighbours are."""
+    (rows, cols) maps index (mlaqc.optics.lattice), which says who a lens' neighbours are. `aperture`:
+    the MLA's (`mla.aperture`): with circular apertures, and on hex, the baselines near the edges are
+    taken over windows centred on their lens (`_refine_baselines`): a lens' flux does not answer to
+    its focal errors behind a circle, so its noise floor is low enough for an off-centre window's
+    reading of the vignetting to flag the second row."""
     det_floor, ring_floor = noise_floors(table, qc)
     phase = phase_model(phase, packing) if phase is not None else None
     outside = np.zeros(missing.shape, bool) if outside is None else outside
@@ -1012,12 +1031,25 @@ def identify(metrics: LensMetrics, missing: np.ndarray, qc: QC, table: Signature
         metrics = LensMetrics({k: np.where(outside, np.nan, v) for k, v in metrics.values.items()})
         position = None if position is None else tuple(np.where(outside, np.nan, p) for p in position)
         missing = missing & ~outside
-    dev, sig, rings, detect_dev, trend = _all_deviations(metrics, position, phase, ring_floor, packing)
-    noise = detection_noise(detect_dev, rings, det_floor)
-    score = detection_score(detect_dev, noise, focus_score(rings, table))
-    threshold = np.full(score.shape, qc.detect_sigma)
+    centred = packing == "hex" or aperture == "circle"  # (square cells keep the windows they were validated with)
+    threshold = np.full(missing.shape, qc.detect_sigma)
     threshold[[0, 0, -1, -1], [0, -1, 0, -1]] *= 1.5  # corner windows hold dark margin on two sides: noisier
-    flagged = ((score > threshold) & ~outside) | missing
+    exclude = None
+    for _ in range(2 if centred else 1):
+        dev, sig, rings, detect_dev, trend = _all_deviations(metrics, position, phase, ring_floor, packing, centred,
+                                                             exclude)
+        noise = detection_noise(detect_dev, rings, det_floor)
+        score = detection_score(detect_dev, noise, focus_score(rings, table))
+        flagged = ((score > threshold) & ~outside) | missing
+        if not flagged.any():
+            break
+        # centred: once more with the flagged lenses left out of every baseline, as a lens not measured is.
+        # A median over a window spanning a steep trend (vignetting: up to 1.5 % of flux per lens near a
+        # Table 1 frame's corners) moves by a rank step when one value in it is an outlier: a missing lens
+        # or a defect's echoes in a neighbour's window read as flux deviations of 0.2 %, which the low flux
+        # floor of circular apertures (a lens' flux does not answer to its focal errors behind its circle)
+        # flagged at z 6-8 on noise-free analytic frames
+        exclude = flagged
     flagged &= ~spill(score, flagged, asym=(dev["asym_x"], dev["asym_y"]),
                       offset=(detect_dev["offset_x_px"], detect_dev["offset_y_px"]), packing=packing) | missing
     feat_dev, feat_sig = _isotropic(dev, sig, table)  # what the lens' features are read from
