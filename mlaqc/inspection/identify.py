@@ -124,7 +124,10 @@ def _hex_edge_columns(stack: np.ndarray, finite: np.ndarray, base: np.ndarray, s
     """Hex lattice: the baselines of the first and last columns, in place, as the running median (size
     lenses, clipped) of the finite lenses of the same column and row parity: a shifted row's end lens
     misses other neighbours than an unshifted row's, and the two carry different biases. Corners are
-    left to the rows for planes not along x (as `median_baselines` leaves them)."""
+    left to the rows for planes not along x (as `median_baselines` leaves them), and out of the other
+    lenses' medians: outermost along their row too, they are another population (measured: a corner's
+    tilt 0.2 against 0.003 along the column), which the window's clipping at the column's end counts
+    twice, so that one lens not measured beside it made it half the median)."""
     _, rows, cols = stack.shape
     if rows < 2 * size or cols < size:
         return
@@ -135,8 +138,10 @@ def _hex_edge_columns(stack: np.ndarray, finite: np.ndarray, base: np.ndarray, s
             r = np.arange(parity, rows, 2)
             idx = np.clip(np.arange(len(r))[:, None] + np.arange(-half, half + 1)[None, :], 0, len(r) - 1)
             vals = stack[:, r, col][:, idx]
-            med, ok = _nan_medians(np.where(finite[:, r, col][:, idx], vals, np.nan))
             corner = (r == 0) | (r == rows - 1)
+            # a corner lens (outermost along its row too) is no sample of the column's population
+            use = finite[:, r, col][:, idx] & ~(corner[idx] & ~corner[:, None])[None]
+            med, ok = _nan_medians(np.where(use, vals, np.nan))
             write = ok & (~corner[None, :] | x_planes[:, None])
             base[:, r, col] = np.where(write, med, base[:, r, col])
 
