@@ -7,9 +7,11 @@ reported detection limits; then the bars.
     python bench/robustness.py --full       # + the tracer at 2,000 rays/pixel (renders ~3 min once, cached)
     python bench/robustness.py --quick      # a few analytic cells only
     python bench/robustness.py --quick --config fixtures/hex_camera.toml   # analytic cells of a hex array
+    python bench/robustness.py --quick -c fixtures/circle_camera.toml      # round lenses, opaque gaps (square)
+    python bench/robustness.py --quick -c fixtures/hex_circle_camera.toml  # round lenses, opaque gaps (hex)
 
 Analytic frames come from tests/analytic_frames.py (discs with a blurred rim on a rotated grid, cos⁴
-vignetting, PRNU, crosstalk; no code shared with the tracer), written in real containers (8-bit PNG,
+vignetting, PRNU, crosstalk; no code shared with the tracer; the config's lens aperture, `aperture_of`), written in real containers (8-bit PNG,
 12-bit data in 16-bit TIFF with black level 64 and no level tags, 14- and 16-bit TIFF with tags) and
 inspected through `inspect_file`, as a user's file would be. Tracer frames are `simulate` with the
 realistic formation (diffraction, crosstalk, PRNU) and sensor noise, cached in ~/.cache/mlaqc-bench.

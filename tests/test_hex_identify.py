@@ -7,7 +7,6 @@ analytic model's healthy lenses (every disc alike, so every ring's deviations ha
 
 from __future__ import annotations
 
-import dataclasses
 import math
 import sys
 from pathlib import Path
@@ -15,7 +14,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from mlaqc.models.signatures import FEATURES, RINGS, SignatureTable, along_curve, to_along
+from mlaqc.models.signatures import (
+    FEATURES,
+    RINGS,
+    SignatureTable,
+    along_curve,
+    to_along,
+)
 from mlaqc.optics.config import load_config
 
 FIXTURES = Path(__file__).resolve().parent.parent / "fixtures"
@@ -144,7 +149,7 @@ def test_the_second_rows_of_a_rotated_hex_array_are_as_quiet_as_the_inner_lenses
     img = am.expose(model.render(), 0.01, rng)
     img = (img / np.percentile(img, 99.5)).astype(np.float32)
     grid = calibrate_for(img, cfg)
-    half = int(math.floor(cfg.layout.subimage_pitch_px / 2))
+    half = math.floor(cfg.layout.subimage_pitch_px / 2)
     subs = divide(img, grid, 2 * half + 1)
     ref = _models(cfg)[0]
     metrics = compute_metrics(subs.data, subs.centre_x_px, subs.centre_y_px, ref, um_per_px_at_mla=um_per_px_at_mla(cfg))

@@ -31,11 +31,18 @@ spherical aberration puts best focus in front of the paraxial focus the sensor s
 Hex lattices (`packing="hex"`, mlaqc.optics.lattice): a lens' neighbours are the lattice's six, each
 along its own direction (echoes, the pitch/decenter contrast); the outer lenses, whose windows miss the
 strip of the rows beyond, are left out of every other lens' baseline, and the row ends that stick out
-are compared with each other (`_hex_edge_columns`, `hex_row_ends`). A shift across the rows registers
+are compared with each other (`_hex_edge_columns`, `hex_row_ends`); the second ring and the two kinds
+of row end each have their own sub-pixel phase pattern (`_groups`). A shift across the rows registers
 at about half its size (the pitch-wide discs overlap the rows above and below), the less the larger it
 is, and blurs and dims its sub-image otherwise: the features are read with the y offset and tilt mapped
 to the along-row scale (`signatures.to_along`), and fitted against the kind's curves rendered along and
 across the rows, mixed by how much of the lens' shift lies across them (`fit_all`).
+
+Circular apertures (`mla.aperture = "circle"`), and hex: a lens' flux does not answer to its focal
+errors behind its circle, so the flux noise floor is ~50 times lower than with cells, low enough for a
+median window that is not centred on its lens, or that holds a defect, to read the vignetting as a
+deviation. Their baseline windows stay centred near the edges and beside lenses left out, and a second
+pass leaves the first pass' flagged lenses out of every baseline (`identify`).
 """
 
 from __future__ import annotations

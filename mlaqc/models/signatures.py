@@ -4,7 +4,8 @@ Rendered by the tracer on a 9 x 9-lens patch of the camera (hex: 9 columns x 11 
 on the centre lens and the same random draws with and without it, so the differences are nearly free of
 Monte-Carlo noise. Directional errors are rendered at direction 0; their features are taken along and
 across the shift they cause, so a measured lens is compared after rotating into its own shift direction.
-Rendered at several sub-image blurs (`BLUR_VARIANTS`: the geometric image, the modelled diffraction and
+On hex, where a shift across the rows registers otherwise than one along them, pitch and decenter are
+rendered at 90° too (`SignatureTable.across`, `to_along`). Rendered at several sub-image blurs (`BLUR_VARIANTS`: the geometric image, the modelled diffraction and
 crosstalk, and wider), each with the rim width the calibration measures on it, so that a frame is
 classified with the tables interpolated to its own rim width (`SignatureSet.matched`). Cached on disk
 keyed by the optics; the default camera's tables ship in the package.
