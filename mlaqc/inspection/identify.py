@@ -900,25 +900,26 @@ def _lowest_from_which_all(mags: np.ndarray, ok: np.ndarray) -> float | None:
 
 
 def _all_deviations(metrics: LensMetrics, position, phase: PhaseModel | None, ring_floor: np.ndarray,
-                    packing: str = "square", centred: bool = False, exclude: np.ndarray | None = None):
+                    packing: str = "square", centred: bool = False, exclude: np.ndarray | None = None,
+                    with_trend: bool = True):
     """Every index map's local deviation, phase pattern removed, in one pass (the maps share the work):
     (classification deviations, their spreads, ring noise, detection deviations — the classification
     ones with the offsets from the lower-noise `position` signal where it is given — and the local
-    baselines' trend over the array, each map's baseline minus its median per edge class). `centred`,
-    `exclude`: as `local_deviations` takes them."""
+    baselines' trend over the array, each map's baseline minus its median per edge class; None unless
+    `with_trend`). `centred`, `exclude`: as `local_deviations` takes them."""
     values = [metrics[k] for k in _NAMES] + [metrics[r] for r in RINGS] + list(position or ())
     planes = local_deviations(values, _AXES + [""] * len(RINGS) + (["x", "y"] if position is not None else []),
                               packing=packing, centred=centred, exclude=exclude)
-    trend = class_centred([v - p for v, p in zip(values, planes)], packing)
+    trend = class_centred([v - p for v, p in zip(values, planes)], packing) if with_trend else None
     if phase is not None:
         planes = remove_phase_pattern(planes, phase)
-        trend = remove_phase_trend(trend, phase)
+        trend = remove_phase_trend(trend, phase) if with_trend else None
     n_dev, n_ring = len(_NAMES), len(RINGS)
     dev, sig = deviations(metrics, planes=planes[:n_dev])
     rings = ring_noise(metrics, floor=ring_floor, planes=planes[n_dev:n_dev + n_ring])
     detect_dev = dev if position is None else dict(dev, offset_x_px=planes[-2], offset_y_px=planes[-1])
     names = list(_NAMES) + list(RINGS) + (["offset_x_px", "offset_y_px"] if position is not None else [])
-    return dev, sig, rings, detect_dev, dict(zip(names, trend))
+    return dev, sig, rings, detect_dev, dict(zip(names, trend)) if with_trend else None
 
 
 def class_centred(planes: list[np.ndarray], packing: str = "square") -> list[np.ndarray]:
@@ -1046,14 +1047,16 @@ def identify(metrics: LensMetrics, missing: np.ndarray, qc: QC, table: Signature
     centred = packing == "hex" or aperture == "circle"  # (square cells keep the windows they were validated with)
     threshold = np.full(missing.shape, qc.detect_sigma)
     threshold[[0, 0, -1, -1], [0, -1, 0, -1]] *= 1.5  # corner windows hold dark margin on two sides: noisier
-    exclude = None
-    for _ in range(2 if centred else 1):
+    exclude, passes = None, 2 if centred else 1
+    for k in range(passes):
         dev, sig, rings, detect_dev, trend = _all_deviations(metrics, position, phase, ring_floor, packing, centred,
-                                                             exclude)
+                                                             exclude, with_trend=k == passes - 1)
         noise = detection_noise(detect_dev, rings, det_floor)
         score = detection_score(detect_dev, noise, focus_score(rings, table))
         flagged = ((score > threshold) & ~outside) | missing
         if not flagged.any():
+            if trend is None:  # (the readings' trend: what the last pass would have given)
+                trend = _all_deviations(metrics, position, phase, ring_floor, packing, centred)[4]
             break
         # centred: once more with the flagged lenses left out of every baseline, as a lens not measured is.
         # A median over a window spanning a steep trend (vignetting: up to 1.5 % of flux per lens near a
