@@ -7,9 +7,11 @@ reported detection limits; then the bars.
     python bench/robustness.py --full       # + the tracer at 2,000 rays/pixel (renders ~3 min once, cached)
     python bench/robustness.py --quick      # a few analytic cells only
     python bench/robustness.py --quick --config fixtures/hex_camera.toml   # analytic cells of a hex array
+    python bench/robustness.py --quick -c fixtures/circle_camera.toml      # round lenses, opaque gaps (square)
+    python bench/robustness.py --quick -c fixtures/hex_circle_camera.toml  # round lenses, opaque gaps (hex)
 
 Analytic frames come from tests/analytic_frames.py (discs with a blurred rim on a rotated grid, cos⁴
-vignetting, PRNU, crosstalk; no code shared with the tracer), written in real containers (8-bit PNG,
+vignetting, PRNU, crosstalk; no code shared with the tracer; the config's lens aperture, `aperture_of`), written in real containers (8-bit PNG,
 12-bit data in 16-bit TIFF with black level 64 and no level tags, 14- and 16-bit TIFF with tags) and
 inspected through `inspect_file`, as a user's file would be. Tracer frames are `simulate` with the
 realistic formation (diffraction, crosstalk, PRNU) and sensor noise, cached in ~/.cache/mlaqc-bench.
@@ -138,7 +140,7 @@ def run_analytic(spec: dict, seed: int, tmp: Path, cfg=None) -> Cell:
             + (f" exposure {spec['white_fraction']:.0%}" if "white_fraction" in spec else ""))
     model = am.AnalyticModel(rotation_deg=spec["rotation_deg"], phase_px=spec["phase"], rim=spec["rim"],
                              shape=(cfg.sensor.height_px, cfg.sensor.width_px), lenses=(cfg.mla.count_h, cfg.mla.count_w),
-                             packing=cfg.mla.packing, **extra)
+                             packing=cfg.mla.packing, **(aperture_of(cfg) | extra))
     rng = np.random.default_rng(seed)
     anomalies = am.random_anomalies(model, 24, rng)
     model = model.with_anomalies(anomalies)
@@ -157,6 +159,23 @@ def run_analytic(spec: dict, seed: int, tmp: Path, cfg=None) -> Cell:
     score(cell, result, _match_truth(result, model, truth))
     cell.centre_rms_px, cell.grid_rms_px = centre_rms(result, model, {k for k in truth})
     return cell
+
+
+def aperture_of(cfg) -> dict:
+    """The analytic model's lens aperture for a camera's MLA: a circle's diameter over the pitch (its
+    rim's diffraction), and with clear gaps the unfocused light they let through, spread evenly: the
+    gaps' share of the cell's light over the whole cell, against the circle's share concentrated in a
+    pitch-wide disc; nothing for lenses filling their cells."""
+    mla = cfg.mla
+    if mla.aperture != "circle":
+        return {}
+    rel = mla.aperture_diameter_um / mla.pitch_um
+    cell = 1.0 if mla.packing == "square" else np.sqrt(3.0) / 2  # cell area over pitch²
+    out = {"aperture_rel": rel}
+    if mla.gap == "clear":
+        fill, disc = np.pi * rel ** 2 / 4 / cell, np.pi / 4 / cell
+        out["background"] = (1.0 - fill) * disc / fill
+    return out
 
 
 def _match_truth(result, model, truth: dict) -> dict:

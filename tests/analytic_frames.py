@@ -7,7 +7,9 @@ sub-pixel phase, integrated exactly
 over each pixel (4 x 4 Gauss-Legendre points: the disc is smooth at that scale), times cos⁴ vignetting
 (and an optional extra radial fall-off), a fixed PRNU pattern and nearest-neighbour crosstalk; an
 optional uniform background stands for the unfocused light that clear gaps between circular lenses let
-through. Seeded
+through. A circular lens aperture smaller than its cell (`aperture_rel`) leaves the sub-image the main
+lens' pupil disc (every lens still sees the whole pupil), dimmer alike for every lens (exposure takes
+that up), and widens its rim by the smaller aperture's diffraction. Seeded
 anomalies of known size: shift, skew (intensity tilt), blur, size, dim, missing. Noise from none to
 15 % per white pixel; containers of 8, 12 (in 16), 14 and 16 bits with black levels and with or
 without level tags.
@@ -77,6 +79,7 @@ class AnalyticModel:
     anomalies: tuple[Anomaly, ...] = ()
     packing: str = "square"  # or "hex": rows pitch·√3/2 apart, rows 1, 3, ... (0-based; U(2,n), U(4,n), ...) +pitch/2 in x
     background: float = 0.0  # unfocused light through clear gaps between circular lenses, level under and between discs
+    aperture_rel: float = 1.0  # the lens aperture: 1 fills its cell; < 1 a circle of this diameter over the pitch
 
     def with_anomalies(self, anomalies) -> AnalyticModel:
         return dataclasses.replace(self, anomalies=tuple(anomalies))
@@ -161,15 +164,28 @@ class AnalyticModel:
     def _edge(self):
         """The rim's edge-spread function of the signed distance inside the rim (px) and a blur factor."""
         if self.rim == "gaussian":
-            return lambda d, b: 0.5 * erfc(-d / (math.sqrt(2.0) * self.rim_sigma_px * b))
+            return lambda d, b: 0.5 * erfc(-d / (math.sqrt(2.0) * self.rim_sigma() * b))
         if self.rim == "airy":
-            return _airy_esf(self.airy_radius_px)
+            return _airy_esf(self.airy_px())
         raise ValueError(f"unknown rim {self.rim!r}")
+
+    def airy_px(self) -> float:
+        """The Airy PSF's first zero (px) behind this lens aperture: 1.22 λ f / D grows as D shrinks."""
+        return self.airy_radius_px / self.aperture_rel
+
+    def rim_sigma(self) -> float:
+        """The Gaussian rim's sigma (px): `rim_sigma_px` for a lens filling its cell; a smaller circular
+        aperture widens its diffraction share (the Airy core's sigma, 0.42 λ f / D = 0.344 of its first
+        zero) in quadrature."""
+        if self.aperture_rel == 1.0:
+            return self.rim_sigma_px
+        diffraction = 0.344 * self.airy_radius_px
+        return math.sqrt(self.rim_sigma_px ** 2 + diffraction ** 2 * (1.0 / self.aperture_rel ** 2 - 1.0))
 
     def _add_discs(self, img, cx, cy, radius, blur, flux, skew, edge) -> None:
         """Sum the pixel integrals of discs centred at (cx, cy) into img (vectorized over lenses)."""
         h, w = img.shape
-        half = int(math.ceil(self.radius_px * 1.25 + 4 * max(self.rim_sigma_px, self.airy_radius_px) * blur.max()))
+        half = int(math.ceil(self.radius_px * 1.25 + 4 * max(self.rim_sigma(), self.airy_px()) * blur.max()))
         off = np.arange(-half, half + 1)
         px = np.rint(cx)[:, None, None] + off[None, None, :]
         py = np.rint(cy)[:, None, None] + off[None, :, None]

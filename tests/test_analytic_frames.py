@@ -53,6 +53,32 @@ def test_the_rim_crosses_half_height_at_the_radius():
     assert math.hypot(r_half, 0.5) == pytest.approx(9.0, abs=0.05)
 
 
+@pytest.mark.parametrize("rim", ["airy", "gaussian"])
+def test_a_smaller_circular_aperture_widens_the_rim_by_its_diffraction(rim):
+    """Diffraction's edge width goes as λ f / D: an Airy rim behind a lens 0.8 of the pitch wide is 1.25
+    times as wide (25-75 % rise; a wide Airy, so the pixel's own width hardly counts); a Gaussian rim
+    (all blur together) widens only by the diffraction share in quadrature, and a lens filling its cell
+    leaves it exactly as it was."""
+
+    def width(**kw) -> float:
+        m = _one(radius_px=20.0, shape=(96, 96), **kw)
+        row = m.render()[int(m.centres()[1][0, 0])]
+        cx = m.centres()[0][0, 0]
+        x = np.arange(row.size) - cx
+        right = (x > 5) & (x < 40)
+        prof = row[right][::-1] / row[int(cx)]
+        return abs(float(np.interp(0.75, prof, x[right][::-1]) - np.interp(0.25, prof, x[right][::-1])))
+
+    if rim == "airy":
+        assert width(rim="airy", airy_radius_px=6.0, aperture_rel=0.8) / width(rim="airy", airy_radius_px=6.0) \
+            == pytest.approx(1.25, rel=0.02)
+    else:
+        wide = width(rim_sigma_px=1.0, airy_radius_px=3.0, aperture_rel=0.8)
+        sigma = math.sqrt(1.0 + (0.344 * 3.0) ** 2 * (1 / 0.8 ** 2 - 1))  # 1.27 px
+        assert wide / width(rim_sigma_px=1.0) == pytest.approx(sigma, rel=0.04)
+        assert np.array_equal(_one(aperture_rel=1.0).render(), _one().render())
+
+
 def test_a_shift_at_90_degrees_moves_the_sub_image_up():
     base = _one()
     moved = base.with_anomalies([Anomaly(0, 0, "shift", 0.4, 90.0)])

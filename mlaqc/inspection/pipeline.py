@@ -129,7 +129,7 @@ def _inspect_image(img: np.ndarray, cfg: CameraConfig, *, grid: Grid | None = No
         table = table.matched(float(getattr(grid, "edge_width_px", np.nan)))
     phase = (np.mod(grid.grid_x_px, 1.0), np.mod(grid.grid_y_px, 1.0))
     found = identify(metrics, grid.missing | ~np.isfinite(metrics["flux"]), cfg.qc, table, position, phase,
-                     outside=grid.clipped, split=position_split(cfg), packing=cfg.mla.packing)
+                     outside=grid.clipped, split=position_split(cfg), packing=cfg.mla.packing, aperture=cfg.mla.aperture)
     defects, flagged, error_type = found.defects, found.flagged, found.error_type
     lap("identify")
     measured = measure_lenses(found, table, cfg, (grid.residual_x_px, grid.residual_y_px) if own_grid else None)

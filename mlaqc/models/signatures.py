@@ -4,7 +4,8 @@ Rendered by the tracer on a 9 x 9-lens patch of the camera (hex: 9 columns x 11 
 on the centre lens and the same random draws with and without it, so the differences are nearly free of
 Monte-Carlo noise. Directional errors are rendered at direction 0; their features are taken along and
 across the shift they cause, so a measured lens is compared after rotating into its own shift direction.
-Rendered at several sub-image blurs (`BLUR_VARIANTS`: the geometric image, the modelled diffraction and
+On hex, where a shift across the rows registers otherwise than one along them, pitch and decenter are
+rendered at 90° too (`SignatureTable.across`, `to_along`). Rendered at several sub-image blurs (`BLUR_VARIANTS`: the geometric image, the modelled diffraction and
 crosstalk, and wider), each with the rim width the calibration measures on it, so that a frame is
 classified with the tables interpolated to its own rim width (`SignatureSet.matched`). Cached on disk
 keyed by the optics; the default camera's tables ship in the package.
@@ -76,12 +77,17 @@ class SignatureTable:
     key: str
     rings: dict[str, np.ndarray]
     settings: dict = dataclasses.field(default_factory=dict)
+    # hex only: the ACROSS_KINDS rendered across the rows (ACROSS_DEG), each (len(magnitudes), FEATURES +
+    # RINGS) taken along its own shift as `features` are; empty on a square lattice (isotropic there)
+    across: dict[str, np.ndarray] = dataclasses.field(default_factory=dict)
 
     def to_json_dict(self) -> dict:
+        kinds = {k: {"magnitudes": self.magnitudes[k].tolist(), "features": self.features[k].tolist(),
+                     "rings": self.rings[k].tolist(), "phi0_deg": self.phi0_deg[k]} for k in self.magnitudes}
+        for k, a in self.across.items():
+            kinds[k]["across"] = a.tolist()
         return {"format": "mlaqc-signatures", "version": TABLE_VERSION, "key": self.key, "features": list(FEATURES),
-                "rings": list(RINGS), "settings": self.settings,
-                "kinds": {k: {"magnitudes": self.magnitudes[k].tolist(), "features": self.features[k].tolist(),
-                              "rings": self.rings[k].tolist(), "phi0_deg": self.phi0_deg[k]} for k in self.magnitudes}}
+                "rings": list(RINGS), "settings": self.settings, "kinds": kinds}
 
     @classmethod
     def from_json_dict(cls, d: dict) -> SignatureTable:
@@ -89,7 +95,26 @@ class SignatureTable:
         return cls({k: np.asarray(v["magnitudes"], float) for k, v in kinds.items()},
                    {k: np.asarray(v["features"], float) for k, v in kinds.items()},
                    {k: float(v["phi0_deg"]) for k, v in kinds.items()}, d["key"],
-                   {k: np.asarray(v["rings"], float) for k, v in kinds.items()}, dict(d.get("settings", {})))
+                   {k: np.asarray(v["rings"], float) for k, v in kinds.items()}, dict(d.get("settings", {})),
+                   {k: np.asarray(v["across"], float) for k, v in kinds.items() if "across" in v})
+
+    def across_table(self) -> SignatureTable:
+        """The table as a lens shifted across the rows sees it: the ACROSS_KINDS' curves rendered at
+        ACROSS_DEG, their shift and tilt columns kept from along the rows (a lens' y offset and tilt are
+        mapped to the along-row scale first, `to_along`); this table itself where nothing was rendered
+        across (square, older tables)."""
+        if not self.across:
+            return self
+        cache = self.__dict__.setdefault("_across", {})
+        if "t" not in cache:
+            n = len(FEATURES)
+            feats, rings = dict(self.features), dict(self.rings)
+            for k, a in self.across.items():
+                feats[k] = np.concatenate([self.features[k][:, :4], a[:, 4:n]], axis=1)
+                rings[k] = a[:, n:]
+            cache["t"] = SignatureTable(dict(self.magnitudes), feats, dict(self.phi0_deg), self.key, rings,
+                                        dict(self.settings))
+        return cache["t"]
 
 
 @dataclass(frozen=True)
@@ -138,9 +163,13 @@ def _blend(lo: SignatureTable, hi: SignatureTable, frac: float, edge_width_px: f
     mix = {name: {k: (1 - frac) * getattr(lo, name)[k] + frac * getattr(hi, name)[k] for k in lo.magnitudes}
            for name in ("features", "rings")}
     phi0 = {k: lo.phi0_deg[k] if frac < 0.5 else hi.phi0_deg[k] for k in lo.magnitudes}
-    return SignatureTable(dict(lo.magnitudes), mix["features"], phi0, lo.key, mix["rings"],
-                          {**lo.settings, "edge_width_px": edge_width_px, "blended": [lo.settings.get("extra_blur_px"),
-                                                                                       hi.settings.get("extra_blur_px"), frac]})
+    across = {k: (1 - frac) * lo.across[k] + frac * hi.across[k] for k in lo.across if k in hi.across}
+    settings = {**lo.settings, "edge_width_px": edge_width_px,
+                "blended": [lo.settings.get("extra_blur_px"), hi.settings.get("extra_blur_px"), frac]}
+    for name in ("shift_gain_y", "asym_gain_y"):
+        if name in lo.settings and name in hi.settings:
+            settings[name] = (1 - frac) * lo.settings[name] + frac * hi.settings[name]
+    return SignatureTable(dict(lo.magnitudes), mix["features"], phi0, lo.key, mix["rings"], settings, across)
 
 
 def signature_key(cfg: CameraConfig) -> str:
@@ -149,7 +178,7 @@ def signature_key(cfg: CameraConfig) -> str:
     mla = {k: v for k, v in mla_hash_view(d["mla"]).items() if k not in ("count_w", "count_h")}
     keep = {"main_lens": d["main_lens"], "mla": mla, "geometry": d["geometry"], "pixel_um": d["sensor"]["pixel_um"],
             "fresnel": d["trace"]["fresnel"], "version": TABLE_VERSION, **blur_key(cfg)}
-    if cfg.mla.packing == "hex":  # hex tables also hold the Y_PROBE's gain
+    if cfg.mla.packing == "hex":  # hex tables also hold the renders across the rows (ACROSS_DEG)
         keep["y_probe"] = Y_PROBE
     return hashlib.sha256(json.dumps(keep, sort_keys=True).encode()).hexdigest()[:16]
 
@@ -216,29 +245,39 @@ def lens_features(metrics, m: int, n: int, direction_deg: float | None = None) -
 
 def patch_errors(kinds=KINDS, packing: str = "square") -> list[ErrorMap]:
     """The patch's error maps in table order: the perfect patch, then each kind at each magnitude on the
-    centre lens (`patch_centre`); on hex then the Y_PROBE (see `shift_gain_y`)."""
+    centre lens (`patch_centre`); on hex then the ACROSS_KINDS at each magnitude across the rows."""
     rows, cols = patch_shape(packing)
     r, c = rows // 2, cols // 2
     maps = [ErrorMap.zeros(rows, cols, packing)]
     for kind in kinds:
         maps += [ErrorMap.zeros(rows, cols, packing).with_lens(r + 1, c + 1, **kind.fields(v)) for v in kind.magnitudes]
-    if packing == "hex" and any(k.name == "pitch" for k in kinds):
-        maps.append(ErrorMap.zeros(rows, cols, packing).with_lens(r + 1, c + 1, **Y_PROBE))
+    for kind in _across_kinds(kinds, packing):
+        maps += [ErrorMap.zeros(rows, cols, packing).with_lens(r + 1, c + 1, **_across_fields(kind, v))
+                 for v in kind.magnitudes]
     return maps
 
 
-# A pitch error across the rows (90 deg), rendered on hex patches only: see `shift_gain_y`.
-Y_PROBE = {"pitch_um": 2.0, "pitch_dir_deg": 90.0}
+# Hex sub-images of a pitch-wide disc overlap the rows above and below (rows are 0.87 pitch apart), so a
+# lens shifted across the rows (y) registers at about half the shift along them (x), less the larger it is
+# (pitch 1 µm: 0.54, 8 µm: 0.42 of x), and tilts, blurs and dims its sub-image otherwise: on hex the
+# position kinds are rendered across the rows too (`SignatureTable.across`).
+ACROSS_DEG = 90.0
+ACROSS_KINDS = ("pitch", "decenter")
+Y_PROBE = {"pitch_um": 2.0, "pitch_dir_deg": 90.0}  # the across render the recorded constant gains are read at
+
+
+def _across_kinds(kinds, packing: str) -> list[ErrorKind]:
+    return [k for k in kinds if k.name in ACROSS_KINDS] if packing == "hex" else []
+
+
+def _across_fields(kind: ErrorKind, magnitude: float) -> dict[str, float]:
+    return {f"{kind.name}_um": magnitude, f"{kind.name}_dir_deg": ACROSS_DEG}
 
 
 def shift_gain_y(table: SignatureTable) -> float:
     """How much less a lens shift across the rows (y) moves its registered sub-image than one along them
-    (x), on hex: 1 on a square lattice. Hex sub-images of a pitch-wide disc overlap the rows above and
-    below (rows are 0.87 pitch apart), so a shift in y moves the lens' rim under its neighbours' light,
-    which the registration against the whole window sees only in part (measured on the small hex
-    camera: 0.21 px against 0.38 px for 2 µm; a sub-window without the overlap strips sees almost none
-    of it). The table's directional kinds are rendered along x; `identify` scales the y offsets by
-    1 / this before reading them, so that a shift reads the same in every direction."""
+    (x), at the Y_PROBE's size: 1 on a square lattice (see ACROSS_DEG). Kept for the record; the
+    identification maps a y offset by `to_along`, which follows the gain over the rendered sizes."""
     return float(table.settings.get("shift_gain_y", 1.0) or 1.0)
 
 
@@ -246,6 +285,58 @@ def gains_y(table: SignatureTable) -> tuple[float, float]:
     """(`shift_gain_y`, asym_gain_y): the Y_PROBE's registered shift and intensity tilt over the same
     pitch error's along x (1, 1 on a square lattice)."""
     return shift_gain_y(table), float(table.settings.get("asym_gain_y", 1.0) or 1.0)
+
+
+def along_curve(table: SignatureTable, column: int) -> tuple[np.ndarray, np.ndarray] | None:
+    """(across, along): the feature `column` (0 shift_par, 2 asym_par) that each ACROSS_KINDS' magnitude
+    gives across the rows and along them, over every rendered magnitude of every such kind, sorted by
+    `across` and made non-decreasing in both (a monotone map); None without across renders. A kind's
+    curve is taken up to where it stops rising (a 20 µm decenter registers less across the rows than
+    12 µm: the disc's rim has left the window's overlap strips)."""
+    pts = [pt for k in table.across if k in table.features
+           for pt in _rising(np.abs(table.across[k][:, column]), np.abs(table.features[k][:, column]))]
+    if not pts:
+        return None
+    pts.sort()
+    across, along = np.array(pts).T
+    return np.maximum.accumulate(across), np.maximum.accumulate(along)
+
+
+def _rising(across: np.ndarray, along: np.ndarray) -> list[tuple[float, float]]:
+    """The (across, along) pairs of one kind's magnitudes, up to the first that does not rise in both."""
+    stop = len(across)
+    for i in range(1, len(across)):
+        if across[i] <= across[i - 1] or along[i] <= along[i - 1]:
+            stop = i
+            break
+    return list(zip(across[:stop].tolist(), along[:stop].tolist()))
+
+
+def to_along(table: SignatureTable, value: np.ndarray, column: int) -> np.ndarray:
+    """A y offset (column 0) or y tilt (column 2) across the rows, mapped to the size the same error
+    gives along them: monotone through the table's across / along pairs (`along_curve`), linear through
+    zero below the smallest, at the largest pair's ratio beyond it; sign kept. The constant gain
+    (`gains_y`) where no across curve was rendered; unchanged on a square lattice."""
+    value = np.asarray(value, dtype=np.float64)
+    curve = along_curve(table, column)
+    if curve is None:
+        gain = gains_y(table)[0 if column == 0 else 1]
+        return value / gain if gain > 0 else value
+    across, along = curve
+    mag = np.abs(value)
+    out = np.interp(mag, np.concatenate([[0.0], across]), np.concatenate([[0.0], along]))
+    beyond = mag > across[-1]
+    out = np.where(beyond, mag * (along[-1] / across[-1]), out)
+    return np.sign(value) * out
+
+
+def along_gain_small(table: SignatureTable, column: int) -> float:
+    """d(along)/d(across) of `to_along` at small sizes: how a y spread scales with it (noise is small)."""
+    curve = along_curve(table, column)
+    if curve is None:
+        gain = gains_y(table)[0 if column == 0 else 1]
+        return 1.0 / gain if gain > 0 else 1.0
+    return float(curve[1][0] / curve[0][0]) if curve[0][0] > 0 else 1.0
 
 
 def _render_patch(patch: CameraConfig, errors: ErrorMap, rays_per_pixel: float, seed: int) -> np.ndarray:
@@ -302,11 +393,8 @@ def build_signatures(cfg: CameraConfig, *, rays_per_pixel: float = 400.0, kinds=
     for kind in kinds:
         mets = [metrics_of(img) for img in images[first:first + len(kind.magnitudes)]]
         first += len(kind.magnitudes)
-        phi = 0.0
-        if kind.directional:  # features are taken along the shift that an error at direction 0 causes
-            big = mets[len(mets) // 2:]
-            phi = float(np.degrees(np.angle(sum(np.exp(1j * np.arctan2(-m_["offset_y_px"][r, c], m_["offset_x_px"][r, c]))
-                                                    for m_ in big))))
+        # features are taken along the shift that an error at direction 0 causes
+        phi = _shift_direction(mets[len(mets) // 2:], r, c) if kind.directional else 0.0
         base_phi = lens_features(base, r, c, phi)
         mags[kind.name] = np.asarray(kind.magnitudes, float)
         feats[kind.name] = np.asarray([lens_features(m_, r, c, phi) - base_phi for m_ in mets])
@@ -314,16 +402,27 @@ def build_signatures(cfg: CameraConfig, *, rays_per_pixel: float = 400.0, kinds=
         phi0[kind.name] = phi
     settings = {"rays_per_pixel": rays_per_pixel, "seed": seed, "patch_lenses": PATCH,
                 "extra_blur_px": extra_blur_px, "edge_width_px": edge_width}
-    if len(images) > first and "pitch" in mags:  # the hex Y_PROBE: its shift over the same pitch along x
-        probe = metrics_of(images[first])
-        along = float(np.interp(Y_PROBE["pitch_um"], mags["pitch"], feats["pitch"][:, 0]))
-        across = float(np.hypot(probe["offset_x_px"][r, c] - base["offset_x_px"][r, c],
-                                probe["offset_y_px"][r, c] - base["offset_y_px"][r, c]))
-        settings["shift_gain_y"] = across / along if along > 0 else 1.0
-        tilt = float(np.interp(Y_PROBE["pitch_um"], mags["pitch"], feats["pitch"][:, 2]))
-        tilt_y = float(np.hypot(probe["asym_x"][r, c] - base["asym_x"][r, c], probe["asym_y"][r, c] - base["asym_y"][r, c]))
-        settings["asym_gain_y"] = tilt_y / abs(tilt) if abs(tilt) > 0 else 1.0
-    return SignatureTable(mags, feats, phi0, signature_key(cfg), rings, settings)
+    across = {}
+    for kind in _across_kinds(kinds, patch.mla.packing):
+        mets = [metrics_of(img) for img in images[first:first + len(kind.magnitudes)]]
+        first += len(kind.magnitudes)
+        phi = _shift_direction(mets[len(mets) // 2:], r, c)
+        base_phi = lens_features(base, r, c, phi)
+        across[kind.name] = np.asarray([np.concatenate([lens_features(m_, r, c, phi) - base_phi,
+                                                        [m_[k][r, c] - base[k][r, c] for k in RINGS]]) for m_ in mets])
+    if "pitch" in across:  # the constant gains at the Y_PROBE's size, for the record (`gains_y`)
+        p = Y_PROBE["pitch_um"]
+        settings["shift_gain_y"] = float(np.interp(p, mags["pitch"], across["pitch"][:, 0])
+                                         / np.interp(p, mags["pitch"], feats["pitch"][:, 0]))
+        settings["asym_gain_y"] = float(np.interp(p, mags["pitch"], across["pitch"][:, 2])
+                                        / np.interp(p, mags["pitch"], feats["pitch"][:, 2]))
+    return SignatureTable(mags, feats, phi0, signature_key(cfg), rings, settings, across)
+
+
+def _shift_direction(mets: list, r: int, c: int) -> float:
+    """The mean direction (deg, image convention) of lens [r, c]'s registered shift over `mets`."""
+    return float(np.degrees(np.angle(sum(np.exp(1j * np.arctan2(-m_["offset_y_px"][r, c], m_["offset_x_px"][r, c]))
+                                         for m_ in mets))))
 
 
 def build_signature_set(cfg: CameraConfig, *, rays_per_pixel: float = 400.0, progress=None,
