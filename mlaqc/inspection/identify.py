@@ -46,7 +46,7 @@ from itertools import pairwise
 
 import numpy as np
 
-from mlaqc.inspection.filters import max_filter_nearest, max_of_neighbours
+from mlaqc.inspection.filters import lattice_max_of_neighbours, max_filter_nearest, max_of_neighbours, with_neighbours
 from mlaqc.inspection.metrics_kernels import median_baselines
 from mlaqc.inspection.results import Defect, LensMetrics
 from mlaqc.models.position_split import PositionSplit, contrast_sigma, neighbour_contrast, split_limits, type_position
@@ -308,17 +308,23 @@ def phase_model(phase: tuple[np.ndarray, np.ndarray]) -> PhaseModel:
     return model
 
 
-def remove_phase_pattern(planes: list[np.ndarray], model: PhaseModel) -> list[np.ndarray]:
+def remove_phase_pattern(planes: list[np.ndarray], model: PhaseModel,
+                         exclude: np.ndarray | None = None) -> list[np.ndarray]:
     """Deviation maps minus their fitted dependence on sub-pixel phase, per lens group.
 
     A sub-image that differs from the reference in profile (another rim blur, diffraction, pixel MTF)
     is registered and indexed with a small error that depends on where it falls on the pixel grid; over
     a rotated or non-integer-pitch grid that error draws a pattern across the array which the local
     median cannot remove. It is a property of the frame, not of a lens: it is fitted (Fourier terms of
-    the phase, robustly: outliers beyond 4 sigma left out, so a defect does not bend the fit) and removed."""
+    the phase, robustly: outliers beyond 4 sigma left out, so a defect does not bend the fit) and removed.
+    `exclude`: lenses also left out of the fit (a defect's neighbours, within 4 sigma but not noise),
+    where enough of their group is left (four per fitted term)."""
     stack = np.stack(planes, axis=-1).astype(np.float64)  # (rows, cols, J)
     for sel, basis, outer, full in model.groups:
-        stack[sel] = _phase_fit(stack[sel], basis, outer, full)
+        left_out = exclude[sel] if exclude is not None else None
+        if left_out is not None and (~left_out).sum() < 4 * basis.shape[1]:
+            left_out = None
+        stack[sel] = _phase_fit(stack[sel], basis, outer, full, left_out)
     return [stack[..., j] for j in range(len(planes))]
 
 
@@ -335,12 +341,15 @@ def remove_phase_trend(planes: list[np.ndarray], model: PhaseModel) -> list[np.n
     return [stack[..., j] for j in range(len(planes))]
 
 
-def _phase_fit(y: np.ndarray, basis: np.ndarray, outer: np.ndarray, full: np.ndarray) -> np.ndarray:
+def _phase_fit(y: np.ndarray, basis: np.ndarray, outer: np.ndarray, full: np.ndarray,
+               skip: np.ndarray | None = None) -> np.ndarray:
     """Columns of y (n, J) minus their robust least-squares fit on `basis` (n, P), all columns at once:
     a fit on the finite values, then a refit without those beyond 4 robust sigma of the first. Each
-    column's Gram matrix is the full one (`full`, summed `outer`) less the few lenses it leaves out."""
+    column's Gram matrix is the full one (`full`, summed `outer`) less the few lenses it leaves out;
+    `skip` (n,): lenses never fitted (their residuals are still returned)."""
     p = basis.shape[1]
-    keep = np.isfinite(y)
+    fit = np.isfinite(y) if skip is None else np.isfinite(y) & ~skip[:, None]
+    keep = fit
     y0 = np.where(keep, y, 0.0)
     resid = y
     for step in range(2):
@@ -352,10 +361,10 @@ def _phase_fit(y: np.ndarray, basis: np.ndarray, outer: np.ndarray, full: np.nda
         coef[keep.sum(axis=0) < 2 * p] = 0.0
         resid = y - basis @ coef.T
         if step == 0:  # every column's robust sigma at once (from at most ~2,000 lenses: enough for a 4-sigma cut)
-            sample = resid[:: max(1, len(resid) // 2000)]
+            sample = (resid if skip is None else np.where(fit, resid, np.nan))[:: max(1, len(resid) // 2000)]
             mad = _column_medians(np.abs(sample - _column_medians(sample)))
             with np.errstate(invalid="ignore"):
-                keep = np.isfinite(resid) & (np.abs(resid) <= 4 * np.maximum(1.4826 * mad, 1e-9))
+                keep = fit & (np.abs(resid) <= 4 * np.maximum(1.4826 * mad, 1e-9))
     return resid
 
 
@@ -374,15 +383,16 @@ def _column_medians(a: np.ndarray) -> np.ndarray:
         return np.where(k > 0, 0.5 * (s[lo, cols] + s[np.minimum(hi, len(s) - 1), cols]), np.nan)
 
 
-def class_sigmas(dev: np.ndarray, floor: float | np.ndarray = 0.0) -> np.ndarray:
+def class_sigmas(dev: np.ndarray, floor: float | np.ndarray = 0.0, exclude: np.ndarray | None = None) -> np.ndarray:
     """Per lens the spread (`tail_sigma`) of its noise class (`noise_classes`), never below the inner
     lenses' nor `floor`: edge lenses are noisier than inner ones, and one spread for all would flag them.
-    `dev` (rows, cols) or a stack (rows, cols, J) of maps, each with its own floor."""
+    `dev` (rows, cols) or a stack (rows, cols, J) of maps, each with its own floor; `exclude`: lenses left
+    out of the inner spread (`_quiet_inner`)."""
     stack = dev[..., None] if dev.ndim == 2 else dev
     floor = np.broadcast_to(np.asarray(floor, float), stack.shape[-1:])
     cls = noise_classes(stack.shape[:2])
     flat = stack.reshape(-1, stack.shape[-1])
-    inner_rows = flat[(cls == 2).ravel()]
+    inner_rows = flat[_quiet_inner(cls == 2, exclude).ravel()]
     inner = _column_tail_sigmas(inner_rows if (np.isfinite(inner_rows).sum(axis=0) > 8).all() else flat, floor)
     inner = np.where(np.isfinite(inner), np.maximum(inner, floor), floor)
     out = np.broadcast_to(inner, stack.shape).copy()
@@ -470,7 +480,8 @@ class RingNoise:
 
 
 def ring_noise(metrics: LensMetrics, phase: PhaseModel | None = None, floor: np.ndarray | None = None,
-               planes: list[np.ndarray] | None = None, packing: str = "square") -> RingNoise:
+               planes: list[np.ndarray] | None = None, packing: str = "square",
+               exclude: np.ndarray | None = None) -> RingNoise:
     """Local deviations of the ring profile, whitened by their covariance over the array's inner lenses
     (those within 4 robust sigma on every ring: a defect must not widen the noise it is judged against).
 
@@ -480,7 +491,8 @@ def ring_noise(metrics: LensMetrics, phase: PhaseModel | None = None, floor: np.
     scaled down to the inner lenses' noise where wider, so that one threshold holds everywhere.
     `phase`: remove the sub-pixel phase pattern (`remove_phase_pattern`); `floor` (per ring): the
     smallest noise the covariance may claim, so a noise-free frame cannot make the whitening explode;
-    `planes`: the rings' deviations, already computed."""
+    `planes`: the rings' deviations, already computed; `exclude`: lenses left out of the inner lenses'
+    noise (`_quiet_inner`)."""
     if planes is None:
         planes = local_deviations([metrics[r] for r in RINGS], [""] * len(RINGS), packing=packing)
         if phase is not None:
@@ -492,7 +504,9 @@ def ring_noise(metrics: LensMetrics, phase: PhaseModel | None = None, floor: np.
         sel = (cls == c) & finite
         if sel.any():
             dev[sel] -= np.median(dev[sel], axis=0)
-    flat = dev[(cls == 2) & finite] if ((cls == 2) & finite).sum() > 8 * len(RINGS) else dev[finite]
+    inner = (cls == 2) & finite
+    quiet = _quiet_inner(inner, exclude, 4 * len(RINGS) + 1)  # enough for a covariance, the defects left out
+    flat = dev[quiet] if quiet is not inner or inner.sum() > 8 * len(RINGS) else dev[finite]
     sig = np.array([robust_sigma(flat[:, k]) for k in range(flat.shape[1])]) if len(flat) else np.ones(len(RINGS))
     core = (np.abs(flat) < 4 * sig).all(axis=1)
     cov = np.cov(flat[core].T) if core.sum() > 4 * len(RINGS) else np.diag(sig ** 2)
@@ -504,8 +518,9 @@ def ring_noise(metrics: LensMetrics, phase: PhaseModel | None = None, floor: np.
     # edge classes by their tail-aware spread, against the inner lenses' plain robust one (which a few
     # defects among the inner lenses do not inflate, while their tails would in a small array)
     # (whitened: unit noise, the floor included, so the tail's outlier cut assumes at least that)
+    left = finite & ~exclude if quiet is not inner else finite  # the inner lenses' spread without the defects
     spread = {c: robust_sigma(w) if c == 2 else tail_sigma(w, 1.0)
-              for c, w in ((c, (dev[(cls == c) & finite] @ whiten).ravel()) for c in range(4))}
+              for c, w in ((c, (dev[(cls == c) & (left if c == 2 else finite)] @ whiten).ravel()) for c in range(4))}
     for c in (0, 1, 3):  # (never sharpened: fewer lenses, a less sure spread)
         if np.isfinite(spread[c]) and np.isfinite(spread[2]) and spread[c] > spread[2]:
             dev[cls == c] *= spread[2] / spread[c]
@@ -593,10 +608,12 @@ class Noise:
     rings: RingNoise
 
 
-def detection_noise(dev: dict[str, np.ndarray], rings: RingNoise, det_floor: np.ndarray) -> Noise:
-    """The per-lens spreads of the DETECTORS from the frame's own deviations (`class_sigmas`)."""
+def detection_noise(dev: dict[str, np.ndarray], rings: RingNoise, det_floor: np.ndarray,
+                    exclude: np.ndarray | None = None) -> Noise:
+    """The per-lens spreads of the DETECTORS from the frame's own deviations (`class_sigmas`; `exclude`:
+    lenses left out of the inner spread)."""
     floors = np.repeat(det_floor, [2, 2, 1, 1, 1, 1])  # the DETECTORS over the _NAMES' 8 maps
-    each = class_sigmas(np.stack([dev[k] for k in _NAMES], axis=-1), floors)
+    each = class_sigmas(np.stack([dev[k] for k in _NAMES], axis=-1), floors, exclude)
     sig = np.concatenate([0.5 * (each[..., 0:1] + each[..., 1:2]), 0.5 * (each[..., 2:3] + each[..., 3:4]),
                           each[..., 4:]], axis=-1)
     return Noise(sig, rings)
@@ -840,25 +857,52 @@ def _lowest_from_which_all(mags: np.ndarray, ok: np.ndarray) -> float | None:
     return float(f"{mags[first]:.4g}")
 
 
-def _all_deviations(metrics: LensMetrics, position, phase: PhaseModel | None, ring_floor: np.ndarray,
-                    packing: str = "square"):
-    """Every index map's local deviation, phase pattern removed, in one pass (the maps share the work):
-    (classification deviations, their spreads, ring noise, detection deviations — the classification
-    ones with the offsets from the lower-noise `position` signal where it is given — and the local
-    baselines' trend over the array, each map's baseline minus its median per edge class)."""
+def _quiet_inner(inner: np.ndarray, exclude: np.ndarray | None, least: int = 20) -> np.ndarray:
+    """The inner lenses less `exclude` (a defect and its neighbours, whose windows hold its light), when
+    at least `least` are left (the tail spread's smallest sample); else all inner lenses."""
+    if exclude is None:
+        return inner
+    quiet = inner & ~exclude
+    return quiet if quiet.sum() >= least else inner
+
+
+def _disturbed(score: np.ndarray, qc: QC, outside: np.ndarray, missing: np.ndarray, packing: str) -> np.ndarray:
+    """The lenses over the threshold that outscore their neighbours (a defect, not its echo), the missing
+    ones, and their lattice neighbours: the lenses whose windows hold a defect's light."""
+    source = (score > qc.detect_sigma) & (score >= lattice_max_of_neighbours(score, packing)) & ~outside
+    return with_neighbours(source | missing, packing)
+
+
+def _local_planes(metrics: LensMetrics, position, phase: PhaseModel | None,
+                  packing: str = "square") -> tuple[list, dict[str, np.ndarray]]:
+    """Every index map's local deviation before the phase pattern is removed (classification, rings, then
+    `position`'s; in one pass: the maps share the work), and the local baselines' trend over the array
+    (each map's baseline minus its median per edge class, its phase trend removed)."""
     values = [metrics[k] for k in _NAMES] + [metrics[r] for r in RINGS] + list(position or ())
     planes = local_deviations(values, _AXES + [""] * len(RINGS) + (["x", "y"] if position is not None else []),
                               packing=packing)
     trend = class_centred([v - p for v, p in zip(values, planes)], packing)
     if phase is not None:
-        planes = remove_phase_pattern(planes, phase)
         trend = remove_phase_trend(trend, phase)
+    names = list(_NAMES) + list(RINGS) + (["offset_x_px", "offset_y_px"] if position is not None else [])
+    return planes, dict(zip(names, trend))
+
+
+def _all_deviations(metrics: LensMetrics, position, phase: PhaseModel | None, ring_floor: np.ndarray,
+                    packing: str = "square", exclude: np.ndarray | None = None, local: tuple | None = None):
+    """Every index map's local deviation, phase pattern removed: (classification deviations, their
+    spreads, ring noise, detection deviations — the classification ones with the offsets from the
+    lower-noise `position` signal where it is given — and the baselines' trend, `_local_planes`).
+    `exclude`: lenses left out of the phase pattern's fit and the inner lenses' ring noise
+    (`_disturbed`); `local`: `_local_planes`, if already computed."""
+    planes, trend = local if local is not None else _local_planes(metrics, position, phase, packing)
+    if phase is not None:
+        planes = remove_phase_pattern(planes, phase, exclude)
     n_dev, n_ring = len(_NAMES), len(RINGS)
     dev, sig = deviations(metrics, planes=planes[:n_dev])
-    rings = ring_noise(metrics, floor=ring_floor, planes=planes[n_dev:n_dev + n_ring])
+    rings = ring_noise(metrics, floor=ring_floor, planes=planes[n_dev:n_dev + n_ring], exclude=exclude)
     detect_dev = dev if position is None else dict(dev, offset_x_px=planes[-2], offset_y_px=planes[-1])
-    names = list(_NAMES) + list(RINGS) + (["offset_x_px", "offset_y_px"] if position is not None else [])
-    return dev, sig, rings, detect_dev, dict(zip(names, trend))
+    return dev, sig, rings, detect_dev, trend
 
 
 def class_centred(planes: list[np.ndarray], packing: str = "square") -> list[np.ndarray]:
@@ -972,9 +1016,21 @@ def identify(metrics: LensMetrics, missing: np.ndarray, qc: QC, table: Signature
         metrics = LensMetrics({k: np.where(outside, np.nan, v) for k, v in metrics.values.items()})
         position = None if position is None else tuple(np.where(outside, np.nan, p) for p in position)
         missing = missing & ~outside
-    dev, sig, rings, detect_dev, trend = _all_deviations(metrics, position, phase, ring_floor, packing)
+    local = _local_planes(metrics, position, phase, packing)
+    dev, sig, rings, detect_dev, trend = _all_deviations(metrics, position, phase, ring_floor, packing, local=local)
     noise = detection_noise(detect_dev, rings, det_floor)
     score = detection_score(detect_dev, noise, focus_score(rings, table))
+    disturbed = np.zeros(score.shape, bool)
+    for _ in range(3):  # again without the defects' neighbourhoods while they grow: their light is no noise,
+        # and no part of the phase pattern (9 defects 4 apart on 12 x 12 made the spreads 1.5-3 x the clean frame's)
+        grown = disturbed | _disturbed(score, qc, outside, missing, packing)
+        if (grown == disturbed).all():
+            break
+        disturbed = grown
+        dev, sig, rings, detect_dev, trend = _all_deviations(metrics, position, phase, ring_floor, packing,
+                                                             disturbed, local)
+        noise = detection_noise(detect_dev, rings, det_floor, disturbed)
+        score = detection_score(detect_dev, noise, focus_score(rings, table))
     threshold = np.full(score.shape, qc.detect_sigma)
     threshold[[0, 0, -1, -1], [0, -1, 0, -1]] *= 1.5  # corner windows hold dark margin on two sides: noisier
     flagged = ((score > threshold) & ~outside) | missing
