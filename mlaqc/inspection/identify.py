@@ -9,7 +9,10 @@ measured per lens class with a tail-aware spread and never below a floor set by 
 error, so a noise-free frame is the easy case. Defocus (radius, thickness) is tested on the residual's
 ring profile with a matched filter against the table's defocus signatures, whitened by the rings'
 covariance over the array. A neighbour of a strong defect whose deviation is that defect's light in its
-window is its echo (`spill`). Each frame also reports its detection limit (`detection_limits`).
+window is its echo (`spill`), and with the defect it is left out of the noise and of the phase pattern's
+fit (`_disturbed`): in a small array a few defects' neighbourhoods are a large share of the lenses, and
+the noise of a sub-image must not depend on the array's size. Each frame also reports its detection
+limit (`detection_limits`).
 
 Classification inverts the signature table (matched to the frame's rim width by the caller): the
 flagged lens' feature changes, taken along and across its own shift, and its ring profile are fitted by
@@ -1020,9 +1023,10 @@ def identify(metrics: LensMetrics, missing: np.ndarray, qc: QC, table: Signature
     dev, sig, rings, detect_dev, trend = _all_deviations(metrics, position, phase, ring_floor, packing, local=local)
     noise = detection_noise(detect_dev, rings, det_floor)
     score = detection_score(detect_dev, noise, focus_score(rings, table))
+    # judged again without the defects' neighbourhoods, while they grow: their light is no noise, nor part
+    # of the phase pattern (nine defects 4 apart on 12 x 12 made the spreads 1.5-3 x a healthy frame's)
     disturbed = np.zeros(score.shape, bool)
-    for _ in range(3):  # again without the defects' neighbourhoods while they grow: their light is no noise,
-        # and no part of the phase pattern (9 defects 4 apart on 12 x 12 made the spreads 1.5-3 x the clean frame's)
+    for _ in range(3):
         grown = disturbed | _disturbed(score, qc, outside, missing, packing)
         if (grown == disturbed).all():
             break
