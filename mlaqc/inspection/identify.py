@@ -49,11 +49,29 @@ from itertools import pairwise
 
 import numpy as np
 
-from mlaqc.inspection.filters import lattice_max_of_neighbours, max_filter_nearest, max_of_neighbours, with_neighbours
+from mlaqc.inspection.filters import (
+    lattice_max_of_neighbours,
+    max_filter_nearest,
+    max_of_neighbours,
+    with_neighbours,
+)
 from mlaqc.inspection.metrics_kernels import median_baselines
 from mlaqc.inspection.results import Defect, LensMetrics
-from mlaqc.models.position_split import PositionSplit, contrast_sigma, neighbour_contrast, split_limits, type_position
-from mlaqc.models.signatures import FEATURES, KIND_BY_NAME, RINGS, SignatureTable, gains_y, lens_features
+from mlaqc.models.position_split import (
+    PositionSplit,
+    contrast_sigma,
+    neighbour_contrast,
+    split_limits,
+    type_position,
+)
+from mlaqc.models.signatures import (
+    FEATURES,
+    KIND_BY_NAME,
+    RINGS,
+    SignatureTable,
+    gains_y,
+    lens_features,
+)
 from mlaqc.optics.config import QC
 from mlaqc.optics.lattice import Lattice
 from mlaqc.parallel import thread_map
@@ -321,14 +339,24 @@ def remove_phase_pattern(planes: list[np.ndarray], model: PhaseModel,
     median cannot remove. It is a property of the frame, not of a lens: it is fitted (Fourier terms of
     the phase, robustly: outliers beyond 4 sigma left out, so a defect does not bend the fit) and removed.
     `exclude`: lenses also left out of the fit (a defect's neighbours, within 4 sigma but not noise),
-    where enough of their group is left (four per fitted term)."""
+    as `_phase_skips` says."""
     stack = np.stack(planes, axis=-1).astype(np.float64)  # (rows, cols, J)
-    for sel, basis, outer, full in model.groups:
-        left_out = exclude[sel] if exclude is not None else None
-        if left_out is not None and (~left_out).sum() < 4 * basis.shape[1]:
-            left_out = None
-        stack[sel] = _phase_fit(stack[sel], basis, outer, full, left_out)
+    for (sel, basis, outer, full), skip in zip(model.groups, _phase_skips(model, exclude)):
+        stack[sel] = _phase_fit(stack[sel], basis, outer, full, skip)
     return [stack[..., j] for j in range(len(planes))]
+
+
+def _phase_skips(model: PhaseModel, exclude: np.ndarray | None) -> list[np.ndarray | None]:
+    """Per lens group, the lenses of `exclude` its phase fit leaves out: where they are at least 2 % of
+    the group (fewer do not bend a robust fit, which leaves the strongest out anyway) and at least four
+    lenses per fitted term are left; else None (all lenses fitted)."""
+    skips: list[np.ndarray | None] = []
+    for sel, basis, _, _ in model.groups:
+        skip = exclude[sel] if exclude is not None else None
+        if skip is not None and not (skip.sum() >= 0.02 * len(skip) and (~skip).sum() >= 4 * basis.shape[1]):
+            skip = None
+        skips.append(skip)
+    return skips
 
 
 def remove_phase_trend(planes: list[np.ndarray], model: PhaseModel) -> list[np.ndarray]:
@@ -891,21 +919,40 @@ def _local_planes(metrics: LensMetrics, position, phase: PhaseModel | None,
     return planes, dict(zip(names, trend))
 
 
-def _all_deviations(metrics: LensMetrics, position, phase: PhaseModel | None, ring_floor: np.ndarray,
-                    packing: str = "square", exclude: np.ndarray | None = None, local: tuple | None = None):
-    """Every index map's local deviation, phase pattern removed: (classification deviations, their
-    spreads, ring noise, detection deviations — the classification ones with the offsets from the
-    lower-noise `position` signal where it is given — and the baselines' trend, `_local_planes`).
-    `exclude`: lenses left out of the phase pattern's fit and the inner lenses' ring noise
-    (`_disturbed`); `local`: `_local_planes`, if already computed."""
-    planes, trend = local if local is not None else _local_planes(metrics, position, phase, packing)
-    if phase is not None:
-        planes = remove_phase_pattern(planes, phase, exclude)
-    n_dev, n_ring = len(_NAMES), len(RINGS)
-    dev, sig = deviations(metrics, planes=planes[:n_dev])
-    rings = ring_noise(metrics, floor=ring_floor, planes=planes[n_dev:n_dev + n_ring], exclude=exclude)
-    detect_dev = dev if position is None else dict(dev, offset_x_px=planes[-2], offset_y_px=planes[-1])
-    return dev, sig, rings, detect_dev, trend
+def _deviation_maps(metrics: LensMetrics, planes: list[np.ndarray], position):
+    """The classification deviations and their spreads (`deviations`), and the detection deviations (the
+    classification ones with the offsets from the lower-noise `position` signal where it is given), from
+    `_local_planes`' planes, phase pattern removed."""
+    dev, sig = deviations(metrics, planes=planes[:len(_NAMES)])
+    return dev, sig, dev if position is None else dict(dev, offset_x_px=planes[-2], offset_y_px=planes[-1])
+
+
+def _judged(metrics: LensMetrics, position, phase: PhaseModel | None, table: SignatureTable, qc: QC,
+            masks: tuple[np.ndarray, np.ndarray], packing: str, passes: int = 3):
+    """Every index map's deviation, the frame's noise and each lens' detection score: (classification
+    deviations, their spreads, ring noise, detection deviations, baselines' trend, Noise, score).
+
+    Judged again without the defects' neighbourhoods (`_disturbed`) while they grow, `passes` times at
+    most: their light is no noise, nor part of the phase pattern (nine defects 4 apart on 12 x 12 made
+    the spreads 1.5-3 x a healthy frame's). `masks`: the lenses outside the sensor and those missing."""
+    det_floor, ring_floor = noise_floors(table, qc)
+    raw, trend = _local_planes(metrics, position, phase, packing)
+    planes = remove_phase_pattern(raw, phase) if phase is not None else raw
+    dev, sig, detect_dev = _deviation_maps(metrics, planes, position)
+    rings_at = slice(len(_NAMES), len(_NAMES) + len(RINGS))
+    disturbed = None
+    for step in range(passes + 1):
+        rings = ring_noise(metrics, floor=ring_floor, planes=planes[rings_at], exclude=disturbed)
+        noise = detection_noise(detect_dev, rings, det_floor, disturbed)
+        score = detection_score(detect_dev, noise, focus_score(rings, table))
+        grown = _disturbed(score, qc, *masks, packing) | (False if disturbed is None else disturbed)
+        if step == passes or not grown.any() or (disturbed is not None and (grown == disturbed).all()):
+            break
+        disturbed = grown
+        if phase is not None and any(skip is not None for skip in _phase_skips(phase, disturbed)):
+            planes = remove_phase_pattern(raw, phase, disturbed)
+            dev, sig, detect_dev = _deviation_maps(metrics, planes, position)
+    return dev, sig, rings, detect_dev, trend, noise, score
 
 
 def class_centred(planes: list[np.ndarray], packing: str = "square") -> list[np.ndarray]:
@@ -1012,29 +1059,14 @@ def identify(metrics: LensMetrics, missing: np.ndarray, qc: QC, table: Signature
     pitch/decenter split (mlaqc.models.position_split; None with grid boundaries), which types a
     'position' lens as pitch or decenter where this frame's noise allows. `packing`: the lattice the
     (rows, cols) maps index (mlaqc.optics.lattice), which says who a lens' neighbours are."""
-    det_floor, ring_floor = noise_floors(table, qc)
     phase = phase_model(phase) if phase is not None else None
     outside = np.zeros(missing.shape, bool) if outside is None else outside
     if outside.any():
         metrics = LensMetrics({k: np.where(outside, np.nan, v) for k, v in metrics.values.items()})
         position = None if position is None else tuple(np.where(outside, np.nan, p) for p in position)
         missing = missing & ~outside
-    local = _local_planes(metrics, position, phase, packing)
-    dev, sig, rings, detect_dev, trend = _all_deviations(metrics, position, phase, ring_floor, packing, local=local)
-    noise = detection_noise(detect_dev, rings, det_floor)
-    score = detection_score(detect_dev, noise, focus_score(rings, table))
-    # judged again without the defects' neighbourhoods, while they grow: their light is no noise, nor part
-    # of the phase pattern (nine defects 4 apart on 12 x 12 made the spreads 1.5-3 x a healthy frame's)
-    disturbed = np.zeros(score.shape, bool)
-    for _ in range(3):
-        grown = disturbed | _disturbed(score, qc, outside, missing, packing)
-        if (grown == disturbed).all():
-            break
-        disturbed = grown
-        dev, sig, rings, detect_dev, trend = _all_deviations(metrics, position, phase, ring_floor, packing,
-                                                             disturbed, local)
-        noise = detection_noise(detect_dev, rings, det_floor, disturbed)
-        score = detection_score(detect_dev, noise, focus_score(rings, table))
+    dev, sig, rings, detect_dev, trend, noise, score = _judged(metrics, position, phase, table, qc,
+                                                               (outside, missing), packing)
     threshold = np.full(score.shape, qc.detect_sigma)
     threshold[[0, 0, -1, -1], [0, -1, 0, -1]] *= 1.5  # corner windows hold dark margin on two sides: noisier
     flagged = ((score > threshold) & ~outside) | missing
