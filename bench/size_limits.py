@@ -24,7 +24,6 @@ import tempfile
 import time
 from pathlib import Path
 
-import numpy as np
 from paper_examples import error_map
 
 from mlaqc.inspection.pipeline import inspect_image, load_frame
