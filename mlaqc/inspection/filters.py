@@ -33,3 +33,21 @@ def max_of_neighbours(a: np.ndarray) -> np.ndarray:
     padded[1:-1, 1:-1] = a
     windows = [padded[di:di + rows, dj:dj + cols] for di in (0, 1, 2) for dj in (0, 1, 2) if (di, dj) != (1, 1)]
     return np.maximum.reduce(windows)
+
+
+
+def lattice_max_of_neighbours(a: np.ndarray, packing: str = "square") -> np.ndarray:
+    """Per lens the largest value of `a` over its lattice neighbours (square 8: `max_of_neighbours`; hex 6,
+    `Lattice.neighbours`), 0 off the array."""
+    if packing == "square":
+        return max_of_neighbours(a)
+    from mlaqc.optics.lattice import Lattice
+
+    rows, cols = a.shape
+    flat = np.concatenate([a.ravel(), np.zeros(1, a.dtype)])  # index -1: off the array
+    return flat[Lattice(packing, rows, cols).neighbours(diagonal=True)].max(axis=1).reshape(a.shape)
+
+
+def with_neighbours(mask: np.ndarray, packing: str = "square") -> np.ndarray:
+    """`mask` grown by every lens' lattice neighbours: the lenses whose windows a flagged lens' light reaches."""
+    return mask | lattice_max_of_neighbours(mask, packing)

@@ -9,7 +9,10 @@ measured per lens class with a tail-aware spread and never below a floor set by 
 error, so a noise-free frame is the easy case. Defocus (radius, thickness) is tested on the residual's
 ring profile with a matched filter against the table's defocus signatures, whitened by the rings'
 covariance over the array. A neighbour of a strong defect whose deviation is that defect's light in its
-window is its echo (`spill`). Each frame also reports its detection limit (`detection_limits`).
+window is its echo (`spill`), and with the defect it is left out of the noise and of the phase pattern's
+fit (`_disturbed`): in a small array a few defects' neighbourhoods are a large share of the lenses, and
+the noise of a sub-image must not depend on the array's size. Each frame also reports its detection
+limit (`detection_limits`).
 
 Classification inverts the signature table (matched to the frame's rim width by the caller): the
 flagged lens' feature changes, taken along and across its own shift, and its ring profile are fitted by
@@ -55,7 +58,12 @@ from itertools import pairwise
 
 import numpy as np
 
-from mlaqc.inspection.filters import max_filter_nearest, max_of_neighbours
+from mlaqc.inspection.filters import (
+    lattice_max_of_neighbours,
+    max_filter_nearest,
+    max_of_neighbours,
+    with_neighbours,
+)
 from mlaqc.inspection.metrics_kernels import median_baselines
 from mlaqc.inspection.results import Defect, LensMetrics
 from mlaqc.models.position_split import PositionSplit, contrast_sigma, neighbour_contrast, split_limits, type_position
@@ -360,18 +368,35 @@ def phase_model(phase: tuple[np.ndarray, np.ndarray], packing: str = "square") -
     return model
 
 
-def remove_phase_pattern(planes: list[np.ndarray], model: PhaseModel) -> list[np.ndarray]:
+def remove_phase_pattern(planes: list[np.ndarray], model: PhaseModel,
+                         exclude: np.ndarray | None = None) -> list[np.ndarray]:
     """Deviation maps minus their fitted dependence on sub-pixel phase, per lens group.
 
     A sub-image that differs from the reference in profile (another rim blur, diffraction, pixel MTF)
     is registered and indexed with a small error that depends on where it falls on the pixel grid; over
     a rotated or non-integer-pitch grid that error draws a pattern across the array which the local
     median cannot remove. It is a property of the frame, not of a lens: it is fitted (Fourier terms of
-    the phase, robustly: outliers beyond 4 sigma left out, so a defect does not bend the fit) and removed."""
+    the phase, robustly: outliers beyond 4 sigma left out, so a defect does not bend the fit) and removed.
+    `exclude`: lenses also left out of the fit (a defect's neighbours, within 4 sigma but not noise),
+    as `_phase_skips` says."""
     stack = np.stack(planes, axis=-1).astype(np.float64)  # (rows, cols, J)
-    for sel, basis, outer, full in model.groups:
-        stack[sel] = _phase_fit(stack[sel], basis, outer, full)
+    for (sel, basis, outer, full), skip in zip(model.groups, _phase_skips(model, exclude)):
+        stack[sel] = _phase_fit(stack[sel], basis, outer, full, skip)
     return [stack[..., j] for j in range(len(planes))]
+
+
+def _phase_skips(model: PhaseModel, exclude: np.ndarray | None) -> list[np.ndarray | None]:
+    """Per lens group, the lenses of `exclude` its phase fit leaves out: where they are at least 5 % of
+    the group (a small array's: fewer hardly bend a robust fit, which leaves the strongest out anyway,
+    and refitting a large array moved readings at the reportable size, -2.07 % to -1.99 %) and at least
+    four lenses per fitted term are left; else None (all lenses fitted)."""
+    skips: list[np.ndarray | None] = []
+    for sel, basis, _, _ in model.groups:
+        skip = exclude[sel] if exclude is not None else None
+        if skip is not None and not (skip.sum() >= 0.05 * len(skip) and (~skip).sum() >= 4 * basis.shape[1]):
+            skip = None
+        skips.append(skip)
+    return skips
 
 
 def remove_phase_trend(planes: list[np.ndarray], model: PhaseModel) -> list[np.ndarray]:
@@ -387,12 +412,15 @@ def remove_phase_trend(planes: list[np.ndarray], model: PhaseModel) -> list[np.n
     return [stack[..., j] for j in range(len(planes))]
 
 
-def _phase_fit(y: np.ndarray, basis: np.ndarray, outer: np.ndarray, full: np.ndarray) -> np.ndarray:
+def _phase_fit(y: np.ndarray, basis: np.ndarray, outer: np.ndarray, full: np.ndarray,
+               skip: np.ndarray | None = None) -> np.ndarray:
     """Columns of y (n, J) minus their robust least-squares fit on `basis` (n, P), all columns at once:
     a fit on the finite values, then a refit without those beyond 4 robust sigma of the first. Each
-    column's Gram matrix is the full one (`full`, summed `outer`) less the few lenses it leaves out."""
+    column's Gram matrix is the full one (`full`, summed `outer`) less the few lenses it leaves out;
+    `skip` (n,): lenses never fitted (their residuals are still returned)."""
     p = basis.shape[1]
-    keep = np.isfinite(y)
+    fit = np.isfinite(y) if skip is None else np.isfinite(y) & ~skip[:, None]
+    keep = fit
     y0 = np.where(keep, y, 0.0)
     resid = y
     for step in range(2):
@@ -404,10 +432,10 @@ def _phase_fit(y: np.ndarray, basis: np.ndarray, outer: np.ndarray, full: np.nda
         coef[keep.sum(axis=0) < 2 * p] = 0.0
         resid = y - basis @ coef.T
         if step == 0:  # every column's robust sigma at once (from at most ~2,000 lenses: enough for a 4-sigma cut)
-            sample = resid[:: max(1, len(resid) // 2000)]
+            sample = (resid if skip is None else np.where(fit, resid, np.nan))[:: max(1, len(resid) // 2000)]
             mad = _column_medians(np.abs(sample - _column_medians(sample)))
             with np.errstate(invalid="ignore"):
-                keep = np.isfinite(resid) & (np.abs(resid) <= 4 * np.maximum(1.4826 * mad, 1e-9))
+                keep = fit & (np.abs(resid) <= 4 * np.maximum(1.4826 * mad, 1e-9))
     return resid
 
 
@@ -426,15 +454,16 @@ def _column_medians(a: np.ndarray) -> np.ndarray:
         return np.where(k > 0, 0.5 * (s[lo, cols] + s[np.minimum(hi, len(s) - 1), cols]), np.nan)
 
 
-def class_sigmas(dev: np.ndarray, floor: float | np.ndarray = 0.0) -> np.ndarray:
+def class_sigmas(dev: np.ndarray, floor: float | np.ndarray = 0.0, exclude: np.ndarray | None = None) -> np.ndarray:
     """Per lens the spread (`tail_sigma`) of its noise class (`noise_classes`), never below the inner
     lenses' nor `floor`: edge lenses are noisier than inner ones, and one spread for all would flag them.
-    `dev` (rows, cols) or a stack (rows, cols, J) of maps, each with its own floor."""
+    `dev` (rows, cols) or a stack (rows, cols, J) of maps, each with its own floor; `exclude`: lenses left
+    out of the inner spread (`_quiet_inner`)."""
     stack = dev[..., None] if dev.ndim == 2 else dev
     floor = np.broadcast_to(np.asarray(floor, float), stack.shape[-1:])
     cls = noise_classes(stack.shape[:2])
     flat = stack.reshape(-1, stack.shape[-1])
-    inner_rows = flat[(cls == 2).ravel()]
+    inner_rows = flat[_quiet_inner(cls == 2, exclude).ravel()]
     inner = _column_tail_sigmas(inner_rows if (np.isfinite(inner_rows).sum(axis=0) > 8).all() else flat, floor)
     inner = np.where(np.isfinite(inner), np.maximum(inner, floor), floor)
     out = np.broadcast_to(inner, stack.shape).copy()
@@ -522,7 +551,8 @@ class RingNoise:
 
 
 def ring_noise(metrics: LensMetrics, phase: PhaseModel | None = None, floor: np.ndarray | None = None,
-               planes: list[np.ndarray] | None = None, packing: str = "square") -> RingNoise:
+               planes: list[np.ndarray] | None = None, packing: str = "square",
+               exclude: np.ndarray | None = None) -> RingNoise:
     """Local deviations of the ring profile, whitened by their covariance over the array's inner lenses
     (those within 4 robust sigma on every ring: a defect must not widen the noise it is judged against).
 
@@ -532,7 +562,8 @@ def ring_noise(metrics: LensMetrics, phase: PhaseModel | None = None, floor: np.
     scaled down to the inner lenses' noise where wider, so that one threshold holds everywhere.
     `phase`: remove the sub-pixel phase pattern (`remove_phase_pattern`); `floor` (per ring): the
     smallest noise the covariance may claim, so a noise-free frame cannot make the whitening explode;
-    `planes`: the rings' deviations, already computed."""
+    `planes`: the rings' deviations, already computed; `exclude`: lenses left out of the inner lenses'
+    noise (`_quiet_inner`)."""
     if planes is None:
         planes = local_deviations([metrics[r] for r in RINGS], [""] * len(RINGS), packing=packing)
         if phase is not None:
@@ -544,7 +575,9 @@ def ring_noise(metrics: LensMetrics, phase: PhaseModel | None = None, floor: np.
         sel = (cls == c) & finite
         if sel.any():
             dev[sel] -= np.median(dev[sel], axis=0)
-    flat = dev[(cls == 2) & finite] if ((cls == 2) & finite).sum() > 8 * len(RINGS) else dev[finite]
+    inner = (cls == 2) & finite
+    quiet = _quiet_inner(inner, exclude, 4 * len(RINGS) + 1)  # enough for a covariance, the defects left out
+    flat = dev[quiet] if quiet is not inner or inner.sum() > 8 * len(RINGS) else dev[finite]
     sig = np.array([robust_sigma(flat[:, k]) for k in range(flat.shape[1])]) if len(flat) else np.ones(len(RINGS))
     core = (np.abs(flat) < 4 * sig).all(axis=1)
     cov = np.cov(flat[core].T) if core.sum() > 4 * len(RINGS) else np.diag(sig ** 2)
@@ -556,8 +589,9 @@ def ring_noise(metrics: LensMetrics, phase: PhaseModel | None = None, floor: np.
     # edge classes by their tail-aware spread, against the inner lenses' plain robust one (which a few
     # defects among the inner lenses do not inflate, while their tails would in a small array)
     # (whitened: unit noise, the floor included, so the tail's outlier cut assumes at least that)
+    left = finite & ~exclude if quiet is not inner else finite  # the inner lenses' spread without the defects
     spread = {c: robust_sigma(w) if c == 2 else tail_sigma(w, 1.0)
-              for c, w in ((c, (dev[(cls == c) & finite] @ whiten).ravel()) for c in range(4))}
+              for c, w in ((c, (dev[(cls == c) & (left if c == 2 else finite)] @ whiten).ravel()) for c in range(4))}
     for c in (0, 1, 3):  # (never sharpened: fewer lenses, a less sure spread)
         if np.isfinite(spread[c]) and np.isfinite(spread[2]) and spread[c] > spread[2]:
             dev[cls == c] *= spread[2] / spread[c]
@@ -645,10 +679,12 @@ class Noise:
     rings: RingNoise
 
 
-def detection_noise(dev: dict[str, np.ndarray], rings: RingNoise, det_floor: np.ndarray) -> Noise:
-    """The per-lens spreads of the DETECTORS from the frame's own deviations (`class_sigmas`)."""
+def detection_noise(dev: dict[str, np.ndarray], rings: RingNoise, det_floor: np.ndarray,
+                    exclude: np.ndarray | None = None) -> Noise:
+    """The per-lens spreads of the DETECTORS from the frame's own deviations (`class_sigmas`; `exclude`:
+    lenses left out of the inner spread)."""
     floors = np.repeat(det_floor, [2, 2, 1, 1, 1, 1])  # the DETECTORS over the _NAMES' 8 maps
-    each = class_sigmas(np.stack([dev[k] for k in _NAMES], axis=-1), floors)
+    each = class_sigmas(np.stack([dev[k] for k in _NAMES], axis=-1), floors, exclude)
     sig = np.concatenate([0.5 * (each[..., 0:1] + each[..., 1:2]), 0.5 * (each[..., 2:3] + each[..., 3:4]),
                           each[..., 4:]], axis=-1)
     return Noise(sig, rings)
@@ -899,27 +935,86 @@ def _lowest_from_which_all(mags: np.ndarray, ok: np.ndarray) -> float | None:
     return float(f"{mags[first]:.4g}")
 
 
-def _all_deviations(metrics: LensMetrics, position, phase: PhaseModel | None, ring_floor: np.ndarray,
-                    packing: str = "square", centred: bool = False, exclude: np.ndarray | None = None,
-                    with_trend: bool = True):
-    """Every index map's local deviation, phase pattern removed, in one pass (the maps share the work):
-    (classification deviations, their spreads, ring noise, detection deviations — the classification
-    ones with the offsets from the lower-noise `position` signal where it is given — and the local
-    baselines' trend over the array, each map's baseline minus its median per edge class; None unless
-    `with_trend`). `centred`, `exclude`: as `local_deviations` takes them."""
+def _quiet_inner(inner: np.ndarray, exclude: np.ndarray | None, least: int = 20) -> np.ndarray:
+    """The inner lenses less `exclude` (a defect and its neighbours, whose windows hold its light), when
+    at least `least` are left (the tail spread's smallest sample); else all inner lenses."""
+    if exclude is None:
+        return inner
+    quiet = inner & ~exclude
+    return quiet if quiet.sum() >= least else inner
+
+
+def _disturbed(score: np.ndarray, qc: QC, outside: np.ndarray, missing: np.ndarray, packing: str) -> np.ndarray:
+    """The lenses over the threshold that outscore their neighbours (a defect, not its echo), the missing
+    ones, and their lattice neighbours: the lenses whose windows hold a defect's light."""
+    source = (score > qc.detect_sigma) & (score >= lattice_max_of_neighbours(score, packing)) & ~outside
+    return with_neighbours(source | missing, packing)
+
+
+def _strength(detect_dev: dict[str, np.ndarray], noise: Noise, score: np.ndarray) -> np.ndarray:
+    """Each lens' detection score, its DETECTORS read against the inner lenses' spreads where its own
+    class' are wider: what `spill` compares a lens with its neighbours by. An edge lens' spread is its
+    class', which a small array's defects widen; read in it, a defect next to the edge scored under the
+    inner neighbour its light reached (12 x 12 at 50 rays/pixel: 16 against 20) and was taken for its echo."""
+    inner = edge_classes(score.shape) == 2
+    if not inner.any():
+        return score
+    sigma = np.broadcast_to(np.nanmedian(noise.sigma[inner], axis=0), noise.sigma.shape)
+    return np.maximum(score, detection_score(detect_dev, Noise(sigma, noise.rings)))
+
+
+def _local_planes(metrics: LensMetrics, position, phase: PhaseModel | None, packing: str = "square",
+                  centred: bool = False, exclude: np.ndarray | None = None) -> tuple[list, dict[str, np.ndarray]]:
+    """Every index map's local deviation before the phase pattern is removed (classification, rings, then
+    `position`'s; in one pass: the maps share the work), and the local baselines' trend over the array
+    (each map's baseline minus its median per edge class, its phase trend removed). `centred`, `exclude`:
+    as `local_deviations` takes them."""
     values = [metrics[k] for k in _NAMES] + [metrics[r] for r in RINGS] + list(position or ())
     planes = local_deviations(values, _AXES + [""] * len(RINGS) + (["x", "y"] if position is not None else []),
                               packing=packing, centred=centred, exclude=exclude)
-    trend = class_centred([v - p for v, p in zip(values, planes)], packing) if with_trend else None
+    trend = class_centred([v - p for v, p in zip(values, planes)], packing)
     if phase is not None:
-        planes = remove_phase_pattern(planes, phase)
-        trend = remove_phase_trend(trend, phase) if with_trend else None
-    n_dev, n_ring = len(_NAMES), len(RINGS)
-    dev, sig = deviations(metrics, planes=planes[:n_dev])
-    rings = ring_noise(metrics, floor=ring_floor, planes=planes[n_dev:n_dev + n_ring])
-    detect_dev = dev if position is None else dict(dev, offset_x_px=planes[-2], offset_y_px=planes[-1])
+        trend = remove_phase_trend(trend, phase)
     names = list(_NAMES) + list(RINGS) + (["offset_x_px", "offset_y_px"] if position is not None else [])
-    return dev, sig, rings, detect_dev, dict(zip(names, trend)) if with_trend else None
+    return planes, dict(zip(names, trend))
+
+
+def _deviation_maps(metrics: LensMetrics, planes: list[np.ndarray], position):
+    """The classification deviations and their spreads (`deviations`), and the detection deviations (the
+    classification ones with the offsets from the lower-noise `position` signal where it is given), from
+    `_local_planes`' planes, phase pattern removed."""
+    dev, sig = deviations(metrics, planes=planes[:len(_NAMES)])
+    return dev, sig, dev if position is None else dict(dev, offset_x_px=planes[-2], offset_y_px=planes[-1])
+
+
+def _judged(metrics: LensMetrics, position, phase: PhaseModel | None, table: SignatureTable, qc: QC,
+            masks: tuple[np.ndarray, np.ndarray], packing: str, centred: bool = False,
+            exclude: np.ndarray | None = None, passes: int = 3):
+    """Every index map's deviation, the frame's noise and each lens' detection score: (classification
+    deviations, their spreads, ring noise, detection deviations, baselines' trend, Noise, score).
+
+    Judged again without the defects' neighbourhoods (`_disturbed`) while they grow, `passes` times at
+    most: their light is no noise, nor part of the phase pattern (nine defects 4 apart on 12 x 12 made
+    the spreads 1.5-3 x a healthy frame's). `masks`: the lenses outside the sensor and those missing;
+    `centred`, `exclude`: the baselines' windows (`local_deviations`)."""
+    det_floor, ring_floor = noise_floors(table, qc)
+    raw, trend = _local_planes(metrics, position, phase, packing, centred, exclude)
+    planes = remove_phase_pattern(raw, phase) if phase is not None else raw
+    dev, sig, detect_dev = _deviation_maps(metrics, planes, position)
+    rings_at = slice(len(_NAMES), len(_NAMES) + len(RINGS))
+    disturbed = None
+    for step in range(passes + 1):
+        rings = ring_noise(metrics, floor=ring_floor, planes=planes[rings_at], exclude=disturbed)
+        noise = detection_noise(detect_dev, rings, det_floor, disturbed)
+        score = detection_score(detect_dev, noise, focus_score(rings, table))
+        grown = _disturbed(score, qc, *masks, packing) | (False if disturbed is None else disturbed)
+        if step == passes or not grown.any() or (disturbed is not None and (grown == disturbed).all()):
+            break
+        disturbed = grown
+        if phase is not None and any(skip is not None for skip in _phase_skips(phase, disturbed)):
+            planes = remove_phase_pattern(raw, phase, disturbed)
+            dev, sig, detect_dev = _deviation_maps(metrics, planes, position)
+    return dev, sig, rings, detect_dev, trend, noise, score
 
 
 def class_centred(planes: list[np.ndarray], packing: str = "square") -> list[np.ndarray]:
@@ -1037,7 +1132,6 @@ def identify(metrics: LensMetrics, missing: np.ndarray, qc: QC, table: Signature
     taken over windows centred on their lens (`_refine_baselines`): a lens' flux does not answer to
     its focal errors behind a circle, so its noise floor is low enough for an off-centre window's
     reading of the vignetting to flag the second row."""
-    det_floor, ring_floor = noise_floors(table, qc)
     phase = phase_model(phase, packing) if phase is not None else None
     outside = np.zeros(missing.shape, bool) if outside is None else outside
     if outside.any():
@@ -1047,25 +1141,19 @@ def identify(metrics: LensMetrics, missing: np.ndarray, qc: QC, table: Signature
     centred = packing == "hex" or aperture == "circle"  # (square cells keep the windows they were validated with)
     threshold = np.full(missing.shape, qc.detect_sigma)
     threshold[[0, 0, -1, -1], [0, -1, 0, -1]] *= 1.5  # corner windows hold dark margin on two sides: noisier
-    exclude, passes = None, 2 if centred else 1
-    for k in range(passes):
-        dev, sig, rings, detect_dev, trend = _all_deviations(metrics, position, phase, ring_floor, packing, centred,
-                                                             exclude, with_trend=k == passes - 1)
-        noise = detection_noise(detect_dev, rings, det_floor)
-        score = detection_score(detect_dev, noise, focus_score(rings, table))
-        flagged = ((score > threshold) & ~outside) | missing
-        if not flagged.any():
-            if trend is None:  # (the readings' trend: what the last pass would have given)
-                trend = _all_deviations(metrics, position, phase, ring_floor, packing, centred)[4]
-            break
+    judged = _judged(metrics, position, phase, table, qc, (outside, missing), packing, centred)
+    flagged = ((judged[-1] > threshold) & ~outside) | missing
+    if centred and flagged.any():
         # centred: once more with the flagged lenses left out of every baseline, as a lens not measured is.
         # A median over a window spanning a steep trend (vignetting: up to 1.5 % of flux per lens near a
         # Table 1 frame's corners) moves by a rank step when one value in it is an outlier: a missing lens
         # or a defect's echoes in a neighbour's window read as flux deviations of 0.2 %, which the low flux
         # floor of circular apertures (a lens' flux does not answer to its focal errors behind its circle)
         # flagged at z 6-8 on noise-free analytic frames
-        exclude = flagged
-    flagged &= ~spill(score, flagged, asym=(dev["asym_x"], dev["asym_y"]),
+        judged = _judged(metrics, position, phase, table, qc, (outside, missing), packing, centred, flagged)
+        flagged = ((judged[-1] > threshold) & ~outside) | missing
+    dev, sig, rings, detect_dev, trend, noise, score = judged
+    flagged &= ~spill(_strength(detect_dev, noise, score), flagged, asym=(dev["asym_x"], dev["asym_y"]),
                       offset=(detect_dev["offset_x_px"], detect_dev["offset_y_px"]), packing=packing) | missing
     feat_dev, feat_sig = _isotropic(dev, sig, table)  # what the lens' features are read from
     sigmas = _feature_sigmas(feat_sig)
