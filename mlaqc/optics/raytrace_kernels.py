@@ -701,24 +701,26 @@ def centre_cell(gx, gy, s, lat):
     return min(max(row, 0), int(s[S_ROWS]) - 1), min(max(col, 0), int(s[S_COLS]) - 1)
 
 
+# The candidates' design-centre offsets from their cell's, in pitches, in candidate order (`candidate`):
+# square the 3 x 3 row-major, hex the cell, then left, right, upper left, upper right, lower left, lower
+# right (y down; FastCamera checks them against the lattice's centres).
+SQUARE_DIRS = np.array([[dc, dr] for dr in (-1.0, 0.0, 1.0) for dc in (-1.0, 0.0, 1.0)])
+HEX_DIRS = np.array([[0.0, 0.0], [-1.0, 0.0], [1.0, 0.0], [-0.5, -SQRT3_2], [0.5, -SQRT3_2], [-0.5, SQRT3_2],
+                     [0.5, SQRT3_2]])
+
+
 @_jit_inline
-def clears_neighbours(k, x, y, side, margins, pairq, s, lat):
+def clears_neighbours(k, x, y, side, margins, lims, lat):
     """Lens k's sphere (front, side 0, lowest; rear, side 1, highest) wins at MLA point (x, y) of its cell
-    against every candidate around it: each pair's Q = rho_i^2 - rho_k^2 clears its bound (`pairq`,
-    raytrace.MicrolensArray.pair_clearance_mm2), so the scan could only return k."""
-    rows, cols = int(s[S_ROWS]), int(s[S_COLS])
-    row0, col0 = k // cols, k % cols
-    ex, ey = x - margins[T_GX, k], y - margins[T_GY, k]
-    rho2_k = ex * ex + ey * ey
+    against every candidate around it: the point's offset from k's design centre projected on each
+    candidate's direction stays within that pair's limit (`lims`, FastCamera: +inf for the cell itself
+    and candidates off the array), so the scan could only return k. Branch-free: a few multiply-adds."""
+    a, b = x - margins[T_GX, k], y - margins[T_GY, k]
+    dirs = SQUARE_DIRS if lat is None else HEX_DIRS
+    ok = True
     for i in range(9 if lat is None else 7):
-        rr, cc = candidate(i, row0, col0, lat)
-        kc = rr * cols + cc
-        if rr < 0 or rr >= rows or cc < 0 or cc >= cols or kc == k:
-            continue
-        dx, dy = x - margins[T_GX, kc], y - margins[T_GY, kc]
-        if not (dx * dx + dy * dy - rho2_k >= pairq[side, i, k]):
-            return False
-    return True
+        ok &= a * dirs[i, 0] + b * dirs[i, 1] <= lims[side, k, i]
+    return ok
 
 
 @_jit_inline
@@ -740,7 +742,7 @@ def scan_candidates(j, k0, row0, col0, buf, tab, rot, s, rear, lat, best, bt, bx
 
 
 @_jit_inline
-def retrace_sag(m, flag, kk, buf, g, tab, rot, s, rear, cflag, margins, pairq, lat, corner_of):
+def retrace_sag(m, flag, kk, buf, g, tab, rot, s, rear, cflag, margins, lims, lat, corner_of):
     """Flagged rays (near a cell edge) take the front sphere they meet first / the rear sphere they meet
     last among the 3 x 3 lenses around their hit's cell: lens kk's hit (in g) unless another is strictly
     earlier / later, the first in row-major order winning a tie (as raytrace.MicrolensArray.extreme_lens;
@@ -763,13 +765,13 @@ def retrace_sag(m, flag, kk, buf, g, tab, rot, s, rear, cflag, margins, pairq, l
             k2 = cell(gx, gy, s, lat) if prune else -1
             done = False
             if k2 >= 0 and k2 == k0:
-                done = clears_neighbours(k0, gx, gy, side, margins, pairq, s, lat)
+                done = clears_neighbours(k0, gx, gy, side, margins, lims, lat)
             elif k2 >= 0:
                 hx, hy, hz, lL, lM, lN, t = lens_surface(k2, buf[0, j], buf[1, j], buf[2, j], buf[3, j], buf[4, j],
                                                          buf[5, j], rear, tab, rot, s[S_ZFRONT])
                 if t == t and (t > bt if rear else t < bt):
                     x2, y2 = hit_xy(k2, hx, hy, hz, tab, rot)
-                    if cell(x2, y2, s, lat) == k2 and clears_neighbours(k2, x2, y2, side, margins, pairq, s, lat):
+                    if cell(x2, y2, s, lat) == k2 and clears_neighbours(k2, x2, y2, side, margins, lims, lat):
                         best, bt, bx, by, bz, bL, bM, bN = k2, t, hx, hy, hz, lL, lM, lN
                         done = True
             if not done:
@@ -1131,7 +1133,7 @@ def stage2_block(m, buf, s, tab, rot, grot, clear, fres, n_mla, mu_in, g, kk, fl
 
 @_jit_inline
 def stage2_block_sag(m, buf, s, tab, rot, grot, clear, fres, n_mla, mu_in, g, kk, flag, corner_of, rows, cols, wts,
-                     nout, box, cflag, margins, pairq, lat):
+                     nout, box, cflag, margins, lims, lat):
     """Stage 2 for one block, sag-intersection boundaries: as stage2_block, with passes B and C' that also
     flag hits within a per-cell margin of the edge (front_sag, rear_sag) for the 3 x 3 neighbour pass
     (retrace_sag), and corners from the union of the rear regions (corners_sag). A kernel of its own
@@ -1141,11 +1143,11 @@ def stage2_block_sag(m, buf, s, tab, rot, grot, clear, fres, n_mla, mu_in, g, kk
         k = kk[j]
         g[G_MF, j], g[G_MR, j] = margins[T_MARGIN_FRONT, k], margins[T_MARGIN_REAR, k]
     front_sag(m, buf, s, tab, rot, g, kk, flag, cflag, corner_of, lat)
-    retrace_sag(m, flag, kk, buf, g, tab, rot, s, False, cflag, margins, pairq, lat, corner_of)
+    retrace_sag(m, flag, kk, buf, g, tab, rot, s, False, cflag, margins, lims, lat, corner_of)
     corners_sag(m, cflag, kk, g, tab, rot, s, corner_of, lat)
     pass_front_refract(m, buf, s, rot, clear, fres, n_mla, mu_in, g, kk, corner_of, True)
     rear_sag(m, buf, s, tab, rot, g, kk, flag, corner_of, lat)
-    retrace_sag(m, flag, kk, buf, g, tab, rot, s, True, cflag, margins, pairq, lat, corner_of)
+    retrace_sag(m, flag, kk, buf, g, tab, rot, s, True, cflag, margins, lims, lat, corner_of)
     return pass_leave(m, buf, s, rot, grot, fres, n_mla, g, kk, corner_of, rows, cols, wts, nout, box)
 
 
@@ -1206,9 +1208,9 @@ def kernel(s, key, count, tab, rot, grot, texture, shift_coef, rows, cols, wts, 
 
 
 @_jit
-def kernel_sag(s, key, count, tab, rot, grot, texture, shift_coef, rows, cols, wts, box, margins, pairq, lat):
+def kernel_sag(s, key, count, tab, rot, grot, texture, shift_coef, rows, cols, wts, box, margins, lims, lat):
     """As kernel (the same loop), with sag-intersection boundaries (`margins`: per-lens front and rear
-    margins, mm, and design centres; `pairq`: per-pair clearances, [front / rear, candidate, lens])."""
+    margins, mm, and design centres; `lims`: per-pair limits (pair_limits), [front / rear, lens, candidate])."""
     cflag = np.empty(BLOCK, np.bool_)
     mode, fres, clear, n_mla, sobol, seeds, shifts, jtab = kernel_settings(s, key)
     buf, g, kk, flag, corner_of, ia, icf = block_scratch()
@@ -1217,7 +1219,7 @@ def kernel_sag(s, key, count, tab, rot, grot, texture, shift_coef, rows, cols, w
         m = stage1_block(start, min(BLOCK, count - start), mode, s, key, buf, fres, texture, g, sobol, shift_coef,
                          seeds, shifts, jtab, ia, icf, lat)
         nout = stage2_block_sag(m, buf, s, tab, rot, grot, clear, fres, n_mla, 1.0 / n_mla, g, kk, flag, corner_of,
-                                rows, cols, wts, nout, box, cflag, margins, pairq, lat)
+                                rows, cols, wts, nout, box, cflag, margins, lims, lat)
     return nout
 
 
@@ -1233,6 +1235,28 @@ def bin_hits(rows, cols, wts, n, box):
     return patch
 
 
+def pair_limits(mla) -> np.ndarray:
+    """[front / rear, lens k, candidate i]: how far (mm) a point of cell k may lie from k's design centre
+    towards candidate i (offset . D_i / p, D_i = c_i - c_k = p times SQUARE_DIRS / HEX_DIRS) with lens k
+    still winning against i: Q = |D_i|^2 - 2 offset . D_i clears the pair's bound q
+    (MicrolensArray.pair_clearance_mm2) while the projection is <= (|D_i|^2 - q) / 2p. +inf for the cell
+    itself and candidates off the array, -inf where the pair's bound fails."""
+    dirs = HEX_DIRS if mla.hex else SQUARE_DIRS
+    out = []
+    for rear in (False, True):
+        q = mla.pair_clearance_mm2(rear)
+        lim = np.empty_like(q)
+        for i, (kc, ok) in enumerate(mla.neighbours(mla.gx, mla.gy)):
+            dx, dy = mla.gx[kc] - mla.gx, mla.gy[kc] - mla.gy
+            on = ok & (kc != np.arange(kc.size))
+            if not np.allclose(np.stack([dx, dy])[:, on] / mla.p, dirs[i][:, None], rtol=0.0, atol=1e-9):
+                raise AssertionError("candidate directions do not match the lattice")
+            with np.errstate(invalid="ignore"):
+                lim[:, i] = np.where(on, (dx * dx + dy * dy - q[:, i]) / (2.0 * mla.p), np.inf)
+        out.append(lim)
+    return np.ascontiguousarray(np.stack(out))
+
+
 class FastCamera:
     """Packs a `raytrace.Camera` into the flat tables the kernel reads; one per Renderer."""
 
@@ -1243,8 +1267,7 @@ class FastCamera:
         self.tab = np.ascontiguousarray(np.stack([mla.fx, mla.fy, mla.dx, mla.dy, mla.c1, mla.c2, mla.z_rear]))
         self.margins = (np.ascontiguousarray(np.stack([mla.margin_front, mla.margin_rear, mla.gx, mla.gy]))
                         if mla.sag else None)
-        self.pairq = (np.ascontiguousarray(np.stack([mla.pair_clearance_mm2(False).T, mla.pair_clearance_mm2(True).T]))
-                      if mla.sag else None)  # [front / rear, candidate, lens]
+        self.lims = pair_limits(mla) if mla.sag else None
         # None (not an identity) where unused: Numba then compiles a kernel without those branches.
         self.rot = np.ascontiguousarray(mla.rot) if mla.tilted else None
         self.grot = np.ascontiguousarray(camera.rot) if camera.rotated else None
@@ -1303,7 +1326,7 @@ class FastCamera:
         w = np.empty(n)
         box = np.array([2 ** 31, -1, 2 ** 31, -1], np.int64)
         args = (s, np.uint64(key), n, self.tab, self.rot, self.grot, tex, self.shift_coef, rows, cols, w, box)
-        args += (self.margins, self.pairq, self.lat) if self.margins is not None else (self.lat, self.circ)
+        args += (self.margins, self.lims, self.lat) if self.margins is not None else (self.lat, self.circ)
         trace = kernel if self.margins is None else kernel_sag
         if self._warm:
             k = trace(*args)
