@@ -140,7 +140,7 @@ def test_pruned_retrace_renders_the_exhaustive_image_bit_for_bit(packing, mla, e
         assert np.mean(lens.circle_clearance_mm() > 0) > 0.5
     got = a.render(WhiteScene(), rays=500_000, seed=6, threads=2)
     ref = _exhaustive(Renderer(cfg, em, engine="numba")).render(WhiteScene(), rays=500_000, seed=6, threads=2)
-    assert got.rays_landed == ref.rays_landed > 100_000
+    assert got.rays_landed == ref.rays_landed > 50_000
     assert np.array_equal(got.photons, ref.photons)
 
 def test_hits_come_in_ray_order_with_their_bounding_box():
