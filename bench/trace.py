@@ -7,6 +7,8 @@ peak memory on the default camera, for each engine and thread count; then the is
     python bench/trace.py --boundaries   # only: sag-intersection vs grid lens boundaries, interleaved runs
     python bench/trace.py --arrays       # only: square grid / sag, hex grid / sag, hex circles, interleaved
     python bench/trace.py --packing hex --aperture circle   # the main tables on another array
+    python bench/trace.py --arrays --against /work/main     # --arrays for that tree's mlaqc and this one's,
+                                                            # in child processes taking turns
 
 Wall-clock rates depend on what else runs on the machine; the CPU time per ray (single thread) does not
 much, so it is printed too: compare that between revisions on a shared machine.
@@ -52,10 +54,10 @@ ARRAYS = {"square grid": ("square", "cell", "grid"), "square sag-intersection": 
           "hex circle 90 µm": ("hex", "circle", None), "square circle 90 µm": ("square", "circle", None)}
 
 
-def compare_arrays(rays: int, repeats: int) -> None:
+def compare_arrays(rays: int, repeats: int) -> dict:
     """rays/s (numba, one thread and all cores) of every array kind, runs interleaved so that the machine's
     load hits all alike; medians, and each against the square grid's (the issue's bars: hex and
-    sag-intersection within 1.2x, i.e. >= 0.83x)."""
+    sag-intersection within 1.2x, i.e. >= 0.83x). Returns {threads: {array: (rays/s ratio, CPU ratio)}}."""
     renderers = {name: Renderer(*camera(*spec), engine="numba") for name, spec in ARRAYS.items()}
     for r in renderers.values():
         r.render(WhiteScene(), rays=200_000, seed=0)  # compile / warm up
@@ -63,6 +65,7 @@ def compare_arrays(rays: int, repeats: int) -> None:
     print(f"arrays, numba, {rays:,} rays a run, {repeats} interleaved runs each (median; CPU ns/ray "
           "single-threaded is the load-independent figure); 200 defective lenses each")
     names = list(renderers)
+    ratios = {}
     for threads in sorted({1, cores}):
         got = {b: [] for b in names}
         for k in range(repeats):
@@ -70,9 +73,37 @@ def compare_arrays(rays: int, repeats: int) -> None:
                 got[b].append(rate(renderers[b], rays, threads, seed=10 + k))
         med = {b: (float(np_median([g[0] for g in got[b]])), float(np_median([g[2] for g in got[b]]))) for b in names}
         ref = med["square grid"]
+        ratios[threads] = {b: (med[b][0] / ref[0], ref[1] / med[b][1]) for b in names}
         for b in names:
             print(f"  {b:24s} {threads} thread(s): {med[b][0]:6.2f} M rays/s, {med[b][1]:6.1f} CPU ns/ray, "
                   f"x{med[b][0] / ref[0]:.2f} rays/s (x{ref[1] / med[b][1]:.2f} by CPU) of square grid")
+    return ratios
+
+
+def compare_trees(other: str, quick: bool, rounds: int = 2) -> None:
+    """`--arrays` in child processes, the mlaqc of `other` (a checkout, e.g. main's) and this tree's taking
+    turns (the host's speed drifts); each child's table, then the ratios to the square grid of both trees
+    (medians over the rounds)."""
+    here = str(Path(__file__).resolve().parent.parent)
+    trees = {"other": str(Path(other).resolve()), "this": here}
+    got = {t: [] for t in trees}
+    for k in range(rounds):
+        for t in (list(trees) if k % 2 == 0 else list(trees)[::-1]):
+            env = dict(os.environ, PYTHONPATH=trees[t])
+            cmd = [sys.executable, __file__, "--arrays", "--ratios-json"] + (["--quick"] if quick else [])
+            out = subprocess.run(cmd, env=env, capture_output=True, text=True, check=True).stdout.splitlines()
+            print(f"--- round {k + 1}, {t} ({trees[t]}) ---")
+            print("\n".join(out[:-1]), flush=True)
+            got[t].append(json.loads(out[-1]))
+    print("\nrays/s relative to the square grid, median over rounds (CPU-time ratio in brackets):")
+    for threads in got["this"][0]:
+        for name in got["this"][0][threads]:
+            cells = []
+            for t in trees:
+                wall = np_median([g[threads][name][0] for g in got[t]])
+                cpu = np_median([g[threads][name][1] for g in got[t]])
+                cells.append(f"{t} x{wall:.2f} (x{cpu:.2f})")
+            print(f"  {threads} thread(s) {name:24s} " + ", ".join(cells))
 
 
 def rate(renderer: Renderer, rays: int, threads: int | None, seed: int = 1) -> tuple[float, float, float]:
@@ -144,6 +175,8 @@ def main() -> int:
     ap.add_argument("--quick", action="store_true", help="fewer rays everywhere")
     ap.add_argument("--huge", action="store_true", help="add 10^9 rays to the memory table")
     ap.add_argument("--memory-child", type=int, help=argparse.SUPPRESS)
+    ap.add_argument("--ratios-json", action="store_true", help=argparse.SUPPRESS)
+    ap.add_argument("--against", metavar="TREE", help="with --arrays: also that checkout's mlaqc, taking turns")
     ap.add_argument("--boundaries", action="store_true", help="only sag-intersection vs grid boundaries' rays/s")
     ap.add_argument("--arrays", action="store_true", help="only rays/s of square / hex, grid / sag, circles")
     ap.add_argument("--packing", choices=("square", "hex"), default="square", help="the main tables' array packing")
@@ -155,8 +188,13 @@ def main() -> int:
     if args.boundaries:
         compare_boundaries(10_000_000 if args.quick else 40_000_000, 3 if args.quick else 5)
         return 0
+    if args.arrays and args.against:
+        compare_trees(args.against, args.quick)
+        return 0
     if args.arrays:
-        compare_arrays(5_000_000 if args.quick else 20_000_000, 3 if args.quick else 5)
+        ratios = compare_arrays(5_000_000 if args.quick else 20_000_000, 3 if args.quick else 5)
+        if args.ratios_json:
+            print(json.dumps(ratios))
         return 0
     cfg, errors = camera(args.packing, args.aperture)
     cores = os.cpu_count() or 1

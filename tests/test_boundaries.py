@@ -269,6 +269,36 @@ def test_margins_bound_where_a_neighbour_can_win(rear):
     assert np.any(best_k[~far] != k[~far])  # the margins are not empty: neighbours do reach into cells
 
 
+
+@pytest.mark.parametrize("rear", [False, True])
+def test_pair_clearances_bound_where_each_neighbour_can_win(rear):
+    """Pair by pair: where Q = rho_i^2 - rho_k^2 (squared distances from the design centres) clears pair
+    (k, i)'s bound, neighbour i's sphere is higher (front) / lower (rear) than lens k's own, heights from
+    each sphere's centre as above; and the pairs clear far more of the plane than the cell's margin does
+    (the compiled re-trace skips the scan there)."""
+    mla = MicrolensArray(camera(SAG), harsh_errors(3))
+    margin = mla.margin_rear if rear else mla.margin_front
+    q = mla.pair_clearance_mm2(rear)
+    rng = np.random.default_rng(5)
+    n = 200_000
+    x = rng.uniform(mla.x0 + mla.p, -mla.x0 - mla.p, n)
+    y = rng.uniform(mla.y0 + mla.p, -mla.y0 - mla.p, n)
+    k, _ = mla.cell_of(x, y)
+    h_k = sphere_height(mla, k, x, y, rear)
+    rho2_k = (x - mla.gx[k]) ** 2 + (y - mla.gy[k]) ** 2
+    all_clear = np.ones(n, dtype=bool)
+    checked = 0
+    for j, (kc, ok) in enumerate(mla.neighbours(x, y)):  # the 3 x 3 around the cell, row-major
+        clear = ok & (kc != k) & ((x - mla.gx[kc]) ** 2 + (y - mla.gy[kc]) ** 2 - rho2_k >= q[k, j])
+        h = sphere_height(mla, kc, x, y, rear)
+        assert np.all((h < h_k) if rear else (h > h_k), where=clear)
+        all_clear &= clear | ~ok | (kc == k)
+        checked += clear.sum()
+    assert checked > n
+    far = mla.edge_distance(x, y) >= margin[k] + 1e-6  # the pairs' bounds add 1 nm against ties
+    assert np.all(all_clear[far])  # the cell margin is the pairs' worst case
+    assert all_clear.mean() > far.mean() + 0.05
+
 def sphere_height(mla: MicrolensArray, k: np.ndarray, x, y, rear: bool) -> np.ndarray:
     """z of lens k's front (lower sheet) or rear (upper sheet) sphere above (x, y), MLA frame."""
     if rear:

@@ -247,6 +247,73 @@ def test_circle_aperture_takes_rays_inside_its_circle_and_gives_the_gap_the_rest
             assert np.all(r.L[~inside] == 0) and np.all(r.w[~inside] == 1.0)
 
 
+
+@pytest.mark.parametrize("rear", [False, True])
+def test_hex_pair_clearances_bound_where_each_neighbour_can_win(rear):
+    """Hex cells, pair by pair: where Q = rho_i^2 - rho_k^2 (from the design centres) clears pair (k, i)'s
+    bound, neighbour i's sphere is higher (front) / lower (rear) than lens k's at that point (heights from
+    each sphere's centre, tilt included); the pairs clear more of the plane than the cell margins."""
+    mla = MicrolensArray(with_mla(HEX, boundaries=SAG), hex_errors(4))
+    q = mla.pair_clearance_mm2(rear)
+    rng = np.random.default_rng(6)
+    n = 100_000
+    x, y = rng.uniform(-0.9, 0.9, n), rng.uniform(-0.9, 0.9, n)
+    k, _ = mla.cell_of(x, y)
+
+    def height(kc):
+        if rear:
+            local, radius = np.stack([mla.dx[kc], mla.dy[kc], mla.z_rear[kc] + 1 / mla.c2[kc]]), abs(1 / mla.c2[kc])
+        else:
+            local, radius = np.stack([0 * kc, 0 * kc, mla.z_front + 1 / mla.c1[kc]]), 1 / mla.c1[kc]
+        centre = np.einsum("kij,jk->ik", mla.rot[kc], local)
+        root = np.sqrt(radius ** 2 - (x - mla.fx[kc] - centre[0]) ** 2 - (y - mla.fy[kc] - centre[1]) ** 2)
+        return centre[2] + root if rear else centre[2] - root
+
+    h_k, rho2_k = height(k), (x - mla.gx[k]) ** 2 + (y - mla.gy[k]) ** 2
+    all_clear, checked = np.ones(n, dtype=bool), 0
+    for j, (kc, ok) in enumerate(mla.neighbours(x, y)):  # the cell, then its 6 neighbours
+        clear = ok & (kc != k) & ((x - mla.gx[kc]) ** 2 + (y - mla.gy[kc]) ** 2 - rho2_k >= q[k, j])
+        assert np.all((height(kc) < h_k) if rear else (height(kc) > h_k), where=clear)
+        all_clear &= clear | ~ok | (kc == k)
+        checked += clear.sum()
+    assert checked > 3 * n
+    margin = mla.margin_rear if rear else mla.margin_front
+    far = mla.edge_distance(x, y) >= margin[k] + 1e-6
+    assert np.all(all_clear[far]) and all_clear.mean() > far.mean() + 0.02
+
+
+@pytest.mark.parametrize("cfg", [HEX, SQUARE], ids=["hex", "square"])
+def test_circle_clearance_bounds_where_a_neighbours_circle_can_hold_a_hit(cfg):
+    """Oblique rays (up to 0.3 rad) on 94 µm circles with pitch errors up to 6 µm and tilts: where a ray's
+    hit on its cell's lens lies in that cell farther than the cell's clearance from its edge, no
+    neighbour's front sphere takes the ray inside its circle (each intersection computed); nearer the
+    edges some do, so the bound is not empty."""
+    shape = (cfg.mla.count_h, cfg.mla.count_w)
+    rng = np.random.default_rng(3)
+    lens = dict(ErrorMap.zeros(*shape, cfg.mla.packing).lens)
+    lens.update({"pitch_um": rng.uniform(0, 6, shape), "pitch_dir_deg": rng.uniform(0, 360, shape),
+                 "tilt_x_deg": rng.uniform(-0.5, 0.5, shape), "tilt_y_deg": rng.uniform(-0.5, 0.5, shape)})
+    mla = MicrolensArray(with_mla(cfg, aperture="circle", aperture_diameter_um=94.0), ErrorMap(shape, lens, packing=cfg.mla.packing))
+    clearance = mla.circle_clearance_mm()
+    assert np.mean(clearance > 0) > 0.5
+    n = 60_000
+    x, y = rng.uniform(-0.9, 0.9, n), rng.uniform(-0.9, 0.9, n)
+    theta, phi = 0.3 * np.sqrt(rng.random(n)), 2 * np.pi * rng.random(n)
+    L, M, N = np.sin(theta) * np.cos(phi), np.sin(theta) * np.sin(phi), np.cos(theta)
+    z = np.full(n, mla.z_front)
+    k, _ = mla.cell_of(x, y)
+    local, ldir, _, t = mla._surface(k, x, y, z, L, M, N, rear=False)
+    gx, gy, _, _, _, _ = mla._from_lens(k, *local, *ldir)
+    k2, on = mla.cell_of(gx, gy)
+    far = on & (k2 == k) & (mla.edge_distance(gx, gy) > clearance[k]) & np.isfinite(t)
+    taken = np.zeros(n, dtype=bool)
+    for kc, ok in mla.neighbours(gx, gy):
+        lc, _, _, tc = mla._surface(kc, x, y, z, L, M, N, rear=False)
+        taken |= ok & (kc != k) & np.isfinite(tc) & (lc[0] ** 2 + lc[1] ** 2 <= mla.r_circle ** 2)
+    assert 0.3 < far.mean() < 0.95
+    assert not np.any(taken & far)
+    assert np.any(taken & ~far)
+
 @needs_numba
 def test_circle_flux_is_proportional_to_its_area():
     """White scene, opaque gaps, no Fresnel: the light through the array is the irradiance times the clear

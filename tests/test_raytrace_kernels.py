@@ -81,6 +81,68 @@ def test_engines_render_the_same_image(boundaries, errors):
     assert np.allclose(a.photons, b.photons, rtol=1e-12, atol=0)
 
 
+
+HEX_SMALL = load_config(Path(__file__).resolve().parent.parent / "fixtures" / "hex_small_camera.toml")
+
+
+def _hex_moderate_errors() -> ErrorMap:
+    """Every lens of the small hex array (28 x 24) with random pitch, decenter, radius, thickness and tilt
+    errors, plus global errors: margins and circle clearances non-zero on every cell."""
+    rng = np.random.default_rng(9)
+    shape = (HEX_SMALL.mla.count_h, HEX_SMALL.mla.count_w)
+    lens = {"pitch_um": rng.uniform(0, 6, shape), "pitch_dir_deg": rng.uniform(0, 360, shape),
+            "decenter_um": rng.uniform(0, 4, shape), "decenter_dir_deg": rng.uniform(0, 360, shape),
+            "radius_front_rel": rng.uniform(-0.06, 0.06, shape), "radius_back_rel": rng.uniform(-0.06, 0.06, shape),
+            "tilt_x_deg": rng.uniform(-0.4, 0.4, shape), "tilt_y_deg": rng.uniform(-0.4, 0.4, shape),
+            "thickness_um": rng.uniform(-1.0, 1.0, shape)}
+    return ErrorMap(shape, lens, packing="hex").with_globals(mla_rotation_deg=0.6, mla_tilt_x_deg=-0.2)
+
+
+def _sparse_defects(packing: str, shape: tuple[int, int], seed: int) -> ErrorMap:
+    """A perfect array but for a sparse set of lenses with large pitch or thickness errors: perfect cells
+    next to flawed ones, where a cell's margin (its worst neighbour's) exceeds most of its pairs'."""
+    rng = np.random.default_rng(seed)
+    em = ErrorMap.zeros(*shape, packing=packing)
+    for m in range(1, shape[0] - 1, 2):
+        for n in range(1, shape[1] - 1, 2):
+            if rng.random() < 0.5:
+                em = em.with_lens(m, n, pitch_um=float(rng.uniform(1, 4)), pitch_dir_deg=float(rng.uniform(0, 360)))
+            else:
+                em = em.with_lens(m, n, thickness_um=float(rng.uniform(-3, 3)))
+    return em
+
+
+def _exhaustive(r: Renderer) -> Renderer:
+    """The renderer with pruning off: every doubted ray scans all its candidates (the reference path)."""
+    r.fast.base[raytrace_kernels.S_PRUNE] = 0.0
+    return r
+
+
+@pytest.mark.parametrize("packing, mla, errors", [
+    ("square", {"boundaries": SAG}, "moderate"), ("square", {"boundaries": SAG, "corners": "clear"}, "sparse"),
+    ("hex", {"boundaries": SAG}, "moderate"), ("hex", {"boundaries": SAG}, "sparse"),
+    ("square", {"aperture": "circle", "aperture_diameter_um": 96.0, "gap": "clear"}, "moderate"),
+    ("hex", {"aperture": "circle", "aperture_diameter_um": 90.0, "gap": "opaque"}, "moderate")])
+def test_pruned_retrace_renders_the_exhaustive_image_bit_for_bit(packing, mla, errors):
+    """Skipping the candidates that provably cannot win (pair clearances, circle clearances) changes no
+    ray: on frames where every cell has rays within its margin / clearance of its edges, the image equals
+    bit for bit the one of the exhaustive scan of every doubted ray (same seed, same draws)."""
+    base = SMALL if packing == "square" else HEX_SMALL
+    cfg = _mla(base, **mla)
+    shape = (cfg.mla.count_h, cfg.mla.count_w)
+    em = (_sparse_defects(packing, shape, 3) if errors == "sparse"
+          else _moderate_errors() if packing == "square" else _hex_moderate_errors())
+    a = Renderer(cfg, em, engine="numba")
+    lens = a.camera.mla
+    if lens.sag:  # rays within microns of the edges of most cells are doubted
+        assert np.mean(lens.margin_rear > 0) > 0.5 and np.median(lens.margin_rear[lens.margin_rear > 0]) > 2e-3
+    else:
+        assert np.mean(lens.circle_clearance_mm() > 0) > 0.5
+    got = a.render(WhiteScene(), rays=500_000, seed=6, threads=2)
+    ref = _exhaustive(Renderer(cfg, em, engine="numba")).render(WhiteScene(), rays=500_000, seed=6, threads=2)
+    assert got.rays_landed == ref.rays_landed > 50_000
+    assert np.array_equal(got.photons, ref.photons)
+
 def test_hits_come_in_ray_order_with_their_bounding_box():
     r = Renderer(SMALL, _harsh_errors(), engine="numba")
     rows, cols, w, box = r.fast.trace_hits(raytrace_kernels.IMAGE_SIDE, 11, 30_000, tile=(-0.4, 0.1, 0.2, 0.5))

@@ -312,6 +312,52 @@ class MicrolensArray:
                 np.maximum.at(margin, k, d)
         return margin
 
+    def pair_clearance_mm2(self, rear: bool) -> np.ndarray:
+        """Per cell k and candidate i (`neighbours` order, axis 1), the Q = rho_i^2 - rho_k^2 (mm^2, distances
+        from the design centres) beyond which lens i cannot reach point x of cell k (see boundary_margins_mm:
+        the bound holds pair by pair, Q = 2 p d with d the pair's margin), + 2 p x 1 nm; -inf for the cell
+        itself and candidates off the array, +inf where the pair's bound fails. The compiled engine's
+        re-trace keeps / takes the cell's lens without scanning the candidates where every Q clears it."""
+        u, w, radius = self.sphere_offsets_mm(rear)
+        r0 = abs(1.0 / (self.c2_design if rear else self.c1_design))
+        ra = np.abs(radius)
+        flawed = (u > 1e-9) | (np.abs(w) > 1e-9) | (np.abs(ra - r0) > 1e-12 * r0)
+        cands = self.neighbours(self.gx, self.gy)
+        out = np.full((self.rows * self.cols, len(cands)), -np.inf)
+        k_all = np.arange(self.rows * self.cols)
+        for j, (nb, ok) in enumerate(cands):
+            k = k_all[ok & (nb != k_all)]
+            i = nb[k]
+            d = np.zeros(k.size)
+            pair = flawed[k] | flawed[i]
+            if pair.any():
+                d[pair] = _pair_margin(self.p, r0, u[i[pair]], np.abs(w[i[pair]]), ra[i[pair]], u[k[pair]],
+                                       np.abs(w[k[pair]]), ra[k[pair]], self.hex)
+            out[k, j] = np.where(d >= 0.5 * self.p, np.inf, 2.0 * self.p * (d + 1e-6))
+        return out
+
+    def circle_clearance_mm(self) -> np.ndarray:
+        """Per cell, the largest distance (mm) from its nearest edge at which a front hit can lie in a
+        neighbour's circle: a point e from cell k's edges is >= p/2 + e from every neighbour's design centre,
+        and lens i's circle holds only hits within r_circle + its own reach (front vertex move and tilt
+        swing, `circle_reach_mm`'s terms) of its design centre. Negative (no hit of the cell can be a
+        neighbour's) on a design array whose circles leave gaps; the compiled engine's gap test."""
+        move = np.hypot(self.fx - self.gx, self.fy - self.gy)
+        own = self._circle_own_reach_mm(move)
+        nb = self.lattice.neighbours(diagonal=True)
+        near = np.max(np.where(nb >= 0, own[np.maximum(nb, 0)], -np.inf), axis=1, initial=-np.inf)
+        return self.r_circle + near - 0.5 * self.p
+
+    def _circle_own_reach_mm(self, move: np.ndarray) -> np.ndarray:
+        """Per lens, how far beyond r_circle from its design centre a front hit in its circle can lie (see
+        circle_reach_mm), + 1 nm."""
+        rim = self.r_circle + float(move.max(initial=0.0))
+        sag = float(_sag_abs(np.abs(1.0 / self.c1), min(rim, 0.999 * np.abs(1.0 / self.c1).min())).max())
+        if self.tilted:
+            cos_tilt = np.clip(self.rot[:, 2, 2], -1.0, 1.0)
+            move = move + (abs(self.z_front) + sag) * np.sqrt(1.0 - cos_tilt ** 2) + rim * (1.0 - cos_tilt)
+        return move + sag + 1e-6
+
     def circle_reach_mm(self) -> np.ndarray:
         """Per cell, how far (mm) beyond the circles' radius from the cell's design centre a front hit can
         still lie in some lens' circle: the largest lateral move of a front vertex (pitch error; a tilt's

@@ -73,14 +73,20 @@ IMAGE_SIDE, POINT, OBJECT_SIDE = 0, 1, 2
  # half the black matrix' width (mm; sag-intersection boundaries are a kernel of their own, kernel_sag)
  S_HALFBM,
  # circle apertures: radius^2, clear gaps (per-cell reach: the `circ` table)
- S_RCIRC2, S_CLEARGAP, S_COUNT) = range(56)
+ S_RCIRC2, S_CLEARGAP,
+ # 1: re-traces skip candidates that provably cannot win (pair clearances); 0: every doubted ray scans
+ # them all (the exhaustive path, which tests hold the pruned one to, image for image)
+ S_PRUNE, S_COUNT) = range(57)
 # Rows of the per-block scratch table `g`: the gathered parameters of each ray's lens (tab rows 0..6), its
 # current hit and direction in the lens frame, the distance t to it (NaN on a miss), and its pixel.
 # Sag-intersection mode also gathers the lens' front and rear margins (G_MF, G_MR).
 G_FX, G_FY, G_DX, G_DY, G_C1, G_C2, G_ZR, G_HX, G_HY, G_HZ, G_LL, G_LM, G_LN, G_T, G_ROW, G_COL, G_MF, G_MR, G_COUNT = range(19)
 # Rows of the per-lens `margins` table of sag-intersection mode (kernel_sag): front and rear margins (mm,
-# raytrace.MicrolensArray.boundary_margins_mm).
-T_MARGIN_FRONT, T_MARGIN_REAR = 0, 1
+# raytrace.MicrolensArray.boundary_margins_mm), design centre x, y (mm).
+T_MARGIN_FRONT, T_MARGIN_REAR, T_GX, T_GY = 0, 1, 2, 3
+# Rows of the per-lens `circ` table of circle apertures: design centre x, y (mm), (radius + reach)^2 (mm^2),
+# the edge distance (mm) within which a neighbour's circle can hold a hit (circle_clearance_mm).
+C_GX, C_GY, C_REACH2, C_CLEAR = 0, 1, 2, 3
 
 
 @_jit_inline
@@ -695,29 +701,83 @@ def centre_cell(gx, gy, s, lat):
     return min(max(row, 0), int(s[S_ROWS]) - 1), min(max(col, 0), int(s[S_COLS]) - 1)
 
 
+# The candidates' design-centre offsets from their cell's, in pitches, in candidate order (`candidate`):
+# square the 3 x 3 row-major, hex the cell, then left, right, upper left, upper right, lower left, lower
+# right (y down; FastCamera checks them against the lattice's centres).
+SQUARE_DIRS = np.array([[dc, dr] for dr in (-1.0, 0.0, 1.0) for dc in (-1.0, 0.0, 1.0)])
+HEX_DIRS = np.array([[0.0, 0.0], [-1.0, 0.0], [1.0, 0.0], [-0.5, -SQRT3_2], [0.5, -SQRT3_2], [-0.5, SQRT3_2],
+                     [0.5, SQRT3_2]])
+
+
 @_jit_inline
-def retrace_sag(m, flag, kk, buf, g, tab, rot, s, rear, cflag, margins, lat, corner_of):
+def clears_neighbours(k, x, y, side, margins, lims, lat):
+    """Lens k's sphere (front, side 0, lowest; rear, side 1, highest) wins at MLA point (x, y) of its cell
+    against every candidate around it: the point's offset from k's design centre projected on each
+    candidate's direction stays within that pair's limit (`lims`, FastCamera: +inf for the cell itself
+    and candidates off the array), so the scan could only return k. Branch-free: a few multiply-adds."""
+    a, b = x - margins[T_GX, k], y - margins[T_GY, k]
+    dirs = SQUARE_DIRS if lat is None else HEX_DIRS
+    ok = True
+    for i in range(9 if lat is None else 7):
+        ok &= a * dirs[i, 0] + b * dirs[i, 1] <= lims[side, k, i]
+    return ok
+
+
+@_jit_inline
+def scan_candidates(j, k0, row0, col0, buf, tab, rot, s, rear, lat, best, bt, bx, by, bz, bL, bM, bN):
+    """The first-met front / last-met rear sphere among the candidates around cell (row0, col0), starting
+    from lens k0's hit (best, bt, b*): another replaces it only if strictly earlier / later, so the first
+    in candidate order wins a tie (as raytrace.MicrolensArray.extreme_lens)."""
+    rows, cols = int(s[S_ROWS]), int(s[S_COLS])
+    for i in range(9 if lat is None else 7):
+        rr, cc = candidate(i, row0, col0, lat)
+        kc = rr * cols + cc
+        if rr < 0 or rr >= rows or cc < 0 or cc >= cols or kc == k0:
+            continue
+        hx, hy, hz, lL, lM, lN, t = lens_surface(kc, buf[0, j], buf[1, j], buf[2, j], buf[3, j], buf[4, j],
+                                                 buf[5, j], rear, tab, rot, s[S_ZFRONT])
+        if t == t and (t > bt if rear else t < bt):
+            best, bt, bx, by, bz, bL, bM, bN = kc, t, hx, hy, hz, lL, lM, lN
+    return best, bt, bx, by, bz, bL, bM, bN
+
+
+@_jit_inline
+def retrace_sag(m, flag, kk, buf, g, tab, rot, s, rear, cflag, margins, lims, lat, corner_of):
     """Flagged rays (near a cell edge) take the front sphere they meet first / the rear sphere they meet
     last among the 3 x 3 lenses around their hit's cell: lens kk's hit (in g) unless another is strictly
     earlier / later, the first in row-major order winning a tie (as raytrace.MicrolensArray.extreme_lens;
-    a scalar pass: it is rare). Front re-traces also flag the ray's corner test (cflag)."""
-    rows, cols = int(s[S_ROWS]), int(s[S_COLS])
+    a scalar pass: it is rare). Front re-traces also flag the ray's corner test (cflag).
+
+    Pruned (S_PRUNE): a hit in its own lens' cell that clears every neighbour pair's bound keeps that lens
+    without a scan, and a hit in a neighbour's cell takes that lens after one intersection when the lens
+    is strictly better and its own hit lies in its cell clear of its neighbours; the rest scan, so the
+    outcome is the scan's, ray for ray."""
+    side = 1 if rear else 0
+    prune = s[S_PRUNE] != 0.0
     for j in range(m):
         if flag[j]:
+            if not rear:
+                cflag[j] = True
             k0 = kk[j]
             gx, gy = hit_xy(k0, g[G_HX, j], g[G_HY, j], g[G_HZ, j], tab, rot)
-            row0, col0 = centre_cell(gx, gy, s, lat)
             best, bt = k0, g[G_T, j]
             bx, by, bz, bL, bM, bN = g[G_HX, j], g[G_HY, j], g[G_HZ, j], g[G_LL, j], g[G_LM, j], g[G_LN, j]
-            for i in range(9 if lat is None else 7):
-                rr, cc = candidate(i, row0, col0, lat)
-                kc = rr * cols + cc
-                if rr < 0 or rr >= rows or cc < 0 or cc >= cols or kc == k0:
-                    continue
-                hx, hy, hz, lL, lM, lN, t = lens_surface(kc, buf[0, j], buf[1, j], buf[2, j], buf[3, j], buf[4, j],
+            k2 = cell(gx, gy, s, lat) if prune else -1
+            done = False
+            if k2 >= 0 and k2 == k0:
+                done = clears_neighbours(k0, gx, gy, side, margins, lims, lat)
+            elif k2 >= 0:
+                hx, hy, hz, lL, lM, lN, t = lens_surface(k2, buf[0, j], buf[1, j], buf[2, j], buf[3, j], buf[4, j],
                                                          buf[5, j], rear, tab, rot, s[S_ZFRONT])
                 if t == t and (t > bt if rear else t < bt):
-                    best, bt, bx, by, bz, bL, bM, bN = kc, t, hx, hy, hz, lL, lM, lN
+                    x2, y2 = hit_xy(k2, hx, hy, hz, tab, rot)
+                    if cell(x2, y2, s, lat) == k2 and clears_neighbours(k2, x2, y2, side, margins, lims, lat):
+                        best, bt, bx, by, bz, bL, bM, bN = k2, t, hx, hy, hz, lL, lM, lN
+                        done = True
+            if not done:
+                row0, col0 = centre_cell(gx, gy, s, lat)
+                best, bt, bx, by, bz, bL, bM, bN = scan_candidates(j, k0, row0, col0, buf, tab, rot, s, rear, lat,
+                                                                   best, bt, bx, by, bz, bL, bM, bN)
             if best != k0:
                 kk[j] = best
                 gather(j, best, tab, g)
@@ -725,8 +785,6 @@ def retrace_sag(m, flag, kk, buf, g, tab, rot, s, rear, cflag, margins, lat, cor
                 g[G_HX, j], g[G_HY, j], g[G_HZ, j], g[G_LL, j], g[G_LM, j], g[G_LN, j], g[G_T, j] = bx, by, bz, bL, bM, bN, bt
                 if not rear:
                     corner_of[j] = True  # lens k0's corner test is stale: corners_sag decides
-            if not rear:
-                cflag[j] = True
 
 
 @_jit_inline
@@ -974,18 +1032,24 @@ def pass_leave(m, buf, s, rot, grot, fres, n_mla, g, kk, corner_of, rows, cols, 
 @_jit_inline
 def front_circle(m, buf, s, tab, rot, g, kk, flag, corner_of, clear, lat, circ):
     """Pass B (circle apertures, branch-free): lens kk's front hit; gap (flag) where it lies outside kk's
-    circle, doubted (kept in flag, scanned by retrace_circle) where it lies within radius + reach of its
-    cell's design centre (`circ`: design centres, raytrace.MicrolensArray._hit_circle); the corner test
-    with lens kk's rear (corner_of)."""
-    zfront, ax0, ay0, invp, ncols, nrows = s[S_ZFRONT], s[S_AX0], s[S_AY0], s[S_INVP], s[S_COLS], s[S_ROWS]
+    circle, doubted (scanned by retrace_circle) where it lies within radius + reach of its cell's design
+    centre (`circ`: design centres, raytrace.MicrolensArray._hit_circle); the corner test with lens kk's
+    rear (corner_of). Pruned (S_PRUNE), a live gap hit is doubted (g[G_MR] = 1) only off the array, in
+    another cell than its lens', or within its cell's clearance (g[G_MF]: circ[C_CLEAR]) of the cell's
+    edge: elsewhere no neighbour's circle can hold it, and lens kk's own circle does not."""
+    zfront, ax0, ay0, invp, p, ncols, nrows = s[S_ZFRONT], s[S_AX0], s[S_AY0], s[S_INVP], s[S_P], s[S_COLS], s[S_ROWS]
     r2 = s[S_RCIRC2]
+    exhaustive = s[S_PRUNE] == 0.0
     for j in range(m):
-        fx, fy, c = g[G_FX, j], g[G_FY, j], g[G_C1, j]
+        fx, fy, c, k = g[G_FX, j], g[G_FY, j], g[G_C1, j], kk[j]
         px, py, pz, L, M, N = buf[0, j] - fx, buf[1, j] - fy, buf[2, j], buf[3, j], buf[4, j], buf[5, j]
-        hx, hy, hz, L, M, N, t, k2 = surface_hit(px, py, pz, L, M, N, 0.0, 0.0, zfront, c, fx, fy, rot, kk[j],
-                                                 ax0, ay0, invp, ncols, nrows, lat)
+        hx, hy, hz, L, M, N, t, k2, edge = surface_hit_edge(px, py, pz, L, M, N, 0.0, 0.0, zfront, c, fx, fy, rot, k,
+                                                            ax0, ay0, invp, p, ncols, nrows, lat)
         g[G_HX, j], g[G_HY, j], g[G_HZ, j], g[G_LL, j], g[G_LM, j], g[G_LN, j], g[G_T, j] = hx, hy, hz, L, M, N, t
-        flag[j] = not (hx * hx + hy * hy <= r2)
+        gap = not (hx * hx + hy * hy <= r2)
+        flag[j] = gap
+        doubt = gap & (buf[6, j] > 0.0) & (t == t) & (exhaustive | (k2 != k) | (edge <= g[G_MF, j]))
+        g[G_MR, j] = 1.0 if doubt else 0.0
         g[G_ROW, j] = k2  # the hit's cell, for retrace_circle
         rx, ry = hx - g[G_DX, j], hy - g[G_DY, j]
         c2 = g[G_C2, j]
@@ -996,16 +1060,17 @@ def front_circle(m, buf, s, tab, rot, g, kk, flag, corner_of, clear, lat, circ):
 
 @_jit_inline
 def retrace_circle(m, flag, kk, buf, g, tab, rot, s, lat, circ, corner_of):
-    """Gap rays (flag) near a circle's reach: the first candidate around the hit's cell whose circle holds
-    the ray's hit on its own front sphere takes the ray (flag cleared); others stay in the gap. Scalar."""
+    """Doubted gap rays (g[G_MR], front_circle) near a circle's reach: the first candidate around the hit's
+    cell whose circle holds the ray's hit on its own front sphere takes the ray (flag cleared); others stay
+    in the gap. Scalar."""
     rows, cols, r2 = int(s[S_ROWS]), int(s[S_COLS]), s[S_RCIRC2]
     for j in range(m):
-        if flag[j] and buf[6, j] > 0.0 and g[G_T, j] == g[G_T, j]:
+        if g[G_MR, j] != 0.0:
             gx, gy = hit_xy(kk[j], g[G_HX, j], g[G_HY, j], g[G_HZ, j], tab, rot)
             k2 = int(g[G_ROW, j])
             if k2 >= 0:
-                ex, ey = gx - circ[0, k2], gy - circ[1, k2]
-                if not (ex * ex + ey * ey <= circ[2, k2]):
+                ex, ey = gx - circ[C_GX, k2], gy - circ[C_GY, k2]
+                if not (ex * ex + ey * ey <= circ[C_REACH2, k2]):
                     continue
             row0, col0 = centre_cell(gx, gy, s, lat)
             for i in range(9 if lat is None else 7):
@@ -1056,6 +1121,8 @@ def stage2_block(m, buf, s, tab, rot, grot, clear, fres, n_mla, mu_in, g, kk, fl
         pass_front_grid(m, buf, s, tab, rot, g, kk, flag, lat)
         pass_front_refract(m, buf, s, rot, clear, fres, n_mla, mu_in, g, kk, corner_of, False)
     else:  # circle apertures: the lens whose circle holds the hit; gaps and corners from front_circle
+        for j in range(m):  # a loop of its own, as gather: an indexed load keeps a pass from vectorizing
+            g[G_MF, j] = circ[C_CLEAR, kk[j]]
         front_circle(m, buf, s, tab, rot, g, kk, flag, corner_of, clear, lat, circ)
         retrace_circle(m, flag, kk, buf, g, tab, rot, s, lat, circ, corner_of)
         circle_fate(m, buf, s, clear, g, flag, corner_of)
@@ -1066,7 +1133,7 @@ def stage2_block(m, buf, s, tab, rot, grot, clear, fres, n_mla, mu_in, g, kk, fl
 
 @_jit_inline
 def stage2_block_sag(m, buf, s, tab, rot, grot, clear, fres, n_mla, mu_in, g, kk, flag, corner_of, rows, cols, wts,
-                     nout, box, cflag, margins, lat):
+                     nout, box, cflag, margins, lims, lat):
     """Stage 2 for one block, sag-intersection boundaries: as stage2_block, with passes B and C' that also
     flag hits within a per-cell margin of the edge (front_sag, rear_sag) for the 3 x 3 neighbour pass
     (retrace_sag), and corners from the union of the rear regions (corners_sag). A kernel of its own
@@ -1076,11 +1143,11 @@ def stage2_block_sag(m, buf, s, tab, rot, grot, clear, fres, n_mla, mu_in, g, kk
         k = kk[j]
         g[G_MF, j], g[G_MR, j] = margins[T_MARGIN_FRONT, k], margins[T_MARGIN_REAR, k]
     front_sag(m, buf, s, tab, rot, g, kk, flag, cflag, corner_of, lat)
-    retrace_sag(m, flag, kk, buf, g, tab, rot, s, False, cflag, margins, lat, corner_of)
+    retrace_sag(m, flag, kk, buf, g, tab, rot, s, False, cflag, margins, lims, lat, corner_of)
     corners_sag(m, cflag, kk, g, tab, rot, s, corner_of, lat)
     pass_front_refract(m, buf, s, rot, clear, fres, n_mla, mu_in, g, kk, corner_of, True)
     rear_sag(m, buf, s, tab, rot, g, kk, flag, corner_of, lat)
-    retrace_sag(m, flag, kk, buf, g, tab, rot, s, True, cflag, margins, lat, corner_of)
+    retrace_sag(m, flag, kk, buf, g, tab, rot, s, True, cflag, margins, lims, lat, corner_of)
     return pass_leave(m, buf, s, rot, grot, fres, n_mla, g, kk, corner_of, rows, cols, wts, nout, box)
 
 
@@ -1141,9 +1208,9 @@ def kernel(s, key, count, tab, rot, grot, texture, shift_coef, rows, cols, wts, 
 
 
 @_jit
-def kernel_sag(s, key, count, tab, rot, grot, texture, shift_coef, rows, cols, wts, box, margins, lat):
+def kernel_sag(s, key, count, tab, rot, grot, texture, shift_coef, rows, cols, wts, box, margins, lims, lat):
     """As kernel (the same loop), with sag-intersection boundaries (`margins`: per-lens front and rear
-    margins, mm)."""
+    margins, mm, and design centres; `lims`: per-pair limits (pair_limits), [front / rear, lens, candidate])."""
     cflag = np.empty(BLOCK, np.bool_)
     mode, fres, clear, n_mla, sobol, seeds, shifts, jtab = kernel_settings(s, key)
     buf, g, kk, flag, corner_of, ia, icf = block_scratch()
@@ -1152,7 +1219,7 @@ def kernel_sag(s, key, count, tab, rot, grot, texture, shift_coef, rows, cols, w
         m = stage1_block(start, min(BLOCK, count - start), mode, s, key, buf, fres, texture, g, sobol, shift_coef,
                          seeds, shifts, jtab, ia, icf, lat)
         nout = stage2_block_sag(m, buf, s, tab, rot, grot, clear, fres, n_mla, 1.0 / n_mla, g, kk, flag, corner_of,
-                                rows, cols, wts, nout, box, cflag, margins, lat)
+                                rows, cols, wts, nout, box, cflag, margins, lims, lat)
     return nout
 
 
@@ -1168,6 +1235,28 @@ def bin_hits(rows, cols, wts, n, box):
     return patch
 
 
+def pair_limits(mla) -> np.ndarray:
+    """[front / rear, lens k, candidate i]: how far (mm) a point of cell k may lie from k's design centre
+    towards candidate i (offset . D_i / p, D_i = c_i - c_k = p times SQUARE_DIRS / HEX_DIRS) with lens k
+    still winning against i: Q = |D_i|^2 - 2 offset . D_i clears the pair's bound q
+    (MicrolensArray.pair_clearance_mm2) while the projection is <= (|D_i|^2 - q) / 2p. +inf for the cell
+    itself and candidates off the array, -inf where the pair's bound fails."""
+    dirs = HEX_DIRS if mla.hex else SQUARE_DIRS
+    out = []
+    for rear in (False, True):
+        q = mla.pair_clearance_mm2(rear)
+        lim = np.empty_like(q)
+        for i, (kc, ok) in enumerate(mla.neighbours(mla.gx, mla.gy)):
+            dx, dy = mla.gx[kc] - mla.gx, mla.gy[kc] - mla.gy
+            on = ok & (kc != np.arange(kc.size))
+            if not np.allclose(np.stack([dx, dy])[:, on] / mla.p, dirs[i][:, None], rtol=0.0, atol=1e-9):
+                raise AssertionError("candidate directions do not match the lattice")
+            with np.errstate(invalid="ignore"):
+                lim[:, i] = np.where(on, (dx * dx + dy * dy - q[:, i]) / (2.0 * mla.p), np.inf)
+        out.append(lim)
+    return np.ascontiguousarray(np.stack(out))
+
+
 class FastCamera:
     """Packs a `raytrace.Camera` into the flat tables the kernel reads; one per Renderer."""
 
@@ -1176,13 +1265,16 @@ class FastCamera:
         mla, main, cfg = camera.mla, camera.main, camera.cfg
         self._warm = False  # a batch has run: the kernel variant is compiled (or loaded)
         self.tab = np.ascontiguousarray(np.stack([mla.fx, mla.fy, mla.dx, mla.dy, mla.c1, mla.c2, mla.z_rear]))
-        self.margins = np.ascontiguousarray(np.stack([mla.margin_front, mla.margin_rear])) if mla.sag else None
+        self.margins = (np.ascontiguousarray(np.stack([mla.margin_front, mla.margin_rear, mla.gx, mla.gy]))
+                        if mla.sag else None)
+        self.lims = pair_limits(mla) if mla.sag else None
         # None (not an identity) where unused: Numba then compiles a kernel without those branches.
         self.rot = np.ascontiguousarray(mla.rot) if mla.tilted else None
         self.grot = np.ascontiguousarray(camera.rot) if camera.rotated else None
         self.lat = np.zeros(1) if mla.hex else None  # a marker: hex cells (its value is unused)
-        self.circ = (np.ascontiguousarray(np.stack([mla.gx, mla.gy, (mla.r_circle + mla.circle_reach) ** 2]))
-                     if mla.circle else None)  # design centres, per-cell (radius + reach)^2
+        self.circ = (np.ascontiguousarray(np.stack([mla.gx, mla.gy, (mla.r_circle + mla.circle_reach) ** 2,
+                                                    mla.circle_clearance_mm()]))
+                     if mla.circle else None)  # rows C_GX, C_GY, C_REACH2, C_CLEAR
         s = np.zeros(S_COUNT)
         s[S_C1], s[S_C2], s[S_T], s[S_N], s[S_RIM2] = main.c1, main.c2, main.z2, main.n, main.rim2
         s[S_FRES] = float(cfg.trace.fresnel)
@@ -1193,6 +1285,7 @@ class FastCamera:
         s[S_HALFBM] = mla.half_black_mm
         s[S_RCIRC2] = mla.r_circle ** 2
         s[S_CLEARGAP] = float(mla.clear_gap)
+        s[S_PRUNE] = 1.0  # tests set 0.0: the exhaustive re-trace
         s[S_ZMLA], s[S_ZSENS] = camera.z_mla, camera.z_sensor
         s[S_SHIFTX], s[S_SHIFTY] = camera.shift_x, camera.shift_y
         s[S_PIX], s[S_SX0], s[S_SY0], s[S_W], s[S_H] = camera.pixel, camera.sx0, camera.sy0, camera.width, camera.height
@@ -1233,7 +1326,7 @@ class FastCamera:
         w = np.empty(n)
         box = np.array([2 ** 31, -1, 2 ** 31, -1], np.int64)
         args = (s, np.uint64(key), n, self.tab, self.rot, self.grot, tex, self.shift_coef, rows, cols, w, box)
-        args += (self.margins, self.lat) if self.margins is not None else (self.lat, self.circ)
+        args += (self.margins, self.lims, self.lat) if self.margins is not None else (self.lat, self.circ)
         trace = kernel if self.margins is None else kernel_sag
         if self._warm:
             k = trace(*args)
