@@ -102,19 +102,9 @@ SEEDED = {(8, 6): ("pitch", 4.0, 90.0), (8, 13): ("decenter", 10.0, 90.0), (8, 1
 
 @pytest.fixture(scope="module")
 def traced():
-    from mlaqc.inspection.pipeline import inspect_image, prepare
-    from mlaqc.inspection.rawio import RawFrame
-    from mlaqc.optics.errormap import ErrorMap, lens_error_fields
-    from mlaqc.optics.sensor import white_level
-    from mlaqc.optics.simulate import simulate
+    from test_hex_inspect import traced_hex_result
 
-    em = ErrorMap.zeros(28, 24, "hex")
-    for (m, n), (kind, mag, d) in SEEDED.items():
-        em = em.with_lens(m, n, **lens_error_fields(kind, mag, d))
-    sim = simulate(HEX, None, em, rays_per_pixel=400, seed=5)
-    s = HEX.sensor
-    frame = RawFrame(sim.raw, s.bit_depth, None, s.black_level_dn, white_level(s), {}, "hex")
-    return inspect_image(prepare(frame), HEX)
+    return traced_hex_result(SEEDED, 400, 5)
 
 
 def test_shifts_across_the_rows_and_diagonal_read_their_size_within_15_percent(traced):

@@ -282,21 +282,26 @@ SEEDED = {(10, 8): ("pitch", 3.0, 0.0), (15, 15): ("decenter", 10.0, 60.0), (20,
           (7, 18): ("radius", 0.15, 0.0), (23, 21): ("pitch", 3.0, 120.0)}
 
 
-@pytest.fixture(scope="module")
-def hex_result():
+def traced_hex_result(seeded: dict, rays_per_pixel: float, seed: int):
+    """The inspection of a ray-traced small hex camera frame with `seeded` {(m, n): (kind, size, direction)}."""
     from mlaqc.inspection.pipeline import inspect_image, prepare
     from mlaqc.inspection.rawio import RawFrame
     from mlaqc.optics.errormap import ErrorMap, lens_error_fields
     from mlaqc.optics.sensor import white_level
     from mlaqc.optics.simulate import simulate
 
-    em = ErrorMap.zeros(28, 24, "hex")
-    for (m, n), (kind, mag, d) in SEEDED.items():
+    em = ErrorMap.zeros(HEX.mla.count_h, HEX.mla.count_w, "hex")
+    for (m, n), (kind, mag, d) in seeded.items():
         em = em.with_lens(m, n, **lens_error_fields(kind, mag, d))
-    sim = simulate(HEX, None, em, rays_per_pixel=50, seed=11)
+    sim = simulate(HEX, None, em, rays_per_pixel=rays_per_pixel, seed=seed)
     s = HEX.sensor
     frame = RawFrame(sim.raw, s.bit_depth, None, s.black_level_dn, white_level(s), {}, "hex")
     return inspect_image(prepare(frame), HEX)
+
+
+@pytest.fixture(scope="module")
+def hex_result():
+    return traced_hex_result(SEEDED, 50, 11)
 
 
 def test_a_hex_frame_finds_the_seeded_lenses_by_their_u_m_n_and_nothing_else(hex_result):
