@@ -61,7 +61,6 @@ import numpy as np
 from mlaqc.inspection.filters import (
     lattice_max_of_neighbours,
     max_filter_nearest,
-    max_of_neighbours,
     with_neighbours,
 )
 from mlaqc.inspection.metrics_kernels import median_baselines
@@ -712,7 +711,7 @@ def spill(score: np.ndarray, flagged: np.ndarray, ratio: float = 0.65, asym: tup
     lat = Lattice(packing, rows, cols)
     nbr = lat.neighbours(diagonal=True)  # (K, k) flat indices, -1 off the array
     flag_score = np.where(flagged, score, 0.0)
-    strongest = max_of_neighbours(flag_score) if packing == "square" else _max_over(flag_score, nbr)
+    strongest = lattice_max_of_neighbours(flag_score, packing)
     echo = flagged & (score < ratio * strongest)
     if asym is None and offset is None:
         return echo
@@ -737,13 +736,6 @@ def spill(score: np.ndarray, flagged: np.ndarray, ratio: float = 0.65, asym: tup
         hit = along & (score[m, n] < facing_ratio * other)
         echo[m[hit], n[hit]] = True
     return echo
-
-
-def _max_over(a: np.ndarray, nbr: np.ndarray) -> np.ndarray:
-    """Per lens the largest value of `a` over its neighbours `nbr` (flat indices, -1 off the array, which
-    counts 0, as `max_of_neighbours`' constant border)."""
-    flat = np.concatenate([a.ravel(), np.zeros(1, a.dtype)])
-    return flat[nbr].max(axis=1).reshape(a.shape)
 
 
 def _neighbour_vectors(lat: Lattice, r: np.ndarray, others: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
