@@ -2,6 +2,8 @@
 
 Errors end in one sentence and an exit status: 2 for bad input (URL, options, plan, output folder),
 3 for a device that failed, 130 for Ctrl-C. Nothing is written before the inputs have been checked.
+A scan that ran to its end exits 0 when every position was recorded inspectable and (with --inspect)
+passed, else 1: the summary names the positions that failed.
 """
 
 from __future__ import annotations
@@ -99,7 +101,7 @@ def run_capture(args: argparse.Namespace) -> int:
 
 
 def run_scan_command(args: argparse.Namespace) -> int:
-    """Run or resume a scan; 0 when every position is recorded."""
+    """Run or resume a scan; 0 when every position is recorded (and passed, with --inspect), else 1."""
     from drivers.scan import ScanRunner, default_inspect_hook, load_plan
 
     plan = load_plan(args.plan)
@@ -145,7 +147,7 @@ def run_scan_command(args: argparse.Namespace) -> int:
         bar.close()
     if not args.quiet:
         print(result.summary(), file=sys.stderr)
-    return 0
+    return 0 if result.all_passed else 1
 
 
 def _note(bar: ProgressBar, text: str) -> None:

@@ -711,6 +711,7 @@ class ScanResult:
     failed: list[str] = field(default_factory=list)  # labels of positions whose frames could not be inspected
     inspected: int = 0
     inspect_failures: int = 0
+    verdict_failed: list[str] = field(default_factory=list)  # labels of inspected positions whose verdict is FAIL
     elapsed_s: float = 0.0  # the whole run, device opening included
     loop_s: float = 0.0  # time in the position loop
     motion_s: float = 0.0  # move + settle inside the loop
@@ -719,6 +720,11 @@ class ScanResult:
     @property
     def done(self) -> int:
         return self.resumed + self.captured
+
+    @property
+    def all_passed(self) -> bool:
+        """Every position recorded inspectable, and (with inspection) inspected with a PASS verdict."""
+        return not (self.failed or self.verdict_failed or self.inspect_failures)
 
     @property
     def positions_per_s_excl_motion(self) -> float:
@@ -734,7 +740,7 @@ class ScanResult:
                 f"({self.captured} captured now, {self.resumed} already done, {self.retries} retries, "
                 f"{self.reconnects['stage']} stage and {self.reconnects['camera']} camera reconnects, "
                 f"{self.warnings} frame warnings, {self.rejected} uninspectable frames captured again)"
-                f"{self._failed_text()}; {self.elapsed_s:.1f} s in all, {self.motion_s:.1f} s moving and "
+                f"{self._failed_text()}{self._verdict_text()}; {self.elapsed_s:.1f} s in all, {self.motion_s:.1f} s moving and "
                 f"settling, {rate_text}")
 
     def _failed_text(self) -> str:
@@ -744,6 +750,18 @@ class ScanResult:
         shown = ", ".join(self.failed[:10]) + (", ..." if len(self.failed) > 10 else "")
         plural = "s" if len(self.failed) != 1 else ""
         return f"; {len(self.failed)} position{plural} FAILED (frames not inspectable: {shown})"
+
+    def _verdict_text(self) -> str:
+        """The inspected positions and those whose QC verdict is FAIL ('' without inspection)."""
+        if not (self.inspected or self.inspect_failures):
+            return ""
+        text = f"; {self.inspected} frames inspected"
+        if self.inspect_failures:
+            text += f", {self.inspect_failures} could not be"
+        if self.verdict_failed:
+            shown = ", ".join(self.verdict_failed[:10]) + (", ..." if len(self.verdict_failed) > 10 else "")
+            text += f", QC verdict FAIL at {len(self.verdict_failed)} position{'s' if len(self.verdict_failed) != 1 else ''} ({shown})"
+        return text
 
 
 class ScanRunner:
@@ -1263,9 +1281,18 @@ class ScanRunner:
             self._camera_bad = False
 
     def _inspect_missed(self, pos: PlanPosition) -> None:
-        """A resumed scan: inspect a recorded position whose white frames have no .inspect.json yet."""
+        """A resumed scan: count a recorded position's failure and inspect its white frames that have no
+        .inspect.json yet (the verdicts of those that have one are read back, so the exit status is the scan's)."""
+        record = self._done[pos.index]
+        if record.get("failed"):
+            self.result.failed.append(pos.label)
         if self.inspect is not None:
-            self._run_inspect(pos, self._done[pos.index], missing_only=True)
+            self._run_inspect(pos, record, missing_only=True)
+
+    def _note_verdict(self, pos: PlanPosition, result: Any) -> None:
+        """Remember a position whose inspection says FAIL."""
+        if isinstance(result, dict) and result.get("verdict") == "FAIL" and pos.label not in self.result.verdict_failed:
+            self.result.verdict_failed.append(pos.label)
 
     def _run_inspect(self, pos: PlanPosition, record: dict[str, Any], missing_only: bool = False) -> None:
         """Run the hook on each white frame of a recorded position, with the position's pinhole frames (not on
@@ -1277,13 +1304,19 @@ class ScanRunner:
             if item.get("through_focus"):
                 continue  # the second measurement's frames are not white images: they go with each white frame
             path = self.out / item["file"]
-            if missing_only and (self.out / (item["file"] + ".inspect.json")).exists():
+            done = self.out / (item["file"] + ".inspect.json")
+            if missing_only and done.exists():
+                try:
+                    self._note_verdict(pos, json.loads(done.read_text()))
+                except (OSError, ValueError):
+                    pass  # an unreadable earlier summary: the report it came from is the authority
                 continue
             frame = ScanFrame(path, self.out / item["sidecar"], record, self._header or {}, self.out, pinholes)
             try:
                 result = self.inspect(frame)
                 if isinstance(result, dict):  # (a result that cannot be written is a failed inspection too)
                     write_json_atomic(self.out / (item["file"] + ".inspect.json"), result)
+                self._note_verdict(pos, result)
             except (KeyboardInterrupt, MemoryError):
                 raise
             except Exception as exc:  # noqa: BLE001 - a failed inspection must not lose the scan

@@ -417,7 +417,10 @@ def test_always_black_position_fails_after_its_retries_and_the_scan_goes_on(tmp_
     assert (failed["index"], failed["label"], failed["attempts"]) == (1, "r001c002", 3)
     assert inspected == [0, 2]  # a failed position's frame is not handed to the inspection
     assert verify_scan(out) == []
-    assert run_scan(cam, "mock://", plan, out, resume=True).captured == 0  # recorded: a resume keeps it
+    again = run_scan(cam, "mock://", plan, out, resume=True)
+    assert again.captured == 0 and again.failed == ["r001c002"]  # recorded: a resume keeps it, and still says so
+    assert not again.all_passed and main(["scan", "--camera", cam, "--stage", "mock://", "--plan", str(plan), "--out",
+                                          str(out), "--resume", "-q"]) == 1
     (out / "pos_00002_rejected1.tiff").unlink()
     assert verify_scan(out) == ["position 2, rejected frame: pos_00002_rejected1.tiff is missing"]
 
@@ -475,11 +478,16 @@ def test_cli_refusals_exit_2_and_write_nothing(tmp_path, capsys):
 def test_inspect_hook_extension_point(tmp_path, capsys):
     plan = write_plan(tmp_path / "plan.toml", QUICK_PLAN)
     cam = "mock://?wafer=3x1&rpp=0.5&exposure_us=2000"
-    assert main(["scan", "--camera", cam, "--stage", "mock://", "--plan", str(plan), "--out", str(tmp_path / "a"),
-                 "--inspect", "-q"]) == 0
+    status = main(["scan", "--camera", cam, "--stage", "mock://", "--plan", str(plan), "--out", str(tmp_path / "a"),
+                   "--inspect"])
     err = capsys.readouterr().err
-    if default_inspect_hook() is None:  # until mlaqc.inspection.pipeline provides scan_frame_hook
-        assert "--inspect: the inspection pipeline" in err and "not available" in err
+    verdicts = [json.loads(p.read_text())["verdict"] for p in sorted((tmp_path / "a").glob("*.inspect.json"))]
+    header = json.loads((tmp_path / "a" / "manifest.jsonl").read_text().splitlines()[0])
+    seeded = [bool(a["error_map"]["lenses"]) for a in header["truth"]["arrays"]]
+    assert len(verdicts) == 3 and any(seeded)
+    # an array with seeded defects fails, and a scan with a FAIL verdict exits 1, naming the positions
+    assert [v == "FAIL" for v in verdicts] == seeded and status == 1
+    assert f"QC verdict FAIL at {sum(seeded)} position" in err
     calls = []
 
     def hook(frame):
