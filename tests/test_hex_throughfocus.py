@@ -133,8 +133,11 @@ def test_the_hex_cells_aperture_moment_is_the_regular_hexagons():
     diameter d, d^2 / 16 (fixtures/hex_circle_camera.toml: 90 µm)."""
     a = HEX.mla.pitch_um / math.sqrt(3.0)
     assert aperture_moment_mm2(HEX) * 1e6 == pytest.approx(5.0 * a * a / 24.0, rel=5e-3)
-    circle = load_config(FIXTURES / "hex_circle_camera.toml")
-    assert aperture_moment_mm2(circle) * 1e6 == pytest.approx(circle.mla.aperture_diameter_um ** 2 / 16.0, rel=5e-3)
+    for name in ("hex_circle_camera.toml", "circle_camera.toml"):  # round lenses on hex and square arrays
+        circle = load_config(FIXTURES / name)
+        assert aperture_moment_mm2(circle) * 1e6 == pytest.approx(circle.mla.aperture_diameter_um ** 2 / 16.0, rel=5e-3)
+    p = SQUARE.mla.pitch_um  # a square cell of side p: p^2 / 12, less its corners beyond the surfaces' crossing
+    assert 0.99 * p * p / 12.0 < aperture_moment_mm2(SQUARE) * 1e6 < p * p / 12.0
 
 
 def test_the_hex_models_ship():

@@ -275,32 +275,24 @@ def optics(cfg: CameraConfig) -> Optics:
 
 
 def aperture_moment_mm2(cfg: CameraConfig, samples: int = 801) -> float:
-    """Per-axis second moment (mm^2, about its centre) of one lens' lit aperture: the square cell (less
-    the black matrix) where both surfaces exist (inside the radius where they cross). With 'clear'
-    corners the light through the corners passes unfocused and lands outside the spot, so the spot is
-    made by the same aperture."""
+    """Per-axis second moment (mm^2, about its centre) of one lens' lit aperture: its cell (less the black
+    matrix) or its circular aperture, where both surfaces exist (inside the radius where they cross). With
+    'clear' corners or gaps the light through them passes unfocused and lands outside the spot, so the spot
+    is made by the same aperture."""
     mla = cfg.mla
     r_um = aperture_corner_radius_um(replace(cfg, mla=replace(mla, corners="opaque")))
     if mla.packing == "hex":
-        return _lit_moment_mm2(cfg, r_um, samples)
-    half = 0.5 * (mla.pitch_um - mla.black_matrix_um)
-    x = (np.arange(samples) + 0.5) / samples * 2 * half - half
-    xx, yy = np.meshgrid(x, x)
-    inside = xx * xx + yy * yy <= r_um * r_um
-    return float(np.sum(xx[inside] ** 2) / inside.sum()) * 1e-6
-
-
-def _lit_moment_mm2(cfg: CameraConfig, r_um: float, samples: int) -> float:
-    """`aperture_moment_mm2` of a hex array's lens: its hexagonal cell (less the black matrix) or its
-    circular aperture, inside the surfaces' crossing radius r_um."""
-    mla = cfg.mla
-    half = mla.pitch_um / math.sqrt(3.0)  # the hexagon's corner (its flats are half a pitch out)
+        half = mla.pitch_um / math.sqrt(3.0)  # the hexagon's corner (its flats are half a pitch out)
+    elif mla.aperture == "circle":
+        half = 0.5 * mla.pitch_um
+    else:
+        half = 0.5 * (mla.pitch_um - mla.black_matrix_um)  # the square box is the cell
     x = (np.arange(samples) + 0.5) / samples * 2 * half - half
     xx, yy = np.meshgrid(x, x)
     inside = xx * xx + yy * yy <= r_um * r_um
     if mla.aperture == "circle":
         inside &= np.hypot(xx, yy) <= 0.5 * mla.aperture_diameter_um
-    else:
+    elif mla.packing == "hex":
         inside &= hex_edge(xx / mla.pitch_um, yy / mla.pitch_um) >= 0.5 * mla.black_matrix_um / mla.pitch_um
     return float(np.sum(xx[inside] ** 2) / inside.sum()) * 1e-6
 
