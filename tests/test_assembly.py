@@ -36,14 +36,15 @@ def test_the_small_cameras_calibration_is_shipped():
     assert model.key == assembly_key(CFG) and 170 < model.pupil_mm < 190  # the main lens' rear principal plane: 179 mm
 
 
-def test_the_table1_hex_arrays_calibration_is_shipped(tmp_path, monkeypatch):
-    """fixtures/hex_camera.toml's calibration ships (its 59 frames take minutes): found with an empty cache,
-    under its own key, and physical: the main lens' rear principal plane, each error read about 1:1 (the
-    projection fit models the sub-image centres to first order; tilts a few % large, as Table 1's)."""
+@pytest.mark.parametrize("fixture", ["hex_camera", "circle_camera", "hex_circle_camera"])
+def test_the_table1_sized_fixtures_calibrations_are_shipped(fixture, tmp_path, monkeypatch):
+    """The Table 1-sized hex and round-lens fixtures' calibrations ship (their 59 frames take minutes): found
+    with an empty cache, under their own keys, and physical: the main lens' rear principal plane, each error
+    read about 1:1 (the projection fit models the sub-image centres to first order; tilts a few % large)."""
     monkeypatch.setenv("MLAQC_CACHE", str(tmp_path))  # the package's data only
-    hexcfg = load_config(FIXTURE.parent / "hex_camera.toml")
-    model = assembly_model(hexcfg, build_if_missing=False)
-    assert model.key == assembly_key(hexcfg) != assembly_key(TABLE1) and 170 < model.pupil_mm < 190
+    cfg = load_config(FIXTURE.parent / f"{fixture}.toml")
+    model = assembly_model(cfg, build_if_missing=False)
+    assert model.key == assembly_key(cfg) != assembly_key(TABLE1) and 170 < model.pupil_mm < 190
     assert all(0.9 < model.poly[j][j][0] < 1.15 for j in range(6))
 
 

@@ -140,9 +140,10 @@ def test_the_hex_cells_aperture_moment_is_the_regular_hexagons():
     assert 0.99 * p * p / 12.0 < aperture_moment_mm2(SQUARE) * 1e6 < p * p / 12.0
 
 
-def test_the_hex_models_ship():
-    """The shipped protocol's traced model of the hex fixtures is package data (no build on first use)."""
-    for cfg in (HEX, HEX_T1, load_config(FIXTURES / "hex_circle_camera.toml")):
+def test_the_hex_and_round_lens_models_ship():
+    """The shipped protocol's traced model of the hex and round-lens fixtures is package data (no build on
+    first use)."""
+    for cfg in (HEX, HEX_T1, *(load_config(FIXTURES / f"{n}.toml") for n in ("hex_circle_camera", "circle_camera"))):
         tf = shipped()
         key = model_key(cfg, FOCUS_OFFSET_MM, F_NUMBER, tfm.pair_radius_lenses(cfg, tf))
         assert (PACKAGE_DATA / f"throughfocus_{key}.npz").is_file()
