@@ -206,6 +206,18 @@ def test_demo_runs_the_whole_chain(tmp_path, capsys):
         assert (out / name).is_file(), name
 
 
+def test_demo_says_whether_a_missed_lens_was_below_the_frames_limit():
+    from mlaqc.commands.demo import _missed
+
+    errors = ErrorMap.zeros(4, 4)
+    errors.lens["radius_front_rel"][1, 2] = 0.07
+    errors.lens["decenter_um"][2, 1] = 5.0
+    limit = {"radius_rel_pos": 0.142, "radius_rel_neg": 0.05, "decenter_um": 2.0}
+    assert _missed(errors, "radius", 1, 2, limit) == "MISSED (below this frame's detection limit, +14.2 %)"
+    assert _missed(errors, "decenter", 2, 1, limit) == "MISSED (at or above this frame's detection limit, 2 µm)"
+    assert _missed(errors, "radius", 1, 2, {}) == "MISSED"
+
+
 def test_inspect_with_a_separate_white_image(raw_files, tmp_path):
     """The grid comes from a white image of the same MLA; the raw's defects are still found."""
     white = raw_files / "white_defects.npy"

@@ -74,7 +74,7 @@ def compare(errors, result) -> str:
     for m, n in zip(*np.nonzero(seeded)):
         d = by_lens.get((m + 1, n + 1))
         truth = _truth(errors, kinds[m, n], m, n)
-        got = "MISSED" if d is None else describe(d)
+        got = _missed(errors, kinds[m, n], m, n, result.detection_limit) if d is None else describe(d)
         lines.append(f"    U({m + 1},{n + 1}): seeded {truth}; found {got}")
     return "\n".join(lines)
 
@@ -87,6 +87,24 @@ def describe(d) -> str:
     if d.alternatives:
         text += " (or " + ", ".join(f"{v:+.3g}" for _, v, _, _ in d.alternatives) + ")"
     return text.strip()
+
+
+def _missed(errors, kind: str, m: int, n: int, limit: dict) -> str:
+    """'MISSED', and whether the seeded size was below what this frame detects (an honest miss) or not."""
+    e = errors.lens
+    if kind in ("pitch", "decenter"):
+        size, key, sign, scale, unit = e[f"{kind}_um"][m, n], f"{kind}_um", "", 1.0, " µm"
+    elif kind == "radius":
+        rel = e["radius_front_rel"][m, n]
+        size, scale, unit = abs(rel), 100.0, " %"
+        key, sign = ("radius_rel_pos", "+") if rel > 0 else ("radius_rel_neg", "−")
+    else:
+        return "MISSED"
+    lim = (limit or {}).get(key)
+    if lim is None:
+        return "MISSED (this frame cannot detect it at any rendered size)" if limit else "MISSED"
+    where = "below" if size < lim else "at or above"
+    return f"MISSED ({where} this frame's detection limit, {sign}{lim * scale:.3g}{unit})"
 
 
 def _truth(errors, kind: str, m: int, n: int) -> str:
