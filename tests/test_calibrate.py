@@ -258,9 +258,11 @@ def _reference_normals(img, k, cx, cy, amp, radius, edge, sx, sy, half_band, wei
     return (jac * wt) @ jac.T, (jac * wt) @ res, float(res @ res), int(sel.sum())
 
 
+@pytest.mark.parametrize("halves", [False, True])
 @pytest.mark.parametrize("weighted", [False, True])
-def test_disc_kernel_matches_a_numpy_reference(weighted):
-    """The fused kernel (float32 profiles, neighbours' discs cut 10 edge widths out) against plain NumPy."""
+def test_disc_kernel_matches_a_numpy_reference(weighted, halves):
+    """The fused kernel (float32 profiles, neighbours' discs cut 10 edge widths out) against plain NumPy, in
+    both pixel orders (`halves`: the hex fit's, whose neighbours' discs run on the vector units)."""
     from mlaqc.inspection import calibrate_kernels as kernels
     from mlaqc.inspection.calibrate import _lattice_neighbours
 
@@ -278,7 +280,7 @@ def test_disc_kernel_matches_a_numpy_reference(weighted):
     normal, rhs = np.empty((n, 5, 5)), np.empty((n, 5))
     rss, npix = np.empty(n), np.empty(n, np.int64)
     kernels.disc_normals(img, lenses, cx, cy, amp, radius, np.full(n, 1 / edge), sx, sy, neighbours,
-                         np.zeros(n, bool), np.zeros(n, bool), half_band, weighted, True, 0.05, normal, rhs, rss, npix)
+                         np.zeros(n, bool), np.zeros(n, bool), half_band, weighted, True, 0.05, halves, normal, rhs, rss, npix)
     for k in (0, 8, 14, 29):  # corner (cut by the frame), edge, inner lenses
         ref_n, ref_r, ref_rss, ref_npix = _reference_normals(img, k, cx, cy, amp, radius, edge, sx, sy, half_band,
                                                              weighted)

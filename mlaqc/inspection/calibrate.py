@@ -881,8 +881,9 @@ class _DiscFit:
     """
 
     def __init__(self, img: np.ndarray, cx: np.ndarray, cy: np.ndarray, radius0: float,
-                 neighbours: np.ndarray, colour: np.ndarray | None = None) -> None:
+                 neighbours: np.ndarray, colour: np.ndarray | None = None, halves: bool = False) -> None:
         self.img = img
+        self.halves = halves  # the kernel's pixel order for vectorized neighbour discs (hex; see disc_normals)
         self.h, self.w = img.shape
         self.cx, self.cy = cx.astype(np.float64).copy(), cy.astype(np.float64).copy()
         self.n = cx.size
@@ -981,7 +982,7 @@ class _DiscFit:
         def block(b: slice) -> None:
             kernels.disc_normals(self.img, idx[b], self.cx, self.cy, self.amp, self.radius, inv_edge, sx, sy,
                                  self.neighbours, self.coupled, wide, self.band + 0.5, weighted, fit_edge,
-                                 WEIGHT_FLOOR, normal[b], rhs[b], rss[b], npix[b])
+                                 WEIGHT_FLOOR, self.halves, normal[b], rhs[b], rss[b], npix[b])
 
         self._map(block, idx)
         self.rss[idx], self.npix[idx] = rss, npix
@@ -1203,8 +1204,11 @@ def _measure(img: np.ndarray, px: np.ndarray, py: np.ndarray, lat_j: np.ndarray,
     colour = _colours(lat_j, lat_i, packing)
     px, py = px.copy(), py.copy()
     lattice_x, lattice_y = px, py
+    # hex: six side neighbours, whose discs the kernel evaluates on the vector units (last bits differ from
+    # the square's span-by-span evaluation, which is kept as it was)
+    halves = packing == "hex"
     sub = _DiscFit(img, px[block], py[block], radius0, _lattice_neighbours(lat_j[block], lat_i[block], ring, packing),
-                   colour[block])
+                   colour[block], halves)
     sub.init_amplitude(radius0)
     sub.set_band(band)
     ref = float(np.percentile(sub.amp, 90)) if sub.amp.size else 0.0
@@ -1230,7 +1234,7 @@ def _measure(img: np.ndarray, px: np.ndarray, py: np.ndarray, lat_j: np.ndarray,
         edge0 = max(0.4, 0.025 * pitch)
     # stage 2: every lens
     neighbours = _lattice_neighbours(lat_j, lat_i, ring, packing)
-    fit = _DiscFit(img, px, py, radius0, neighbours, colour)
+    fit = _DiscFit(img, px, py, radius0, neighbours, colour, halves)
     fit.edge = edge0
     fit.init_amplitude(radius0)
     ref = float(np.percentile(fit.amp, 90)) if fit.amp.size else 0.0
