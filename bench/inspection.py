@@ -145,23 +145,26 @@ BAR_HEX_RATIO = 1.2  # issue #22: a hex frame's inspection within 1.2x of the sq
 
 def taking_turns(cfgs: list, runs: int) -> None:
     """Best seconds of each camera's inspection, self-calibrated, its calibration stage, and on a white
-    image's grid, the cameras taking turns run by run (a busy machine slows them alike); then each
-    camera's figures over the first one's."""
+    image's grid, the cameras taking turns run by run (a busy machine slows them alike), and the least CPU
+    seconds (all threads) of a self-calibrated one (steadier than the wall clock when others run); then
+    each camera's figures over the first one's."""
     cases = []
     for cfg in cfgs:
         path = frame_path(cfg)
         grid = calibrate_for(load_frame(white_path(cfg), cfg), cfg)
         inspect_image(load_frame(path, cfg), cfg)  # warm
         cases.append((cfg, path, grid))
-    best = [{"self-calibrated": float("inf"), "calibrate": float("inf"), "grid reused": float("inf")} for _ in cases]
+    keys = ("self-calibrated", "calibrate", "grid reused", "self-calibrated CPU")
+    best = [dict.fromkeys(keys, float("inf")) for _ in cases]
     for _ in range(runs):
         for fig, (cfg, path, grid) in zip(best, cases):
             for label, g in (("self-calibrated", None), ("grid reused", grid)):
-                t0 = time.perf_counter()
+                t0, c0 = time.perf_counter(), time.process_time()
                 res = inspect_image(load_frame(path, cfg), cfg, grid=g)
                 fig[label] = min(fig[label], time.perf_counter() - t0)
                 if g is None:
                     fig["calibrate"] = min(fig["calibrate"], res.timings_s["calibrate"])
+                    fig["self-calibrated CPU"] = min(fig["self-calibrated CPU"], time.process_time() - c0)
     print(f"taking turns, best of {runs} runs each (load + inspect_image, seconds):")
     for fig, (cfg, path, _) in zip(best, cases):
         ratios = "" if fig is best[0] else "   over the first: " + ", ".join(
