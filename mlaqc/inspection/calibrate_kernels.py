@@ -100,7 +100,7 @@ def _gather_halves(img, ck_x, ck_y, inner, outer, y0, rows, uu, vv, val, starts)
     """The annulus' pixels of rows y0 .. y0 + rows - 1 (`disc_normals`' `halves`): first those at
     x <= floor(ck_x) row by row, then those right of it; starts[half, k] is the index of row y0 + k's first
     pixel in each half (starts[half, rows] the half's end). Returns the pixel count."""
-    h, w = img.shape
+    w = img.shape[1]
     mid = math.floor(ck_x)
     n = 0
     for half in range(2):
