@@ -258,9 +258,11 @@ def _reference_normals(img, k, cx, cy, amp, radius, edge, sx, sy, half_band, wei
     return (jac * wt) @ jac.T, (jac * wt) @ res, float(res @ res), int(sel.sum())
 
 
+@pytest.mark.parametrize("halves", [False, True])
 @pytest.mark.parametrize("weighted", [False, True])
-def test_disc_kernel_matches_a_numpy_reference(weighted):
-    """The fused kernel (float32 profiles, neighbours' discs cut 10 edge widths out) against plain NumPy."""
+def test_disc_kernel_matches_a_numpy_reference(weighted, halves):
+    """The fused kernel (float32 profiles, neighbours' discs cut 10 edge widths out) against plain NumPy, in
+    both pixel orders (`halves`: the hex fit's, whose neighbours' discs run on the vector units)."""
     from mlaqc.inspection import calibrate_kernels as kernels
     from mlaqc.inspection.calibrate import _lattice_neighbours
 
@@ -278,7 +280,7 @@ def test_disc_kernel_matches_a_numpy_reference(weighted):
     normal, rhs = np.empty((n, 5, 5)), np.empty((n, 5))
     rss, npix = np.empty(n), np.empty(n, np.int64)
     kernels.disc_normals(img, lenses, cx, cy, amp, radius, np.full(n, 1 / edge), sx, sy, neighbours,
-                         np.zeros(n, bool), np.zeros(n, bool), half_band, weighted, True, 0.05, normal, rhs, rss, npix)
+                         np.zeros(n, bool), np.zeros(n, bool), half_band, weighted, True, 0.05, halves, normal, rhs, rss, npix)
     for k in (0, 8, 14, 29):  # corner (cut by the frame), edge, inner lenses
         ref_n, ref_r, ref_rss, ref_npix = _reference_normals(img, k, cx, cy, amp, radius, edge, sx, sy, half_band,
                                                              weighted)
@@ -287,6 +289,47 @@ def test_disc_kernel_matches_a_numpy_reference(weighted):
         np.testing.assert_allclose(rhs[k], ref_r, rtol=1e-3, atol=1e-4 * np.sqrt(np.abs(ref_n).max() * ref_rss))
         assert rss[k] == pytest.approx(ref_rss, rel=1e-4)
         # the Gauss-Newton centre step agrees to far below the noise
+        step = np.linalg.solve(normal[k][:4, :4], rhs[k][:4])
+        ref_step = np.linalg.solve(ref_n[:4, :4], ref_r[:4])
+        assert np.abs(step[1:3] - ref_step[1:3]).max() < 1e-4
+
+
+@pytest.mark.parametrize("halves", [False, True])
+@pytest.mark.parametrize("weighted", [False, True])
+def test_disc_kernel_on_a_hex_layout_matches_a_numpy_reference(weighted, halves):
+    """The kernel with the hex neighbour table (six side neighbours, each disc overlapping the lens' rim)
+    against plain NumPy, lenses cut by the frame included, in both pixel orders."""
+    from mlaqc.inspection import calibrate_kernels as kernels
+    from mlaqc.inspection.calibrate import _lattice_neighbours
+
+    pitch, edge, half_band = 20.05, 0.3, 2.0
+    jj, ii = (a.ravel() for a in np.meshgrid(np.arange(6), np.arange(5)))  # axial: a1 = (p, 0), a2 at 60 deg
+    rng = np.random.default_rng(3)
+    cx = 6.0 + pitch * (jj + 0.5 * ii) + rng.normal(0, 0.1, jj.size)
+    cy = 7.0 + pitch * math.sqrt(3.0) / 2.0 * ii + rng.normal(0, 0.1, jj.size)
+    n = cx.size
+    amp = 0.6 + rng.normal(0, 0.02, n)
+    radius = 10.2 + rng.normal(0, 0.1, n)
+    sx, sy = rng.normal(0, 2e-3, n), rng.normal(0, 2e-3, n)
+    h, w = 90, 170
+    yy, xx = np.mgrid[0:h, 0:w]
+    img = np.zeros((h, w))
+    for k in range(n):  # the frame: the true discs (sharper rims, other radii) and noise
+        img += 0.6 / (1.0 + np.exp((np.hypot(xx - cx[k] - 0.2, yy - cy[k] + 0.1) - 10.0) / 0.25))
+    img = (img + rng.normal(0, 0.02, img.shape)).astype(np.float32)
+    neighbours = _lattice_neighbours(jj, ii, 1, "hex")
+    normal, rhs = np.empty((n, 5, 5)), np.empty((n, 5))
+    rss, npix = np.empty(n), np.empty(n, np.int64)
+    kernels.disc_normals(img, np.arange(n), cx, cy, amp, radius, np.full(n, 1 / edge), sx, sy, neighbours,
+                         np.zeros(n, bool), np.zeros(n, bool), half_band, weighted, True, 0.05, halves, normal, rhs,
+                         rss, npix)
+    for k in (0, 3, 8, 15, 29):  # corners and edges cut by the frame, inner lenses with six neighbours
+        ref_n, ref_r, ref_rss, ref_npix = _reference_normals(img, k, cx, cy, amp, radius, edge, sx, sy, half_band,
+                                                             weighted)
+        assert npix[k] == ref_npix
+        np.testing.assert_allclose(normal[k], ref_n, rtol=1e-4, atol=1e-5 * np.abs(ref_n).max())
+        np.testing.assert_allclose(rhs[k], ref_r, rtol=1e-3, atol=1e-4 * np.sqrt(np.abs(ref_n).max() * ref_rss))
+        assert rss[k] == pytest.approx(ref_rss, rel=1e-4)
         step = np.linalg.solve(normal[k][:4, :4], rhs[k][:4])
         ref_step = np.linalg.solve(ref_n[:4, :4], ref_r[:4])
         assert np.abs(step[1:3] - ref_step[1:3]).max() < 1e-4

@@ -104,6 +104,24 @@ def test_noise_free_hex_frame_every_lens_found_and_centred(kw):
     assert g.origin_px == pytest.approx((x[0, 0], y[0, 0]), abs=0.01)
 
 
+@pytest.mark.parametrize("radius", [9.75, 11.5])  # rims apart, and overlapping almost to the cell corners
+def test_both_pixel_orders_of_the_disc_kernel_give_the_same_hex_fit(monkeypatch, radius):
+    """Hex fits its discs with the kernel's `halves` pixel order (neighbours' discs on the vector units),
+    square with row spans; either order on a noisy hex frame gives the same centres, to float32 rounding
+    (1e-4 px: far below the noise's 0.01 - 0.04)."""
+    import mlaqc.inspection.calibrate as calibration
+
+    m = hex_model(rotation_deg=0.7, phase_px=(0.3, -0.2), radius_px=radius)
+    img = frame(m, noise=0.05, seed=4)
+    fast = hex_calibrate(img, m)
+    monkeypatch.setitem(calibration.HALVES_ORDER, "hex", False)
+    spans = hex_calibrate(img, m)
+    assert np.array_equal(fast.missing, spans.missing)
+    found = ~fast.missing
+    assert np.abs(fast.measured_x_px - spans.measured_x_px)[found].max() < 1e-4
+    assert np.abs(fast.measured_y_px - spans.measured_y_px)[found].max() < 1e-4
+
+
 @pytest.mark.parametrize("noise, bits, black", [(0.01, 12, 64), (0.05, 12, 64), (0.15, 16, 0)])
 def test_noisy_containers_hex_centres_on_par_with_the_square_array(tmp_path, noise, bits, black):
     """12-bit-in-16 (and 16-bit) files with black levels: the hex array's per-lens centre noise is that of
