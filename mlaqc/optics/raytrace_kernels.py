@@ -1184,7 +1184,10 @@ def stage2_block_sag(m, buf, s, tab, rot, grot, clear, fres, n_mla, mu_in, g, kk
     for j in range(m):  # in a loop of its own, as gather: an indexed load keeps a pass from vectorizing
         k = kk[j]
         g[G_MF, j], g[G_MR, j] = margins[T_MARGIN_FRONT, k], margins[T_MARGIN_REAR, k]
-        g[G_CX, j], g[G_CY, j] = margins[T_GX, k], margins[T_GY, k]
+    if lat is not None:  # hex: own_edge's design centres (square cells use the lattice: no gather)
+        for j in range(m):
+            k = kk[j]
+            g[G_CX, j], g[G_CY, j] = margins[T_GX, k], margins[T_GY, k]
     front_sag(m, buf, s, tab, rot, g, kk, flag, cflag, corner_of, lat)
     retrace_sag(m, flag, kk, buf, g, tab, rot, s, False, cflag, margins, lims, lat, corner_of)
     corners_sag(m, cflag, kk, g, tab, rot, s, corner_of, lat)
