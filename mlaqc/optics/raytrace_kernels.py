@@ -674,34 +674,19 @@ def gather(j, k, tab, g):
 
 
 @_jit_inline
-def flagged(m, flag, idx):
-    """Indices of the block's flagged rays, in order, into idx; how many. The scalar passes visit only
-    those: a loop testing the block ray by ray cost about a cycle a ray for the few per cent flagged, and
-    here eight flags are tested at once (one 64-bit word; stale flags past m are never visited)."""
-    words = flag.view(np.uint64)
-    n = 0
-    for w in range((m + 7) >> 3):
-        if words[w] != 0:
-            for j in range(8 * w, min(8 * w + 8, m)):
-                idx[n] = j
-                n += 1 if flag[j] else 0
-    return n
-
-
-@_jit_inline
-def retrace_neighbours(m, flag, kk, buf, g, tab, rot, s, rear, lat, idx):
+def retrace_neighbours(m, flag, kk, buf, g, tab, rot, s, rear, lat):
     """Rays whose hit left their cell (near a cell edge, a few per cent) are re-traced once with the
     lens of the cell they hit, as raytrace.MicrolensArray._hit does (scalar pass: it is rare)."""
-    for q in range(flagged(m, flag, idx)):
-        j = idx[q]
-        gx, gy, _, _, _, _ = from_lens(kk[j], g[G_HX, j], g[G_HY, j], g[G_HZ, j], g[G_LL, j], g[G_LM, j],
-                                       g[G_LN, j], tab, rot)
-        k = cell(gx, gy, s, lat)
-        kk[j] = k
-        gather(j, k, tab, g)
-        f = lens_surface(k, buf[0, j], buf[1, j], buf[2, j], buf[3, j], buf[4, j], buf[5, j], rear, tab, rot,
-                         s[S_ZFRONT])
-        g[G_HX, j], g[G_HY, j], g[G_HZ, j], g[G_LL, j], g[G_LM, j], g[G_LN, j], g[G_T, j] = f[:7]
+    for j in range(m):
+        if flag[j]:
+            gx, gy, _, _, _, _ = from_lens(kk[j], g[G_HX, j], g[G_HY, j], g[G_HZ, j], g[G_LL, j], g[G_LM, j],
+                                           g[G_LN, j], tab, rot)
+            k = cell(gx, gy, s, lat)
+            kk[j] = k
+            gather(j, k, tab, g)
+            f = lens_surface(k, buf[0, j], buf[1, j], buf[2, j], buf[3, j], buf[4, j], buf[5, j], rear, tab, rot,
+                             s[S_ZFRONT])
+            g[G_HX, j], g[G_HY, j], g[G_HZ, j], g[G_LL, j], g[G_LM, j], g[G_LN, j], g[G_T, j] = f[:7]
 
 
 @_jit_inline
@@ -780,29 +765,15 @@ def clears_neighbours(k, x, y, side, margins, lims, lat):
 
 
 @_jit_inline
-def clears_pair(k, i, a, b, side, lims, lat):
-    """Lens k wins against candidate i at offset (a, b) (mm) from k's design centre (clears_neighbours,
-    one pair)."""
-    dirs = SQUARE_DIRS if lat is None else HEX_DIRS
-    return a * dirs[i, 0] + b * dirs[i, 1] <= lims[side, k, i]
-
-
-@_jit_inline
-def scan_candidates(j, k0, row0, col0, buf, tab, rot, s, rear, lat, best, bt, bx, by, bz, bL, bM, bN, own, a, b,
-                    side, lims):
+def scan_candidates(j, k0, row0, col0, buf, tab, rot, s, rear, lat, best, bt, bx, by, bz, bL, bM, bN):
     """The first-met front / last-met rear sphere among the candidates around cell (row0, col0), starting
     from lens k0's hit (best, bt, b*): another replaces it only if strictly earlier / later, so the first
-    in candidate order wins a tie (as raytrace.MicrolensArray.extreme_lens). `own`: the hit, at offset
-    (a, b) from k0's design centre, lies in k0's cell (row0, col0): candidates whose pair with k0 clears
-    (clears_pair) cannot be strictly better than k0, so they are not intersected (most of a doubted hit's
-    neighbours: only the flawed pairs near its edge are)."""
+    in candidate order wins a tie (as raytrace.MicrolensArray.extreme_lens)."""
     rows, cols = int(s[S_ROWS]), int(s[S_COLS])
     for i in range(9 if lat is None else 7):
         rr, cc = candidate(i, row0, col0, lat)
         kc = rr * cols + cc
         if rr < 0 or rr >= rows or cc < 0 or cc >= cols or kc == k0:
-            continue
-        if own and clears_pair(k0, i, a, b, side, lims, lat):
             continue
         hx, hy, hz, lL, lM, lN, t = lens_surface(kc, buf[0, j], buf[1, j], buf[2, j], buf[3, j], buf[4, j],
                                                  buf[5, j], rear, tab, rot, s[S_ZFRONT])
@@ -812,53 +783,50 @@ def scan_candidates(j, k0, row0, col0, buf, tab, rot, s, rear, lat, best, bt, bx
 
 
 @_jit_inline
-def retrace_sag(m, flag, kk, buf, g, tab, rot, s, rear, cflag, margins, lims, lat, corner_of, idx):
+def retrace_sag(m, flag, kk, buf, g, tab, rot, s, rear, cflag, margins, lims, lat, corner_of):
     """Flagged rays (near a cell edge) take the front sphere they meet first / the rear sphere they meet
     last among the 3 x 3 lenses around their hit's cell: lens kk's hit (in g) unless another is strictly
     earlier / later, the first in row-major order winning a tie (as raytrace.MicrolensArray.extreme_lens;
     a scalar pass: it is rare). Front re-traces also flag the ray's corner test (cflag).
 
     Pruned (S_PRUNE): a hit in its own lens' cell that clears every neighbour pair's bound keeps that lens
-    without a scan (and otherwise scans only the neighbours whose pair does not clear), and a hit in a
-    neighbour's cell takes that lens after one intersection when the lens is strictly better and its own
-    hit lies in its cell clear of its neighbours; the rest scan, so the outcome is the scan's, ray for ray."""
+    without a scan, and a hit in a neighbour's cell takes that lens after one intersection when the lens
+    is strictly better and its own hit lies in its cell clear of its neighbours; the rest scan, so the
+    outcome is the scan's, ray for ray."""
     side = 1 if rear else 0
     prune = s[S_PRUNE] != 0.0
-    for q in range(flagged(m, flag, idx)):
-        j = idx[q]
-        if not rear:
-            cflag[j] = True
-        k0 = kk[j]
-        gx, gy = hit_xy(k0, g[G_HX, j], g[G_HY, j], g[G_HZ, j], tab, rot)
-        best, bt = k0, g[G_T, j]
-        bx, by, bz, bL, bM, bN = g[G_HX, j], g[G_HY, j], g[G_HZ, j], g[G_LL, j], g[G_LM, j], g[G_LN, j]
-        k2 = cell(gx, gy, s, lat) if prune else -1
-        done = False
-        own = k2 >= 0 and k2 == k0
-        if own:
-            done = clears_neighbours(k0, gx, gy, side, margins, lims, lat)
-        elif k2 >= 0:
-            hx, hy, hz, lL, lM, lN, t = lens_surface(k2, buf[0, j], buf[1, j], buf[2, j], buf[3, j], buf[4, j],
-                                                     buf[5, j], rear, tab, rot, s[S_ZFRONT])
-            if t == t and (t > bt if rear else t < bt):
-                x2, y2 = hit_xy(k2, hx, hy, hz, tab, rot)
-                if cell(x2, y2, s, lat) == k2 and clears_neighbours(k2, x2, y2, side, margins, lims, lat):
-                    best, bt, bx, by, bz, bL, bM, bN = k2, t, hx, hy, hz, lL, lM, lN
-                    done = True
-        if not done:
-            row0, col0 = centre_cell(gx, gy, s, lat)
-            a, b = gx - margins[T_GX, k0], gy - margins[T_GY, k0]
-            best, bt, bx, by, bz, bL, bM, bN = scan_candidates(j, k0, row0, col0, buf, tab, rot, s, rear, lat,
-                                                               best, bt, bx, by, bz, bL, bM, bN, own, a, b,
-                                                               side, lims)
-        if best != k0:
-            kk[j] = best
-            gather(j, best, tab, g)
-            g[G_MR, j] = margins[T_MARGIN_REAR, best]
-            g[G_CX, j], g[G_CY, j] = margins[T_GX, best], margins[T_GY, best]
-            g[G_HX, j], g[G_HY, j], g[G_HZ, j], g[G_LL, j], g[G_LM, j], g[G_LN, j], g[G_T, j] = bx, by, bz, bL, bM, bN, bt
+    for j in range(m):
+        if flag[j]:
             if not rear:
-                corner_of[j] = True  # lens k0's corner test is stale: corners_sag decides
+                cflag[j] = True
+            k0 = kk[j]
+            gx, gy = hit_xy(k0, g[G_HX, j], g[G_HY, j], g[G_HZ, j], tab, rot)
+            best, bt = k0, g[G_T, j]
+            bx, by, bz, bL, bM, bN = g[G_HX, j], g[G_HY, j], g[G_HZ, j], g[G_LL, j], g[G_LM, j], g[G_LN, j]
+            k2 = cell(gx, gy, s, lat) if prune else -1
+            done = False
+            if k2 >= 0 and k2 == k0:
+                done = clears_neighbours(k0, gx, gy, side, margins, lims, lat)
+            elif k2 >= 0:
+                hx, hy, hz, lL, lM, lN, t = lens_surface(k2, buf[0, j], buf[1, j], buf[2, j], buf[3, j], buf[4, j],
+                                                         buf[5, j], rear, tab, rot, s[S_ZFRONT])
+                if t == t and (t > bt if rear else t < bt):
+                    x2, y2 = hit_xy(k2, hx, hy, hz, tab, rot)
+                    if cell(x2, y2, s, lat) == k2 and clears_neighbours(k2, x2, y2, side, margins, lims, lat):
+                        best, bt, bx, by, bz, bL, bM, bN = k2, t, hx, hy, hz, lL, lM, lN
+                        done = True
+            if not done:
+                row0, col0 = centre_cell(gx, gy, s, lat)
+                best, bt, bx, by, bz, bL, bM, bN = scan_candidates(j, k0, row0, col0, buf, tab, rot, s, rear, lat,
+                                                                   best, bt, bx, by, bz, bL, bM, bN)
+            if best != k0:
+                kk[j] = best
+                gather(j, best, tab, g)
+                g[G_MR, j] = margins[T_MARGIN_REAR, best]
+                g[G_CX, j], g[G_CY, j] = margins[T_GX, best], margins[T_GY, best]
+                g[G_HX, j], g[G_HY, j], g[G_HZ, j], g[G_LL, j], g[G_LM, j], g[G_LN, j], g[G_T, j] = bx, by, bz, bL, bM, bN, bt
+                if not rear:
+                    corner_of[j] = True  # lens k0's corner test is stale: corners_sag decides
 
 
 @_jit_inline
@@ -872,27 +840,25 @@ def inside_rear(k, px, py, pz, tab):
 
 
 @_jit_inline
-def corners_sag(m, cflag, kk, g, tab, rot, s, corner_of, lat, idx):
+def corners_sag(m, cflag, kk, g, tab, rot, s, corner_of, lat):
     """Sag-intersection corners of the flagged rays (front hit within the rear margin of its cell's edge,
     or re-traced) outside their own lens' rear region (inside it, a hit is in the union: the scan is
     skipped): the front hit lies in no rear region of the candidates around its cell (as
     raytrace.MicrolensArray._corner_sag; elsewhere lens kk's rear decides, in pass B). Scalar: rare."""
     rows, cols = int(s[S_ROWS]), int(s[S_COLS])
-    for j in range(m):  # inside its own lens' rear region, a hit is in the union: no corner
-        cflag[j] = cflag[j] & corner_of[j]
-    for q in range(flagged(m, cflag, idx)):
-        j = idx[q]
-        gx, gy, gz, _, _, _ = from_lens(kk[j], g[G_HX, j], g[G_HY, j], g[G_HZ, j], 0.0, 0.0, 0.0, tab, rot)
-        row0, col0 = centre_cell(gx, gy, s, lat)
-        inside = False
-        for i in range(9 if lat is None else 7):
-            rr, cc = candidate(i, row0, col0, lat)
-            if rr < 0 or rr >= rows or cc < 0 or cc >= cols:
-                continue
-            kc = rr * cols + cc
-            px, py, pz, _, _, _ = to_lens(kc, gx, gy, gz, 0.0, 0.0, 0.0, tab, rot)
-            inside = inside or inside_rear(kc, px, py, pz, tab)
-        corner_of[j] = not inside
+    for j in range(m):
+        if cflag[j] and corner_of[j]:  # inside its own lens' rear region, a hit is in the union: no corner
+            gx, gy, gz, _, _, _ = from_lens(kk[j], g[G_HX, j], g[G_HY, j], g[G_HZ, j], 0.0, 0.0, 0.0, tab, rot)
+            row0, col0 = centre_cell(gx, gy, s, lat)
+            inside = False
+            for i in range(9 if lat is None else 7):
+                rr, cc = candidate(i, row0, col0, lat)
+                if rr < 0 or rr >= rows or cc < 0 or cc >= cols:
+                    continue
+                kc = rr * cols + cc
+                px, py, pz, _, _, _ = to_lens(kc, gx, gy, gz, 0.0, 0.0, 0.0, tab, rot)
+                inside = inside or inside_rear(kc, px, py, pz, tab)
+            corner_of[j] = not inside
 
 
 @_jit_inline
@@ -980,7 +946,7 @@ def pass_enter(m, buf, s, tab, grot, g, kk, lat):
 
 
 @_jit_inline
-def pass_front_grid(m, buf, s, tab, rot, g, kk, flag, lat, idx):
+def pass_front_grid(m, buf, s, tab, rot, g, kk, flag, lat):
     """Pass B (grid): front surface of the cell's lens; re-trace hits that fall in another cell."""
     zfront, ax0, ay0, invp, ncols, nrows = s[S_ZFRONT], s[S_AX0], s[S_AY0], s[S_INVP], s[S_COLS], s[S_ROWS]
     for j in range(m):
@@ -990,7 +956,7 @@ def pass_front_grid(m, buf, s, tab, rot, g, kk, flag, lat, idx):
                                                  ax0, ay0, invp, ncols, nrows, lat)
         g[G_HX, j], g[G_HY, j], g[G_HZ, j], g[G_LL, j], g[G_LM, j], g[G_LN, j], g[G_T, j] = hx, hy, hz, L, M, N, t
         flag[j] = (buf[6, j] > 0.0) & (t == t) & (k2 >= 0.0) & (k2 != kk[j])
-    retrace_neighbours(m, flag, kk, buf, g, tab, rot, s, False, lat, idx)
+    retrace_neighbours(m, flag, kk, buf, g, tab, rot, s, False, lat)
 
 
 @_jit_inline
@@ -1026,7 +992,7 @@ def pass_front_refract(m, buf, s, rot, clear, fres, n_mla, mu_in, g, kk, corner_
 
 
 @_jit_inline
-def pass_rear_grid(m, buf, s, tab, rot, g, kk, flag, corner_of, lat, retrace, idx):
+def pass_rear_grid(m, buf, s, tab, rot, g, kk, flag, corner_of, lat, retrace):
     """Pass C' (grid): rear surface of the same lens; re-trace hits that fall in another cell (not for
     circle apertures, `retrace` False: the circle's lens, front and rear)."""
     ax0, ay0, invp, ncols, nrows = s[S_AX0], s[S_AY0], s[S_INVP], s[S_COLS], s[S_ROWS]
@@ -1039,7 +1005,7 @@ def pass_rear_grid(m, buf, s, tab, rot, g, kk, flag, corner_of, lat, retrace, id
         g[G_HX, j], g[G_HY, j], g[G_HZ, j], g[G_LL, j], g[G_LM, j], g[G_LN, j], g[G_T, j] = hx, hy, hz, L, M, N, t
         flag[j] = retrace & (buf[6, j] > 0.0) & (not corner_of[j]) & (t == t) & (k2 >= 0.0) & (k2 != kk[j])
     if retrace:
-        retrace_neighbours(m, flag, kk, buf, g, tab, rot, s, True, lat, idx)
+        retrace_neighbours(m, flag, kk, buf, g, tab, rot, s, True, lat)
 
 
 @_jit_inline
@@ -1106,11 +1072,11 @@ def pass_leave(m, buf, s, rot, grot, fres, n_mla, g, kk, corner_of, rows, cols, 
 
 
 @_jit_inline
-def front_circle(m, buf, s, tab, rot, g, kk, flag, corner_of, clear, lat, circ, doubt_of):
+def front_circle(m, buf, s, tab, rot, g, kk, flag, corner_of, clear, lat, circ):
     """Pass B (circle apertures, branch-free): lens kk's front hit; gap (flag) where it lies outside kk's
     circle, doubted (scanned by retrace_circle) where it lies within radius + reach of its cell's design
     centre (`circ`: design centres, raytrace.MicrolensArray._hit_circle); the corner test with lens kk's
-    rear (corner_of). Pruned (S_PRUNE), a live gap hit is doubted (doubt_of) only off the array, in
+    rear (corner_of). Pruned (S_PRUNE), a live gap hit is doubted (g[G_MR] = 1) only off the array, in
     another cell than its lens', or within its cell's clearance (g[G_MF]: circ[C_CLEAR]) of the cell's
     edge: elsewhere no neighbour's circle can hold it, and lens kk's own circle does not."""
     zfront, ax0, ay0, invp, p, ncols, nrows = s[S_ZFRONT], s[S_AX0], s[S_AY0], s[S_INVP], s[S_P], s[S_COLS], s[S_ROWS]
@@ -1125,7 +1091,7 @@ def front_circle(m, buf, s, tab, rot, g, kk, flag, corner_of, clear, lat, circ, 
         gap = not (hx * hx + hy * hy <= r2)
         flag[j] = gap
         doubt = gap & (buf[6, j] > 0.0) & (t == t) & (exhaustive | (k2 != k) | (edge <= g[G_MF, j]))
-        doubt_of[j] = doubt
+        g[G_MR, j] = 1.0 if doubt else 0.0
         g[G_ROW, j] = k2  # the hit's cell, for retrace_circle
         rx, ry = hx - g[G_DX, j], hy - g[G_DY, j]
         c2 = g[G_C2, j]
@@ -1135,38 +1101,38 @@ def front_circle(m, buf, s, tab, rot, g, kk, flag, corner_of, clear, lat, circ, 
 
 
 @_jit_inline
-def retrace_circle(m, flag, kk, buf, g, tab, rot, s, lat, circ, corner_of, doubt_of, idx):
-    """Doubted gap rays (doubt_of, front_circle) near a circle's reach: the first candidate around the hit's
+def retrace_circle(m, flag, kk, buf, g, tab, rot, s, lat, circ, corner_of):
+    """Doubted gap rays (g[G_MR], front_circle) near a circle's reach: the first candidate around the hit's
     cell whose circle holds the ray's hit on its own front sphere takes the ray (flag cleared); others stay
     in the gap. Scalar."""
     rows, cols, r2 = int(s[S_ROWS]), int(s[S_COLS]), s[S_RCIRC2]
-    for q in range(flagged(m, doubt_of, idx)):
-        j = idx[q]
-        gx, gy = hit_xy(kk[j], g[G_HX, j], g[G_HY, j], g[G_HZ, j], tab, rot)
-        k2 = int(g[G_ROW, j])
-        if k2 >= 0:
-            ex, ey = gx - circ[C_GX, k2], gy - circ[C_GY, k2]
-            if not (ex * ex + ey * ey <= circ[C_REACH2, k2]):
-                continue
-        row0, col0 = centre_cell(gx, gy, s, lat)
-        for i in range(9 if lat is None else 7):
-            rr, cc = candidate(i, row0, col0, lat)
-            if rr < 0 or rr >= rows or cc < 0 or cc >= cols:
-                continue
-            kc = rr * cols + cc
-            hx, hy, hz, lL, lM, lN, t = lens_surface(kc, buf[0, j], buf[1, j], buf[2, j], buf[3, j], buf[4, j],
-                                                     buf[5, j], False, tab, rot, s[S_ZFRONT])
-            if t == t and hx * hx + hy * hy <= r2:
-                kk[j] = kc
-                gather(j, kc, tab, g)
-                g[G_HX, j], g[G_HY, j], g[G_HZ, j], g[G_LL, j], g[G_LM, j], g[G_LN, j], g[G_T, j] = hx, hy, hz, lL, lM, lN, t
-                rx, ry = hx - tab[2, kc], hy - tab[3, kc]
-                c2 = tab[5, kc]
-                rho2 = rx * rx + ry * ry
-                arg = 1.0 - c2 * c2 * rho2
-                corner_of[j] = not ((arg >= 0.0) & (tab[6, kc] + c2 * rho2 / (1.0 + math.sqrt(max(arg, 0.0))) > hz))
-                flag[j] = False
-                break
+    for j in range(m):
+        if g[G_MR, j] != 0.0:
+            gx, gy = hit_xy(kk[j], g[G_HX, j], g[G_HY, j], g[G_HZ, j], tab, rot)
+            k2 = int(g[G_ROW, j])
+            if k2 >= 0:
+                ex, ey = gx - circ[C_GX, k2], gy - circ[C_GY, k2]
+                if not (ex * ex + ey * ey <= circ[C_REACH2, k2]):
+                    continue
+            row0, col0 = centre_cell(gx, gy, s, lat)
+            for i in range(9 if lat is None else 7):
+                rr, cc = candidate(i, row0, col0, lat)
+                if rr < 0 or rr >= rows or cc < 0 or cc >= cols:
+                    continue
+                kc = rr * cols + cc
+                hx, hy, hz, lL, lM, lN, t = lens_surface(kc, buf[0, j], buf[1, j], buf[2, j], buf[3, j], buf[4, j],
+                                                         buf[5, j], False, tab, rot, s[S_ZFRONT])
+                if t == t and hx * hx + hy * hy <= r2:
+                    kk[j] = kc
+                    gather(j, kc, tab, g)
+                    g[G_HX, j], g[G_HY, j], g[G_HZ, j], g[G_LL, j], g[G_LM, j], g[G_LN, j], g[G_T, j] = hx, hy, hz, lL, lM, lN, t
+                    rx, ry = hx - tab[2, kc], hy - tab[3, kc]
+                    c2 = tab[5, kc]
+                    rho2 = rx * rx + ry * ry
+                    arg = 1.0 - c2 * c2 * rho2
+                    corner_of[j] = not ((arg >= 0.0) & (tab[6, kc] + c2 * rho2 / (1.0 + math.sqrt(max(arg, 0.0))) > hz))
+                    flag[j] = False
+                    break
 
 
 @_jit_inline
@@ -1184,7 +1150,7 @@ def circle_fate(m, buf, s, clear, g, flag, corner_of):
 
 @_jit_inline
 def stage2_block(m, buf, s, tab, rot, grot, clear, fres, n_mla, mu_in, g, kk, flag, corner_of, rows, cols, wts,
-                 nout, box, lat, circ, cflag, idx):
+                 nout, box, lat, circ):
     """Stage 2 for one block, grid boundaries: MLA (per-lens errors, neighbour re-trace) -> sensor pixel,
     appending hits.
 
@@ -1194,22 +1160,22 @@ def stage2_block(m, buf, s, tab, rot, grot, clear, fres, n_mla, mu_in, g, kk, fl
     order, so both engines agree to rounding."""
     pass_enter(m, buf, s, tab, grot, g, kk, lat)
     if circ is None:
-        pass_front_grid(m, buf, s, tab, rot, g, kk, flag, lat, idx)
+        pass_front_grid(m, buf, s, tab, rot, g, kk, flag, lat)
         pass_front_refract(m, buf, s, rot, clear, fres, n_mla, mu_in, g, kk, corner_of, False)
     else:  # circle apertures: the lens whose circle holds the hit; gaps and corners from front_circle
         for j in range(m):  # a loop of its own, as gather: an indexed load keeps a pass from vectorizing
             g[G_MF, j] = circ[C_CLEAR, kk[j]]
-        front_circle(m, buf, s, tab, rot, g, kk, flag, corner_of, clear, lat, circ, cflag)
-        retrace_circle(m, flag, kk, buf, g, tab, rot, s, lat, circ, corner_of, cflag, idx)
+        front_circle(m, buf, s, tab, rot, g, kk, flag, corner_of, clear, lat, circ)
+        retrace_circle(m, flag, kk, buf, g, tab, rot, s, lat, circ, corner_of)
         circle_fate(m, buf, s, clear, g, flag, corner_of)
         pass_front_refract(m, buf, s, rot, True, fres, n_mla, mu_in, g, kk, corner_of, True)
-    pass_rear_grid(m, buf, s, tab, rot, g, kk, flag, corner_of, lat, circ is None, idx)
+    pass_rear_grid(m, buf, s, tab, rot, g, kk, flag, corner_of, lat, circ is None)
     return pass_leave(m, buf, s, rot, grot, fres, n_mla, g, kk, corner_of, rows, cols, wts, nout, box)
 
 
 @_jit_inline
 def stage2_block_sag(m, buf, s, tab, rot, grot, clear, fres, n_mla, mu_in, g, kk, flag, corner_of, rows, cols, wts,
-                     nout, box, cflag, margins, lims, lat, idx):
+                     nout, box, cflag, margins, lims, lat):
     """Stage 2 for one block, sag-intersection boundaries: as stage2_block, with passes B and C' that also
     flag hits within a per-cell margin of the edge (front_sag, rear_sag) for the 3 x 3 neighbour pass
     (retrace_sag), and corners from the union of the rear regions (corners_sag). A kernel of its own
@@ -1223,11 +1189,11 @@ def stage2_block_sag(m, buf, s, tab, rot, grot, clear, fres, n_mla, mu_in, g, kk
             k = kk[j]
             g[G_CX, j], g[G_CY, j] = margins[T_GX, k], margins[T_GY, k]
     front_sag(m, buf, s, tab, rot, g, kk, flag, cflag, corner_of, lat)
-    retrace_sag(m, flag, kk, buf, g, tab, rot, s, False, cflag, margins, lims, lat, corner_of, idx)
-    corners_sag(m, cflag, kk, g, tab, rot, s, corner_of, lat, idx)
+    retrace_sag(m, flag, kk, buf, g, tab, rot, s, False, cflag, margins, lims, lat, corner_of)
+    corners_sag(m, cflag, kk, g, tab, rot, s, corner_of, lat)
     pass_front_refract(m, buf, s, rot, clear, fres, n_mla, mu_in, g, kk, corner_of, True)
     rear_sag(m, buf, s, tab, rot, g, kk, flag, corner_of, lat)
-    retrace_sag(m, flag, kk, buf, g, tab, rot, s, True, cflag, margins, lims, lat, corner_of, idx)
+    retrace_sag(m, flag, kk, buf, g, tab, rot, s, True, cflag, margins, lims, lat, corner_of)
     return pass_leave(m, buf, s, rot, grot, fres, n_mla, g, kk, corner_of, rows, cols, wts, nout, box)
 
 
@@ -1249,11 +1215,9 @@ def kernel_settings(s, key):
 
 @_jit_inline
 def block_scratch():
-    """One block's scratch arrays: rays, per-ray table, lens index, re-trace and corner flags, sampler cells,
-    a third flag (sag: corner scans; circles: doubted gap hits) and the flagged rays' indices (`flagged`)."""
+    """One block's scratch arrays: rays, per-ray table, lens index, re-trace and corner flags, sampler cells."""
     return (np.empty((9, BLOCK)), np.empty((G_COUNT, BLOCK)), np.empty(BLOCK, np.int32), np.empty(BLOCK, np.bool_),
-            np.empty(BLOCK, np.bool_), np.empty(BLOCK, np.int64), np.empty(BLOCK, np.int64), np.empty(BLOCK, np.bool_),
-            np.empty(BLOCK, np.int64))
+            np.empty(BLOCK, np.bool_), np.empty(BLOCK, np.int64), np.empty(BLOCK, np.int64))
 
 
 @_jit_inline
@@ -1279,13 +1243,13 @@ def kernel(s, key, count, tab, rot, grot, texture, shift_coef, rows, cols, wts, 
     centres) is not None; hex cells where `lat` is not None); appends the (row, col, weight) of those that
     landed, in ray order, grows box = [row min, row max, col min, col max] and returns how many landed."""
     mode, fres, clear, n_mla, sobol, seeds, shifts, jtab = kernel_settings(s, key)
-    buf, g, kk, flag, corner_of, ia, icf, cflag, idx = block_scratch()
+    buf, g, kk, flag, corner_of, ia, icf = block_scratch()
     nout = 0
     for start in range(0, count, BLOCK):
         m = stage1_block(start, min(BLOCK, count - start), mode, s, key, buf, fres, texture, g, sobol, shift_coef,
                          seeds, shifts, jtab, ia, icf, lat)
         nout = stage2_block(m, buf, s, tab, rot, grot, clear, fres, n_mla, 1.0 / n_mla, g, kk, flag, corner_of,
-                            rows, cols, wts, nout, box, lat, circ, cflag, idx)
+                            rows, cols, wts, nout, box, lat, circ)
     return nout
 
 
@@ -1293,14 +1257,15 @@ def kernel(s, key, count, tab, rot, grot, texture, shift_coef, rows, cols, wts, 
 def kernel_sag(s, key, count, tab, rot, grot, texture, shift_coef, rows, cols, wts, box, margins, lims, lat):
     """As kernel (the same loop), with sag-intersection boundaries (`margins`: per-lens front and rear
     margins, mm, and design centres; `lims`: per-pair limits (pair_limits), [front / rear, lens, candidate])."""
+    cflag = np.empty(BLOCK, np.bool_)
     mode, fres, clear, n_mla, sobol, seeds, shifts, jtab = kernel_settings(s, key)
-    buf, g, kk, flag, corner_of, ia, icf, cflag, idx = block_scratch()
+    buf, g, kk, flag, corner_of, ia, icf = block_scratch()
     nout = 0
     for start in range(0, count, BLOCK):
         m = stage1_block(start, min(BLOCK, count - start), mode, s, key, buf, fres, texture, g, sobol, shift_coef,
                          seeds, shifts, jtab, ia, icf, lat)
         nout = stage2_block_sag(m, buf, s, tab, rot, grot, clear, fres, n_mla, 1.0 / n_mla, g, kk, flag, corner_of,
-                                rows, cols, wts, nout, box, cflag, margins, lims, lat, idx)
+                                rows, cols, wts, nout, box, cflag, margins, lims, lat)
     return nout
 
 
