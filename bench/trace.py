@@ -9,6 +9,8 @@ peak memory on the default camera, for each engine and thread count; then the is
     python bench/trace.py --packing hex --aperture circle   # the main tables on another array
     python bench/trace.py --arrays --against /work/main     # --arrays for that tree's mlaqc and this one's,
                                                             # in child processes taking turns
+    python bench/trace.py --images save ref.npz   # seeded frames of every array kind (both samplers), then
+    python bench/trace.py --images check ref.npz  # after a kernel change: are they bit-identical?
 
 Wall-clock rates depend on what else runs on the machine; the CPU time per ray (single thread) does not
 much, so it is printed too: compare that between revisions on a shared machine.
@@ -26,6 +28,8 @@ import sys
 import time
 
 from pathlib import Path
+
+import numpy as np
 
 from mlaqc.optics.config import CameraConfig, default_config, load_config
 from mlaqc.optics.errormap import ErrorMap, random_defects
@@ -138,6 +142,35 @@ def compare_boundaries(rays: int, repeats: int) -> None:
               f"CPU per ray x{med['sag-intersection'][1] / med['grid'][1]:.2f}")
 
 
+def reference_frames(rays: int = 400_000) -> dict[str, np.ndarray]:
+    """Seeded frames (numba, one thread) of every array kind of ARRAYS, both samplers: what a kernel change
+    must leave bit-identical (the shipped models were rendered with today's)."""
+    out = {}
+    for name, spec in ARRAYS.items():
+        for sampler, seeds in (("sobol", (1, 7)), ("random", (3,))):
+            r = Renderer(*camera(*spec), engine="numba", sampler=sampler)
+            for seed in seeds:
+                key = f"{name} {sampler} {seed}".replace(" ", "_").replace("µ", "u")
+                out[key] = r.render(WhiteScene(), rays=rays, seed=seed, threads=1).photons
+    return out
+
+
+def images(mode: str, path: str) -> int:
+    """--images save PATH: write the reference frames; --images check PATH: compare, frame by frame, bit
+    for bit; exit status 1 if any differs."""
+    frames = reference_frames()
+    if mode == "save":
+        np.savez_compressed(path, **frames)
+        print(f"saved {len(frames)} frames to {path}")
+        return 0
+    ref = np.load(path)
+    bad = [k for k, v in frames.items() if k not in ref or not np.array_equal(ref[k], v)]
+    for k in frames:
+        print(f"  {'DIFFERS' if k in bad else 'same   '} {k}")
+    print("all frames bit-identical" if not bad else f"{len(bad)} of {len(frames)} frames differ")
+    return 1 if bad else 0
+
+
 def np_median(values: list[float]) -> float:
     v = sorted(values)
     n = len(v)
@@ -179,12 +212,18 @@ def main() -> int:
     ap.add_argument("--against", metavar="TREE", help="with --arrays: also that checkout's mlaqc, taking turns")
     ap.add_argument("--boundaries", action="store_true", help="only sag-intersection vs grid boundaries' rays/s")
     ap.add_argument("--arrays", action="store_true", help="only rays/s of square / hex, grid / sag, circles")
+    ap.add_argument("--images", nargs=2, metavar=("save|check", "PATH"),
+                    help="seeded frames of every array kind: save them, or check these are bit-identical")
     ap.add_argument("--packing", choices=("square", "hex"), default="square", help="the main tables' array packing")
     ap.add_argument("--aperture", choices=("cell", "circle"), default="cell", help="the main tables' lens aperture")
     args = ap.parse_args()
     if args.memory_child:
         memory_child(args.memory_child)
         return 0
+    if args.images:
+        if args.images[0] not in ("save", "check"):
+            ap.error("--images takes 'save' or 'check' and a path")
+        return images(*args.images)
     if args.boundaries:
         compare_boundaries(10_000_000 if args.quick else 40_000_000, 3 if args.quick else 5)
         return 0

@@ -79,8 +79,8 @@ IMAGE_SIDE, POINT, OBJECT_SIDE = 0, 1, 2
  S_PRUNE, S_COUNT) = range(57)
 # Rows of the per-block scratch table `g`: the gathered parameters of each ray's lens (tab rows 0..6), its
 # current hit and direction in the lens frame, the distance t to it (NaN on a miss), and its pixel.
-# Sag-intersection mode also gathers the lens' front and rear margins (G_MF, G_MR).
-G_FX, G_FY, G_DX, G_DY, G_C1, G_C2, G_ZR, G_HX, G_HY, G_HZ, G_LL, G_LM, G_LN, G_T, G_ROW, G_COL, G_MF, G_MR, G_COUNT = range(19)
+# Sag-intersection mode also gathers the lens' front and rear margins (G_MF, G_MR) and design centre (G_CX, G_CY).
+G_FX, G_FY, G_DX, G_DY, G_C1, G_C2, G_ZR, G_HX, G_HY, G_HZ, G_LL, G_LM, G_LN, G_T, G_ROW, G_COL, G_MF, G_MR, G_CX, G_CY, G_COUNT = range(21)
 # Rows of the per-lens `margins` table of sag-intersection mode (kernel_sag): front and rear margins (mm,
 # raytrace.MicrolensArray.boundary_margins_mm), design centre x, y (mm).
 T_MARGIN_FRONT, T_MARGIN_REAR, T_GX, T_GY = 0, 1, 2, 3
@@ -190,6 +190,24 @@ def _cell_edge_hex(u, v, ncols, nrows, lat):
     return (row * ncols + col if on else -1.0), hex_edge(du, dv)
 
 
+def _own_edge_square(x, y, cx, cy, ax0, ay0, invp, ncols, nrows, kf, lat):
+    return cell_edge((x - ax0) * invp, (y - ay0) * invp, ncols, nrows, lat)
+
+
+def _own_edge_hex(x, y, cx, cy, ax0, ay0, invp, ncols, nrows, kf, lat):
+    e = hex_edge((x - cx) * invp, (y - cy) * invp)
+    return (kf if e >= 0.0 else -1.0), e
+
+
+def own_edge(x, y, cx, cy, ax0, ay0, invp, ncols, nrows, kf, lat):
+    """As cell_edge for MLA point (x, y) (mm) of lens kf's ray: square cells by the lattice; hex cells from
+    the offset to lens kf's design centre (cx, cy): kf where inside its hexagon, -1.0 outside (in another
+    cell, or off the array), and the distance (pitches) from its nearest side, no cell lookup."""
+    if lat is None:
+        return _own_edge_square(x, y, cx, cy, ax0, ay0, invp, ncols, nrows, kf, lat)
+    return _own_edge_hex(x, y, cx, cy, ax0, ay0, invp, ncols, nrows, kf, lat)
+
+
 def cell_edge(u, v, ncols, nrows, lat):
     """Flat cell index (float, -1.0 off the array) of lattice point (u, v) and its distance (pitches) from
     the cell's nearest edge."""
@@ -229,6 +247,13 @@ if AVAILABLE:
     # trip a Numba SSA check (NumbaIRAssumptionWarning) when it is inlined
     _cs, _ch, _es, _eh = (_jit_inline(f) for f in (_cell_square, _cell_hex, _cell_edge_square, _cell_edge_hex))
     _bs, _bh = _jit_inline(_black_square), _jit_inline(_black_hex)
+    _os, _oh = _jit_inline(_own_edge_square), _jit_inline(_own_edge_hex)
+
+    @overload(own_edge, **_TYPED)
+    def _own_edge_typed(x, y, cx, cy, ax0, ay0, invp, ncols, nrows, kf, lat):
+        if isinstance(lat, types.NoneType):
+            return lambda x, y, cx, cy, ax0, ay0, invp, ncols, nrows, kf, lat: _os(x, y, cx, cy, ax0, ay0, invp, ncols, nrows, kf, lat)
+        return lambda x, y, cx, cy, ax0, ay0, invp, ncols, nrows, kf, lat: _oh(x, y, cx, cy, ax0, ay0, invp, ncols, nrows, kf, lat)
 
     @overload(lattice_cell, **_TYPED)
     def _lattice_cell_typed(u, v, lat):
@@ -690,6 +715,22 @@ def surface_hit_edge(px, py, pz, L, M, N, ox, oy, oz, c, fx, fy, rot, k, ax0, ay
 
 
 @_jit_inline
+def surface_hit_own(px, py, pz, L, M, N, ox, oy, oz, c, fx, fy, rot, k, cx, cy, ax0, ay0, invp, p, ncols, nrows, lat):
+    """As surface_hit_edge, the cell test by own_edge (lens k's design centre cx, cy; sag-intersection)."""
+    if rot is not None:
+        r00, r01, r02, r10, r11, r12, r20, r21, r22 = rot_of(rot, k)
+        px, py, pz = rot_t(r00, r01, r02, r10, r11, r12, r20, r21, r22, px, py, pz)
+        L, M, N = rot_t(r00, r01, r02, r10, r11, r12, r20, r21, r22, L, M, N)
+    t = sphere_t(px - ox, py - oy, pz - oz, L, M, N, c)
+    hx, hy, hz = px + t * L, py + t * M, pz + t * N
+    gx, gy = hx, hy
+    if rot is not None:
+        gx, gy, _ = rot_n(r00, r01, r02, r10, r11, r12, r20, r21, r22, hx, hy, hz)
+    kf, edge = own_edge(gx + fx, gy + fy, cx, cy, ax0, ay0, invp, ncols, nrows, np.float64(k), lat)
+    return hx, hy, hz, L, M, N, t, kf, p * edge
+
+
+@_jit_inline
 def centre_cell(gx, gy, s, lat):
     """Row and column of the cell holding an MLA-frame point, clipped onto the array."""
     if lat is None:
@@ -782,6 +823,7 @@ def retrace_sag(m, flag, kk, buf, g, tab, rot, s, rear, cflag, margins, lims, la
                 kk[j] = best
                 gather(j, best, tab, g)
                 g[G_MR, j] = margins[T_MARGIN_REAR, best]
+                g[G_CX, j], g[G_CY, j] = margins[T_GX, best], margins[T_GY, best]
                 g[G_HX, j], g[G_HY, j], g[G_HZ, j], g[G_LL, j], g[G_LM, j], g[G_LN, j], g[G_T, j] = bx, by, bz, bL, bM, bN, bt
                 if not rear:
                     corner_of[j] = True  # lens k0's corner test is stale: corners_sag decides
@@ -838,8 +880,8 @@ def front_sag(m, buf, s, tab, rot, g, kk, flag, cflag, corner_of, lat):
     for j in range(m):
         fx, fy, c, k = g[G_FX, j], g[G_FY, j], g[G_C1, j], kk[j]
         px, py, pz, L, M, N = buf[0, j] - fx, buf[1, j] - fy, buf[2, j], buf[3, j], buf[4, j], buf[5, j]
-        hx, hy, hz, L, M, N, t, k2, edge = surface_hit_edge(px, py, pz, L, M, N, 0.0, 0.0, zfront, c, fx, fy, rot, k,
-                                                            ax0, ay0, invp, p, ncols, nrows, lat)
+        hx, hy, hz, L, M, N, t, k2, edge = surface_hit_own(px, py, pz, L, M, N, 0.0, 0.0, zfront, c, fx, fy, rot, k,
+                                                           g[G_CX, j], g[G_CY, j], ax0, ay0, invp, p, ncols, nrows, lat)
         g[G_HX, j], g[G_HY, j], g[G_HZ, j], g[G_LL, j], g[G_LM, j], g[G_LN, j], g[G_T, j] = hx, hy, hz, L, M, N, t
         live = (buf[6, j] > 0.0) & (t == t)
         moved = k2 != k
@@ -860,8 +902,8 @@ def rear_sag(m, buf, s, tab, rot, g, kk, flag, corner_of, lat):
     for j in range(m):
         x, y, z, L, M, N = buf[0, j], buf[1, j], buf[2, j], buf[3, j], buf[4, j], buf[5, j]
         fx, fy, vx, vy, c2, vz, k = g[G_FX, j], g[G_FY, j], g[G_DX, j], g[G_DY, j], g[G_C2, j], g[G_ZR, j], kk[j]
-        hx, hy, hz, L, M, N, t, k2, edge = surface_hit_edge(x - fx, y - fy, z, L, M, N, vx, vy, vz, c2, fx, fy, rot, k,
-                                                            ax0, ay0, invp, p, ncols, nrows, lat)
+        hx, hy, hz, L, M, N, t, k2, edge = surface_hit_own(x - fx, y - fy, z, L, M, N, vx, vy, vz, c2, fx, fy, rot, k,
+                                                           g[G_CX, j], g[G_CY, j], ax0, ay0, invp, p, ncols, nrows, lat)
         g[G_HX, j], g[G_HY, j], g[G_HZ, j], g[G_LL, j], g[G_LM, j], g[G_LN, j], g[G_T, j] = hx, hy, hz, L, M, N, t
         live = (buf[6, j] > 0.0) & (not corner_of[j]) & (t == t)
         flag[j] = live & ((k2 != k) | (edge < g[G_MR, j]))
@@ -1142,6 +1184,10 @@ def stage2_block_sag(m, buf, s, tab, rot, grot, clear, fres, n_mla, mu_in, g, kk
     for j in range(m):  # in a loop of its own, as gather: an indexed load keeps a pass from vectorizing
         k = kk[j]
         g[G_MF, j], g[G_MR, j] = margins[T_MARGIN_FRONT, k], margins[T_MARGIN_REAR, k]
+    if lat is not None:  # hex: own_edge's design centres (square cells use the lattice: no gather)
+        for j in range(m):
+            k = kk[j]
+            g[G_CX, j], g[G_CY, j] = margins[T_GX, k], margins[T_GY, k]
     front_sag(m, buf, s, tab, rot, g, kk, flag, cflag, corner_of, lat)
     retrace_sag(m, flag, kk, buf, g, tab, rot, s, False, cflag, margins, lims, lat, corner_of)
     corners_sag(m, cflag, kk, g, tab, rot, s, corner_of, lat)
