@@ -963,14 +963,53 @@ def _local_planes(metrics: LensMetrics, position, phase: PhaseModel | None, pack
     `position`'s; in one pass: the maps share the work), and the local baselines' trend over the array
     (each map's baseline minus its median per edge class, its phase trend removed). `centred`, `exclude`:
     as `local_deviations` takes them."""
-    values = [metrics[k] for k in _NAMES] + [metrics[r] for r in RINGS] + list(position or ())
-    planes = local_deviations(values, _AXES + [""] * len(RINGS) + (["x", "y"] if position is not None else []),
-                              packing=packing, centred=centred, exclude=exclude)
+    values = _index_values(metrics, position)
+    planes = local_deviations(values, _index_axes(position), packing=packing, centred=centred, exclude=exclude)
     trend = class_centred([v - p for v, p in zip(values, planes)], packing)
     if phase is not None:
         trend = remove_phase_trend(trend, phase)
     names = list(_NAMES) + list(RINGS) + (["offset_x_px", "offset_y_px"] if position is not None else [])
     return planes, dict(zip(names, trend))
+
+
+def _index_values(metrics: LensMetrics, position) -> list[np.ndarray]:
+    """The index maps identification reads, in `_local_planes`' order: classification, rings, `position`'s."""
+    return [metrics[k] for k in _NAMES] + [metrics[r] for r in RINGS] + list(position or ())
+
+
+def _index_axes(position) -> list[str]:
+    """The axis of each of `_index_values`' maps (`local_deviations`' `axes`)."""
+    return _AXES + [""] * len(RINGS) + (["x", "y"] if position is not None else [])
+
+
+def _phase_removed(values: list[np.ndarray], axes: list[str], raw: list[np.ndarray], phase: PhaseModel | None,
+                   disturbed: np.ndarray | None = None, exclude: np.ndarray | None = None,
+                   packing: str = "square", centred: bool = False, size: int = 5) -> list[np.ndarray]:
+    """`remove_phase_pattern` of the local deviations `raw` of the index maps `values` (along `axes`),
+    with the lenses whose baseline window misses lenses (not inspected, lost, `exclude`) taken against
+    the local median of the values less the fitted phase pattern.
+
+    The sub-pixel phase pattern is fast (a period of 3-6 lenses on a grid rotated 0.5-1°) and, in some
+    maps, strong (along an edge the intensity tilt across it: 0.03 peak to peak against a noise of 0.003,
+    the missing neighbour's light entering one side of the window only), so a median does not follow it:
+    the deviation from it carries the pattern aliased through the window's phases, which the phase fit
+    removes as long as every window holds the same lenses around its own. A window that misses lenses
+    holds other phases and leaves its lens 5-10 sigma off: a healthy lens at the end of the inspected
+    part of an edge (where the array's corner leaves the sensor), or beside a defect and its echoes left
+    out of the baselines (circles), read as 'unknown'. With the pattern taken off the values first the
+    median is of a slow field, and which lenses it misses does not matter."""
+    if phase is None:
+        return raw
+    planes = remove_phase_pattern(raw, phase, disturbed)
+    lost = ~np.isfinite(np.array(values, dtype=np.float64)).all(axis=0)
+    if exclude is not None:
+        lost |= exclude
+    redo = max_filter_nearest(lost, size) & ~lost  # the lenses whose window misses some
+    if not redo.any():
+        return planes
+    flat = [v - (r - p) for v, r, p in zip(values, raw, planes)]  # the values less their phase pattern
+    again = local_deviations(flat, axes, size, packing, centred, exclude)
+    return [np.where(redo, a, p) for a, p in zip(again, planes)]
 
 
 def _deviation_maps(metrics: LensMetrics, planes: list[np.ndarray], position):
@@ -993,7 +1032,9 @@ def _judged(metrics: LensMetrics, position, phase: PhaseModel | None, table: Sig
     `centred`, `exclude`: the baselines' windows (`local_deviations`)."""
     det_floor, ring_floor = noise_floors(table, qc)
     raw, trend = _local_planes(metrics, position, phase, packing, centred, exclude)
-    planes = remove_phase_pattern(raw, phase) if phase is not None else raw
+    values = _index_values(metrics, position)
+    axes = _index_axes(position)
+    planes = _phase_removed(values, axes, raw, phase, exclude=exclude, packing=packing, centred=centred)
     dev, sig, detect_dev = _deviation_maps(metrics, planes, position)
     rings_at = slice(len(_NAMES), len(_NAMES) + len(RINGS))
     disturbed = None
@@ -1006,7 +1047,7 @@ def _judged(metrics: LensMetrics, position, phase: PhaseModel | None, table: Sig
             break
         disturbed = grown
         if phase is not None and any(skip is not None for skip in _phase_skips(phase, disturbed)):
-            planes = remove_phase_pattern(raw, phase, disturbed)
+            planes = _phase_removed(values, axes, raw, phase, disturbed, exclude, packing, centred)
             dev, sig, detect_dev = _deviation_maps(metrics, planes, position)
     return dev, sig, rings, detect_dev, trend, noise, score
 
