@@ -11,8 +11,10 @@ ring profile with a matched filter against the table's defocus signatures, white
 covariance over the array. A neighbour of a strong defect whose deviation is that defect's light in its
 window is its echo (`spill`), and with the defect it is left out of the noise and of the phase pattern's
 fit (`_disturbed`): in a small array a few defects' neighbourhoods are a large share of the lenses, and
-the noise of a sub-image must not depend on the array's size. Each frame also reports its detection
-limit (`detection_limits`).
+the noise of a sub-image must not depend on the array's size. A lens whose window misses lenses (not
+inspected, lost, left out) is compared with the median of its neighbours' values less the phase pattern
+(`_phase_removed`): the pattern is too fast for a median, and one over other lenses aliases it otherwise.
+Each frame also reports its detection limit (`detection_limits`).
 
 Classification inverts the signature table (matched to the frame's rim width by the caller): the
 flagged lens' feature changes, taken along and across its own shift, and its ring profile are fitted by
@@ -1196,8 +1198,8 @@ def identify(metrics: LensMetrics, missing: np.ndarray, qc: QC, table: Signature
     `position`: optional (dx, dy) per-lens position residuals measured on this frame (the calibration's
     residual averaged with the registration: a lower-noise shift signal that replaces the offsets in detection);
     `phase`: the lenses' sub-pixel phases (x, y), whose index pattern is removed (`remove_phase_pattern`).
-    `outside`: lenses whose sub-image is not wholly on the sensor; they are not inspected (never
-    flagged, never missing) and left out of every statistic.
+    `outside`: lenses whose sub-image (the pipeline: or index window) is not wholly on the sensor; they
+    are not inspected (never flagged, never missing) and left out of every statistic.
     A lens is flagged when its deviation is significant (z above `qc.detect_sigma`, against the frame's
     own noise, floored) and its best reading is at least the minimum reportable error of its kind;
     classification always uses the registration features the table was built with. `split`: the optics'
