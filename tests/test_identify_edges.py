@@ -18,11 +18,10 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import analytic_frames as am
 import numpy as np
-import pytest
 from scipy.spatial import cKDTree
 
-import analytic_frames as am
 from mlaqc.inspection.pipeline import inspect_file
 from mlaqc.optics.config import default_config, load_config
 
