@@ -6,6 +6,7 @@ reported detection limits; then the bars.
     python bench/robustness.py              # analytic cells + tracer at 50 and 400 rays/pixel (~8 min)
     python bench/robustness.py --full       # + the tracer at 2,000 rays/pixel (renders ~3 min once, cached)
     python bench/robustness.py --quick      # a few analytic cells only
+    python bench/robustness.py --analytic --seed 11   # every analytic cell, other anomalies and noise
     python bench/robustness.py --quick --config fixtures/hex_camera.toml   # analytic cells of a hex array
     python bench/robustness.py --quick -c fixtures/circle_camera.toml      # round lenses, opaque gaps (square)
     python bench/robustness.py --quick -c fixtures/hex_circle_camera.toml  # round lenses, opaque gaps (hex)
@@ -304,7 +305,8 @@ def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true", help="a few analytic cells only")
     ap.add_argument("--full", action="store_true", help="also the tracer at 2,000 rays/pixel")
-    ap.add_argument("--seed", type=int, default=5, help="seed of the analytic anomalies and noise")
+    ap.add_argument("--seed", type=int, default=5, help="seed of the analytic anomalies and noise (cell k: seed + k)")
+    ap.add_argument("--analytic", action="store_true", help="the analytic cells only (all of them unless --quick)")
     ap.add_argument("--config", "-c", help="camera config of the analytic cells (its MLA's packing and size; the "
                     "tracer cells are Table 1's)")
     args = ap.parse_args()
@@ -314,7 +316,7 @@ def main() -> int:
         for k, spec in enumerate(analytic_cells(args.quick)):
             cells.append(run_analytic(spec, args.seed + k, Path(tmp), cfg))
             print_cells(cells[-1:])
-    if not args.quick and args.config is None:
+    if not (args.quick or args.analytic) and args.config is None:
         for rpp in (50, 400) + ((2000,) if args.full else ()):
             cells.append(run_tracer(rpp, 3))
             print_cells(cells[-1:])

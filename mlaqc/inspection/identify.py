@@ -11,8 +11,10 @@ ring profile with a matched filter against the table's defocus signatures, white
 covariance over the array. A neighbour of a strong defect whose deviation is that defect's light in its
 window is its echo (`spill`), and with the defect it is left out of the noise and of the phase pattern's
 fit (`_disturbed`): in a small array a few defects' neighbourhoods are a large share of the lenses, and
-the noise of a sub-image must not depend on the array's size. Each frame also reports its detection
-limit (`detection_limits`).
+the noise of a sub-image must not depend on the array's size. A lens whose window misses lenses (not
+inspected, lost, left out) is compared with the median of its neighbours' values less the phase pattern
+(`_phase_removed`): the pattern is too fast for a median, and one over other lenses aliases it otherwise.
+Each frame also reports its detection limit (`detection_limits`).
 
 Classification inverts the signature table (matched to the frame's rim width by the caller): the
 flagged lens' feature changes, taken along and across its own shift, and its ring profile are fitted by
@@ -55,6 +57,7 @@ from __future__ import annotations
 import functools
 import hashlib
 import os
+import warnings
 from dataclasses import dataclass, field
 from itertools import pairwise
 
@@ -963,14 +966,68 @@ def _local_planes(metrics: LensMetrics, position, phase: PhaseModel | None, pack
     `position`'s; in one pass: the maps share the work), and the local baselines' trend over the array
     (each map's baseline minus its median per edge class, its phase trend removed). `centred`, `exclude`:
     as `local_deviations` takes them."""
-    values = [metrics[k] for k in _NAMES] + [metrics[r] for r in RINGS] + list(position or ())
-    planes = local_deviations(values, _AXES + [""] * len(RINGS) + (["x", "y"] if position is not None else []),
-                              packing=packing, centred=centred, exclude=exclude)
+    values = _index_values(metrics, position)
+    planes = local_deviations(values, _index_axes(position), packing=packing, centred=centred, exclude=exclude)
     trend = class_centred([v - p for v, p in zip(values, planes)], packing)
     if phase is not None:
         trend = remove_phase_trend(trend, phase)
     names = list(_NAMES) + list(RINGS) + (["offset_x_px", "offset_y_px"] if position is not None else [])
     return planes, dict(zip(names, trend))
+
+
+def _index_values(metrics: LensMetrics, position) -> list[np.ndarray]:
+    """The index maps identification reads, in `_local_planes`' order: classification, rings, `position`'s."""
+    return [metrics[k] for k in _NAMES] + [metrics[r] for r in RINGS] + list(position or ())
+
+
+def _index_axes(position) -> list[str]:
+    """The axis of each of `_index_values`' maps (`local_deviations`' `axes`)."""
+    return _AXES + [""] * len(RINGS) + (["x", "y"] if position is not None else [])
+
+
+def _phase_removed(values: list[np.ndarray], axes: list[str], raw: list[np.ndarray], phase: PhaseModel | None,
+                   disturbed: np.ndarray | None = None, exclude: np.ndarray | None = None,
+                   packing: str = "square", centred: bool = False, size: int = 5) -> list[np.ndarray]:
+    """`remove_phase_pattern` of the local deviations `raw` of the index maps `values` (along `axes`),
+    with the lenses whose baseline window misses lenses (not inspected, lost, `exclude`) taken against
+    the local median of the values less the fitted phase pattern.
+
+    The sub-pixel phase pattern is fast (a period of 3-6 lenses on a grid rotated 0.5-1°) and, in some
+    maps, strong (along an edge the intensity tilt across it: 0.03 peak to peak against a noise of 0.003,
+    the missing neighbour's light entering one side of the window only), so a median does not follow it:
+    the deviation from it carries the pattern aliased through the window's phases, which the phase fit
+    removes as long as every window holds the same lenses around its own. A window that misses lenses
+    holds other phases and leaves its lens 5-10 sigma off: a healthy lens at the end of the inspected
+    part of an edge (where the array's corner leaves the sensor), or beside a defect and its echoes left
+    out of the baselines (circles), read as 'unknown'. With the pattern taken off the values first the
+    median is of a slow field, and which lenses it misses does not matter."""
+    if phase is None:
+        return raw
+    planes = remove_phase_pattern(raw, phase, disturbed)
+    lost = ~np.isfinite(np.array(values, dtype=np.float64)).all(axis=0)
+    if exclude is not None:
+        lost |= exclude
+    redo = max_filter_nearest(lost, size) & ~lost  # the lenses whose window misses some
+    if not redo.any():
+        return planes
+    flat = [v - f for v, f in zip(values, _pattern_only([r - p for r, p in zip(raw, planes)], phase))]
+    again = local_deviations(flat, axes, size, packing, centred, exclude)
+    return [np.where(redo, a, p) for a, p in zip(again, planes)]
+
+
+def _pattern_only(fits: list[np.ndarray], phase: PhaseModel) -> list[np.ndarray]:
+    """The fitted phase patterns `fits` (one map per index) less each lens group's mean of them: what
+    varies with the phase, not the group's own offset (the edge classes' bias, which a window spanning
+    two groups must keep as it is in the values: taken off one group's lenses only, it moved a hex
+    second-ring lens' flux median by 6 sigma)."""
+    out = np.array(fits, dtype=np.float64)
+    for sel, *_ in phase.groups:
+        part = out[:, sel]
+        with np.errstate(invalid="ignore"), warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)  # (a group with no lens measured: nothing to take off)
+            mean = np.nanmean(part, axis=1, keepdims=True)
+        out[:, sel] = part - np.where(np.isfinite(mean), mean, 0.0)
+    return list(out)
 
 
 def _deviation_maps(metrics: LensMetrics, planes: list[np.ndarray], position):
@@ -993,7 +1050,9 @@ def _judged(metrics: LensMetrics, position, phase: PhaseModel | None, table: Sig
     `centred`, `exclude`: the baselines' windows (`local_deviations`)."""
     det_floor, ring_floor = noise_floors(table, qc)
     raw, trend = _local_planes(metrics, position, phase, packing, centred, exclude)
-    planes = remove_phase_pattern(raw, phase) if phase is not None else raw
+    values = _index_values(metrics, position)
+    axes = _index_axes(position)
+    planes = _phase_removed(values, axes, raw, phase, exclude=exclude, packing=packing, centred=centred)
     dev, sig, detect_dev = _deviation_maps(metrics, planes, position)
     rings_at = slice(len(_NAMES), len(_NAMES) + len(RINGS))
     disturbed = None
@@ -1006,7 +1065,7 @@ def _judged(metrics: LensMetrics, position, phase: PhaseModel | None, table: Sig
             break
         disturbed = grown
         if phase is not None and any(skip is not None for skip in _phase_skips(phase, disturbed)):
-            planes = remove_phase_pattern(raw, phase, disturbed)
+            planes = _phase_removed(values, axes, raw, phase, disturbed, exclude, packing, centred)
             dev, sig, detect_dev = _deviation_maps(metrics, planes, position)
     return dev, sig, rings, detect_dev, trend, noise, score
 
@@ -1155,8 +1214,8 @@ def identify(metrics: LensMetrics, missing: np.ndarray, qc: QC, table: Signature
     `position`: optional (dx, dy) per-lens position residuals measured on this frame (the calibration's
     residual averaged with the registration: a lower-noise shift signal that replaces the offsets in detection);
     `phase`: the lenses' sub-pixel phases (x, y), whose index pattern is removed (`remove_phase_pattern`).
-    `outside`: lenses whose sub-image is not wholly on the sensor; they are not inspected (never
-    flagged, never missing) and left out of every statistic.
+    `outside`: lenses whose sub-image (the pipeline: or index window) is not wholly on the sensor; they
+    are not inspected (never flagged, never missing) and left out of every statistic.
     A lens is flagged when its deviation is significant (z above `qc.detect_sigma`, against the frame's
     own noise, floored) and its best reading is at least the minimum reportable error of its kind;
     classification always uses the registration features the table was built with. `split`: the optics'

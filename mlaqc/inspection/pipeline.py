@@ -128,8 +128,12 @@ def _inspect_image(img: np.ndarray, cfg: CameraConfig, *, grid: Grid | None = No
     if isinstance(table, SignatureSet):
         table = table.matched(float(getattr(grid, "edge_width_px", np.nan)))
     phase = (np.mod(grid.grid_x_px, 1.0), np.mod(grid.grid_y_px, 1.0))
+    # not inspected: a lens whose rim leaves the frame (the grid's clipped), and one whose index window does:
+    # its indexes are read from part of the window (the rim's tail and the neighbours' light off the frame
+    # are lost), biased against every other lens', and as a baseline neighbour they bias the next lenses'
+    clipped = np.asarray(grid.clipped, bool) | ~subs.valid.all(axis=(-2, -1))
     found = identify(metrics, grid.missing | ~np.isfinite(metrics["flux"]), cfg.qc, table, position, phase,
-                     outside=grid.clipped, split=position_split(cfg), packing=cfg.mla.packing, aperture=cfg.mla.aperture)
+                     outside=clipped, split=position_split(cfg), packing=cfg.mla.packing, aperture=cfg.mla.aperture)
     defects, flagged, error_type = found.defects, found.flagged, found.error_type
     lap("identify")
     measured = measure_lenses(found, table, cfg, (grid.residual_x_px, grid.residual_y_px) if own_grid else None)
