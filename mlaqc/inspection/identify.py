@@ -1011,8 +1011,26 @@ def _phase_removed(values: list[np.ndarray], axes: list[str], raw: list[np.ndarr
     if not redo.any():
         return planes
     flat = [v - f for v, f in zip(values, _pattern_only([r - p for r, p in zip(raw, planes)], phase))]
-    again = local_deviations(flat, axes, size, packing, centred, exclude)
-    return [np.where(redo, a, p) for a, p in zip(again, planes)]
+    out = [p.copy() for p in planes]
+    for cols in _column_strips(redo, 2 * size):
+        part = None if exclude is None else exclude[:, cols]
+        again = local_deviations([f[:, cols] for f in flat], axes, size, packing, centred, part)
+        for o, a in zip(out, again):
+            o[:, cols] = np.where(redo[:, cols], a, o[:, cols])
+    return out
+
+
+def _column_strips(redo: np.ndarray, margin: int) -> list[slice]:
+    """The column ranges, `margin` columns either side of the lenses in `redo`, over which their baselines
+    are computed again: a lens' window and the edge rules it meets (`_refine_baselines`, the hex edge
+    columns) lie within a window and a ring of it, so a strip's cut edge leaves them as the whole map
+    gives them, at the cost of the strip (a hex array's clipped edge columns: 2 strips of 13 columns)."""
+    cols = redo.shape[1]
+    near = np.convolve(redo.any(axis=0).astype(np.int64), np.ones(2 * margin + 1, np.int64), "same") > 0
+    if near.sum() > cols // 2:
+        return [slice(0, cols)]
+    edges = np.flatnonzero(np.diff(np.concatenate(([0], near.astype(np.int8), [0]))))
+    return [slice(int(a), int(b)) for a, b in zip(edges[::2], edges[1::2])]
 
 
 def _pattern_only(fits: list[np.ndarray], phase: PhaseModel) -> list[np.ndarray]:
