@@ -70,7 +70,7 @@ from mlaqc.inspection.filters import (
 )
 from mlaqc.inspection.metrics_kernels import median_baselines
 from mlaqc.inspection.results import Defect, LensMetrics
-from mlaqc.models.position_split import PositionSplit, contrast_sigma, neighbour_contrast, split_limits, type_position
+from mlaqc.models.position_split import PositionSplit, neighbour_contrast, split_limits, type_position
 from mlaqc.models.signatures import FEATURES, KIND_BY_NAME, RINGS, SignatureTable, along_gain_small, lens_features, to_along
 from mlaqc.optics.config import QC
 from mlaqc.optics.lattice import Lattice
@@ -94,7 +94,7 @@ def local_deviation(values: np.ndarray, size: int = 5, axis: str = "", packing: 
 
 def local_deviations(planes: list[np.ndarray], axes: list[str], size: int = 5,
                      packing: str = "square", centred: bool = False,
-                     exclude: np.ndarray | None = None) -> list[np.ndarray]:
+                     exclude: np.ndarray | None = None, only: np.ndarray | None = None) -> list[np.ndarray]:
     """`local_deviation` of several (rows, cols) index maps at once: one compiled median pass over all of
     them (scipy's median_filter cost 16 ms per map); even sizes or all-NaN maps take the scipy route.
 
@@ -107,7 +107,9 @@ def local_deviations(planes: list[np.ndarray], axes: list[str], size: int = 5,
     whose lenses alternately stick out (missing 3 of 6 neighbours) and sit in (missing 1), take the
     running median of the lenses of their own row parity (`_hex_edge_columns`). `centred`: the windows
     that leave the outermost lenses out stay centred on their lens (`_refine_baselines`). `exclude`:
-    lenses left out of every baseline (as a lens not measured is), each still compared with its own."""
+    lenses left out of every baseline (as a lens not measured is), each still compared with its own.
+    `only`: the lenses whose deviations the caller reads (the others' edge rules are skipped: each lens'
+    baseline is its own window's, so theirs come out as without it)."""
     measured = planes
     if exclude is not None and exclude.any():
         planes = [np.where(exclude, np.nan, v) for v in planes]
@@ -120,6 +122,8 @@ def local_deviations(planes: list[np.ndarray], axes: list[str], size: int = 5,
         base = np.empty_like(stack)
         x_axis = np.array([a == "x" for a in axes])
         workers = min(len(stack) // 2, os.cpu_count() or 1)  # the kernel releases the GIL: planes in parallel
+        if stack[0].size < _THREADED_FROM:  # (a strip's few lenses: the threads cost more than they save)
+            workers = 1
         if workers > 1:
             cuts = np.linspace(0, len(stack), workers + 1).astype(int)
             thread_map(lambda ab: median_baselines(stack[ab[0]:ab[1]], int(size), x_axis[ab[0]:ab[1]],
@@ -132,10 +136,13 @@ def local_deviations(planes: list[np.ndarray], axes: list[str], size: int = 5,
     # hex: a window 2 px taller than the 0.87-pitch row step holds a strip of the rows above and below,
     # so the outer lenses, missing theirs, differ from the others far more than on a square lattice
     # (measured: SSIM 0.56 against 0.97): they are left out of every other lens' neighbourhood
-    _refine_baselines(stack, finite, base, size, [a == "x" for a in axes], 1 if packing == "hex" else 2, centred)
+    _refine_baselines(stack, finite, base, size, [a == "x" for a in axes], 1 if packing == "hex" else 2, centred, only)
     if packing == "hex":
         _hex_edge_columns(stack, finite, base, size, [a == "x" for a in axes])
     return [values - b for values, b in zip(measured, base)]
+
+
+_THREADED_FROM = 4096  # lenses per map from which the compiled median pass runs its planes in threads
 
 
 def _hex_edge_columns(stack: np.ndarray, finite: np.ndarray, base: np.ndarray, size: int,
@@ -166,7 +173,8 @@ def _hex_edge_columns(stack: np.ndarray, finite: np.ndarray, base: np.ndarray, s
 
 
 def _refine_baselines(stack: np.ndarray, finite: np.ndarray, base: np.ndarray, size: int,
-                      x_axis: list[bool], outer_from: int = 2, centred: bool = False) -> None:
+                      x_axis: list[bool], outer_from: int = 2, centred: bool = False,
+                      only: np.ndarray | None = None) -> None:
     """Recompute, in place, the baselines of the few lenses whose neighbourhood (the compiled pass'
     window, clipped to the array as scipy's mode 'nearest') holds lenses that do not belong in it, as the
     median of the others (`stack`: the maps, read only where `finite`). A lens not measured (NaN: off
@@ -181,7 +189,8 @@ def _refine_baselines(stack: np.ndarray, finite: np.ndarray, base: np.ndarray, s
     centred on its lens: one reaching a row further to one side reads a
     slow trend (vignetting: 0.24 % of flux per row near a Table 1 frame's top and bottom) as half a row's
     worth of deviation, which a frame whose flux noise floor is low (circular apertures: a lens' flux
-    does not answer to its focal errors) flags along the whole second row."""
+    does not answer to its focal errors) flags along the whole second row. `only`: the lenses whose
+    baselines are wanted (None: all); the others keep the compiled pass'."""
     n_f, rows, cols = stack.shape
     half = size // 2
     edges = rows >= size and cols >= size
@@ -193,15 +202,20 @@ def _refine_baselines(stack: np.ndarray, finite: np.ndarray, base: np.ndarray, s
     # left out of a window: NaN lenses; the outermost ones too for lenses two or more in
     near_nan = max_filter_nearest(~finite.all(axis=0), size)
     near_outer = max_filter_nearest(outer, size) & (ring >= outer_from) if edges else np.zeros_like(outer)
-    m, n = np.nonzero((near_nan | near_outer) & ~outer)
+    todo = (near_nan | near_outer) & ~outer
+    m, n = np.nonzero(todo if only is None else todo & only)
     if m.size:
         off = np.arange(-half, half + 1)
         ii, jj = np.broadcast_arrays(m[:, None, None] + off[None, :, None], n[:, None, None] + off[None, None, :])
         ii, jj = np.clip(ii, 0, rows - 1).reshape(m.size, -1), np.clip(jj, 0, cols - 1).reshape(m.size, -1)
-        drop = ~finite[:, ii, jj] | (outer[ii, jj] & (ring[m, n] >= outer_from)[:, None])[None]
+        same = (finite == finite[0]).all()  # (the usual case: every map measured at the same lenses)
+        drop = ~(finite[:1] if same else finite)[:, ii, jj] | (outer[ii, jj] & (ring[m, n] >= outer_from)[:, None])[None]
         if centred:  # two or more in, also those opposite them (mirrored through the lens): centred on it
             drop = drop | (drop[..., ::-1] & (ring[m, n] >= 2)[None, :, None])
-        med, ok = _nan_medians(np.where(drop, np.nan, stack[:, ii, jj]))
+        if same:
+            med, ok = _kept_medians(stack.reshape(n_f, -1), ii * cols + jj, drop[0])
+        else:
+            med, ok = _nan_medians(np.where(drop, np.nan, stack[:, ii, jj]))
         base[:, m, n] = np.where(ok, med, base[:, m, n])
     if not edges:
         return
@@ -222,6 +236,23 @@ def _refine_baselines(stack: np.ndarray, finite: np.ndarray, base: np.ndarray, s
         ends = (q == 0) | (q == line_ok.shape[1] - 1)  # the corners: only where this line wins them
         write = ok & (~ends[None, :] | corner_wins[:, None])
         line[:, q] = np.where(write, med, line[:, q])
+
+
+def _kept_medians(flat: np.ndarray, idx: np.ndarray, drop: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """`_nan_medians` of flat[:, idx] (F, N, K) with the values where `drop` (N, K) left out, the same
+    lenses in every map: per count of values kept, one gather of those alone and a partition at the
+    two middle ranks (no NaN to sort; the same order statistics, so the same medians bit for bit)."""
+    k = (~drop).sum(axis=1)
+    med = np.zeros((flat.shape[0], len(k)))
+    if len(k):
+        order = np.argsort(drop, axis=1, kind="stable")  # the kept values first, in window order
+        kept = np.take_along_axis(idx, order, axis=1)
+        for kk in np.unique(k[k > 0]):
+            sel = np.flatnonzero(k == kk)
+            lo, hi = (kk - 1) // 2, kk // 2
+            part = np.partition(flat[:, kept[sel, :kk]], np.unique([lo, hi]), axis=-1)
+            med[:, sel] = 0.5 * (part[..., lo] + part[..., hi])
+    return med, np.broadcast_to(k > 0, med.shape)
 
 
 def _nan_medians(vals: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -1014,7 +1045,7 @@ def _phase_removed(values: list[np.ndarray], axes: list[str], raw: list[np.ndarr
     out = [p.copy() for p in planes]
     for cols in _column_strips(redo, 2 * size):
         part = None if exclude is None else exclude[:, cols]
-        again = local_deviations([f[:, cols] for f in flat], axes, size, packing, centred, part)
+        again = local_deviations([f[:, cols] for f in flat], axes, size, packing, centred, part, redo[:, cols])
         for o, a in zip(out, again):
             o[:, cols] = np.where(redo[:, cols], a, o[:, cols])
     return out
@@ -1094,9 +1125,16 @@ def class_centred(planes: list[np.ndarray], packing: str = "square") -> list[np.
     cls = edge_classes(planes[0].shape)
     if packing == "hex":
         cls = np.where(hex_row_ends(planes[0].shape), 3, cls)
+    stack = np.array(planes, dtype=np.float64)
+    finite = np.isfinite(stack)
+    if len(stack) and (finite == finite[0]).all():  # the usual case: every plane's medians in one call per class
+        for c in range(4):
+            sel = (cls == c) & finite[0]
+            if sel.any():
+                stack[:, sel] -= np.median(stack[:, sel], axis=1)[:, None]
+        return list(stack)
     out = []
-    for p in planes:
-        q = np.array(p, dtype=np.float64)
+    for q in stack:
         for c in range(4):
             sel = (cls == c) & np.isfinite(q)
             if sel.any():
@@ -1149,6 +1187,15 @@ def _split_reading(split: PositionSplit, contrast: np.ndarray, m: int, n: int, s
         return "position", readings[0][1], readings[0][3], readings
     chosen = readings[0] if kind == "pitch" else readings[1]
     return kind, chosen[1], chosen[3], ()
+
+
+def _contrast_sigma(contrast: np.ndarray) -> float:
+    """`position_split.contrast_sigma` from the frame's `neighbour_contrast` map, already computed (the
+    same operations: on hex the contrast costs 1.5 ms a map)."""
+    c = contrast[np.isfinite(contrast)]
+    if c.size == 0:
+        return float("inf")
+    return max(1.4826 * float(np.median(np.abs(c - np.median(c)))), 1e-9)
 
 
 def _readings(detect_dev: dict[str, np.ndarray], rings: RingNoise, trend: dict[str, np.ndarray]) -> dict:
@@ -1280,8 +1327,8 @@ def identify(metrics: LensMetrics, missing: np.ndarray, qc: QC, table: Signature
     fits = dict(zip(lenses, fit_all(table, vecs, sigmas, rings.whiten, across)))
     shifts = dict(zip(lenses, features))
     mins = min_reportable(qc)
-    split_sigma = contrast_sigma(dev["asym_x"], dev["asym_y"], packing) if split is not None else float("nan")
     contrast = neighbour_contrast(dev["asym_x"], dev["asym_y"], packing) if split is not None else None
+    split_sigma = _contrast_sigma(contrast) if split is not None else float("nan")
     below = 0
     excess = _reach_excesses(lenses, detect_dev, noise, table, qc)
     for m, n in zip(*np.nonzero(flagged)):
