@@ -65,6 +65,7 @@ import numpy as np
 
 from mlaqc.inspection.filters import (
     lattice_max_of_neighbours,
+    lattice_neighbours,
     max_filter_nearest,
     with_neighbours,
 )
@@ -745,7 +746,7 @@ def spill(score: np.ndarray, flagged: np.ndarray, ratio: float = 0.65, asym: tup
     direction from the lens."""
     rows, cols = score.shape
     lat = Lattice(packing, rows, cols)
-    nbr = lat.neighbours(diagonal=True)  # (K, k) flat indices, -1 off the array
+    nbr = lattice_neighbours(packing, rows, cols)  # (K, k) flat indices, -1 off the array
     flag_score = np.where(flagged, score, 0.0)
     strongest = lattice_max_of_neighbours(flag_score, packing)
     echo = flagged & (score < ratio * strongest)
