@@ -139,7 +139,7 @@ def local_deviations(planes: list[np.ndarray], axes: list[str], size: int = 5,
     # (measured: SSIM 0.56 against 0.97): they are left out of every other lens' neighbourhood
     _refine_baselines(stack, finite, base, size, [a == "x" for a in axes], 1 if packing == "hex" else 2, centred, only)
     if packing == "hex":
-        _hex_edge_columns(stack, finite, base, size, [a == "x" for a in axes])
+        _hex_edge_columns(stack, finite, base, size, [a == "x" for a in axes], only)
     return [values - b for values, b in zip(measured, base)]
 
 
@@ -147,20 +147,23 @@ _THREADED_FROM = 4096  # lenses per map from which the compiled median pass runs
 
 
 def _hex_edge_columns(stack: np.ndarray, finite: np.ndarray, base: np.ndarray, size: int,
-                      x_axis: list[bool]) -> None:
+                      x_axis: list[bool], only: np.ndarray | None = None) -> None:
     """Hex lattice: the baselines of the first and last columns, in place, as the running median (size
     lenses, clipped) of the finite lenses of the same column and row parity: a shifted row's end lens
     misses other neighbours than an unshifted row's, and the two carry different biases. Corners are
     left to the rows for planes not along x (as `median_baselines` leaves them), and out of the other
     lenses' medians: outermost along their row too, they are another population (measured: a corner's
     tilt 0.2 against 0.003 along the column), which the window's clipping at the column's end counts
-    twice, so that one lens not measured beside it made it half the median)."""
+    twice, so that one lens not measured beside it made it half the median). `only`: as
+    `_refine_baselines` takes it (a column with none of those lenses is left as it is)."""
     _, rows, cols = stack.shape
     if rows < 2 * size or cols < size:
         return
     half = size // 2
     x_planes = np.asarray(x_axis, bool)
     for col in (0, cols - 1):
+        if only is not None and not only[:, col].any():
+            continue
         for parity in (0, 1):
             r = np.arange(parity, rows, 2)
             idx = np.clip(np.arange(len(r))[:, None] + np.arange(-half, half + 1)[None, :], 0, len(r) - 1)
@@ -191,7 +194,7 @@ def _refine_baselines(stack: np.ndarray, finite: np.ndarray, base: np.ndarray, s
     slow trend (vignetting: 0.24 % of flux per row near a Table 1 frame's top and bottom) as half a row's
     worth of deviation, which a frame whose flux noise floor is low (circular apertures: a lens' flux
     does not answer to its focal errors) flags along the whole second row. `only`: the lenses whose
-    baselines are wanted (None: all); the others keep the compiled pass'."""
+    baselines are wanted (None: all); the others' windows are not recomputed."""
     n_f, rows, cols = stack.shape
     half = size // 2
     edges = rows >= size and cols >= size
