@@ -71,7 +71,8 @@ from mlaqc.inspection.filters import (
 )
 from mlaqc.inspection.metrics_kernels import median_baselines
 from mlaqc.inspection.results import Defect, LensMetrics
-from mlaqc.models.position_split import PositionSplit, neighbour_contrast, split_limits, type_position
+from mlaqc.models.position_split import (PositionSplit, contrast_spread, neighbour_contrast, split_limits,
+                                         type_position)
 from mlaqc.models.signatures import FEATURES, KIND_BY_NAME, RINGS, SignatureTable, along_gain_small, lens_features, to_along
 from mlaqc.optics.config import QC
 from mlaqc.optics.lattice import Lattice
@@ -1193,15 +1194,6 @@ def _split_reading(split: PositionSplit, contrast: np.ndarray, m: int, n: int, s
     return kind, chosen[1], chosen[3], ()
 
 
-def _contrast_sigma(contrast: np.ndarray) -> float:
-    """`position_split.contrast_sigma` from the frame's `neighbour_contrast` map, already computed (the
-    same operations: on hex the contrast costs 1.5 ms a map)."""
-    c = contrast[np.isfinite(contrast)]
-    if c.size == 0:
-        return float("inf")
-    return max(1.4826 * float(np.median(np.abs(c - np.median(c)))), 1e-9)
-
-
 def _readings(detect_dev: dict[str, np.ndarray], rings: RingNoise, trend: dict[str, np.ndarray]) -> dict:
     """Per-lens values against the array's typical lens: local deviation (phase pattern removed) plus its
     neighbourhood's trend; what `measure.measure_lenses` reads centres and focus from. Flux is the
@@ -1332,7 +1324,7 @@ def identify(metrics: LensMetrics, missing: np.ndarray, qc: QC, table: Signature
     shifts = dict(zip(lenses, features))
     mins = min_reportable(qc)
     contrast = neighbour_contrast(dev["asym_x"], dev["asym_y"], packing) if split is not None else None
-    split_sigma = _contrast_sigma(contrast) if split is not None else float("nan")
+    split_sigma = contrast_spread(contrast) if split is not None else float("nan")
     below = 0
     excess = _reach_excesses(lenses, detect_dev, noise, table, qc)
     for m, n in zip(*np.nonzero(flagged)):

@@ -140,10 +140,14 @@ SPLIT_Z = 4.0  # the two kinds' predictions must lie this many sigma apart befor
 
 
 def contrast_sigma(asym_x_dev: np.ndarray, asym_y_dev: np.ndarray, packing: str = "square") -> float:
-    """The frame's spread of C (robust, over every lens) from the asymmetry deviations; a
-    tiny floor keeps a noise-free frame's z finite."""
-    c = neighbour_contrast(asym_x_dev, asym_y_dev, packing)
-    c = c[np.isfinite(c)]
+    """The frame's spread of C (robust, over every lens) from the asymmetry deviations."""
+    return contrast_spread(neighbour_contrast(asym_x_dev, asym_y_dev, packing))
+
+
+def contrast_spread(contrast: np.ndarray) -> float:
+    """`contrast_sigma` of a `neighbour_contrast` map already computed; a tiny floor keeps a noise-free
+    frame's z finite."""
+    c = contrast[np.isfinite(contrast)]
     if c.size == 0:
         return float("inf")
     return max(1.4826 * float(np.median(np.abs(c - np.median(c)))), 1e-9)
