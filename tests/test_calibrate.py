@@ -282,16 +282,21 @@ def test_disc_kernel_matches_a_numpy_reference(weighted, halves):
     kernels.disc_normals(img, lenses, cx, cy, amp, radius, np.full(n, 1 / edge), sx, sy, neighbours,
                          np.zeros(n, bool), np.zeros(n, bool), half_band, weighted, True, 0.05, halves, normal, rhs, rss, npix)
     for k in (0, 8, 14, 29):  # corner (cut by the frame), edge, inner lenses
-        ref_n, ref_r, ref_rss, ref_npix = _reference_normals(img, k, cx, cy, amp, radius, edge, sx, sy, half_band,
-                                                             weighted)
-        assert npix[k] == ref_npix
-        np.testing.assert_allclose(normal[k], ref_n, rtol=1e-4, atol=1e-5 * np.abs(ref_n).max())
-        np.testing.assert_allclose(rhs[k], ref_r, rtol=1e-3, atol=1e-4 * np.sqrt(np.abs(ref_n).max() * ref_rss))
-        assert rss[k] == pytest.approx(ref_rss, rel=1e-4)
-        # the Gauss-Newton centre step agrees to far below the noise
-        step = np.linalg.solve(normal[k][:4, :4], rhs[k][:4])
-        ref_step = np.linalg.solve(ref_n[:4, :4], ref_r[:4])
-        assert np.abs(step[1:3] - ref_step[1:3]).max() < 1e-4
+        _assert_matches_reference(k, (normal, rhs, rss, npix), img, cx, cy, amp, radius, edge, sx, sy, half_band, weighted)
+
+
+def _assert_matches_reference(k, got, img, cx, cy, amp, radius, edge, sx, sy, half_band, weighted):
+    """Lens k's normal equations from the kernel (`got`: normal, rhs, rss, npix) against `_reference_normals`;
+    the Gauss-Newton centre step agrees to far below the noise."""
+    normal, rhs, rss, npix = got
+    ref_n, ref_r, ref_rss, ref_npix = _reference_normals(img, k, cx, cy, amp, radius, edge, sx, sy, half_band, weighted)
+    assert npix[k] == ref_npix
+    np.testing.assert_allclose(normal[k], ref_n, rtol=1e-4, atol=1e-5 * np.abs(ref_n).max())
+    np.testing.assert_allclose(rhs[k], ref_r, rtol=1e-3, atol=1e-4 * np.sqrt(np.abs(ref_n).max() * ref_rss))
+    assert rss[k] == pytest.approx(ref_rss, rel=1e-4)
+    step = np.linalg.solve(normal[k][:4, :4], rhs[k][:4])
+    ref_step = np.linalg.solve(ref_n[:4, :4], ref_r[:4])
+    assert np.abs(step[1:3] - ref_step[1:3]).max() < 1e-4
 
 
 @pytest.mark.parametrize("halves", [False, True])
@@ -324,15 +329,7 @@ def test_disc_kernel_on_a_hex_layout_matches_a_numpy_reference(weighted, halves)
                          np.zeros(n, bool), np.zeros(n, bool), half_band, weighted, True, 0.05, halves, normal, rhs,
                          rss, npix)
     for k in (0, 3, 8, 15, 29):  # corners and edges cut by the frame, inner lenses with six neighbours
-        ref_n, ref_r, ref_rss, ref_npix = _reference_normals(img, k, cx, cy, amp, radius, edge, sx, sy, half_band,
-                                                             weighted)
-        assert npix[k] == ref_npix
-        np.testing.assert_allclose(normal[k], ref_n, rtol=1e-4, atol=1e-5 * np.abs(ref_n).max())
-        np.testing.assert_allclose(rhs[k], ref_r, rtol=1e-3, atol=1e-4 * np.sqrt(np.abs(ref_n).max() * ref_rss))
-        assert rss[k] == pytest.approx(ref_rss, rel=1e-4)
-        step = np.linalg.solve(normal[k][:4, :4], rhs[k][:4])
-        ref_step = np.linalg.solve(ref_n[:4, :4], ref_r[:4])
-        assert np.abs(step[1:3] - ref_step[1:3]).max() < 1e-4
+        _assert_matches_reference(k, (normal, rhs, rss, npix), img, cx, cy, amp, radius, edge, sx, sy, half_band, weighted)
 
 
 def test_second_ring_of_neighbours_changes_nothing_where_discs_do_not_reach(monkeypatch):
