@@ -747,9 +747,8 @@ class ScanResult:
         """The failed positions for the summary line ('' if none): the operator must see them."""
         if not self.failed:
             return ""
-        shown = ", ".join(self.failed[:10]) + (", ..." if len(self.failed) > 10 else "")
         plural = "s" if len(self.failed) != 1 else ""
-        return f"; {len(self.failed)} position{plural} FAILED (frames not inspectable: {shown})"
+        return f"; {len(self.failed)} position{plural} FAILED (frames not inspectable: {_shown(self.failed)})"
 
     def _verdict_text(self) -> str:
         """The inspected positions and those whose QC verdict is FAIL ('' without inspection)."""
@@ -759,9 +758,14 @@ class ScanResult:
         if self.inspect_failures:
             text += f", {self.inspect_failures} could not be"
         if self.verdict_failed:
-            shown = ", ".join(self.verdict_failed[:10]) + (", ..." if len(self.verdict_failed) > 10 else "")
-            text += f", QC verdict FAIL at {len(self.verdict_failed)} position{'s' if len(self.verdict_failed) != 1 else ''} ({shown})"
+            n = len(self.verdict_failed)
+            text += f", QC verdict FAIL at {n} position{'s' if n != 1 else ''} ({_shown(self.verdict_failed)})"
         return text
+
+
+def _shown(labels: list[str], most: int = 10) -> str:
+    """Position labels for a summary line, the first `most` of them."""
+    return ", ".join(labels[:most]) + (", ..." if len(labels) > most else "")
 
 
 class ScanRunner:
