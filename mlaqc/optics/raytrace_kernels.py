@@ -649,11 +649,11 @@ def cell_f(x, y, ax0, ay0, invp, ncols, nrows, lat):
     return row * ncols + col if on else -1.0
 
 
-@_jit
-def surface_hit(px, py, pz, L, M, N, ox, oy, oz, c, fx, fy, rot, k, ax0, ay0, invp, ncols, nrows, lat):
-    """A ray given in lens k's frame (before its own rotation) meets the lens surface with vertex at
-    (ox, oy, oz) and curvature c: hit point and direction in the rotated lens frame, the distance t (NaN on
-    a miss), and the MLA cell the hit lies in (to flag hits that belong to a neighbour)."""
+@_jit_inline
+def lens_hit(px, py, pz, L, M, N, ox, oy, oz, c, rot, k):
+    """A ray given in lens k's frame (before its own rotation) meets the sphere with vertex (ox, oy, oz)
+    and curvature c: hit point, direction and distance t in the rotated lens frame, and the hit's x, y
+    back in the unrotated frame (gx, gy), where the cells are."""
     if rot is not None:
         r00, r01, r02, r10, r11, r12, r20, r21, r22 = rot_of(rot, k)
         px, py, pz = rot_t(r00, r01, r02, r10, r11, r12, r20, r21, r22, px, py, pz)
@@ -663,6 +663,15 @@ def surface_hit(px, py, pz, L, M, N, ox, oy, oz, c, fx, fy, rot, k, ax0, ay0, in
     gx, gy = hx, hy
     if rot is not None:
         gx, gy, _ = rot_n(r00, r01, r02, r10, r11, r12, r20, r21, r22, hx, hy, hz)
+    return hx, hy, hz, L, M, N, t, gx, gy
+
+
+@_jit
+def surface_hit(px, py, pz, L, M, N, ox, oy, oz, c, fx, fy, rot, k, ax0, ay0, invp, ncols, nrows, lat):
+    """A ray given in lens k's frame (before its own rotation) meets the lens surface with vertex at
+    (ox, oy, oz) and curvature c: hit point and direction in the rotated lens frame, the distance t (NaN on
+    a miss), and the MLA cell the hit lies in (to flag hits that belong to a neighbour)."""
+    hx, hy, hz, L, M, N, t, gx, gy = lens_hit(px, py, pz, L, M, N, ox, oy, oz, c, rot, k)
     return hx, hy, hz, L, M, N, t, cell_f(gx + fx, gy + fy, ax0, ay0, invp, ncols, nrows, lat)
 
 
@@ -700,15 +709,7 @@ def hit_xy(k, hx, hy, hz, tab, rot):
 def surface_hit_edge(px, py, pz, L, M, N, ox, oy, oz, c, fx, fy, rot, k, ax0, ay0, invp, p, ncols, nrows, lat):
     """As surface_hit, plus the hit's distance (mm) from the nearest edge of the cell it lies in: the
     sag-intersection fast path doubts hits in another cell or within a margin of the edge."""
-    if rot is not None:
-        r00, r01, r02, r10, r11, r12, r20, r21, r22 = rot_of(rot, k)
-        px, py, pz = rot_t(r00, r01, r02, r10, r11, r12, r20, r21, r22, px, py, pz)
-        L, M, N = rot_t(r00, r01, r02, r10, r11, r12, r20, r21, r22, L, M, N)
-    t = sphere_t(px - ox, py - oy, pz - oz, L, M, N, c)
-    hx, hy, hz = px + t * L, py + t * M, pz + t * N
-    gx, gy = hx, hy
-    if rot is not None:
-        gx, gy, _ = rot_n(r00, r01, r02, r10, r11, r12, r20, r21, r22, hx, hy, hz)
+    hx, hy, hz, L, M, N, t, gx, gy = lens_hit(px, py, pz, L, M, N, ox, oy, oz, c, rot, k)
     gx, gy = gx + fx, gy + fy
     kf, edge = cell_edge((gx - ax0) * invp, (gy - ay0) * invp, ncols, nrows, lat)
     return hx, hy, hz, L, M, N, t, kf, p * edge
@@ -717,15 +718,7 @@ def surface_hit_edge(px, py, pz, L, M, N, ox, oy, oz, c, fx, fy, rot, k, ax0, ay
 @_jit_inline
 def surface_hit_own(px, py, pz, L, M, N, ox, oy, oz, c, fx, fy, rot, k, cx, cy, ax0, ay0, invp, p, ncols, nrows, lat):
     """As surface_hit_edge, the cell test by own_edge (lens k's design centre cx, cy; sag-intersection)."""
-    if rot is not None:
-        r00, r01, r02, r10, r11, r12, r20, r21, r22 = rot_of(rot, k)
-        px, py, pz = rot_t(r00, r01, r02, r10, r11, r12, r20, r21, r22, px, py, pz)
-        L, M, N = rot_t(r00, r01, r02, r10, r11, r12, r20, r21, r22, L, M, N)
-    t = sphere_t(px - ox, py - oy, pz - oz, L, M, N, c)
-    hx, hy, hz = px + t * L, py + t * M, pz + t * N
-    gx, gy = hx, hy
-    if rot is not None:
-        gx, gy, _ = rot_n(r00, r01, r02, r10, r11, r12, r20, r21, r22, hx, hy, hz)
+    hx, hy, hz, L, M, N, t, gx, gy = lens_hit(px, py, pz, L, M, N, ox, oy, oz, c, rot, k)
     kf, edge = own_edge(gx + fx, gy + fy, cx, cy, ax0, ay0, invp, ncols, nrows, np.float64(k), lat)
     return hx, hy, hz, L, M, N, t, kf, p * edge
 
