@@ -176,10 +176,10 @@ def test_capture_and_inspect_seeded_defects(qtbot, window, seeded_raw, tmp_path)
     # a frame from the camera (stage at W(1,1)), inspected as "last frame"
     wait_homed_at(qtbot, w, 10.0, 10.0)
     w.capture_frame()  # (wait on the window's state: the worker's signal is emitted in its own thread)
-    qtbot.waitUntil(lambda: w.last_frame is not None, timeout=20_000)
+    qtbot.waitUntil(lambda: w.last_frame is not None, timeout=120_000)
     assert w.image.mode == "frame" and w.image.data.shape == (496, 496)
     assert w.input[0] == "frame"
-    with qtbot.waitSignal(w.inspectionShown, timeout=30_000):
+    with qtbot.waitSignal(w.inspectionShown, timeout=120_000):
         w.run_inspection()
     assert w.banner.verdict in ("PASS", "FAIL")
     assert w.view.source.startswith("captured frame")
@@ -189,7 +189,7 @@ def test_capture_and_inspect_seeded_defects(qtbot, window, seeded_raw, tmp_path)
     qtbot.wait(300)  # let the preview and the earlier result finish painting: measure this inspection only
     gaps = GapMeter()
     gaps.start()
-    with qtbot.waitSignal(w.inspectionShown, timeout=30_000) as blocker:
+    with qtbot.waitSignal(w.inspectionShown, timeout=120_000) as blocker:
         job = w.run_inspection()
     qtbot.wait(200)  # include painting the result
     longest = gaps.stop()
@@ -254,7 +254,7 @@ def test_capture_and_inspect_seeded_defects(qtbot, window, seeded_raw, tmp_path)
 
     # export the report set (in the io worker)
     out = tmp_path / "report"
-    with qtbot.waitSignal(w.reportWritten, timeout=30_000) as rep:
+    with qtbot.waitSignal(w.reportWritten, timeout=120_000) as rep:
         w.export_report(str(out))
     assert Path(rep.args[0]["html"]).exists() and (out / "lenses.csv").exists()
     assert json.loads((out / "report.json").read_text())["verdict"] == "FAIL"
