@@ -429,3 +429,39 @@ def test_boundary_settings_round_trip_through_toml_and_set_the_model_hashes():
     table1_grid = dataclasses.replace(default_config(), mla=dataclasses.replace(default_config().mla, boundaries="grid"))
     assert (config_key(table1_grid), signature_key(table1_grid)) == ("ce27af037735c6e4", "9a13b08d514d6ed1")
     assert (config_key(default_config()), signature_key(default_config())) == ("ce27af037735c6e4", "be9e3ce72b170780")
+
+
+@pytest.mark.parametrize("thickness_um", [2.0, -2.0])
+def test_a_height_difference_moves_the_rear_boundary_into_one_cell_only(thickness_um):
+    """One lens thicker or thinner than the rest: its rear vertex stands higher or lower than theirs, and
+    the rear boundary it shares with each neighbour moves into the cell of the lens standing lower: the
+    lens standing higher keeps its whole cell (rear margin 0) and the other side gets R0 |dw| / p (about 9.4 µm for
+    2 µm); checked on sphere heights at random points, not on the bound's own arithmetic."""
+    em = ErrorMap.zeros(9, 9).with_lens(5, 5, thickness_um=thickness_um)  # U(5,5): 0-based (4, 4)
+    mla = MicrolensArray(camera(SAG), em)
+    k0 = 4 * 9 + 4
+    nb = [k for k in range(81) if k != k0 and abs(k // 9 - 4) <= 1 and abs(k % 9 - 4) <= 1]
+    higher = mla.z_rear[k0] > mla.z_rear[nb[0]]  # the rear met last is the highest
+    assert mla.margin_front.max() == 0.0  # the front surfaces are untouched
+    losers = nb if higher else [k0]
+    winners = [k0] if higher else nb
+    assert np.all(mla.margin_rear[winners] <= 1e-6)  # the bound's 1 nm against ties
+    r0 = abs(1.0 / mla.c2_design)
+    shift = r0 * abs(thickness_um) * 1e-3 / mla.p
+    edge_neighbours = [k for k in nb if k // 9 == 4 or k % 9 == 4]
+    assert np.all(mla.margin_rear[[k for k in losers if k in edge_neighbours or k == k0]] > shift)
+    rng = np.random.default_rng(7)
+    x = rng.uniform(mla.gx[k0] - 1.5 * mla.p, mla.gx[k0] + 1.5 * mla.p, 200_000)
+    y = rng.uniform(mla.gy[k0] - 1.5 * mla.p, mla.gy[k0] + 1.5 * mla.p, 200_000)
+    k, _ = mla.cell_of(x, y)
+    best_k, best_h = np.full(x.size, -1), np.full(x.size, -np.inf)
+    for kc in [k0] + nb:
+        h = sphere_height(mla, np.full(x.size, kc), x, y, rear=True)
+        take = h > best_h
+        best_k, best_h = np.where(take, kc, best_k), np.where(take, h, best_h)
+    in_winner = np.isin(k, winners)
+    assert np.array_equal(best_k[in_winner], k[in_winner])  # the lens standing higher keeps its whole cell
+    taken = np.isin(k, losers) & (best_k != k)
+    assert taken.mean() > 0.01  # and reaches into the others' cells
+    far = mla.edge_distance(x, y) >= mla.margin_rear[k]
+    assert np.array_equal(best_k[far], k[far])

@@ -277,19 +277,24 @@ class MicrolensArray:
         A point x of cell k at distance >= margin from its edges belongs to lens k whatever the errors:
         the sag-intersection fast path keeps lens k there. Bound (front; the rear is the same with |R|):
         write every lens' surface height as the design sphere H(rho) = z_v + R0 - sqrt(R0^2 - rho^2) of its
-        design centre plus an error |h_i(x) - H(rho_i)| <= E_i(rho_i) with (mean-value theorem, exact)
-            E(rho) = |w| + |sag_R(rho + |u|) - sag_R0(rho + |u|)| + |u| sag'_R0(rho + |u|),
+        design centre, raised by its vertex height offset w (signed), plus a shape error
+        |h_i(x) - H(rho_i) - w_i| <= A_i(rho_i) with (mean-value theorem, exact)
+            A(rho) = |sag_R(rho + |u|) - sag_R0(rho + |u|)| + |u| sag'_R0(rho + |u|),
         sag_R(r) = R - sqrt(R^2 - r^2), sag'(r) = r / sqrt(R0^2 - r^2) (u, w, R: `sphere_offsets_mm`).
         With Q = rho_i^2 - rho_k^2 the design heights differ by
             H(rho_i) - H(rho_k) = Q / (sqrt(R0^2 - rho_k^2) + sqrt(R0^2 - rho_i^2)) >= Q / 2R0,
-        so lens k is strictly lowest at x if Q / 2R0 > E_i(rho_i) + E_k(rho_k). In a square cell k
+        so lens k is strictly lowest at x if Q / 2R0 > (w_k - w_i) + A_i(rho_i) + A_k(rho_k) (the rear,
+        highest wins: w_i - w_k; `_lead`). A lens standing towards winning by its vertex height alone keeps
+        its whole cell against that neighbour, which gets the margin on its side. In a square cell k
         rho_k <= p/sqrt(2) and rho_i^2 <= p^2/2 + Q; at distance >= d from the cell's edges Q >= 2 p d (edge
         neighbours; >= 4 p d diagonally). In a hexagonal cell rho_k <= p/sqrt(3) (its vertices) and
         rho_i^2 <= p^2/3 + Q, and Q >= 2 p d holds for all 6 neighbours (each is one pitch away across a
-        side: Q = 2 p times the distance to that side). Per pair (k, i) the smallest d* with g(d) = 2 p d / 2R0 - E_i - E_k > 0 is
+        side: Q = 2 p times the distance to that side). Per pair (k, i) the smallest d* >= 0 with
+        g(d) = 2 p d / 2R0 - lead - A_i - A_k > 0 is
         found by fixed-point iteration (to first order the boundary moves by (|u_i| + |u_k|)/sqrt(2) at a
-        cell corner, |u|/2 mid-edge, and by R0 |w_i - w_k| / p for a vertex height difference: a 1 µm
-        thickness error moves the rear boundaries ~4.7 µm); g is then checked on a grid up to d = p, and
+        cell corner, |u|/2 mid-edge, and by R0 |w_i - w_k| / p for a vertex height difference, into the cell
+        of the lens standing lower (front) / higher (rear): a 1 µm thickness error moves the rear boundaries
+        ~4.7 µm); g is then checked on a grid up to d = p, and
         a cell whose bound fails there gets margin p (every ray brute-forced). Margin = max over the 8
         (hex: 6) neighbours of d* (+ 1 nm). Cells whose whole neighbourhood is error-free get 0: equal lenses meet
         exactly on the grid lines. Lenses two cells away are assumed never to win (errors well below p).
@@ -308,7 +313,7 @@ class MicrolensArray:
             pair = flawed[k] | flawed[i]
             k, i = k[pair], i[pair]
             if k.size:
-                d = _pair_margin(self.p, r0, u[i], np.abs(w[i]), ra[i], u[k], np.abs(w[k]), ra[k], self.hex)
+                d = _pair_margin(self.p, r0, u[i], ra[i], u[k], ra[k], _lead(w, k, i, rear), self.hex)
                 np.maximum.at(margin, k, d)
         return margin
 
@@ -331,8 +336,8 @@ class MicrolensArray:
             d = np.zeros(k.size)
             pair = flawed[k] | flawed[i]
             if pair.any():
-                d[pair] = _pair_margin(self.p, r0, u[i[pair]], np.abs(w[i[pair]]), ra[i[pair]], u[k[pair]],
-                                       np.abs(w[k[pair]]), ra[k[pair]], self.hex)
+                kp, ip = k[pair], i[pair]
+                d[pair] = _pair_margin(self.p, r0, u[ip], ra[ip], u[kp], ra[kp], _lead(w, kp, ip, rear), self.hex)
             out[k, j] = np.where(d >= 0.5 * self.p, np.inf, 2.0 * self.p * (d + 1e-6))
         return out
 
@@ -630,27 +635,35 @@ def _sag_abs(radius, rho):
     return radius - np.sqrt(radius * radius - rho * rho)
 
 
-def _height_error(rho, u, w, radius, r0):
-    """Bound E(rho) on a surface's height error against the design sphere (see boundary_margins_mm)."""
+def _shape_error(rho, u, radius, r0):
+    """Bound A(rho) on a surface's height error against the design sphere moved to its vertex height
+    (radius and lateral offset; see boundary_margins_mm)."""
     r = rho + u
-    return w + np.abs(_sag_abs(radius, r) - _sag_abs(r0, r)) + u * r / np.sqrt(r0 * r0 - r * r)
+    return np.abs(_sag_abs(radius, r) - _sag_abs(r0, r)) + u * r / np.sqrt(r0 * r0 - r * r)
 
 
-def _pair_margin(p: float, r0: float, u_i, w_i, r_i, u_k, w_k, r_k, hexagonal: bool = False) -> np.ndarray:
-    """Smallest d (mm) beyond which neighbour i cannot reach into cell k (see boundary_margins_mm); p
+def _lead(w: np.ndarray, k: np.ndarray, i: np.ndarray, rear: bool) -> np.ndarray:
+    """How far (mm, signed) lens k's vertex height stands towards losing to lens i's: the front surface met
+    first is the lowest, so w_k - w_i there; the rear met last is the highest, so w_i - w_k."""
+    return w[i] - w[k] if rear else w[k] - w[i]
+
+
+def _pair_margin(p: float, r0: float, u_i, r_i, u_k, r_k, lead, hexagonal: bool = False) -> np.ndarray:
+    """Smallest d >= 0 (mm) beyond which neighbour i cannot reach into cell k (see boundary_margins_mm); p
     where the bound fails anywhere up to d = p. A cell's farthest point from its centre: the square's
-    corner p/sqrt(2), the hexagon's vertex p/sqrt(3)."""
+    corner p/sqrt(2), the hexagon's vertex p/sqrt(3). `lead` (`_lead`) is signed: a lens whose vertex
+    stands towards winning keeps its whole cell against a neighbour that differs from it in height alone."""
     rho_max = p / math.sqrt(3.0) if hexagonal else p / math.sqrt(2.0)
     rho2_max = p * p / 3.0 if hexagonal else 0.5 * p * p
-    e_k = _height_error(np.full_like(u_k, rho_max), u_k, w_k, r_k, r0)
+    e_k = _shape_error(np.full_like(u_k, rho_max), u_k, r_k, r0) + lead
 
-    def rhs_d(d):  # the d at which the design height gap 2 p d / 2R0 equals E_i + E_k
+    def rhs_d(d):  # the d at which the design height gap 2 p d / 2R0 equals lead + A_i + A_k
         with np.errstate(invalid="ignore"):
-            return (_height_error(np.sqrt(rho2_max + 2.0 * p * d), u_i, w_i, r_i, r0) + e_k) * r0 / p
+            return (_shape_error(np.sqrt(rho2_max + 2.0 * p * d), u_i, r_i, r0) + e_k) * r0 / p
 
     d = np.zeros_like(u_k)
     for _ in range(60):  # increasing from 0 to the smallest root; contraction ratio ~ |u|/R0 + |eps|
-        d = np.minimum(rhs_d(d), p)
+        d = np.clip(rhs_d(d), 0.0, p)
     d = np.where(np.isfinite(d), d + 1e-6, p)  # + 1 nm: strictly beyond the root
     grid = d[:, None] + (p - d[:, None]) * np.linspace(0.0, 1.0, 65)[None, :]
     with np.errstate(invalid="ignore"):
