@@ -302,20 +302,30 @@ class MicrolensArray:
         return self._margins(False), self._margins(True)
 
     def _margins(self, rear: bool) -> np.ndarray:
+        """Per cell, the largest of its pairs' margins (`side_margins_mm`)."""
+        return self.side_margins_mm(rear)[0].max(axis=1)
+
+    def side_margins_mm(self, rear: bool) -> tuple[np.ndarray, np.ndarray]:
+        """Per cell k and candidate i (`neighbours` order, axis 1): the pair's margin d* (mm, see
+        boundary_margins_mm; 0 where neither lens is flawed, p where the bound fails), and whether i is a
+        neighbour on the array (False for the cell itself and candidates off the array, whose d* is 0)."""
         u, w, radius = self.sphere_offsets_mm(rear)
         r0 = abs(1.0 / (self.c2_design if rear else self.c1_design))
         ra = np.abs(radius)
         flawed = (u > 1e-9) | (np.abs(w) > 1e-9) | (np.abs(ra - r0) > 1e-12 * r0)  # mm; rounding is not an error
-        margin = np.zeros(self.rows * self.cols)
-        for nb in self.lattice.neighbours(diagonal=True).T:  # square 8, hex 6 (the max is order-free)
-            k = np.flatnonzero(nb >= 0)
+        cands = self.neighbours(self.gx, self.gy)
+        d = np.zeros((self.rows * self.cols, len(cands)))
+        on = np.zeros(d.shape, dtype=bool)
+        k_all = np.arange(self.rows * self.cols)
+        for j, (nb, ok) in enumerate(cands):
+            on[:, j] = ok & (nb != k_all)
+            k = k_all[on[:, j]]
             i = nb[k]
             pair = flawed[k] | flawed[i]
             k, i = k[pair], i[pair]
             if k.size:
-                d = _pair_margin(self.p, r0, u[i], ra[i], u[k], ra[k], _lead(w, k, i, rear), self.hex)
-                np.maximum.at(margin, k, d)
-        return margin
+                d[k, j] = _pair_margin(self.p, r0, u[i], ra[i], u[k], ra[k], _lead(w, k, i, rear), self.hex)
+        return d, on
 
     def pair_clearance_mm2(self, rear: bool) -> np.ndarray:
         """Per cell k and candidate i (`neighbours` order, axis 1), the Q = rho_i^2 - rho_k^2 (mm^2, distances
@@ -323,23 +333,8 @@ class MicrolensArray:
         the bound holds pair by pair, Q = 2 p d with d the pair's margin), + 2 p x 1 nm; -inf for the cell
         itself and candidates off the array, +inf where the pair's bound fails. The compiled engine's
         re-trace keeps / takes the cell's lens without scanning the candidates where every Q clears it."""
-        u, w, radius = self.sphere_offsets_mm(rear)
-        r0 = abs(1.0 / (self.c2_design if rear else self.c1_design))
-        ra = np.abs(radius)
-        flawed = (u > 1e-9) | (np.abs(w) > 1e-9) | (np.abs(ra - r0) > 1e-12 * r0)
-        cands = self.neighbours(self.gx, self.gy)
-        out = np.full((self.rows * self.cols, len(cands)), -np.inf)
-        k_all = np.arange(self.rows * self.cols)
-        for j, (nb, ok) in enumerate(cands):
-            k = k_all[ok & (nb != k_all)]
-            i = nb[k]
-            d = np.zeros(k.size)
-            pair = flawed[k] | flawed[i]
-            if pair.any():
-                kp, ip = k[pair], i[pair]
-                d[pair] = _pair_margin(self.p, r0, u[ip], ra[ip], u[kp], ra[kp], _lead(w, kp, ip, rear), self.hex)
-            out[k, j] = np.where(d >= 0.5 * self.p, np.inf, 2.0 * self.p * (d + 1e-6))
-        return out
+        d, on = self.side_margins_mm(rear)
+        return np.where(on, np.where(d >= 0.5 * self.p, np.inf, 2.0 * self.p * (d + 1e-6)), -np.inf)
 
     def circle_clearance_mm(self) -> np.ndarray:
         """Per cell, the largest distance (mm) from its nearest edge at which a front hit can lie in a
