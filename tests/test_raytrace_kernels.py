@@ -166,3 +166,15 @@ def test_compiled_binning_equals_bincount_bit_for_bit():
     assert (r0, c0, n) == (box[0], box[2], len(w))
     assert np.array_equal(patch, ref)
     assert raytrace_kernels.bin_hits(rows, cols, w, 0, box).shape == (0, 0)
+
+
+def test_the_silenced_numba_ssa_warning_matches_numbas_own_message():
+    """The kernels silence one pedantic Numba warning at compile time; Numba starts its message with a
+    terminal colour code, which a filter matching from the message's start must allow for (it did not, and
+    the warnings reached the user on every first compile of the sag-intersection tracer)."""
+    import re
+
+    errors = pytest.importorskip("numba.core.errors")
+    message = str(errors.NumbaIRAssumptionWarning("variable 'v_own_edge_hex_v1' is not in scope."))
+    assert re.match(raytrace_kernels.SSA_SCOPE_WARNING, message, re.I)
+    assert not re.match(raytrace_kernels.SSA_SCOPE_WARNING, "variable 'x' is undefined", re.I)

@@ -38,6 +38,8 @@ except ImportError:  # pragma: no cover - exercised only where numba is missing
     njit = None
 
 AVAILABLE = njit is not None
+# the message of Numba's pedantic SSA warning that inlined selects trip (silenced below; tests check it matches)
+SSA_SCOPE_WARNING = r".*variable '.*' is not in scope"
 
 
 def _identity(fn):
@@ -239,8 +241,9 @@ if AVAILABLE:
 
     # Inlining cell_edge's selects into the sag-intersection passes trips a pedantic SSA check of Numba's
     # (the variables are in scope: the kernels agree with the NumPy reference ray by ray); it is not the
-    # user's to see at compile time.
-    warnings.filterwarnings("ignore", r"variable '.*' is not in scope", NumbaIRAssumptionWarning)
+    # user's to see at compile time. Numba prefixes the message with a terminal colour code (the filter matches
+    # from the message's start: without the leading .* the warnings reached the user on every first compile).
+    warnings.filterwarnings("ignore", SSA_SCOPE_WARNING, NumbaIRAssumptionWarning)
 
     _TYPED = dict(inline="always", jit_options=dict(error_model="numpy", fastmath={"contract"}))
     # the overloads only forward to inline-compiled helpers: selects written in an overload's own body
