@@ -5,6 +5,7 @@ in-kernel binning. Renders of the same seed use the same draws in both engines.
 """
 
 import dataclasses
+import re
 from pathlib import Path
 
 import numpy as np
@@ -172,8 +173,6 @@ def test_the_silenced_numba_ssa_warning_matches_numbas_own_message():
     """The kernels silence one pedantic Numba warning at compile time; Numba starts its message with a
     terminal colour code, which a filter matching from the message's start must allow for (it did not, and
     the warnings reached the user on every first compile of the sag-intersection tracer)."""
-    import re
-
     errors = pytest.importorskip("numba.core.errors")
     message = str(errors.NumbaIRAssumptionWarning("variable 'v_own_edge_hex_v1' is not in scope."))
     assert re.match(raytrace_kernels.SSA_SCOPE_WARNING, message, re.I)

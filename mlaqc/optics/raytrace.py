@@ -251,6 +251,7 @@ class MicrolensArray:
         self.c2_design = 1.0 / (mla.radius_back_um * 1e-3)
         self.z_rear_design = self.z_front + t
         zero = np.zeros(rows * cols)
+        self._side_margins: dict[bool, tuple[np.ndarray, np.ndarray]] = {}  # side_margins_mm, once per side
         self.margin_front, self.margin_rear = self.boundary_margins_mm() if self.sag else (zero, zero)
         self.circle_reach = self.circle_reach_mm() if self.circle else np.zeros(rows * cols)
 
@@ -299,16 +300,23 @@ class MicrolensArray:
         (hex: 6) neighbours of d* (+ 1 nm). Cells whose whole neighbourhood is error-free get 0: equal lenses meet
         exactly on the grid lines. Lenses two cells away are assumed never to win (errors well below p).
         """
-        return self._margins(False), self._margins(True)
-
-    def _margins(self, rear: bool) -> np.ndarray:
-        """Per cell, the largest of its pairs' margins (`side_margins_mm`)."""
-        return self.side_margins_mm(rear)[0].max(axis=1)
+        return self.side_margins_mm(False)[0].max(axis=1), self.side_margins_mm(True)[0].max(axis=1)
 
     def side_margins_mm(self, rear: bool) -> tuple[np.ndarray, np.ndarray]:
         """Per cell k and candidate i (`neighbours` order, axis 1): the pair's margin d* (mm, see
         boundary_margins_mm; 0 where neither lens is flawed, p where the bound fails), and whether i is a
-        neighbour on the array (False for the cell itself and candidates off the array, whose d* is 0)."""
+        neighbour on the array (False for the cell itself and candidates off the array, whose d* is 0).
+        Computed once per side (the cell margins and the compiled engine's pair clearances both read it;
+        read-only arrays)."""
+        if rear not in self._side_margins:
+            d, on = self._pair_margins(rear)
+            d.setflags(write=False)
+            on.setflags(write=False)
+            self._side_margins[rear] = d, on
+        return self._side_margins[rear]
+
+    def _pair_margins(self, rear: bool) -> tuple[np.ndarray, np.ndarray]:
+        """side_margins_mm, computed: each flawed pair's _pair_margin, candidate direction by direction."""
         u, w, radius = self.sphere_offsets_mm(rear)
         r0 = abs(1.0 / (self.c2_design if rear else self.c1_design))
         ra = np.abs(radius)
