@@ -537,3 +537,23 @@ def test_sub_images_growing_through_the_first_shells_zero_across_the_frame(span,
     assert per_axis_rms(g, x, y, sel, "grid") < 0.05
     if centre_rms is not None:  # discs of 0.55 p overlap their neighbours' rims widely: ~0.05 px at most
         assert per_axis_rms(g, x, y, sel) < centre_rms
+
+
+@pytest.mark.parametrize("packing, lenses", [("square", (24, 24)), ("hex", SHAPE)])
+def test_photon_starved_white_frame_finds_every_lens(packing, lenses):
+    """3 photons per pixel on the plateau (Poisson counts, 60 % pixel noise): each lens' amplitude is
+    measured on its plateau as well as its rim, so it cannot trade places with the radius and run off.
+    Fitted on the rim alone, 20 (square) and 16 (hex) of these three frames' healthy lenses came out
+    'missing', and centres were 30 % worse; the bound here is a median error of 0.3 px."""
+    missing, errors = 0, []
+    for seed in range(3):
+        m = hex_model(packing=packing, lenses=lenses, rotation_deg=0.4, phase_px=(0.3, 0.1))
+        irradiance = m.render()
+        img = np.random.default_rng(seed).poisson(3.0 * irradiance / irradiance.max()).astype(np.float32) / 20
+        g = calibrate(img, expected_pitch_px=PITCH, expected_shape=lenses, packing=packing)
+        x, y = m.centres()
+        sel = m.inside() & ~g.clipped & ~g.missing
+        missing += g.lenses_missing
+        errors.append(np.hypot(g.measured_x_px - x, g.measured_y_px - y)[sel])
+    assert missing == 0
+    assert np.median(np.concatenate(errors)) < 0.3

@@ -27,14 +27,20 @@ Pipeline (DESIGN.md §6), vectorized over all lenses at once (no per-lens Python
    rim; the joint model separates a lens' rim from its neighbours' in the overlap zones, so a shifted
    lens reads its full shift and its neighbours read ~2 % of it. Details that matter:
    - each lens is fitted on an annulus round its rim, tapered and centred on its current estimate (a
-     window fixed to the pixel grid would pull a not-yet-right model off centre);
+     window fixed to the pixel grid would pull a not-yet-right model off centre); its amplitude on its
+     plateau too (the pixels well inside, clear of its neighbours' light): on the rim alone amplitude and
+     radius trade off, and a photon-starved frame (~1 photon per pixel) sent them oscillating until
+     healthy lenses read as missing;
    - red-black sweeps (hex: three colours, (j + 2 i) mod 3): side neighbours (whose discs overlap) never
      step together;
    - noise weights ~ 1 / signal (Monte-Carlo and photon noise), except round lenses far off the lattice;
    - intensity slopes across each sub-image (illumination falloff, vignetting) come from the smooth
-     field of the lens amplitudes and are held fixed (fitting them per lens costs precision);
+     field of the lens amplitudes (a plane through the 5 x 5 lenses round each: a neighbour pair's
+     difference put its amplitudes' noise into every centre, 2 % of their spread at 15 % noise) and are
+     held fixed (fitting them per lens costs precision);
    - the edge width and typical radius come from a central block first; lenses the sharp edge cannot
-     pull in (more than ~1.5 px off the lattice) are captured with a wide edge of their own;
+     pull in (more than ~1.5 px off the lattice) are captured with a wide edge of their own, then they
+     and their neighbours are fitted again with the sharp one;
    - pixels outside the frame are simply left out, so lenses cut by the frame are measured unbiased;
    - the first weighted sweep is not damped as an oscillation (it answers a new objective), so three
      sweeps settle nearly every lens;
@@ -100,6 +106,8 @@ N_SWEEPS = 3  # sweeps over every lens (the first unweighted)
 MAX_EXTRA = 10  # more sweeps, for the lenses not yet settled and their neighbours only
 SETTLED_PX = 0.02  # a lens has settled when its step is under this
 BAND = 1.5  # each lens is fitted on |r - R| <= BAND (+ a 0.5 px taper) round its rim
+SLOPE_REACH = 2  # a lens' intensity slope: the plane through the amplitudes of the 5 x 5 lenses round it
+PLATEAU_EDGES = 3.0  # its amplitude on its plateau too: the pixels this many edge widths inside the band
 WEIGHT_FLOOR = 0.05  # noise weights ~ 1 / signal, the signal floored at this fraction of the plateau
 COUPLED_PX = 0.3  # lenses this far off the lattice, and their neighbours, are fitted unweighted
 WIDE_EDGE = 1.0  # lenses the sharp edge cannot capture get an edge at least this wide for a while
@@ -886,8 +894,10 @@ class _DiscFit:
     """
 
     def __init__(self, img: np.ndarray, cx: np.ndarray, cy: np.ndarray, radius0: float,
-                 neighbours: np.ndarray, colour: np.ndarray | None = None, halves: bool = False) -> None:
+                 neighbours: np.ndarray, colour: np.ndarray | None = None, halves: bool = False,
+                 spacing_px: float = math.inf) -> None:
         self.img = img
+        self.spacing_px = spacing_px  # between nearest lattice neighbours: bounds the plateau clear of their light
         self.halves = halves  # the kernel's pixel order for vectorized neighbour discs (hex; see disc_normals)
         self.h, self.w = img.shape
         self.cx, self.cy = cx.astype(np.float64).copy(), cy.astype(np.float64).copy()
@@ -951,22 +961,25 @@ class _DiscFit:
 
     def set_slopes(self, lat_j: np.ndarray, lat_i: np.ndarray, basis: np.ndarray, active: np.ndarray) -> None:
         """Intensity slope across each sub-image from the smooth field of lens amplitudes (non-uniform
-        illumination, vignetting): central differences over lattice neighbours, turned into x/y slopes per
-        disc radius. Held fixed in the fit (fitting them per lens would cost precision)."""
+        illumination, vignetting): the gradient of a plane fitted to the amplitudes of the lenses within
+        SLOPE_REACH lattice steps, turned into x/y slopes per disc radius. Held fixed in the fit (fitting
+        them per lens would cost precision)."""
         j0, i0 = lat_j.min(), lat_i.min()
         shape = (lat_i.max() - i0 + 1, lat_j.max() - j0 + 1)
-        amp = np.full(shape, np.nan)
-        amp[lat_i - i0, lat_j - j0] = np.where(active, self.amp, np.nan)
-        pad = np.pad(amp, 1, constant_values=np.nan)
-        dj = 0.5 * (pad[1:-1, 2:] - pad[1:-1, :-2])
-        di = 0.5 * (pad[2:, 1:-1] - pad[:-2, 1:-1])
-        # one-sided where a neighbour is missing
-        dj = np.where(np.isnan(dj), np.where(np.isnan(pad[1:-1, 2:]), amp - pad[1:-1, :-2], pad[1:-1, 2:] - amp), dj)
-        di = np.where(np.isnan(di), np.where(np.isnan(pad[2:, 1:-1]), amp - pad[:-2, 1:-1], pad[2:, 1:-1] - amp), di)
-        dj, di = np.nan_to_num(dj[lat_i - i0, lat_j - j0]), np.nan_to_num(di[lat_i - i0, lat_j - j0])
+        amp, on = np.zeros(shape), np.zeros(shape)
+        amp[lat_i - i0, lat_j - j0] = np.where(active, self.amp, 0.0)
+        on[lat_i - i0, lat_j - j0] = active
+        dj, di = _plane_gradient(amp, on, SLOPE_REACH)
+        dj, di = dj[lat_i - i0, lat_j - j0], di[lat_i - i0, lat_j - j0]
         grad = np.linalg.solve(basis.T, np.stack([dj, di]))  # d amp / d(x, y) per px
         self.slope_x = np.where(active, grad[0] * self.r_norm, 0.0)
         self.slope_y = np.where(active, grad[1] * self.r_norm, 0.0)
+
+    def _plateau_inset(self, edge: float) -> float:
+        """How far inside its rim a lens' plateau ends: clear of the fitted annulus and of the rim's tail
+        (PLATEAU_EDGES edge widths), and of its neighbours' light."""
+        tail = PLATEAU_EDGES * edge
+        return max(self.band + 0.5 + tail, 2.0 * self.r_norm + tail + 0.5 - self.spacing_px)
 
     def _normals(self, idx: np.ndarray, edge: float, weighted: bool, fit_edge: bool):
         """Normal equations (n, 5, 5), right-hand sides (n, 5) of lenses `idx` against the frame residual;
@@ -984,10 +997,14 @@ class _DiscFit:
         rss = np.empty(idx.size)
         npix = np.empty(idx.size, np.int64)
 
+        inset = self._plateau_inset(edge if self.wide is None else max(edge, self.wide_edge))
+
         def block(b: slice) -> None:
             kernels.disc_normals(self.img, idx[b], self.cx, self.cy, self.amp, self.radius, inv_edge, sx, sy,
                                  self.neighbours, self.coupled, wide, self.band + 0.5, weighted, fit_edge,
                                  WEIGHT_FLOOR, self.halves, normal[b], rhs[b], rss[b], npix[b])
+            kernels.add_plateau(self.img, idx[b], self.cx, self.cy, self.amp, self.radius, sx, sy, inset,
+                                normal[b], rhs[b])
 
         self._map(block, idx)
         self.rss[idx], self.npix[idx] = rss, npix
@@ -1047,6 +1064,38 @@ class _DiscFit:
         self.radius[idx] = np.clip(self.radius[idx] + step[:, 3], self.r_norm - 1.0, self.r_norm + 1.0)
         self.prev_step[idx] = step
         self.last_step[idx] = np.hypot(step[:, 1], step[:, 2])
+
+
+def _plane_gradient(field: np.ndarray, on: np.ndarray, reach: int) -> tuple[np.ndarray, np.ndarray]:
+    """Gradient (d/dcolumn, d/drow) at every cell of a 2-D field of the least-squares plane through the
+    cells marked `on` within `reach` steps; 0 where fewer than three, or only collinear ones, are there.
+    A full window is point-symmetric, so a quadratic field's gradient comes out unbiased; 5 x 5 has 1/25
+    of a two-cell central difference's noise variance."""
+    rows, cols = field.shape
+    pf, po = np.pad(field, reach), np.pad(on, reach)
+    n, sj, si, sjj, sji, sii, sa, saj, sai = np.zeros((9, rows, cols))
+    for di in range(-reach, reach + 1):
+        for dj in range(-reach, reach + 1):
+            o = po[reach + di: reach + di + rows, reach + dj: reach + dj + cols]
+            a = pf[reach + di: reach + di + rows, reach + dj: reach + dj + cols]
+            n += o
+            sj += dj * o
+            si += di * o
+            sjj += dj * dj * o
+            sji += dj * di * o
+            sii += di * di * o
+            sa += a
+            saj += dj * a
+            sai += di * a
+    with np.errstate(divide="ignore", invalid="ignore"):
+        mj, mi = sj / n, si / n
+        cjj, cji, cii = sjj - n * mj * mj, sji - n * mj * mi, sii - n * mi * mi
+        bj, bi = saj - sa * mj, sai - sa * mi
+        det = cjj * cii - cji * cji
+        ok = (n >= 3) & (det > 1e-9 * np.maximum(n, 1) ** 2)
+        gj = np.where(ok, (bj * cii - bi * cji) / det, 0.0)
+        gi = np.where(ok, (bi * cjj - bj * cji) / det, 0.0)
+    return gj, gi
 
 
 # ------------------------------------------------------------------------------------------ calibrate
@@ -1211,7 +1260,7 @@ def _measure(img: np.ndarray, px: np.ndarray, py: np.ndarray, lat_j: np.ndarray,
     lattice_x, lattice_y = px, py
     halves = HALVES_ORDER[packing]
     sub = _DiscFit(img, px[block], py[block], radius0, _lattice_neighbours(lat_j[block], lat_i[block], ring, packing),
-                   colour[block], halves)
+                   colour[block], halves, spacing)
     sub.init_amplitude(radius0)
     sub.set_band(band)
     ref = float(np.percentile(sub.amp, 90)) if sub.amp.size else 0.0
@@ -1237,7 +1286,7 @@ def _measure(img: np.ndarray, px: np.ndarray, py: np.ndarray, lat_j: np.ndarray,
         edge0 = max(0.4, 0.025 * pitch)
     # stage 2: every lens
     neighbours = _lattice_neighbours(lat_j, lat_i, ring, packing)
-    fit = _DiscFit(img, px, py, radius0, neighbours, colour, halves)
+    fit = _DiscFit(img, px, py, radius0, neighbours, colour, halves, spacing)
     fit.edge = edge0
     fit.init_amplitude(radius0)
     ref = float(np.percentile(fit.amp, 90)) if fit.amp.size else 0.0
@@ -1267,6 +1316,8 @@ def _measure(img: np.ndarray, px: np.ndarray, py: np.ndarray, lat_j: np.ndarray,
         for _ in range(3):
             fit.sweep(fit.edge, active, weighted=True, lenses=group)
         fit.wide = None
+        # where the wide edges left the group is no fit of the sharp one: it steps again below
+        fit.last_step[group] = np.inf
     for _ in range(MAX_EXTRA):  # until every lens has settled
         moving = np.flatnonzero(active & (fit.last_step > SETTLED_PX))
         if not moving.size:

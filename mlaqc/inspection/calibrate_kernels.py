@@ -291,6 +291,37 @@ def disc_normals(img, lenses, cx, cy, amp, radius, inv_edge, slope_x, slope_y, n
         rss[t] = ss
 
 
+@_jit_fast.aot("f4[:, ::1], i8[::1], f8[::1], f8[::1], f8[::1], f8[::1], f8[::1], f8[::1], f8, f8[:, :, ::1], f8[:, ::1]")
+def add_plateau(img, lenses, cx, cy, amp, radius, slope_x, slope_y, inset, normal, rhs):
+    """Adds to lens lenses[t]'s amplitude normal equation (normal[t, 0, 0], rhs[t, 0]) the pixels of its
+    plateau, within radius - inset of its centre (inside the frame): model amp + slope . offset, Jacobian
+    1, weight 1 (the plateau is the level a weighted fit weighs as one). They carry the amplitude only.
+    Row by row: the span of a row inside the circle is one contiguous sum (a vector loop)."""
+    h, w = img.shape
+    for t in range(lenses.size):
+        k = lenses[t]
+        r_in = radius[k] - inset
+        if r_in < 1.0:
+            continue
+        cnt = 0.0
+        res = 0.0
+        for y in range(max(math.ceil(cy[k] - r_in), 0), min(math.floor(cy[k] + r_in), h - 1) + 1):
+            v = y - cy[k]
+            half = math.sqrt(max(r_in * r_in - v * v, 0.0))
+            xa, xb = max(math.ceil(cx[k] - half), 0), min(math.floor(cx[k] + half), w - 1)
+            if xb < xa:
+                continue
+            s = 0.0
+            for x in range(xa, xb + 1):
+                s += img[y, x]
+            n = xb - xa + 1
+            # the model summed over the span: amp and the slopes at the span's mean offset
+            res += s - n * (amp[k] + slope_x[k] * (0.5 * (xa + xb) - cx[k]) + slope_y[k] * v)
+            cnt += n
+        normal[t, 0, 0] += cnt
+        rhs[t, 0] += res
+
+
 @_jit.aot("f4[:, ::1], f8[::1], f8[::1], i8")
 def plateau_mean(img, cx, cy, half):
     """Mean level of the pixels within `half` px of each rounded centre (0 where none is in the frame)."""

@@ -321,20 +321,21 @@ def noise_classes(shape: tuple[int, int]) -> np.ndarray:
 
 
 @functools.lru_cache(maxsize=8)
-def _groups(shape: tuple[int, int], packing: str = "square") -> tuple[np.ndarray, ...]:
+def _groups(shape: tuple[int, int], packing: str = "square", centred: bool = False) -> tuple[np.ndarray, ...]:
     """Lens groups that share a systematic pattern: the inner lenses, and each edge class per side; on
-    hex also the second ring per side where it has the lenses to fit it (`HEX_SECOND_RING_MIN`), and
-    the row ends that stick out apart from those that sit in (`hex_row_ends`: their windows hold other
-    neighbours, and their indexes answer otherwise to the sub-pixel phase)."""
+    hex, and wherever the baselines are `centred`, also the second ring per side where it has the lenses
+    to fit it (`SECOND_RING_MIN`); on hex the row ends that stick out apart from those that sit in
+    (`hex_row_ends`: their windows hold other neighbours, and their indexes answer otherwise to the
+    sub-pixel phase)."""
     rows, cols = shape
     cls = edge_classes(shape)
     m, n = np.ogrid[:rows, :cols]
     side = np.argmin(np.stack(np.broadcast_arrays(m, rows - 1 - m, n, cols - 1 - n)), axis=0)
     inner = cls == 2
     second = []
-    if packing == "hex":
+    if packing == "hex" or centred:
         ring = np.minimum(np.minimum(m, n), np.minimum(rows - 1 - m, cols - 1 - n))
-        second = [g for g in ((ring == 2) & (side == s) for s in range(4)) if g.sum() >= HEX_SECOND_RING_MIN]
+        second = [g for g in ((ring == 2) & (side == s) for s in range(4)) if g.sum() >= SECOND_RING_MIN]
         for g in second:
             inner = inner & ~g
     edges = [(cls == c) & (side == s) for c in (0, 1) for s in range(4)]
@@ -348,9 +349,11 @@ def _groups(shape: tuple[int, int], packing: str = "square") -> tuple[np.ndarray
 # span 4 rows or columns, not 5, and take up another share of the sub-pixel phase pattern (which drifts
 # 0.15 px per row on an array rotated 0.5°): measured on the analytic model, the second rows' x offset and
 # tilt deviations kept 2.7 times the inner lenses' spread after the inner lenses' pattern was removed
-# (false flags at z 6.3). Each side's second ring is fitted on its own where it has this many lenses
-# (the phase basis needs 40 for one harmonic), else with the inner lenses as before.
-HEX_SECOND_RING_MIN = 40
+# (false flags at z 6.3). Square windows kept centred (circular apertures) span 3 rows there: its
+# intensity tilt along the edge kept 3.5 times the inner spread on an Airy-rimmed frame rotated 1.3°
+# (14 false flags on that ring of 102 x 102). Each side's second ring is fitted on its own where it has
+# this many lenses (the phase basis needs 40 for one harmonic), else with the inner lenses as before.
+SECOND_RING_MIN = 40
 
 
 def _frozen(a: np.ndarray) -> np.ndarray:
@@ -384,17 +387,18 @@ class PhaseModel:
 _PHASE_MODELS: dict[bytes, PhaseModel] = {}
 
 
-def phase_model(phase: tuple[np.ndarray, np.ndarray], packing: str = "square") -> PhaseModel:
+def phase_model(phase: tuple[np.ndarray, np.ndarray], packing: str = "square", centred: bool = False) -> PhaseModel:
     """`PhaseModel` of lenses whose grid centres have sub-pixel phases `phase` (x, y); a group gets two
     harmonics from 80 lenses on, one from 40, none below (too few lenses to fit it). Kept for the last
-    few grids: a batch on one saved grid builds it once. `packing`: the lattice (`_groups`)."""
+    few grids: a batch on one saved grid builds it once. `packing`, `centred`: the lattice and the
+    baselines' windows (`_groups`)."""
     key = hashlib.sha1(np.ascontiguousarray(phase[0]).tobytes() + np.ascontiguousarray(phase[1]).tobytes()
-                       + packing.encode()).digest()
+                       + packing.encode() + bytes([centred])).digest()
     hit = _PHASE_MODELS.get(key)
     if hit is not None:
         return hit
     groups = []
-    for sel in _groups(phase[0].shape, packing):
+    for sel in _groups(phase[0].shape, packing, centred):
         count = int(sel.sum())
         harmonics = 2 if count >= 80 else 1 if count >= 40 else 0
         if harmonics:
@@ -1288,13 +1292,13 @@ def identify(metrics: LensMetrics, missing: np.ndarray, qc: QC, table: Signature
     its focal errors behind a circle, so its noise floor is low enough for an off-centre window's
     reading of the vignetting to flag the second row; behind circles the flagged lenses are then left
     out of every baseline and the frame is judged again."""
-    phase = phase_model(phase, packing) if phase is not None else None
+    centred = packing == "hex" or aperture == "circle"  # (square cells keep the windows they were validated with)
+    phase = phase_model(phase, packing, centred) if phase is not None else None
     outside = np.zeros(missing.shape, bool) if outside is None else outside
     if outside.any():
         metrics = LensMetrics({k: np.where(outside, np.nan, v) for k, v in metrics.values.items()})
         position = None if position is None else tuple(np.where(outside, np.nan, p) for p in position)
         missing = missing & ~outside
-    centred = packing == "hex" or aperture == "circle"  # (square cells keep the windows they were validated with)
     threshold = np.full(missing.shape, qc.detect_sigma)
     threshold[[0, 0, -1, -1], [0, -1, 0, -1]] *= 1.5  # corner windows hold dark margin on two sides: noisier
     judged = _judged(metrics, position, phase, table, qc, (outside, missing), packing, centred)
