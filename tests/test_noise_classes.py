@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from mlaqc.inspection.identify import class_sigmas, noise_classes
+from mlaqc.inspection.identify import class_sigmas, noise_classes, second_ring
 
 
 def _noise(shape=(24, 24), seed=3) -> np.ndarray:
@@ -32,3 +32,19 @@ def test_a_wide_systematic_tail_still_widens_the_spread():
     sig = class_sigmas(dev)[noise_classes(dev.shape) == 2].max()
     assert sig > 5.0 / 6.0 * 1.2 and 5.0 / sig < 6.0
 
+
+
+def test_a_wider_second_ring_is_judged_against_its_own_spread():
+    """The second ring in three times as noisy as the rest (its windows, cut to 3 or 4 rows, read the
+    frame's systematics otherwise): its lenses get their own, wider spread. On
+    12 x 12 the ring is too small to measure its own (28 lenses), and keeps the inner one."""
+    dev = _noise((60, 60))
+    second = second_ring(dev.shape)
+    dev[second] *= 3.0
+    sig = class_sigmas(dev)
+    rest = (noise_classes(dev.shape) == 2) & ~second
+    assert 2.4 < np.median(sig[second]) < 4.0  # about 3
+    assert np.median(sig[second]) > 1.5 * np.median(sig[rest])  # (the rest's tail holds the ring too)
+    small = _noise((12, 12))
+    small[second_ring(small.shape)] *= 3.0
+    assert np.ptp(class_sigmas(small)[noise_classes(small.shape) == 2]) == 0.0

@@ -321,6 +321,19 @@ def noise_classes(shape: tuple[int, int]) -> np.ndarray:
 
 
 @functools.lru_cache(maxsize=8)
+def second_ring(shape: tuple[int, int]) -> np.ndarray:
+    """The inner lenses (`noise_classes` 2) of the second ring in: their baseline windows leave the
+    outermost lenses out (`_refine_baselines`: 3 or 4 rows of 5), so the frame's systematics read in
+    them otherwise. Judged against their own spread where it is wider than the inner lenses' (which they
+    stay part of) where the ring has SECOND_RING_MIN of them: behind circles the sub-pixel phase pattern
+    a 3-row median leaves reached 6.6 sigma of the inner spread on a noise-free frame."""
+    rows, cols = shape
+    m, n = np.ogrid[:rows, :cols]
+    ring = np.minimum(np.minimum(m, n), np.minimum(rows - 1 - m, cols - 1 - n))
+    return _frozen((ring == 2) & (noise_classes(shape) == 2))
+
+
+@functools.lru_cache(maxsize=8)
 def _groups(shape: tuple[int, int], packing: str = "square", centred: bool = False) -> tuple[np.ndarray, ...]:
     """Lens groups that share a systematic pattern: the inner lenses, and each edge class per side; on
     hex, and wherever the baselines are `centred`, also the second ring per side where it has the lenses
@@ -501,6 +514,7 @@ def _column_medians(a: np.ndarray) -> np.ndarray:
 def class_sigmas(dev: np.ndarray, floor: float | np.ndarray = 0.0, exclude: np.ndarray | None = None) -> np.ndarray:
     """Per lens the spread (`tail_sigma`) of its noise class (`noise_classes`), never below the inner
     lenses' nor `floor`: edge lenses are noisier than inner ones, and one spread for all would flag them.
+    The second ring's lenses (`second_ring`) are judged against their own spread too where it is wider.
     `dev` (rows, cols) or a stack (rows, cols, J) of maps, each with its own floor; `exclude`: lenses left
     out of the inner spread (`_quiet_inner`)."""
     stack = dev[..., None] if dev.ndim == 2 else dev
@@ -518,6 +532,11 @@ def class_sigmas(dev: np.ndarray, floor: float | np.ndarray = 0.0, exclude: np.n
             spread = _column_tail_sigmas(rows, floor)
             ok = np.isfinite(rows).sum(axis=0) > 8
             out[sel] = np.where(ok, np.maximum(inner, np.nan_to_num(spread, nan=0.0)), inner)
+    second = second_ring(stack.shape[:2])
+    quiet = second if exclude is None else second & ~exclude  # (its spread without the defects' light)
+    if quiet.sum() >= SECOND_RING_MIN:
+        spread = _column_tail_sigmas(stack[quiet], floor)
+        out[second] = np.maximum(out[second], np.nan_to_num(spread, nan=0.0))
     return out[..., 0] if dev.ndim == 2 else out
 
 
