@@ -199,10 +199,7 @@ def _refine_baselines(stack: np.ndarray, finite: np.ndarray, base: np.ndarray, s
     n_f, rows, cols = stack.shape
     half = size // 2
     edges = rows >= size and cols >= size
-    ring = np.zeros((rows, cols), np.int64)  # distance to the array's edge, in lenses
-    if edges:
-        m_, n_ = np.ogrid[:rows, :cols]
-        ring = np.minimum(np.minimum(m_, n_), np.minimum(rows - 1 - m_, cols - 1 - n_))
+    ring = ring_distance((rows, cols)) if edges else np.zeros((rows, cols), np.int64)
     outer = edges & (ring == 0)
     # left out of a window: NaN lenses; the outermost ones too for lenses two or more in
     near_nan = max_filter_nearest(~finite.all(axis=0), size)
@@ -296,6 +293,15 @@ def robust_sigma(dev: np.ndarray) -> float:
 
 
 @functools.lru_cache(maxsize=8)
+def ring_distance(shape: tuple[int, int]) -> np.ndarray:
+    """Per lens its distance to the array's edge in lenses (0 = the outer row or column): the ring it
+    is on. The fewest lattice steps off the array on hex too (see `edge_classes`)."""
+    rows, cols = shape
+    m, n = np.ogrid[:rows, :cols]
+    return _frozen(np.minimum(np.minimum(m, n), np.minimum(rows - 1 - m, cols - 1 - n)))
+
+
+@functools.lru_cache(maxsize=8)
 def edge_classes(shape: tuple[int, int]) -> np.ndarray:
     """Per lens its distance to the array's edge in lenses, clipped at 2 (0 = outer row/column, 1 = the
     next, 2 = inner): edge lenses miss neighbours, so their indexes have their own bias and spread.
@@ -304,9 +310,7 @@ def edge_classes(shape: tuple[int, int]) -> np.ndarray:
     array are min(m, rows + 1 - m, n, cols + 1 - n) there too (each shifted row's end lens, missing one
     neighbour, is in the outer class with the unshifted rows' ends, which miss three; their baselines
     are kept apart, see `_hex_edge_columns`)."""
-    rows, cols = shape
-    m, n = np.ogrid[:rows, :cols]
-    return _frozen(np.minimum(np.minimum(m, n), np.minimum(rows - 1 - m, cols - 1 - n)).clip(max=2))
+    return _frozen(ring_distance(shape).clip(max=2))
 
 
 @functools.lru_cache(maxsize=8)
@@ -327,10 +331,7 @@ def second_ring(shape: tuple[int, int]) -> np.ndarray:
     them otherwise. Judged against their own spread where it is wider than the inner lenses' (which they
     stay part of) where the ring has SECOND_RING_MIN of them: behind circles the sub-pixel phase pattern
     a 3-row median leaves reached 6.6 sigma of the inner spread on a noise-free frame."""
-    rows, cols = shape
-    m, n = np.ogrid[:rows, :cols]
-    ring = np.minimum(np.minimum(m, n), np.minimum(rows - 1 - m, cols - 1 - n))
-    return _frozen((ring == 2) & (noise_classes(shape) == 2))
+    return _frozen((ring_distance(shape) == 2) & (noise_classes(shape) == 2))
 
 
 @functools.lru_cache(maxsize=8)
@@ -347,7 +348,7 @@ def _groups(shape: tuple[int, int], packing: str = "square", centred: bool = Fal
     inner = cls == 2
     second = []
     if packing == "hex" or centred:
-        ring = np.minimum(np.minimum(m, n), np.minimum(rows - 1 - m, cols - 1 - n))
+        ring = ring_distance(shape)
         second = [g for g in ((ring == 2) & (side == s) for s in range(4)) if g.sum() >= SECOND_RING_MIN]
         for g in second:
             inner = inner & ~g
