@@ -48,3 +48,23 @@ def test_a_wider_second_ring_is_judged_against_its_own_spread():
     small = _noise((12, 12))
     small[second_ring(small.shape)] *= 3.0
     assert np.ptp(class_sigmas(small)[noise_classes(small.shape) == 2]) == 0.0
+
+
+def test_an_edge_side_wider_than_the_rest_is_judged_against_its_own_spread():
+    """One side of the outer ring five times as noisy as the others (the hex row ends of an Airy-rimmed
+    frame read sharpness 2x the ring's spread, flagged at 6.2 sigma): its lenses get their own robust
+    spread, which one defect among them does not move. A side of fewer than SECOND_RING_MIN lenses is
+    too small to measure its own and keeps the ring's."""
+    dev = _noise((60, 200))
+    dev[:, 0] *= 5.0
+    cls = noise_classes(dev.shape)
+    side = cls[:, 0] == 0  # (the corners are a class of their own)
+    sig = class_sigmas(dev)
+    assert 4.2 < np.median(sig[side, 0]) < 6.0
+    assert np.median(sig[0, cls[0] == 0]) < 4.0  # the other sides keep the ring's spread
+    dev[30, 0] = 60.0  # a defect on that side
+    assert np.allclose(class_sigmas(dev)[side, 0], sig[side, 0], rtol=0.05)
+    small = _noise((30, 30))
+    small[:, 0] *= 5.0
+    ring = noise_classes(small.shape) == 0
+    assert np.ptp(class_sigmas(small)[ring]) == 0.0

@@ -341,22 +341,34 @@ def _groups(shape: tuple[int, int], packing: str = "square", centred: bool = Fal
     to fit it (`SECOND_RING_MIN`); on hex the row ends that stick out apart from those that sit in
     (`hex_row_ends`: their windows hold other neighbours, and their indexes answer otherwise to the
     sub-pixel phase)."""
-    rows, cols = shape
-    cls = edge_classes(shape)
-    m, n = np.ogrid[:rows, :cols]
-    side = np.argmin(np.stack(np.broadcast_arrays(m, rows - 1 - m, n, cols - 1 - n)), axis=0)
-    inner = cls == 2
+    inner = edge_classes(shape) == 2
     second = []
     if packing == "hex" or centred:
+        side = _sides(shape)
         ring = ring_distance(shape)
         second = [g for g in ((ring == 2) & (side == s) for s in range(4)) if g.sum() >= SECOND_RING_MIN]
         for g in second:
             inner = inner & ~g
+    return tuple(_frozen(g) for g in [inner] + second) + edge_groups(shape, packing)
+
+
+def _sides(shape: tuple[int, int]) -> np.ndarray:
+    """Per lens the array side it is nearest to: 0 top, 1 bottom, 2 left, 3 right."""
+    rows, cols = shape
+    m, n = np.ogrid[:rows, :cols]
+    return np.argmin(np.stack(np.broadcast_arrays(m, rows - 1 - m, n, cols - 1 - n)), axis=0)
+
+
+@functools.lru_cache(maxsize=8)
+def edge_groups(shape: tuple[int, int], packing: str = "square") -> tuple[np.ndarray, ...]:
+    """The outer two rings' lenses by ring and side; on hex each side's row ends that stick out apart
+    from those that sit in (`hex_row_ends`): lenses whose windows reach past the array alike."""
+    cls, side = edge_classes(shape), _sides(shape)
     edges = [(cls == c) & (side == s) for c in (0, 1) for s in range(4)]
-    if packing == "hex":  # the row ends that stick out and those that sit in, each on their own
+    if packing == "hex":
         ends = hex_row_ends(shape)
         edges = [part for g in edges for part in ((g & ends, g & ~ends) if (g & ends).any() else (g,))]
-    return tuple(_frozen(g) for g in [inner] + second + edges)
+    return tuple(_frozen(g) for g in edges)
 
 
 # Hex: the second ring's baselines leave the outermost lenses out (`_refine_baselines`), so their windows
@@ -512,12 +524,14 @@ def _column_medians(a: np.ndarray) -> np.ndarray:
         return np.where(k > 0, 0.5 * (s[lo, cols] + s[np.minimum(hi, len(s) - 1), cols]), np.nan)
 
 
-def class_sigmas(dev: np.ndarray, floor: float | np.ndarray = 0.0, exclude: np.ndarray | None = None) -> np.ndarray:
+def class_sigmas(dev: np.ndarray, floor: float | np.ndarray = 0.0, exclude: np.ndarray | None = None,
+                 packing: str = "square") -> np.ndarray:
     """Per lens the spread (`tail_sigma`) of its noise class (`noise_classes`), never below the inner
     lenses' nor `floor`: edge lenses are noisier than inner ones, and one spread for all would flag them.
-    The second ring's lenses (`second_ring`) are judged against their own spread too where it is wider.
-    `dev` (rows, cols) or a stack (rows, cols, J) of maps, each with its own floor; `exclude`: lenses left
-    out of the inner spread (`_quiet_inner`)."""
+    The second ring's lenses (`second_ring`) are judged against their own spread too where it is wider,
+    and so is each group of edge lenses (`edge_groups`, by its robust spread, which one defect among
+    them does not move) where it has SECOND_RING_MIN of them. `dev` (rows, cols) or a stack (rows, cols,
+    J) of maps, each with its own floor; `exclude`: lenses left out of the spreads (`_quiet_inner`)."""
     stack = dev[..., None] if dev.ndim == 2 else dev
     floor = np.broadcast_to(np.asarray(floor, float), stack.shape[-1:])
     cls = noise_classes(stack.shape[:2])
@@ -538,7 +552,16 @@ def class_sigmas(dev: np.ndarray, floor: float | np.ndarray = 0.0, exclude: np.n
     if quiet.sum() >= SECOND_RING_MIN:
         spread = _column_tail_sigmas(stack[quiet], floor)
         out[second] = np.maximum(out[second], np.nan_to_num(spread, nan=0.0))
+    for group in edge_groups(stack.shape[:2], packing):
+        quiet = group if exclude is None else group & ~exclude
+        if quiet.sum() >= SECOND_RING_MIN:
+            out[group] = np.maximum(out[group], np.nan_to_num(_column_robust_sigmas(stack[quiet]), nan=0.0))
     return out[..., 0] if dev.ndim == 2 else out
+
+
+def _column_robust_sigmas(a: np.ndarray) -> np.ndarray:
+    """`robust_sigma` of every column of a (n, J) over its finite values (NaN for a column with none)."""
+    return 1.4826 * _column_medians(np.abs(a - _column_medians(a)))
 
 
 def _column_tail_sigmas(a: np.ndarray, floor: float | np.ndarray = 0.0) -> np.ndarray:
@@ -744,11 +767,11 @@ class Noise:
 
 
 def detection_noise(dev: dict[str, np.ndarray], rings: RingNoise, det_floor: np.ndarray,
-                    exclude: np.ndarray | None = None) -> Noise:
+                    exclude: np.ndarray | None = None, packing: str = "square") -> Noise:
     """The per-lens spreads of the DETECTORS from the frame's own deviations (`class_sigmas`; `exclude`:
-    lenses left out of the inner spread)."""
+    lenses left out of the spreads)."""
     floors = np.repeat(det_floor, [2, 2, 1, 1, 1, 1])  # the DETECTORS over the _NAMES' 8 maps
-    each = class_sigmas(np.stack([dev[k] for k in _NAMES], axis=-1), floors, exclude)
+    each = class_sigmas(np.stack([dev[k] for k in _NAMES], axis=-1), floors, exclude, packing)
     sig = np.concatenate([0.5 * (each[..., 0:1] + each[..., 1:2]), 0.5 * (each[..., 2:3] + each[..., 3:4]),
                           each[..., 4:]], axis=-1)
     return Noise(sig, rings)
@@ -1136,7 +1159,7 @@ def _judged(metrics: LensMetrics, position, phase: PhaseModel | None, table: Sig
     disturbed = None
     for step in range(passes + 1):
         rings = ring_noise(metrics, floor=ring_floor, planes=planes[rings_at], exclude=disturbed)
-        noise = detection_noise(detect_dev, rings, det_floor, disturbed)
+        noise = detection_noise(detect_dev, rings, det_floor, disturbed, packing)
         score = detection_score(detect_dev, noise, focus_score(rings, table))
         grown = _disturbed(score, qc, *masks, packing) | (False if disturbed is None else disturbed)
         if step == passes or not grown.any() or (disturbed is not None and (grown == disturbed).all()):
@@ -1321,7 +1344,12 @@ def identify(metrics: LensMetrics, missing: np.ndarray, qc: QC, table: Signature
         missing = missing & ~outside
     threshold = np.full(missing.shape, qc.detect_sigma)
     threshold[[0, 0, -1, -1], [0, -1, 0, -1]] *= 1.5  # corner windows hold dark margin on two sides: noisier
-    judged = _judged(metrics, position, phase, table, qc, (outside, missing), packing, centred)
+    # a missing lens' neighbours lack its light: left out of every baseline, or the windows of the lenses
+    # two and three away read them (hex, Airy rims, 1 % noise: asymmetry z 6.1-6.3 three lenses off).
+    # (Circles leave every flagged lens out in a second pass below; a first pass without the echoes
+    # shrank their centred windows, which mirror each lens left out, and flagged 3 lenses beside them.)
+    echoes = with_neighbours(missing, packing) & ~missing if missing.any() and aperture != "circle" else None
+    judged = _judged(metrics, position, phase, table, qc, (outside, missing), packing, centred, echoes)
     flagged = ((judged[-1] > threshold) & ~outside) | missing
     if aperture == "circle" and flagged.any():
         # circles: once more with the flagged lenses left out of every baseline, as a lens not measured is.
