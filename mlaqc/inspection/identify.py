@@ -361,8 +361,10 @@ def _sides(shape: tuple[int, int]) -> np.ndarray:
 
 @functools.lru_cache(maxsize=8)
 def edge_groups(shape: tuple[int, int], packing: str = "square") -> tuple[np.ndarray, ...]:
-    """The outer two rings' lenses by ring and side; on hex each side's row ends that stick out apart
-    from those that sit in (`hex_row_ends`): lenses whose windows reach past the array alike."""
+    """The outer two rings' lenses by ring and side (a corner lens goes with the side it is nearest to,
+    the top or bottom on a tie); on hex the outer ring's row ends that stick out apart from those that
+    sit in (`hex_row_ends`; a top or bottom row's end lens among them is a group of its own): lenses whose
+    windows reach past the array alike."""
     cls, side = edge_classes(shape), _sides(shape)
     edges = [(cls == c) & (side == s) for c in (0, 1) for s in range(4)]
     if packing == "hex":
@@ -530,8 +532,9 @@ def class_sigmas(dev: np.ndarray, floor: float | np.ndarray = 0.0, exclude: np.n
     lenses' nor `floor`: edge lenses are noisier than inner ones, and one spread for all would flag them.
     The second ring's lenses (`second_ring`) are judged against their own spread too where it is wider,
     and so is each group of edge lenses (`edge_groups`, by its robust spread, which one defect among
-    them does not move) where it has SECOND_RING_MIN of them. `dev` (rows, cols) or a stack (rows, cols,
-    J) of maps, each with its own floor; `exclude`: lenses left out of the spreads (`_quiet_inner`)."""
+    them does not move) where it has SECOND_RING_MIN measured lenses. `dev` (rows, cols) or a stack
+    (rows, cols, J) of maps, each with its own floor; `exclude`: lenses left out of the inner,
+    second-ring and edge-group spreads (`_quiet_inner`)."""
     stack = dev[..., None] if dev.ndim == 2 else dev
     floor = np.broadcast_to(np.asarray(floor, float), stack.shape[-1:])
     cls = noise_classes(stack.shape[:2])
@@ -550,13 +553,20 @@ def class_sigmas(dev: np.ndarray, floor: float | np.ndarray = 0.0, exclude: np.n
     second = second_ring(stack.shape[:2])
     quiet = second if exclude is None else second & ~exclude  # (its spread without the defects' light)
     if quiet.sum() >= SECOND_RING_MIN:
-        spread = _column_tail_sigmas(stack[quiet], floor)
-        out[second] = np.maximum(out[second], np.nan_to_num(spread, nan=0.0))
+        _raise_to_own(out, second, stack[quiet], _column_tail_sigmas(stack[quiet], floor))
     for group in edge_groups(stack.shape[:2], packing):
         quiet = group if exclude is None else group & ~exclude
         if quiet.sum() >= SECOND_RING_MIN:
-            out[group] = np.maximum(out[group], np.nan_to_num(_column_robust_sigmas(stack[quiet]), nan=0.0))
+            _raise_to_own(out, group, stack[quiet], _column_robust_sigmas(stack[quiet]))
     return out[..., 0] if dev.ndim == 2 else out
+
+
+def _raise_to_own(out: np.ndarray, group: np.ndarray, values: np.ndarray, spread: np.ndarray) -> None:
+    """out[group] raised, map by map, to the group's own `spread` of its `values` (n, J) where that map
+    has SECOND_RING_MIN finite values (lenses off the sensor read NaN: a clipped side is too few)."""
+    enough = np.isfinite(values).sum(axis=0) >= SECOND_RING_MIN
+    if enough.any():
+        out[group] = np.maximum(out[group], np.where(enough & np.isfinite(spread), spread, 0.0))
 
 
 def _column_robust_sigmas(a: np.ndarray) -> np.ndarray:
@@ -769,7 +779,7 @@ class Noise:
 def detection_noise(dev: dict[str, np.ndarray], rings: RingNoise, det_floor: np.ndarray,
                     exclude: np.ndarray | None = None, packing: str = "square") -> Noise:
     """The per-lens spreads of the DETECTORS from the frame's own deviations (`class_sigmas`; `exclude`:
-    lenses left out of the spreads)."""
+    lenses left out of the inner, second-ring and edge-group spreads)."""
     floors = np.repeat(det_floor, [2, 2, 1, 1, 1, 1])  # the DETECTORS over the _NAMES' 8 maps
     each = class_sigmas(np.stack([dev[k] for k in _NAMES], axis=-1), floors, exclude, packing)
     sig = np.concatenate([0.5 * (each[..., 0:1] + each[..., 1:2]), 0.5 * (each[..., 2:3] + each[..., 3:4]),
@@ -1345,9 +1355,11 @@ def identify(metrics: LensMetrics, missing: np.ndarray, qc: QC, table: Signature
     threshold = np.full(missing.shape, qc.detect_sigma)
     threshold[[0, 0, -1, -1], [0, -1, 0, -1]] *= 1.5  # corner windows hold dark margin on two sides: noisier
     # a missing lens' neighbours lack its light: left out of every baseline, or the windows of the lenses
-    # two and three away read them (hex, Airy rims, 1 % noise: asymmetry z 6.1-6.3 three lenses off).
-    # (Circles leave every flagged lens out in a second pass below; a first pass without the echoes
-    # shrank their centred windows, which mirror each lens left out, and flagged 3 lenses beside them.)
+    # two and three away read them (hex, Airy rims, 1 % noise: asymmetry z 6.1-6.3 three lenses off). The
+    # missing lens itself stays in (measured: left out too, a Table 1 Airy frame's lens two away read
+    # z 8.2, six lenses of one side gone from its window). (Circles leave every flagged lens out in a
+    # second pass below; a first pass with the echoes left out shrank their centred windows, which mirror
+    # each lens left out, and flagged 3 lenses beside them.)
     echoes = with_neighbours(missing, packing) & ~missing if missing.any() and aperture != "circle" else None
     judged = _judged(metrics, position, phase, table, qc, (outside, missing), packing, centred, echoes)
     flagged = ((judged[-1] > threshold) & ~outside) | missing
