@@ -68,3 +68,7 @@ def test_an_edge_side_wider_than_the_rest_is_judged_against_its_own_spread():
     small[:, 0] *= 5.0
     ring = noise_classes(small.shape) == 0
     assert np.ptp(class_sigmas(small)[ring]) == 0.0
+    clipped = _noise((60, 200))  # a side off the sensor but for two lenses, one a defect: too few values
+    clipped[:, 0] = np.nan
+    clipped[20, 0], clipped[30, 0] = 0.5, 60.0
+    assert class_sigmas(clipped)[30, 0] < 2.0
