@@ -552,20 +552,19 @@ def class_sigmas(dev: np.ndarray, floor: float | np.ndarray = 0.0, exclude: np.n
             out[sel] = np.where(ok, np.maximum(inner, np.nan_to_num(spread, nan=0.0)), inner)
     second = second_ring(stack.shape[:2])
     quiet = second if exclude is None else second & ~exclude  # (its spread without the defects' light)
-    if quiet.sum() >= SECOND_RING_MIN:
-        _raise_to_own(out, second, stack[quiet], _column_tail_sigmas(stack[quiet], floor))
+    _raise_to_own(out, second, stack[quiet], lambda v: _column_tail_sigmas(v, floor))
     for group in edge_groups(stack.shape[:2], packing):
         quiet = group if exclude is None else group & ~exclude
-        if quiet.sum() >= SECOND_RING_MIN:
-            _raise_to_own(out, group, stack[quiet], _column_robust_sigmas(stack[quiet]))
+        _raise_to_own(out, group, stack[quiet], _column_robust_sigmas)
     return out[..., 0] if dev.ndim == 2 else out
 
 
-def _raise_to_own(out: np.ndarray, group: np.ndarray, values: np.ndarray, spread: np.ndarray) -> None:
-    """out[group] raised, map by map, to the group's own `spread` of its `values` (n, J) where that map
-    has SECOND_RING_MIN finite values (lenses off the sensor read NaN: a clipped side is too few)."""
+def _raise_to_own(out: np.ndarray, group: np.ndarray, values: np.ndarray, spread_of) -> None:
+    """out[group] raised, map by map, to the group's own spread (`spread_of` its `values`, (n, J)) where
+    that map has SECOND_RING_MIN finite values (lenses off the sensor read NaN: a clipped side is too few)."""
     enough = np.isfinite(values).sum(axis=0) >= SECOND_RING_MIN
     if enough.any():
+        spread = spread_of(values)
         out[group] = np.maximum(out[group], np.where(enough & np.isfinite(spread), spread, 0.0))
 
 
