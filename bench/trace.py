@@ -6,6 +6,7 @@ peak memory on the default camera, for each engine and thread count; then the is
     python bench/trace.py --huge     # also 10^9 rays in the memory table
     python bench/trace.py --boundaries   # only: sag-intersection vs grid lens boundaries, interleaved runs
     python bench/trace.py --arrays       # only: square grid / sag, hex grid / sag, hex circles, interleaved
+    python bench/trace.py --kernels      # only: the same, the tracer's batches alone in short paired rounds
     python bench/trace.py --packing hex --aperture circle   # the main tables on another array
     python bench/trace.py --arrays --against /work/main     # --arrays for that tree's mlaqc and this one's,
                                                             # in child processes taking turns
@@ -59,15 +60,17 @@ ARRAYS = {"square grid": ("square", "cell", "grid"), "square sag-intersection": 
 
 
 def compare_arrays(rays: int, repeats: int) -> dict:
-    """rays/s (numba, one thread and all cores) of every array kind, runs interleaved so that the machine's
-    load hits all alike; medians, and each against the square grid's (the issue's bars: hex and
-    sag-intersection within 1.2x, i.e. >= 0.83x). Returns {threads: {array: (rays/s ratio, CPU ratio)}}."""
+    """rays/s (numba, one thread and all cores) of every array kind, against the square grid's (the issue's
+    bars: hex and sag-intersection within 1.2x, i.e. >= 0.83x). The host's speed drifts by tens of per cent
+    over seconds, so each round runs every array back to back (order alternating) and the ratio is taken
+    within the round; the median over rounds and its interquartile range are printed (a ratio of medians
+    over the whole run mixes fast and slow phases). Returns {threads: {array: (rays/s ratio, CPU ratio)}}."""
     renderers = {name: Renderer(*camera(*spec), engine="numba") for name, spec in ARRAYS.items()}
     for r in renderers.values():
         r.render(WhiteScene(), rays=200_000, seed=0)  # compile / warm up
     cores = os.cpu_count() or 1
-    print(f"arrays, numba, {rays:,} rays a run, {repeats} interleaved runs each (median; CPU ns/ray "
-          "single-threaded is the load-independent figure); 200 defective lenses each")
+    print(f"arrays, numba, {rays:,} rays a run, {repeats} rounds of every array back to back (paired ratios to the "
+          "square grid in each round: median [interquartile range]); 200 defective lenses each")
     names = list(renderers)
     ratios = {}
     for threads in sorted({1, cores}):
@@ -75,13 +78,47 @@ def compare_arrays(rays: int, repeats: int) -> dict:
         for k in range(repeats):
             for b in (names if k % 2 == 0 else names[::-1]):
                 got[b].append(rate(renderers[b], rays, threads, seed=10 + k))
-        med = {b: (float(np_median([g[0] for g in got[b]])), float(np_median([g[2] for g in got[b]]))) for b in names}
-        ref = med["square grid"]
-        ratios[threads] = {b: (med[b][0] / ref[0], ref[1] / med[b][1]) for b in names}
+        ref = got["square grid"]
+        ratios[threads] = {}
         for b in names:
-            print(f"  {b:24s} {threads} thread(s): {med[b][0]:6.2f} M rays/s, {med[b][1]:6.1f} CPU ns/ray, "
-                  f"x{med[b][0] / ref[0]:.2f} rays/s (x{ref[1] / med[b][1]:.2f} by CPU) of square grid")
+            wall = sorted(g[0] / r[0] for g, r in zip(got[b], ref))
+            cpu = sorted(r[2] / g[2] for g, r in zip(got[b], ref))
+            ratios[threads][b] = (np_median(wall), np_median(cpu))
+            q1, q3 = wall[len(wall) // 4], wall[(3 * len(wall)) // 4]
+            print(f"  {b:24s} {threads} thread(s): {np_median([g[0] for g in got[b]]):6.2f} M rays/s, "
+                  f"{np_median([g[2] for g in got[b]]):6.1f} CPU ns/ray, x{ratios[threads][b][0]:.3f} rays/s "
+                  f"[{q1:.2f}-{q3:.2f}] (x{ratios[threads][b][1]:.3f} by CPU) of square grid")
     return ratios
+
+
+def compare_kernels(rays: int, rounds: int) -> None:
+    """The tracer's batches alone (no frame assembly), one thread: each round traces the next `rays` rays of
+    every array's own job list back to back (order alternating) and takes each array's ratio to the
+    square grid within the round. Rounds of a fraction of a second pair far more tightly than whole
+    renders on a host whose speed drifts; median and interquartile range over the rounds."""
+    scene = WhiteScene()
+    renderers = {name: Renderer(*camera(*spec), engine="numba") for name, spec in ARRAYS.items()}
+    plans, pos, ns = {}, dict.fromkeys(renderers, 0), {name: [] for name in renderers}
+    for name, r in renderers.items():
+        r.render(scene, rays=200_000, seed=0)  # compile / warm up
+        plans[name] = r.plan(scene, rays * rounds, None, 3)
+    names = list(renderers)
+    for k in range(rounds):
+        for name in (names if k % 2 == 0 else names[::-1]):
+            r, plan, n = renderers[name], plans[name], 0
+            t = time.perf_counter()
+            while n < rays:
+                job = plan.jobs[pos[name] % len(plan.jobs)]
+                pos[name] += 1
+                r._trace_job(scene, job, int(plan.keys[job.index]))
+                n += job.n
+            ns[name].append((time.perf_counter() - t) / n * 1e9)
+    print(f"tracer batches alone, numba, 1 thread, {rounds} rounds of ~{rays:,} rays per array (paired ratios to the "
+          "square grid in each round: median [interquartile range])")
+    for name in names:
+        rat = sorted(a / b for a, b in zip(ns["square grid"], ns[name]))
+        print(f"  {name:24s} {np_median(ns[name]):6.1f} ns/ray, x{np_median(rat):.3f} [{rat[len(rat) // 4]:.3f}-"
+              f"{rat[(3 * len(rat)) // 4]:.3f}] rays/s of square grid")
 
 
 def compare_trees(other: str, quick: bool, rounds: int = 2) -> None:
@@ -212,6 +249,7 @@ def main() -> int:
     ap.add_argument("--against", metavar="TREE", help="with --arrays: also that checkout's mlaqc, taking turns")
     ap.add_argument("--boundaries", action="store_true", help="only sag-intersection vs grid boundaries' rays/s")
     ap.add_argument("--arrays", action="store_true", help="only rays/s of square / hex, grid / sag, circles")
+    ap.add_argument("--kernels", action="store_true", help="only the tracer's batches of every array kind, paired")
     ap.add_argument("--images", nargs=2, metavar=("save|check", "PATH"),
                     help="seeded frames of every array kind: save them, or check these are bit-identical")
     ap.add_argument("--packing", choices=("square", "hex"), default="square", help="the main tables' array packing")
@@ -227,11 +265,14 @@ def main() -> int:
     if args.boundaries:
         compare_boundaries(10_000_000 if args.quick else 40_000_000, 3 if args.quick else 5)
         return 0
+    if args.kernels:
+        compare_kernels(500_000 if args.quick else 1_000_000, 20 if args.quick else 60)
+        return 0
     if args.arrays and args.against:
         compare_trees(args.against, args.quick)
         return 0
     if args.arrays:
-        ratios = compare_arrays(5_000_000 if args.quick else 20_000_000, 3 if args.quick else 5)
+        ratios = compare_arrays(5_000_000 if args.quick else 20_000_000, 5 if args.quick else 11)
         if args.ratios_json:
             print(json.dumps(ratios))
         return 0

@@ -216,6 +216,21 @@ def cell_edge(u, v, ncols, nrows, lat):
     return _cell_edge_square(u, v, ncols, nrows, lat) if lat is None else _cell_edge_hex(u, v, ncols, nrows, lat)
 
 
+def _centre_square(x, y, ax0, ay0, invp, p, lat):
+    return 0.0, 0.0
+
+
+def _centre_hex(x, y, ax0, ay0, invp, p, lat):
+    _, _, du, dv = hex_locate((x - ax0) * invp, (y - ay0) * invp)
+    return x - du * p, y - dv * p
+
+
+def cell_centre(x, y, ax0, ay0, invp, p, lat):
+    """Hex: the design centre (mm) of the cell holding MLA point (x, y), from the point's offset in it
+    (cell_f's look-up, which LLVM computes once for both); square: unused zeros."""
+    return _centre_square(x, y, ax0, ay0, invp, p, lat) if lat is None else _centre_hex(x, y, ax0, ay0, invp, p, lat)
+
+
 def _black_square(u, v, p, hw, lat):
     fu = u - np.floor(u)
     fv = v - np.floor(v)
@@ -250,6 +265,13 @@ if AVAILABLE:
     # trip a Numba SSA check (NumbaIRAssumptionWarning) when it is inlined
     _cs, _ch, _es, _eh = (_jit_inline(f) for f in (_cell_square, _cell_hex, _cell_edge_square, _cell_edge_hex))
     _bs, _bh = _jit_inline(_black_square), _jit_inline(_black_hex)
+    _ctrs, _ctrh = _jit_inline(_centre_square), _jit_inline(_centre_hex)
+
+    @overload(cell_centre, **_TYPED)
+    def _cell_centre_typed(x, y, ax0, ay0, invp, p, lat):
+        if isinstance(lat, types.NoneType):
+            return lambda x, y, ax0, ay0, invp, p, lat: _ctrs(x, y, ax0, ay0, invp, p, lat)
+        return lambda x, y, ax0, ay0, invp, p, lat: _ctrh(x, y, ax0, ay0, invp, p, lat)
     _os, _oh = _jit_inline(_own_edge_square), _jit_inline(_own_edge_hex)
 
     @overload(own_edge, **_TYPED)
@@ -916,9 +938,10 @@ def grot_entries(grot):
 
 
 @_jit_inline
-def pass_enter(m, buf, s, tab, grot, g, kk, lat):
-    """Pass A: into the MLA frame, onto the front plane, which cell; the black matrix; gather the lenses."""
-    zfront, shx, shy, zmla = s[S_ZFRONT], s[S_SHIFTX], s[S_SHIFTY], s[S_ZMLA]
+def pass_enter(m, buf, s, tab, grot, g, kk, lat, centres):
+    """Pass A: into the MLA frame, onto the front plane, which cell (`centres`, hex sag-intersection: and
+    its design centre, for own_edge, computed rather than gathered); the black matrix; gather the lenses."""
+    zfront, shx, shy, zmla, p = s[S_ZFRONT], s[S_SHIFTX], s[S_SHIFTY], s[S_ZMLA], s[S_P]
     ax0, ay0, invp, ncols, nrows = s[S_AX0], s[S_AY0], s[S_INVP], s[S_COLS], s[S_ROWS]
     g00, g01, g02, g10, g11, g12, g20, g21, g22 = grot_entries(grot)
     for j in range(m):
@@ -931,6 +954,8 @@ def pass_enter(m, buf, s, tab, grot, g, kk, lat):
         y += t * M
         z += t * N
         kf = cell_f(x, y, ax0, ay0, invp, ncols, nrows, lat)
+        if centres:
+            g[G_CX, j], g[G_CY, j] = cell_centre(x, y, ax0, ay0, invp, p, lat)
         alive = (w > 0.0) & (kf >= 0.0)  # w > 0 also rejects NaN
         kk[j] = np.int32(kf) if alive else np.int32(0)  # int32: converts four at a time on AVX2
         buf[0, j], buf[1, j], buf[2, j], buf[3, j], buf[4, j], buf[5, j] = x, y, z, L, M, N
@@ -1154,7 +1179,7 @@ def stage2_block(m, buf, s, tab, rot, grot, clear, fres, n_mla, mu_in, g, kk, fl
     version was bound by the latency of its chain of divisions and square roots); the rare re-trace near
     cell edges is a scalar pass of its own. Operations are those of raytrace.MicrolensArray, in the same
     order, so both engines agree to rounding."""
-    pass_enter(m, buf, s, tab, grot, g, kk, lat)
+    pass_enter(m, buf, s, tab, grot, g, kk, lat, False)
     if circ is None:
         pass_front_grid(m, buf, s, tab, rot, g, kk, flag, lat)
         pass_front_refract(m, buf, s, rot, clear, fres, n_mla, mu_in, g, kk, corner_of, False)
@@ -1176,14 +1201,10 @@ def stage2_block_sag(m, buf, s, tab, rot, grot, clear, fres, n_mla, mu_in, g, kk
     flag hits within a per-cell margin of the edge (front_sag, rear_sag) for the 3 x 3 neighbour pass
     (retrace_sag), and corners from the union of the rear regions (corners_sag). A kernel of its own
     (kernel_sag), so that grid kernels compile none of it."""
-    pass_enter(m, buf, s, tab, grot, g, kk, lat)
+    pass_enter(m, buf, s, tab, grot, g, kk, lat, lat is not None)  # hex: own_edge's design centres
     for j in range(m):  # in a loop of its own, as gather: an indexed load keeps a pass from vectorizing
         k = kk[j]
         g[G_MF, j], g[G_MR, j] = margins[T_MARGIN_FRONT, k], margins[T_MARGIN_REAR, k]
-    if lat is not None:  # hex: own_edge's design centres (square cells use the lattice: no gather)
-        for j in range(m):
-            k = kk[j]
-            g[G_CX, j], g[G_CY, j] = margins[T_GX, k], margins[T_GY, k]
     front_sag(m, buf, s, tab, rot, g, kk, flag, cflag, corner_of, lat)
     retrace_sag(m, flag, kk, buf, g, tab, rot, s, False, cflag, margins, lims, lat, corner_of)
     corners_sag(m, cflag, kk, g, tab, rot, s, corner_of, lat)
