@@ -65,9 +65,7 @@ def compare_arrays(rays: int, repeats: int) -> dict:
     over seconds, so each round runs every array back to back (order alternating) and the ratio is taken
     within the round; the median over rounds and its interquartile range are printed (a ratio of medians
     over the whole run mixes fast and slow phases). Returns {threads: {array: (rays/s ratio, CPU ratio)}}."""
-    renderers = {name: Renderer(*camera(*spec), engine="numba") for name, spec in ARRAYS.items()}
-    for r in renderers.values():
-        r.render(WhiteScene(), rays=200_000, seed=0)  # compile / warm up
+    renderers = warm_renderers()
     cores = os.cpu_count() or 1
     print(f"arrays, numba, {rays:,} rays a run, {repeats} rounds of every array back to back (paired ratios to the "
           "square grid in each round: median [interquartile range]); 200 defective lenses each")
@@ -81,13 +79,12 @@ def compare_arrays(rays: int, repeats: int) -> dict:
         ref = got["square grid"]
         ratios[threads] = {}
         for b in names:
-            wall = sorted(g[0] / r[0] for g, r in zip(got[b], ref))
-            cpu = sorted(r[2] / g[2] for g, r in zip(got[b], ref))
-            ratios[threads][b] = (np_median(wall), np_median(cpu))
-            q1, q3 = wall[len(wall) // 4], wall[(3 * len(wall)) // 4]
+            wall, q1, q3 = paired([g[0] / r[0] for g, r in zip(got[b], ref)])
+            cpu = paired([r[2] / g[2] for g, r in zip(got[b], ref)])[0]
+            ratios[threads][b] = (wall, cpu)
             print(f"  {b:24s} {threads} thread(s): {np_median([g[0] for g in got[b]]):6.2f} M rays/s, "
-                  f"{np_median([g[2] for g in got[b]]):6.1f} CPU ns/ray, x{ratios[threads][b][0]:.3f} rays/s "
-                  f"[{q1:.2f}-{q3:.2f}] (x{ratios[threads][b][1]:.3f} by CPU) of square grid")
+                  f"{np_median([g[2] for g in got[b]]):6.1f} CPU ns/ray, x{wall:.3f} rays/s "
+                  f"[{q1:.2f}-{q3:.2f}] (x{cpu:.3f} by CPU) of square grid")
     return ratios
 
 
@@ -97,11 +94,9 @@ def compare_kernels(rays: int, rounds: int) -> None:
     square grid within the round. Rounds of a fraction of a second pair far more tightly than whole
     renders on a host whose speed drifts; median and interquartile range over the rounds."""
     scene = WhiteScene()
-    renderers = {name: Renderer(*camera(*spec), engine="numba") for name, spec in ARRAYS.items()}
-    plans, pos, ns = {}, dict.fromkeys(renderers, 0), {name: [] for name in renderers}
-    for name, r in renderers.items():
-        r.render(scene, rays=200_000, seed=0)  # compile / warm up
-        plans[name] = r.plan(scene, rays * rounds, None, 3)
+    renderers = warm_renderers()
+    plans = {name: r.plan(scene, rays * rounds, None, 3) for name, r in renderers.items()}
+    pos, ns = dict.fromkeys(renderers, 0), {name: [] for name in renderers}
     names = list(renderers)
     for k in range(rounds):
         for name in (names if k % 2 == 0 else names[::-1]):
@@ -116,9 +111,22 @@ def compare_kernels(rays: int, rounds: int) -> None:
     print(f"tracer batches alone, numba, 1 thread, {rounds} rounds of ~{rays:,} rays per array (paired ratios to the "
           "square grid in each round: median [interquartile range])")
     for name in names:
-        rat = sorted(a / b for a, b in zip(ns["square grid"], ns[name]))
-        print(f"  {name:24s} {np_median(ns[name]):6.1f} ns/ray, x{np_median(rat):.3f} [{rat[len(rat) // 4]:.3f}-"
-              f"{rat[(3 * len(rat)) // 4]:.3f}] rays/s of square grid")
+        med, q1, q3 = paired([a / b for a, b in zip(ns["square grid"], ns[name])])
+        print(f"  {name:24s} {np_median(ns[name]):6.1f} ns/ray, x{med:.3f} [{q1:.3f}-{q3:.3f}] rays/s of square grid")
+
+
+def warm_renderers() -> dict[str, Renderer]:
+    """A numba Renderer of every array kind (ARRAYS), each compiled / warmed up by a small render."""
+    renderers = {name: Renderer(*camera(*spec), engine="numba") for name, spec in ARRAYS.items()}
+    for r in renderers.values():
+        r.render(WhiteScene(), rays=200_000, seed=0)
+    return renderers
+
+
+def paired(ratios: list[float]) -> tuple[float, float, float]:
+    """Median and interquartile range (first, third quartile) of per-round ratios."""
+    v = sorted(ratios)
+    return np_median(v), v[len(v) // 4], v[(3 * len(v)) // 4]
 
 
 def compare_trees(other: str, quick: bool, rounds: int = 2) -> None:

@@ -227,7 +227,7 @@ def _centre_hex(x, y, ax0, ay0, invp, p, lat):
 
 def cell_centre(x, y, ax0, ay0, invp, p, lat):
     """Hex: the design centre (mm) of the cell holding MLA point (x, y), from the point's offset in it
-    (cell_f's look-up, which LLVM computes once for both); square: unused zeros."""
+    (the look-up cell_f makes, on the same operands, for LLVM to share); square: unused zeros."""
     return _centre_square(x, y, ax0, ay0, invp, p, lat) if lat is None else _centre_hex(x, y, ax0, ay0, invp, p, lat)
 
 
