@@ -243,16 +243,16 @@ def _notice() -> None:
 
 @contextlib.contextmanager
 def compile_notice(what: str, after_s: float = 1.5):
-    """Around a JIT call that may compile (the tracer: a minute per variant on first use): if it has not
-    returned after `after_s`, say once per process on stderr that `what` is being compiled, and why it is
-    slow only this once."""
+    """Around a JIT call that may compile (the tracer: one to two minutes per variant on first use, on 2
+    cores): if it has not returned after `after_s`, say once per process on stderr that `what` is being
+    compiled, and why it is slow only this once."""
     def say() -> None:
         with _LOCK:
             if what in _STATE["announced"]:
                 return
             _STATE["announced"].add(what)
-        print(f"mlaqc: compiling {what} once for this machine (up to a minute; kept in Numba's cache for "
-              "every later run) ...", file=sys.stderr, flush=True)
+        print(f"mlaqc: compiling {what} once for this machine (a minute or two; kept in Numba's cache "
+              "for every later run) ...", file=sys.stderr, flush=True)
 
     timer = threading.Timer(after_s, say)
     timer.daemon = True

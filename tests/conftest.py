@@ -14,12 +14,12 @@ os.environ.pop("MLAQC_SCHEDULER", None)  # a developer's cluster must not take o
 
 # ------------------------------------------------------------------------------------ Numba warm-up
 # The tracer's kernel is compiled once per variant (which of its MLA-rotation, global-rotation and
-# texture arguments are None; the lens-boundary model): about 45 s each, single-threaded, most of a
-# cold run's time (CI's fresh clone has no compiled code). cache=True keeps each compiled variant in
-# the package's __pycache__ (or $NUMBA_CACHE_DIR), where every process finds it: pytest, xdist workers,
-# the `mlaqc` subprocesses and the Dask workers of the cluster tests. Before the first test, the
-# variants the suite uses (and the inspection kernels) are compiled there by one process per core at
-# once. Warm (the usual local case), each job is a cache load: a second or two in all. A variant not
+# texture arguments are None; the lens-boundary model): one to two minutes each on one core of a 2-core
+# host (60-120 s measured), most of a cold run's time (CI's fresh clone has no compiled code). cache=True
+# keeps each compiled variant in the package's __pycache__ (or $NUMBA_CACHE_DIR), where every process
+# finds it: pytest, xdist workers, the `mlaqc` subprocesses and the Dask workers of the cluster tests.
+# Before the first test, the variants the suite uses (and the inspection kernels) are compiled there by
+# one process per core at once. Warm (the usual local case), each job is a cache load: a second or two in all. A variant not
 # listed is compiled by the first test that needs it, as before. The warm-up runs for whole folders
 # (`pytest`, `pytest tests`), not for a run of named files or tests, which compiles only what it uses;
 # MLAQC_TEST_WARMUP=1 or 0 turns it on or off whatever the run.
@@ -36,6 +36,7 @@ TRACER_VARIANTS = (
     (True, False, False, "grid"),
     (False, False, False, "sag-intersection"),
     (True, True, False, "sag-intersection"),
+    (True, False, False, "sag-intersection"),  # the signature tables' patches (tilts, no global rotation)
     # hex packing and circle apertures (#22): kernels of their own (the lattice and circle arguments)
     (False, False, False, "grid", "hex"),
     (False, False, False, "sag-intersection", "hex"),

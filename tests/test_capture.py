@@ -15,8 +15,6 @@ from mlaqc.cli import main
 from mlaqc.errors import InputError
 from mlaqc.inspection.rawio import load_raw
 
-pytestmark = pytest.mark.timeout(60)
-
 URL = "mock://?rpp=1&seed=4"
 
 

@@ -183,7 +183,6 @@ def test_the_mock_wafer_holds_hex_arrays_of_the_hex_config():
         assert frame.data.shape == (496, 496) and frame.extra["truth"]["error_map"]["packing"] == "hex"
 
 
-@pytest.mark.timeout(240)
 def test_a_scan_over_a_hex_wafer_records_each_arrays_hex_truth(tmp_path):
     import json
 
@@ -220,7 +219,6 @@ def test_circular_apertures_are_drawn_in_the_grid_overlay(qtbot):
     w.close()
 
 
-@pytest.mark.timeout(300)
 def test_a_scan_with_inspection_finds_the_seeded_defects_of_each_hex_array(tmp_path):
     import json
 

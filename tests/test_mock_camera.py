@@ -16,8 +16,6 @@ from mlaqc.errors import DeviceError, InputError
 from mlaqc.optics.config import load_config
 from mlaqc.optics.errormap import random_defects
 
-pytestmark = pytest.mark.timeout(60)
-
 FAST = "mock://?rpp=0.5&seed=3"
 
 

@@ -782,7 +782,7 @@ def clears_neighbours(k, x, y, side, margins, lims, lat):
     return ok
 
 
-@_jit_inline
+@_jit
 def scan_candidates(j, k0, row0, col0, buf, tab, rot, s, rear, lat, best, bt, bx, by, bz, bL, bM, bN):
     """The first-met front / last-met rear sphere among the candidates around cell (row0, col0), starting
     from lens k0's hit (best, bt, b*): another replaces it only if strictly earlier / later, so the first
@@ -857,26 +857,33 @@ def inside_rear(k, px, py, pz, tab):
     return (arg >= 0.0) & (tab[6, k] + c2 * rho2 / (1.0 + math.sqrt(max(arg, 0.0))) > pz)
 
 
+@_jit
+def in_rear_union(gx, gy, gz, tab, rot, s, lat):
+    """An MLA-frame point lies in the rear region of one of the candidates around its cell (a call, not
+    inlined: rare, and compiled once for all kernels that share its types)."""
+    rows, cols = int(s[S_ROWS]), int(s[S_COLS])
+    row0, col0 = centre_cell(gx, gy, s, lat)
+    inside = False
+    for i in range(9 if lat is None else 7):
+        rr, cc = candidate(i, row0, col0, lat)
+        if rr < 0 or rr >= rows or cc < 0 or cc >= cols:
+            continue
+        kc = rr * cols + cc
+        px, py, pz, _, _, _ = to_lens(kc, gx, gy, gz, 0.0, 0.0, 0.0, tab, rot)
+        inside = inside or inside_rear(kc, px, py, pz, tab)
+    return inside
+
+
 @_jit_inline
 def corners_sag(m, cflag, kk, g, tab, rot, s, corner_of, lat):
     """Sag-intersection corners of the flagged rays (front hit within the rear margin of its cell's edge,
     or re-traced) outside their own lens' rear region (inside it, a hit is in the union: the scan is
     skipped): the front hit lies in no rear region of the candidates around its cell (as
     raytrace.MicrolensArray._corner_sag; elsewhere lens kk's rear decides, in pass B). Scalar: rare."""
-    rows, cols = int(s[S_ROWS]), int(s[S_COLS])
     for j in range(m):
         if cflag[j] and corner_of[j]:  # inside its own lens' rear region, a hit is in the union: no corner
             gx, gy, gz, _, _, _ = from_lens(kk[j], g[G_HX, j], g[G_HY, j], g[G_HZ, j], 0.0, 0.0, 0.0, tab, rot)
-            row0, col0 = centre_cell(gx, gy, s, lat)
-            inside = False
-            for i in range(9 if lat is None else 7):
-                rr, cc = candidate(i, row0, col0, lat)
-                if rr < 0 or rr >= rows or cc < 0 or cc >= cols:
-                    continue
-                kc = rr * cols + cc
-                px, py, pz, _, _, _ = to_lens(kc, gx, gy, gz, 0.0, 0.0, 0.0, tab, rot)
-                inside = inside or inside_rear(kc, px, py, pz, tab)
-            corner_of[j] = not inside
+            corner_of[j] = not in_rear_union(gx, gy, gz, tab, rot, s, lat)
 
 
 @_jit_inline
@@ -1393,7 +1400,7 @@ class FastCamera:
         trace = kernel if self.margins is None else kernel_sag
         if self._warm:
             k = trace(*args)
-        else:  # the variant's first batch: a compile of about a minute on first use is said, not silent
+        else:  # the variant's first batch: a compile of a minute or two on first use is said, not silent
             with compile_notice("the ray tracer"):
                 k = trace(*args)
             self._warm = True
