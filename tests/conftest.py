@@ -19,10 +19,10 @@ os.environ.pop("MLAQC_SCHEDULER", None)  # a developer's cluster must not take o
 # keeps each compiled variant in the package's __pycache__ (or $NUMBA_CACHE_DIR), where every process
 # finds it: pytest, xdist workers, the `mlaqc` subprocesses and the Dask workers of the cluster tests.
 # Before the first test, the variants the suite uses (and the inspection kernels) are compiled there by
-# one process per core at once. Warm (the usual local case), each job is a cache load: a second or two in all. A variant not
-# listed is compiled by the first test that needs it, as before. The warm-up runs for whole folders
-# (`pytest`, `pytest tests`), not for a run of named files or tests, which compiles only what it uses;
-# MLAQC_TEST_WARMUP=1 or 0 turns it on or off whatever the run.
+# one process per core at once. Warm (the usual local case), each job is a cache load: a second or two
+# in all. A variant not listed is compiled by the first test that needs it, as before. The warm-up runs
+# for whole folders (`pytest`, `pytest tests`), not for a run of named files or tests, which compiles
+# only what it uses; MLAQC_TEST_WARMUP=1 or 0 turns it on or off whatever the run.
 
 # (per-lens tilt: MLA rotation array, global MLA rotation: camera rotation array, texture, boundaries
 #  [, MLA: 'hex', 'circle', 'hex-circle'])
