@@ -10,6 +10,7 @@ peak memory on the default camera, for each engine and thread count; then the is
     python bench/trace.py --packing hex --aperture circle   # the main tables on another array
     python bench/trace.py --arrays --against /work/main     # --arrays for that tree's mlaqc and this one's,
                                                             # in child processes taking turns
+    python bench/trace.py --kernels --quick --against OLD --rounds 6   # the same for --kernels
     python bench/trace.py --images save ref.npz   # seeded frames of every array kind (both samplers), then
     python bench/trace.py --images check ref.npz  # after a kernel change: are they bit-identical?
 
@@ -88,31 +89,39 @@ def compare_arrays(rays: int, repeats: int) -> dict:
     return ratios
 
 
-def compare_kernels(rays: int, rounds: int) -> None:
+def compare_kernels(rays: int, rounds: int) -> dict[str, dict[str, tuple[float, float]]]:
     """The tracer's batches alone (no frame assembly), one thread: each round traces the next `rays` rays of
     every array's own job list back to back (order alternating) and takes each array's ratio to the
-    square grid within the round. Rounds of a fraction of a second pair far more tightly than whole
-    renders on a host whose speed drifts; median and interquartile range over the rounds."""
+    square grid within the round, by wall clock and by this thread's CPU time (which a busy host's other
+    work and stolen time do not add to). Rounds of a fraction of a second pair far more tightly than whole
+    renders on a host whose speed drifts; median and interquartile range over the rounds. Returns
+    {"1": {array: (wall ratio, CPU ratio)}}, as compare_arrays does."""
     scene = WhiteScene()
     renderers = warm_renderers()
     plans = {name: r.plan(scene, rays * rounds, None, 3) for name, r in renderers.items()}
-    pos, ns = dict.fromkeys(renderers, 0), {name: [] for name in renderers}
+    pos, ns, cpu = dict.fromkeys(renderers, 0), {name: [] for name in renderers}, {name: [] for name in renderers}
     names = list(renderers)
     for k in range(rounds):
         for name in (names if k % 2 == 0 else names[::-1]):
             r, plan, n = renderers[name], plans[name], 0
-            t = time.perf_counter()
+            t, c = time.perf_counter(), time.thread_time()
             while n < rays:
                 job = plan.jobs[pos[name] % len(plan.jobs)]
                 pos[name] += 1
                 r._trace_job(scene, job, int(plan.keys[job.index]))
                 n += job.n
             ns[name].append((time.perf_counter() - t) / n * 1e9)
+            cpu[name].append((time.thread_time() - c) / n * 1e9)
     print(f"tracer batches alone, numba, 1 thread, {rounds} rounds of ~{rays:,} rays per array (paired ratios to the "
-          "square grid in each round: median [interquartile range])")
+          "square grid in each round: median [interquartile range]; by wall clock, then by CPU time)")
+    out = {}
     for name in names:
         med, q1, q3 = paired([a / b for a, b in zip(ns["square grid"], ns[name])])
-        print(f"  {name:24s} {np_median(ns[name]):6.1f} ns/ray, x{med:.3f} [{q1:.3f}-{q3:.3f}] rays/s of square grid")
+        cmed, c1, c3 = paired([a / b for a, b in zip(cpu["square grid"], cpu[name])])
+        print(f"  {name:24s} {np_median(ns[name]):6.1f} ns/ray, x{med:.3f} [{q1:.3f}-{q3:.3f}] rays/s of square grid; "
+              f"CPU x{cmed:.3f} [{c1:.3f}-{c3:.3f}]")
+        out[name] = (float(med), float(cmed))
+    return {"1": out}
 
 
 def warm_renderers() -> dict[str, Renderer]:
@@ -129,17 +138,17 @@ def paired(ratios: list[float]) -> tuple[float, float, float]:
     return np_median(v), v[len(v) // 4], v[(3 * len(v)) // 4]
 
 
-def compare_trees(other: str, quick: bool, rounds: int = 2) -> None:
-    """`--arrays` in child processes, the mlaqc of `other` (a checkout, e.g. main's) and this tree's taking
-    turns (the host's speed drifts); each child's table, then the ratios to the square grid of both trees
-    (medians over the rounds)."""
+def compare_trees(other: str, quick: bool, what: str = "--arrays", rounds: int = 2) -> None:
+    """`--arrays` (or `--kernels`) in child processes, the mlaqc of `other` (a checkout, e.g. main's) and
+    this tree's taking turns (the host's speed drifts); each child's table, then the ratios to the square
+    grid of both trees (medians over the rounds)."""
     here = str(Path(__file__).resolve().parent.parent)
     trees = {"other": str(Path(other).resolve()), "this": here}
     got = {t: [] for t in trees}
     for k in range(rounds):
         for t in (list(trees) if k % 2 == 0 else list(trees)[::-1]):
             env = dict(os.environ, PYTHONPATH=trees[t])
-            cmd = [sys.executable, __file__, "--arrays", "--ratios-json"] + (["--quick"] if quick else [])
+            cmd = [sys.executable, __file__, what, "--ratios-json"] + (["--quick"] if quick else [])
             out = subprocess.run(cmd, env=env, capture_output=True, text=True, check=True).stdout.splitlines()
             print(f"--- round {k + 1}, {t} ({trees[t]}) ---")
             print("\n".join(out[:-1]), flush=True)
@@ -151,7 +160,7 @@ def compare_trees(other: str, quick: bool, rounds: int = 2) -> None:
             for t in trees:
                 wall = np_median([g[threads][name][0] for g in got[t]])
                 cpu = np_median([g[threads][name][1] for g in got[t]])
-                cells.append(f"{t} x{wall:.2f} (x{cpu:.2f})")
+                cells.append(f"{t} x{wall:.3f} (x{cpu:.3f})")
             print(f"  {threads} thread(s) {name:24s} " + ", ".join(cells))
 
 
@@ -254,7 +263,9 @@ def main() -> int:
     ap.add_argument("--huge", action="store_true", help="add 10^9 rays to the memory table")
     ap.add_argument("--memory-child", type=int, help=argparse.SUPPRESS)
     ap.add_argument("--ratios-json", action="store_true", help=argparse.SUPPRESS)
-    ap.add_argument("--against", metavar="TREE", help="with --arrays: also that checkout's mlaqc, taking turns")
+    ap.add_argument("--against", metavar="TREE", help="with --arrays or --kernels: also that checkout's mlaqc, "
+                    "taking turns")
+    ap.add_argument("--rounds", type=int, help="with --against: child processes per tree (default 2)")
     ap.add_argument("--boundaries", action="store_true", help="only sag-intersection vs grid boundaries' rays/s")
     ap.add_argument("--arrays", action="store_true", help="only rays/s of square / hex, grid / sag, circles")
     ap.add_argument("--kernels", action="store_true", help="only the tracer's batches of every array kind, paired")
@@ -273,11 +284,13 @@ def main() -> int:
     if args.boundaries:
         compare_boundaries(10_000_000 if args.quick else 40_000_000, 3 if args.quick else 5)
         return 0
-    if args.kernels:
-        compare_kernels(500_000 if args.quick else 1_000_000, 20 if args.quick else 60)
+    if (args.arrays or args.kernels) and args.against:
+        compare_trees(args.against, args.quick, "--kernels" if args.kernels else "--arrays", args.rounds or 2)
         return 0
-    if args.arrays and args.against:
-        compare_trees(args.against, args.quick)
+    if args.kernels:
+        ratios = compare_kernels(500_000 if args.quick else 1_000_000, 20 if args.quick else 60)
+        if args.ratios_json:
+            print(json.dumps(ratios))
         return 0
     if args.arrays:
         ratios = compare_arrays(5_000_000 if args.quick else 20_000_000, 5 if args.quick else 11)

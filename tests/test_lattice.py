@@ -45,6 +45,22 @@ def test_nearest_is_the_voronoi_cell(packing):
     assert np.array_equal(inside, (r >= 0) & (r < 7) & (c >= 0) & (c < 6))
 
 
+def test_hex_cell_offsets_and_ties():
+    """hex_cell's offset is the point minus its lens' centre, on both row parities and far from U(1,1), and
+    no neighbour's centre is nearer; a point equidistant (exactly, in floating point) from an even-row and
+    an odd-row lens goes to the even row."""
+    from mlaqc.optics.lattice import SQRT3_2, hex_cell
+    rng = np.random.default_rng(3)
+    u, v = rng.uniform(-500, 500, 100000), rng.uniform(-500, 500, 100000)
+    r, c, du, dv = hex_cell(u, v)
+    assert np.allclose(u - du, c + 0.5 * (r % 2), atol=1e-9) and np.allclose(v - dv, r * SQRT3_2, atol=1e-9)
+    d0 = du * du + dv * dv
+    for a, b in [(1, 0), (-1, 0), (0.5, SQRT3_2), (-0.5, SQRT3_2), (0.5, -SQRT3_2), (-0.5, -SQRT3_2)]:
+        assert np.all((du - a) ** 2 + (dv - b) ** 2 >= d0 - 1e-12)
+    r, c, _, _ = hex_cell(np.array([0.25, 1.25]), np.array([0.5 * SQRT3_2, 2.5 * SQRT3_2]))
+    assert np.array_equal(r, [0.0, 2.0]) and np.array_equal(c, [0.0, 1.0])  # ties: rows 0 / 1 and 2 / 1
+
+
 @pytest.mark.parametrize("packing, count", [("square", 8), ("hex", 6)])
 def test_neighbours_are_the_lenses_one_pitch_away(packing, count):
     lat = Lattice(packing, 6, 7, 1.0)

@@ -32,7 +32,7 @@ from mlaqc.errors import InputError
 
 PACKINGS = ("square", "hex")
 SQRT3_2 = math.sqrt(3.0) / 2.0
-INV_ROW_STEP_HEX = 1.0 / SQRT3_2  # hex rows per unit of v (pitches)
+INV_ROW_PAIR_HEX = 0.5 / SQRT3_2  # pairs of hex rows (even and odd) per unit of v (pitches)
 
 CONVENTIONS = {
     "square": "U(m,n): row m from the top, column n from the left, 1-based; centres (n-1, m-1) pitches "
@@ -186,20 +186,19 @@ class Lattice:
 
 def hex_cell(u, v):
     """The hexagonal cell (Voronoi) of points (u, v) in lattice units from U(1,1)'s centre: row, column
-    (floats; may lie off the array) and the offset (du, dv) from that lens' centre, in pitches. The
-    point lies between rows r0 and r0 + 1; of the nearest lattice points of those two rows the nearer
-    wins (r0 on a tie; Lattice.nearest is this). Plain arithmetic and selects: the compiled tracer
+    (floats; may lie off the array) and the offset (du, dv) from that lens' centre, in pitches. The lattice
+    is two rectangular ones (1 by sqrt(3)): the even 0-based rows, and the odd rows shifted by (1/2,
+    sqrt(3)/2); the nearer of their nearest points (each by rounding) wins, the even row's on a tie
+    (Lattice.nearest is this). Plain arithmetic and selects: the compiled tracer
     (mlaqc.optics.raytrace_kernels.hex_locate) does the same operations."""
-    r0 = np.floor(v * INV_ROW_STEP_HEX)
-    off0 = 0.5 * (r0 - 2.0 * np.floor(0.5 * r0))  # 1/2 on odd 0-based rows
-    off1 = 0.5 - off0
-    c0 = np.floor(u - off0 + 0.5)
-    c1 = np.floor(u - off1 + 0.5)
-    du0, dv0 = u - (c0 + off0), v - r0 * SQRT3_2
-    du1, dv1 = u - (c1 + off1), v - (r0 + 1.0) * SQRT3_2
-    take = du1 * du1 + dv1 * dv1 < du0 * du0 + dv0 * dv0
-    return (np.where(take, r0 + 1.0, r0), np.where(take, c1, c0), np.where(take, du1, du0),
-            np.where(take, dv1, dv0))
+    ja = np.floor(v * INV_ROW_PAIR_HEX + 0.5)  # nearest even row: 2 ja
+    jb = np.floor(v * INV_ROW_PAIR_HEX)  # nearest odd row: 2 jb + 1
+    ca, cb = np.floor(u + 0.5), np.floor(u)  # their nearest columns (odd rows' centres at cb + 1/2)
+    ra, rb = 2.0 * ja, 2.0 * jb + 1.0
+    dua, dva = u - ca, v - ra * SQRT3_2
+    dub, dvb = u - (cb + 0.5), v - rb * SQRT3_2
+    take = dub * dub + dvb * dvb < dua * dua + dva * dva
+    return np.where(take, rb, ra), np.where(take, cb, ca), np.where(take, dub, dua), np.where(take, dvb, dva)
 
 
 def hex_edge(du, dv):

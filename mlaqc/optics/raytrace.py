@@ -16,9 +16,9 @@ from mlaqc.errors import InputError
 from mlaqc.optics.config import CameraConfig
 from mlaqc.optics.errormap import ErrorMap
 
-# INV_ROW_STEP_HEX, hex_cell: the NumPy reference's hex cell rule (the compiled engine has its own copy, hex_locate)
+# INV_ROW_PAIR_HEX, hex_cell: the NumPy reference's hex cell rule (the compiled engine has its own copy, hex_locate)
 from mlaqc.optics.lattice import (  # noqa: F401
-    INV_ROW_STEP_HEX,
+    INV_ROW_PAIR_HEX,
     Lattice,
     hex_cell,
     hex_edge,

@@ -25,7 +25,7 @@ import numpy as np
 from mlaqc.compiled import compile_notice
 from mlaqc.optics import lowdisc
 from mlaqc.optics.lattice import SQRT3_2
-from mlaqc.optics.raytrace import INV_ROW_STEP_HEX
+from mlaqc.optics.raytrace import INV_ROW_PAIR_HEX
 from mlaqc.optics.scene import FOUR_OVER_PI
 from mlaqc.optics.scene import aperture_point as _aperture_point
 from mlaqc.optics.unitcircle import GAMMA, HALF_PI, MIX1, MIX2, TO_UNIT
@@ -134,15 +134,14 @@ def main_surface(x, y, z, L, M, N, zv, c, n1, n2, mu, rim2, fresnel):
 def hex_locate(u, v):
     """As raytrace.hex_cell, for one point (lattice units from U(1,1)): row, column (floats) and the
     offset (du, dv) from that lens' centre, in pitches."""
-    r0 = np.floor(v * INV_ROW_STEP_HEX)
-    off0 = 0.5 * (r0 - 2.0 * np.floor(0.5 * r0))
-    off1 = 0.5 - off0
-    c0 = np.floor(u - off0 + 0.5)
-    c1 = np.floor(u - off1 + 0.5)
-    du0, dv0 = u - (c0 + off0), v - r0 * SQRT3_2
-    du1, dv1 = u - (c1 + off1), v - (r0 + 1.0) * SQRT3_2
-    take = du1 * du1 + dv1 * dv1 < du0 * du0 + dv0 * dv0
-    return (r0 + 1.0 if take else r0), (c1 if take else c0), (du1 if take else du0), (dv1 if take else dv0)
+    ja = np.floor(v * INV_ROW_PAIR_HEX + 0.5)
+    jb = np.floor(v * INV_ROW_PAIR_HEX)
+    ca, cb = np.floor(u + 0.5), np.floor(u)
+    ra, rb = 2.0 * ja, 2.0 * jb + 1.0
+    dua, dva = u - ca, v - ra * SQRT3_2
+    dub, dvb = u - (cb + 0.5), v - rb * SQRT3_2
+    take = dub * dub + dvb * dvb < dua * dua + dva * dva
+    return (rb if take else ra), (cb if take else ca), (dub if take else dua), (dvb if take else dva)
 
 
 @_jit_inline
