@@ -12,7 +12,7 @@ from mlaqc.errors import InputError
 from mlaqc.models.reference import config_key
 from mlaqc.optics.config import config_from_dict, load_config
 from mlaqc.optics.errormap import ErrorMap, error_map_from_dict, load_error_map, random_defects
-from mlaqc.optics.lattice import Lattice, cell_vertices, neighbour_offsets
+from mlaqc.optics.lattice import SQRT3_2, Lattice, cell_vertices, hex_cell, neighbour_offsets
 
 FIXTURES = "fixtures"
 
@@ -49,7 +49,6 @@ def test_hex_cell_offsets_and_ties():
     """hex_cell's offset is the point minus its lens' centre, on both row parities and far from U(1,1), and
     no neighbour's centre is nearer; a point equidistant (exactly, in floating point) from an even-row and
     an odd-row lens goes to the even row."""
-    from mlaqc.optics.lattice import SQRT3_2, hex_cell
     rng = np.random.default_rng(3)
     u, v = rng.uniform(-500, 500, 100000), rng.uniform(-500, 500, 100000)
     r, c, du, dv = hex_cell(u, v)
