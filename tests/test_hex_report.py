@@ -25,6 +25,7 @@ from mlaqc.optics.lattice import Lattice
 from mlaqc.report import ERROR_COLOURS
 from mlaqc.report.document import CSV_COLUMNS, HEX_CSV_COLUMNS
 from mlaqc.report.lensmaps import HEX_LENS_PX, diverging, hex_cells, render_lens_maps
+from mlaqc.report import maps as report_maps
 from mlaqc.report.maps import render_defect_map
 from mlaqc.report.write import render_report
 
@@ -170,6 +171,33 @@ def test_the_small_map_scales_the_hexagons_with_the_image():
     for j in range(6):
         assert _colour_near(rgb, *(c + 0.5 * PITCH * k * direction_px(60.0 * j)), ERROR_COLOURS["pitch"]), j
     assert not _colour_near(rgb, *c, ERROR_COLOURS["pitch"])
+
+
+def _ringed(rgb: np.ndarray, m: int, n: int, colour) -> bool:
+    """The middle of each of U(m,n)'s six hexagon sides (inside the image) carries `colour`."""
+    c = np.array(centre_px(m, n))
+    sides = [c + 0.5 * PITCH * direction_px(60.0 * k) for k in range(6)]
+    inside = [p for p in sides if 1 <= p[0] < rgb.shape[1] - 1 and 1 <= p[1] < rgb.shape[0] - 1]
+    return len(inside) >= 3 and all(_colour_near(rgb, *p, colour) for p in inside)
+
+
+def test_the_legend_goes_where_it_hides_no_ring_and_never_hides_one():
+    colour = ERROR_COLOURS["radius"]
+    lens = lambda m, n: Defect(m, n, "radius", 3.0, "%", None, 9.0, False, {})  # noqa: E731
+    # top right holds the fewest flagged lenses, but its one sits in the corner; top left's two are
+    # clear of a corner box: the legend goes top left
+    spread = [(4, 6), (5, 6), (1, COLS), (ROWS, 1), (ROWS - 1, 2), (ROWS, COLS), (ROWS - 1, COLS - 1)]
+    result = make_hex_result([lens(m, n) for m, n in spread])
+    assert report_maps.legend_corner(result) == "tl"
+    rgb = render_defect_map(result)
+    assert all(_ringed(rgb, m, n, colour) for m, n in spread)
+    # a flagged lens in every corner: the box covers one, and its ring is drawn over the box
+    corners = [(1, 1), (1, COLS), (ROWS, 1), (ROWS, COLS)]
+    result = make_hex_result([lens(m, n) for m, n in corners])
+    rgb = render_defect_map(result)
+    assert all(_ringed(rgb, m, n, colour) for m, n in corners)
+    fail = np.all(rgb == np.array(report_maps.VERDICT_COLOURS["FAIL"]), axis=-1)
+    assert fail.sum() > 20  # the legend is still drawn
 
 
 # ------------------------------------------------------------------------------------------ lens maps

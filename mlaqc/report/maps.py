@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import math
 from collections import Counter
+from dataclasses import dataclass
 from typing import Any
 
 import cv2
@@ -58,6 +59,8 @@ def render_defect_map(result: InspectionResult | View, *, base: np.ndarray | Non
     ERROR_COLOURS over a dark halo; out-of-tolerance rings are thicker; a directional defect gets a
     tick from the centre towards its direction; missing lenses get a cross as well. On a hex array the
     ring is the lens' hexagonal cell (pointy top, as the grid's fitted lattice lays it on the image).
+    The legend goes in the corner where it covers fewest rings, and the rings are drawn over it: a
+    flagged lens is never hidden, even on a small array whose every corner holds one.
     """
     v = result if isinstance(result, View) else View(result)
     grey = v.tone_mapped() if base is None else base
@@ -79,6 +82,9 @@ def render_defect_map(result: InspectionResult | View, *, base: np.ndarray | Non
     marks += [(None, (m + 1, n + 1)) for m, n in zip(*np.nonzero(v.missing)) if (m + 1, n + 1) not in flagged_pos]
     # in-tolerance first so that out-of-tolerance rings end up on top
     marks.sort(key=lambda t: (t[0] is not None and not t[0].within_tolerance))
+    legend = _legend_layout(v, h=bgr.shape[0], w=bgr.shape[1])
+    reach = (pitch / math.sqrt(3.0) if hexagon is not None else radius) + thick + 2
+    _draw_legend(bgr, legend, legend_corner(v, legend.size, scale=scale, reach_px=reach))
     for d, info in marks:
         if d is None:  # missing but not flagged (e.g. excluded by the identification)
             mm, nn = info
@@ -109,7 +115,6 @@ def render_defect_map(result: InspectionResult | View, *, base: np.ndarray | Non
                 cv2.line(bgr, (c[0] - arm, c[1] + arm), (c[0] + arm, c[1] - arm), col, thin + extra, cv2.LINE_8)
             if tick is not None:
                 cv2.line(bgr, c, tick, col, thin + extra, cv2.LINE_8)
-    _draw_legend(bgr, v, thin, thick)
     return cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)
 
 
@@ -129,21 +134,45 @@ def _bgr(rgb: tuple[int, int, int]) -> tuple[int, int, int]:
     return (rgb[2], rgb[1], rgb[0])
 
 
-def legend_corner(result: InspectionResult | View) -> str:
-    """The image corner ('tl', 'tr', 'bl', 'br') where the legend goes: the one with fewest defects."""
+def legend_corner(result: InspectionResult | View, box_wh: tuple[int, int] | None = None, *, scale: float = 1.0,
+                  reach_px: float = 0.0) -> str:
+    """The image corner ('tl', 'tr', 'bl', 'br') where the legend box (`box_wh` map pixels, the full map's
+    by default) covers fewest flagged lenses' rings (centres within `reach_px` of it); ties go to the
+    corner whose quadrant holds fewest flagged lenses, then top-left first."""
     v = result if isinstance(result, View) else View(result)
-    h, w = v.image.shape
-    counts = dict.fromkeys(("tl", "tr", "bl", "br"), 0)
+    h, w = (round(s * scale) for s in v.image.shape)
+    bw, bh = _legend_layout(v, h, w).size if box_wh is None else box_wh
+    covered = dict.fromkeys(("tl", "tr", "bl", "br"), 0)
+    quadrant = dict.fromkeys(covered, 0)
     for d in v.result.defects:
         x, y = v.centre(d.m, d.n)
-        if math.isfinite(x) and math.isfinite(y):
-            counts[("t" if y < h / 2 else "b") + ("l" if x < w / 2 else "r")] += 1
-    return min(counts, key=lambda k: counts[k])  # ties: top-left first
+        if not (math.isfinite(x) and math.isfinite(y)):
+            continue
+        x, y = x * scale, y * scale
+        quadrant[("t" if y < h / 2 else "b") + ("l" if x < w / 2 else "r")] += 1
+        for k in covered:
+            x0, y0 = (0 if k[1] == "l" else w - bw), (0 if k[0] == "t" else h - bh)
+            covered[k] += (x0 - reach_px <= x <= x0 + bw + reach_px) and (y0 - reach_px <= y <= y0 + bh + reach_px)
+    return min(covered, key=lambda k: (covered[k], quadrant[k]))
 
 
-def _draw_legend(bgr: np.ndarray, v: View, thin: int, thick: int) -> None:
-    """Verdict, defect counts per type (colour swatch) and the ring key, in a dark box in a corner."""
-    h, w = bgr.shape[:2]
+@dataclass(frozen=True)
+class _Legend:
+    """The legend's text lines (with their swatch colours) and metrics, laid out for one map size."""
+
+    verdict: str
+    lines: list[tuple[str, tuple[int, int, int] | None]]
+    fs: float  # font scale
+    lw: int  # stroke width
+    line_h: int
+    pad: int
+    sw: int  # swatch side
+    vh: int  # the verdict's text height
+    size: tuple[int, int]  # box (width, height), px
+
+
+def _legend_layout(v: View, h: int, w: int) -> _Legend:
+    """Verdict, defect counts per type and the ring key, measured for an h x w map."""
     font = cv2.FONT_HERSHEY_SIMPLEX
     fs = max(0.35, min(h, w) / 2000)
     lw = max(1, round(fs * 1.6))
@@ -161,25 +190,30 @@ def _draw_legend(bgr: np.ndarray, v: View, thin: int, thick: int) -> None:
         lines.append(("thick = out of tol.", None))
         if v.hex:
             lines.append(("ring = hex lens cell", None))
-    big = fs * 1.6
-    (vw, vh), _ = cv2.getTextSize(verdict, font, big, lw + 1)
+    (vw, vh), _ = cv2.getTextSize(verdict, font, fs * 1.6, lw + 1)
     text_w = max([vw] + [cv2.getTextSize(s, font, fs, lw)[0][0] + (sw + pad if c else 0) for s, c in lines])
-    box_w = min(w, text_w + 2 * pad)
-    box_h = min(h, vh + pad * 2 + line_h * len(lines) + pad // 2)
-    corner = legend_corner(v)
+    size = (min(w, text_w + 2 * pad), min(h, vh + pad * 2 + line_h * len(lines) + pad // 2))
+    return _Legend(verdict, lines, fs, lw, line_h, pad, sw, vh, size)
+
+
+def _draw_legend(bgr: np.ndarray, lg: _Legend, corner: str) -> None:
+    """The legend `lg` in a dark box in `corner`."""
+    h, w = bgr.shape[:2]
+    font = cv2.FONT_HERSHEY_SIMPLEX
+    box_w, box_h = lg.size
     x0 = 0 if corner[1] == "l" else w - box_w
     y0 = 0 if corner[0] == "t" else h - box_h
     bgr[y0:y0 + box_h, x0:x0 + box_w] = (bgr[y0:y0 + box_h, x0:x0 + box_w] // 8 + 16)  # dark, still grey
-    cv2.putText(bgr, verdict, (x0 + pad, y0 + pad + vh), font, big, _bgr(VERDICT_COLOURS[verdict]), lw + 1,
-                cv2.LINE_AA)
-    y = y0 + pad + vh + pad // 2
-    for text, colour in lines:
-        y += line_h
-        x = x0 + pad
+    cv2.putText(bgr, lg.verdict, (x0 + lg.pad, y0 + lg.pad + lg.vh), font, lg.fs * 1.6,
+                _bgr(VERDICT_COLOURS[lg.verdict]), lg.lw + 1, cv2.LINE_AA)
+    y = y0 + lg.pad + lg.vh + lg.pad // 2
+    for text, colour in lg.lines:
+        y += lg.line_h
+        x = x0 + lg.pad
         if colour is not None:
-            cv2.rectangle(bgr, (x, y - sw), (x + sw, y), _bgr(colour), -1)
-            x += sw + pad
-        cv2.putText(bgr, text, (x, y), font, fs, (235, 235, 235), lw, cv2.LINE_AA)
+            cv2.rectangle(bgr, (x, y - lg.sw), (x + lg.sw, y), _bgr(colour), -1)
+            x += lg.sw + lg.pad
+        cv2.putText(bgr, text, (x, y), font, lg.fs, (235, 235, 235), lg.lw, cv2.LINE_AA)
 
 
 def _encode_png(rgb: np.ndarray, level: int = _PNG_LEVEL) -> bytes:
