@@ -20,6 +20,7 @@ from mlaqc.models.signatures import (
     SignatureTable,
     along_curve,
     to_along,
+    to_along_xy,
 )
 from mlaqc.optics.config import load_config
 
@@ -61,6 +62,30 @@ def test_a_shift_across_the_rows_at_a_falling_gain_maps_back_to_its_along_size()
     assert np.all(np.diff(to_along(t, x, 0)) >= 0)
     assert to_along(t, 0.01, 0) == pytest.approx(0.01 / 0.55, rel=0.02)
     assert to_along(t, 1.0, 0) == pytest.approx(1.0 / 0.44, rel=1e-9)  # the largest pair: decenter 10 µm
+
+
+def test_a_diagonal_shift_maps_its_y_part_at_the_gain_of_its_whole_size():
+    # a lens shift of size S (px along the rows) at angle a registers (S cos a, S sin a * g(S)) with the
+    # across gain g = 0.56 - 0.1 S falling with S: mapped at the gain of its y part alone, y comes out
+    # short and the direction turns towards the rows
+    g_of = lambda s: 0.56 - 0.1 * s  # noqa: E731
+    t = _table({"pitch": g_of(0.2 * np.array([1.0, 2.0, 4.0, 8.0])), "decenter": g_of(0.2 * np.array([2.0, 5.0, 10.0]))})
+    size = np.array([0.2, 0.4, 0.8, 1.0, 1.6, 2.0])  # the renders' along sizes, px
+    gain = g_of(size)
+    for s, g in zip(size, gain):
+        for a_deg in (15.0, 30.0, 45.0, 60.0, 75.0, 135.0):
+            a = np.radians(a_deg)
+            x, y_reg = s * np.cos(a), s * np.sin(a) * g
+            y = to_along_xy(t, x, y_reg, 0)
+            assert y == pytest.approx(s * np.sin(a), rel=1e-3), (s, a_deg)
+            assert np.degrees(np.arctan2(y, x)) == pytest.approx(a_deg, abs=0.05)
+    # the old per-part map is off by several per cent at a diagonal (what this replaces)
+    y_reg = 1.6 * 0.5 * g_of(1.6)
+    assert to_along(t, y_reg, 0) < 0.95 * 1.6 * 0.5
+    # a pure y reading maps as to_along at the rendered sizes; x = 0 and no across renders change nothing
+    assert np.allclose(to_along_xy(t, 0.0, size * gain, 0), to_along(t, size * gain, 0), rtol=1e-9)
+    v = np.array([-0.3, 0.0, 0.2, 1.5])
+    assert np.array_equal(to_along_xy(_table(None), v, v, 0), v)
 
 
 def test_a_kind_whose_across_response_turns_down_is_cut_where_it_stops_rising():

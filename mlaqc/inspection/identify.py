@@ -73,7 +73,8 @@ from mlaqc.inspection.metrics_kernels import median_baselines
 from mlaqc.inspection.results import Defect, LensMetrics
 from mlaqc.models.position_split import (PositionSplit, contrast_spread, neighbour_contrast, split_limits,
                                          type_position)
-from mlaqc.models.signatures import FEATURES, KIND_BY_NAME, RINGS, SignatureTable, along_gain_small, lens_features, to_along
+from mlaqc.models.signatures import (FEATURES, KIND_BY_NAME, RINGS, SignatureTable, along_gain_small, lens_features,
+                                     to_along_xy)
 from mlaqc.optics.config import QC
 from mlaqc.optics.lattice import Lattice
 from mlaqc.parallel import thread_map
@@ -1224,10 +1225,10 @@ def _isotropic(dev: dict[str, np.ndarray], sig: dict[str, float], table: Signatu
     sub-image more), so that a lens shift reads alike in every direction, as the table (rendered along
     x) reads it; their spreads with them. Unchanged on a square lattice (no across curves, gains 1)."""
     out, out_sig = dict(dev), dict(sig)
-    for name, column in (("offset_y_px", 0), ("asym_y", 2)):
+    for x_name, name, column in (("offset_x_px", "offset_y_px", 0), ("asym_x", "asym_y", 2)):
         scale = along_gain_small(table, column)
         if scale != 1.0:
-            out[name], out_sig[name] = to_along(table, dev[name], column), sig[name] * scale
+            out[name], out_sig[name] = to_along_xy(table, dev[x_name], dev[name], column), sig[name] * scale
     return out, out_sig
 
 

@@ -31,7 +31,7 @@ from mlaqc.inspection.measure_kernels import coarse_chi2, focal_scan
 from mlaqc.inspection.identify import (RINGS, Identification, _kind_curve, _unit_noise, class_centred, response,
                                        robust_sigma)
 from mlaqc.parallel import run_parts
-from mlaqc.models.signatures import FEATURES, SignatureTable, to_along
+from mlaqc.models.signatures import FEATURES, SignatureTable, to_along_xy
 from mlaqc.optics.config import CameraConfig
 from mlaqc.optics.paraxial import thick_lens
 
@@ -106,7 +106,7 @@ def _centre(found: Identification, table: SignatureTable, cfg: CameraConfig, dis
         dx, dy = class_centred([np.asarray(disc[0], float), np.asarray(disc[1], float)], cfg.mla.packing)
         um_per_px = cfg.mla.pitch_um / cfg.layout.subimage_pitch_px
     else:
-        dx, dy = r["offset_x_px"], to_along(table, r["offset_y_px"], 0)  # (hex: y registers low)
+        dx, dy = r["offset_x_px"], to_along_xy(table, r["offset_x_px"], r["offset_y_px"], 0)  # (hex: y registers low)
         px_per_um = abs(float(response(table, "pitch", 1.0)[0])) if "pitch" in table.magnitudes else 0.0
         um_per_px = 1.0 / px_per_um if px_per_um > 0 else np.nan
     sigma_px = 0.5 * (_pair_sigma(dx) + _pair_sigma(dy))

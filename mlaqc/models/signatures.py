@@ -330,6 +330,29 @@ def to_along(table: SignatureTable, value: np.ndarray, column: int) -> np.ndarra
     return np.sign(value) * out
 
 
+def to_along_xy(table: SignatureTable, x: np.ndarray, y: np.ndarray, column: int, sweeps: int = 10) -> np.ndarray:
+    """The y part of a lens' (x, y) offset (column 0) or tilt (column 2) mapped to the along-row scale at
+    the gain of the whole vector's size, not of its y part's: a diagonal shift's y part registers at the
+    across gain of its full size (hex small camera, decenter 7 µm at 15-60°: mapped by its y part alone
+    the direction read 1-2.6° towards the rows). x is on the along scale already; the size and the
+    mapped y are solved together by a few fixed-point sweeps from `to_along` (the gain changes slowly).
+    A pure y value maps as `to_along` does at the rendered sizes; unchanged on a square lattice."""
+    out = to_along(table, y, column)
+    curve = along_curve(table, column)
+    if curve is None:
+        return out
+    across, along = curve
+    ok = across > 0
+    across, along = across[ok], along[ok]
+    if along.size == 0:
+        return out
+    x, y = np.asarray(x, dtype=np.float64), np.asarray(y, dtype=np.float64)
+    gain = along / across  # along-scale per registered across, over the along-scale size
+    for _ in range(sweeps):
+        out = y * np.interp(np.hypot(x, out), along, gain)
+    return out
+
+
 def along_gain_small(table: SignatureTable, column: int) -> float:
     """d(along)/d(across) of `to_along` at small sizes: how a y spread scales with it (noise is small)."""
     curve = along_curve(table, column)
