@@ -337,8 +337,9 @@ def to_along_xy(table: SignatureTable, x: np.ndarray, y: np.ndarray, column: int
     direction is 0.287-0.293 px from 15° to 90°, where a gain of the y part's size would differ by 6 %;
     mapped by its y part alone the direction read up to 1° further towards the rows). x is on the along
     scale already; the size and the mapped y are solved together by fixed-point sweeps from `to_along`
-    (the gain changes slowly). A pure y value maps as `to_along` does at the rendered sizes; unchanged
-    on a square lattice."""
+    (the gain changes slowly), on the vectors beyond the smallest rendered size only (below it the gain
+    is constant, and the result is `to_along`'s). A pure y value maps as `to_along` does at the rendered
+    sizes; unchanged on a square lattice."""
     out = to_along(table, y, column)
     curve = along_curve(table, column)
     if curve is None:
@@ -348,10 +349,16 @@ def to_along_xy(table: SignatureTable, x: np.ndarray, y: np.ndarray, column: int
     across, along = across[ok], along[ok]
     if along.size == 0:
         return out
-    x, y = np.asarray(x, dtype=np.float64), np.asarray(y, dtype=np.float64)
+    x, y = np.broadcast_arrays(np.asarray(x, dtype=np.float64), np.asarray(y, dtype=np.float64))
     gain = along / across  # along-scale per registered across, over the along-scale size
+    big = np.hypot(x, y * gain[0]) > along[0]
+    if not big.any():
+        return out
+    out = np.array(out, dtype=np.float64, copy=True)
+    xb, yb, ob = x[big], y[big], out[big]
     for _ in range(sweeps):
-        out = y * np.interp(np.hypot(x, out), along, gain)
+        ob = yb * np.interp(np.hypot(xb, ob), along, gain)
+    out[big] = ob
     return out
 
 
