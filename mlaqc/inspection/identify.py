@@ -1220,9 +1220,9 @@ def hex_row_ends(shape: tuple[int, int]) -> np.ndarray:
 
 def _isotropic(dev: dict[str, np.ndarray], sig: dict[str, float], table: SignatureTable):
     """The classification deviations with the y components of the registration offset and the intensity
-    tilt mapped to the size the same lens shift gives along the rows (`signatures.to_along`; hex: a
-    shift across the rows registers at about half its size, the less the larger it is, and tilts the
-    sub-image more), so that a lens shift reads alike in every direction, as the table (rendered along
+    tilt mapped to the size the same lens shift gives along the rows (`signatures.to_along_xy`, at the
+    gain of each vector's whole size; hex: a shift across the rows registers at about half its size, the
+    less the larger it is, and tilts the sub-image more), so that a lens shift reads alike in every direction, as the table (rendered along
     x) reads it; their spreads with them. Unchanged on a square lattice (no across curves, gains 1)."""
     out, out_sig = dict(dev), dict(sig)
     for x_name, name, column in (("offset_x_px", "offset_y_px", 0), ("asym_x", "asym_y", 2)):

@@ -322,43 +322,53 @@ def to_along(table: SignatureTable, value: np.ndarray, column: int) -> np.ndarra
     if curve is None:
         gain = gains_y(table)[0 if column == 0 else 1]
         return value / gain if gain > 0 else value
+    return np.sign(value) * _along_size(curve, np.abs(value))
+
+
+def _along_size(curve: tuple[np.ndarray, np.ndarray], mag: np.ndarray) -> np.ndarray:
+    """`to_along` of a size (>= 0) through an `along_curve` (its points with (0, 0) put first)."""
     across, along = curve
-    mag = np.abs(value)
-    out = np.interp(mag, np.concatenate([[0.0], across]), np.concatenate([[0.0], along]))
-    beyond = mag > across[-1]
-    out = np.where(beyond, mag * (along[-1] / across[-1]), out)
-    return np.sign(value) * out
+    if across[0] != 0.0:
+        across, along = np.concatenate([[0.0], across]), np.concatenate([[0.0], along])
+    out = np.interp(mag, across, along)
+    return np.where(mag > across[-1], mag * (along[-1] / across[-1]), out)
 
 
-def to_along_xy(table: SignatureTable, x: np.ndarray, y: np.ndarray, column: int, sweeps: int = 10) -> np.ndarray:
+def to_along_xy(table: SignatureTable, x: np.ndarray, y: np.ndarray, column: int, steps: int = 28) -> np.ndarray:
     """The y part of a lens' (x, y) offset (column 0) or tilt (column 2) mapped to the along-row scale at
-    the gain of the whole vector's size, not of its y part's: a diagonal shift's y part registers at the
-    across gain of its full size (hex Table 1, decenter 7 µm in 24 directions: registered y / sin of the
+    the across gain of the whole vector's size, not of its y part's: a diagonal shift's y part registers
+    at the gain of its full size (hex Table 1, decenter 7 µm in 24 directions: registered y / sin of the
     direction is 0.287-0.293 px from 15° to 90°, where a gain of the y part's size would differ by 6 %;
-    mapped by its y part alone the direction read up to 1° further towards the rows). x is on the along
-    scale already; the size and the mapped y are solved together by fixed-point sweeps from `to_along`
-    (the gain changes slowly), on the vectors beyond the smallest rendered size only (below it the gain
-    is constant, and the result is `to_along`'s). A pure y value maps as `to_along` does at the rendered
-    sizes; unchanged on a square lattice."""
-    out = to_along(table, y, column)
+    mapped by its y part alone the direction read up to 1° further towards the rows).
+
+    x is on the along scale already. The vector's size is that of a pure y shift registering c across
+    the rows: c solves to_along(c)² (1 - y²/c²) = x² (one root, the left side rising from 0 at c = |y|),
+    found by bisection, and y maps to y to_along(c) / c. A pure y value maps exactly as `to_along`;
+    below the smallest rendered size, where the gain is constant, so does every vector; unchanged on a
+    square lattice."""
+    x, y = np.broadcast_arrays(np.asarray(x, dtype=np.float64), np.asarray(y, dtype=np.float64))
+    out = np.array(to_along(table, y, column), dtype=np.float64)
     curve = along_curve(table, column)
     if curve is None:
         return out
     across, along = curve
-    ok = across > 0
-    across, along = across[ok], along[ok]
-    if along.size == 0:
+    ratio = along[across > 0] / across[across > 0]
+    if ratio.size == 0:
         return out
-    x, y = np.broadcast_arrays(np.asarray(x, dtype=np.float64), np.asarray(y, dtype=np.float64))
-    gain = along / across  # along-scale per registered across, over the along-scale size
-    big = np.hypot(x, y * gain[0]) > along[0]
+    ax, ay = np.abs(x), np.abs(y)
+    size0 = np.sqrt(ay ** 2 + (ax / ratio[0]) ** 2)  # c on the constant-gain stretch
+    big = np.isfinite(size0) & (size0 > across[across > 0][0]) & (ax > 0)
     if not big.any():
         return out
-    out = np.array(out, dtype=np.float64, copy=True)
-    xb, yb, ob = x[big], y[big], out[big]
-    for _ in range(sweeps):
-        ob = yb * np.interp(np.hypot(xb, ob), along, gain)
-    out[big] = ob
+    ax, ay = ax[big], ay[big]
+    curve = np.concatenate([[0.0], across]), np.concatenate([[0.0], along])
+    lo, hi = ay, np.sqrt(ay ** 2 + (ax / ratio.min()) ** 2) * (1 + 1e-12)  # to_along(c) >= c * min ratio
+    for _ in range(steps):
+        mid = 0.5 * (lo + hi)
+        short = _along_size(curve, mid) ** 2 * (1.0 - (ay / mid) ** 2) < ax ** 2
+        lo, hi = np.where(short, mid, lo), np.where(short, hi, mid)
+    c = 0.5 * (lo + hi)
+    out[big] = y[big] * _along_size(curve, c) / c
     return out
 
 

@@ -71,10 +71,7 @@ def render_defect_map(result: InspectionResult | View, *, base: np.ndarray | Non
         size = (max(1, round(w * scale)), max(1, round(h * scale)))
         grey = cv2.resize(grey, size, interpolation=cv2.INTER_AREA)
     bgr = cv2.cvtColor(grey, cv2.COLOR_GRAY2BGR)
-    pitch = v.pitch * scale if math.isfinite(v.pitch) and v.pitch > 0 else 20.0 * scale
-    radius = max(3, round(0.5 * pitch))
-    thin = max(2, round(0.08 * pitch))  # under 2 px the dark halo swamps the colour
-    thick = max(thin + 1, round(0.2 * pitch))
+    radius, thin, thick = _ring_sizes(v, scale)
     hexagon = _hexagon(v, scale)
 
     marks = [(d, d.error_type) for d in v.result.defects]
@@ -83,8 +80,7 @@ def render_defect_map(result: InspectionResult | View, *, base: np.ndarray | Non
     # in-tolerance first so that out-of-tolerance rings end up on top
     marks.sort(key=lambda t: (t[0] is not None and not t[0].within_tolerance))
     legend = _legend_layout(v, h=bgr.shape[0], w=bgr.shape[1])
-    reach = (pitch / math.sqrt(3.0) if hexagon is not None else radius) + thick + 2
-    _draw_legend(bgr, legend, legend_corner(v, legend.size, scale=scale, reach_px=reach))
+    _draw_legend(bgr, legend, legend_corner(v, legend.size, scale=scale))
     for d, info in marks:
         if d is None:  # missing but not flagged (e.g. excluded by the identification)
             mm, nn = info
@@ -122,6 +118,20 @@ _SUB_BITS = 4  # polygon corners to 1/16 px (cv2's fixed-point `shift`)
 _SUB = 1 << _SUB_BITS
 
 
+def _ring_sizes(v: View, scale: float) -> tuple[int, int, int]:
+    """(ring radius, thin and thick line widths) of the map drawn at `scale`, px: about one pitch across."""
+    pitch = v.pitch * scale if math.isfinite(v.pitch) and v.pitch > 0 else 20.0 * scale
+    thin = max(2, round(0.08 * pitch))  # under 2 px the dark halo swamps the colour
+    return max(3, round(0.5 * pitch)), thin, max(thin + 1, round(0.2 * pitch))
+
+
+def _ring_reach(v: View, scale: float) -> float:
+    """How far a ring (circle or hexagonal cell, thick line and halo) reaches from its lens' centre, px."""
+    radius, _, thick = _ring_sizes(v, scale)
+    hexagon = _hexagon(v, scale)
+    return (radius if hexagon is None else float(np.hypot(*hexagon.T).max())) + thick + 2
+
+
 def _hexagon(v: View, scale: float) -> np.ndarray | None:
     """(6, 2) offsets (map pixels) of a lens' hexagonal cell corners from its centre on a hex array; None on a
     square array (rings stay circles) or when the grid predicts too few lenses to lay the lattice."""
@@ -134,14 +144,15 @@ def _bgr(rgb: tuple[int, int, int]) -> tuple[int, int, int]:
     return (rgb[2], rgb[1], rgb[0])
 
 
-def legend_corner(result: InspectionResult | View, box_wh: tuple[int, int] | None = None, *, scale: float = 1.0,
-                  reach_px: float = 0.0) -> str:
-    """The image corner ('tl', 'tr', 'bl', 'br') where the legend box (`box_wh` map pixels, the full map's
-    by default) covers fewest flagged lenses' rings (centres within `reach_px` of it); ties go to the
-    corner whose quadrant holds fewest flagged lenses, then top-left first."""
+def legend_corner(result: InspectionResult | View, box_wh: tuple[int, int] | None = None, *,
+                  scale: float = 1.0) -> str:
+    """The corner ('tl', 'tr', 'bl', 'br') of the map drawn at `scale` where the legend box (`box_wh` px;
+    by default the one laid out for that map) covers fewest flagged lenses' rings (`_ring_reach`); ties
+    go to the corner whose quadrant holds fewest flagged lenses, then top-left first."""
     v = result if isinstance(result, View) else View(result)
     h, w = (round(s * scale) for s in v.image.shape)
     bw, bh = _legend_layout(v, h, w).size if box_wh is None else box_wh
+    reach_px = _ring_reach(v, scale)
     covered = dict.fromkeys(("tl", "tr", "bl", "br"), 0)
     quadrant = dict.fromkeys(covered, 0)
     for d in v.result.defects:
