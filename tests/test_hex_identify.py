@@ -82,8 +82,15 @@ def test_a_diagonal_shift_maps_its_y_part_at_the_gain_of_its_whole_size():
     # the old per-part map is off by several per cent at a diagonal (what this replaces)
     y_reg = 1.6 * 0.5 * g_of(1.6)
     assert to_along(t, y_reg, 0) < 0.95 * 1.6 * 0.5
-    # a pure y reading maps as to_along at the rendered sizes; x = 0 and no across renders change nothing
-    assert np.allclose(to_along_xy(t, 0.0, size * gain, 0), to_along(t, size * gain, 0), rtol=1e-9)
+    # a pure y reading maps exactly as to_along, at and between the rendered sizes and beyond them
+    ys = np.linspace(-1.2, 1.2, 481)
+    assert np.allclose(to_along_xy(t, 0.0, ys, 0), to_along(t, ys, 0), rtol=1e-12, atol=0.0)
+    # a curve with a flat step (a kind's point under the running maximum) still gives one answer
+    flat = _table({"pitch": np.array([0.55, 0.52, 0.47, 0.40]), "decenter": np.array([0.30, 0.50, 0.44])})
+    y_reg = np.linspace(0.05, 0.6, 12)
+    a, b = to_along_xy(flat, 0.3, y_reg, 0), to_along_xy(flat, 0.3, y_reg, 0, steps=40)
+    assert np.all(np.isfinite(a)) and np.allclose(a, b, rtol=1e-7) and np.all(np.diff(a) > 0)
+    assert np.allclose(to_along_xy(flat, 0.0, y_reg, 0), to_along(flat, y_reg, 0), rtol=1e-12)
     v = np.array([-0.3, 0.0, 0.2, 1.5])
     assert np.array_equal(to_along_xy(_table(None), v, v, 0), v)
 
