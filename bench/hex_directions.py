@@ -28,11 +28,12 @@ SPACING = 6
 
 
 def seeded(cfg, kind: str, size: float) -> tuple[ErrorMap, dict]:
-    """Lenses SPACING apart from U(4,4), each at one of the 24 directions (spread so rows of both
-    parities hold every direction)."""
+    """Lenses SPACING apart from U(4,4) (rows SPACING + 1 apart, so that on hex the seeded rows take both
+    parities: even rows are the shifted ones), each at one of the 24 directions, spread so that rows of
+    both parities hold every direction."""
     rows, cols = cfg.mla.count_h, cfg.mla.count_w
     em, truth = ErrorMap.zeros(rows, cols, cfg.mla.packing), {}
-    lenses = [(m, n) for m in range(4, rows - 2, SPACING) for n in range(4, cols - 2, SPACING)]
+    lenses = [(m, n) for m in range(4, rows - 2, SPACING + 1) for n in range(4, cols - 2, SPACING)]
     for i, (m, n) in enumerate(lenses):
         d = float(DIRECTIONS_DEG[(7 * i + m) % len(DIRECTIONS_DEG)])
         em = em.with_lens(m, n, **lens_error_fields(kind, size, d))
@@ -51,7 +52,7 @@ def main() -> int:
     cfg = load_config(args.config)
     em, truth = seeded(cfg, args.kind, args.size)
     path = Path(tempfile.gettempdir()) / (f"mlaqc_directions_{config_key(cfg)}_{args.kind}_{args.size:g}_"
-                                          f"{args.rays_per_pixel:g}_{args.seed}.tif")
+                                          f"{args.rays_per_pixel:g}_{args.seed}_{SPACING + 1}x{SPACING}.tif")
     if not path.exists():
         write_simulation(path, simulate(cfg, None, em, rays_per_pixel=args.rays_per_pixel, seed=args.seed), cfg)
     result = inspect_image(load_frame(path, cfg), cfg)
@@ -71,6 +72,11 @@ def main() -> int:
     print(f"direction error: rms {np.sqrt(np.mean(e ** 2)):.2f}°, mean |err| {np.mean(np.abs(e)):.2f}°, "
           f"max {np.max(np.abs(e)):.1f}°")
     print("mean error per direction (mod 180°): " + ", ".join(f"{k:.0f}° {np.mean(v):+.1f}" for k, v in sorted(errors.items())))
+    for parity, name in ((1, "odd"), (0, "even")):
+        e = np.array([(found[k].direction_deg - d + 180.0) % 360.0 - 180.0 for k, d in truth.items()
+                      if k[0] % 2 == parity and k in found and found[k].direction_deg is not None])
+        if e.size:
+            print(f"  rows m {name}: rms {np.sqrt(np.mean(e ** 2)):.2f}° over {e.size} lenses")
     return 0
 
 
