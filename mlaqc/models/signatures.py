@@ -322,14 +322,17 @@ def to_along(table: SignatureTable, value: np.ndarray, column: int) -> np.ndarra
     if curve is None:
         gain = gains_y(table)[0 if column == 0 else 1]
         return value / gain if gain > 0 else value
-    return np.sign(value) * _along_size(curve, np.abs(value))
+    return np.sign(value) * _along_size(_from_zero(curve), np.abs(value))
+
+
+def _from_zero(curve: tuple[np.ndarray, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+    """An `along_curve` with the point (0, 0) put first: the map is linear through zero below its first."""
+    return np.concatenate([[0.0], curve[0]]), np.concatenate([[0.0], curve[1]])
 
 
 def _along_size(curve: tuple[np.ndarray, np.ndarray], mag: np.ndarray) -> np.ndarray:
-    """`to_along` of a size (>= 0) through an `along_curve` (its points with (0, 0) put first)."""
+    """`to_along` of a size (>= 0) through a `_from_zero` curve, at its last ratio beyond it."""
     across, along = curve
-    if across[0] != 0.0:
-        across, along = np.concatenate([[0.0], across]), np.concatenate([[0.0], along])
     out = np.interp(mag, across, along)
     return np.where(mag > across[-1], mag * (along[-1] / across[-1]), out)
 
@@ -347,11 +350,12 @@ def to_along_xy(table: SignatureTable, x: np.ndarray, y: np.ndarray, column: int
     below the smallest rendered size, where the gain is constant, so does every vector; unchanged on a
     square lattice."""
     x, y = np.broadcast_arrays(np.asarray(x, dtype=np.float64), np.asarray(y, dtype=np.float64))
-    out = np.array(to_along(table, y, column), dtype=np.float64)
     curve = along_curve(table, column)
     if curve is None:
-        return out
-    across, along = curve
+        return np.array(to_along(table, y, column), dtype=np.float64)
+    curve = _from_zero(curve)
+    out = np.array(np.sign(y) * _along_size(curve, np.abs(y)), dtype=np.float64)
+    across, along = curve[0][1:], curve[1][1:]
     ratio = along[across > 0] / across[across > 0]
     if ratio.size == 0:
         return out
@@ -361,7 +365,6 @@ def to_along_xy(table: SignatureTable, x: np.ndarray, y: np.ndarray, column: int
     if not big.any():
         return out
     ax, ay = ax[big], ay[big]
-    curve = np.concatenate([[0.0], across]), np.concatenate([[0.0], along])
     lo, hi = ay, np.sqrt(ay ** 2 + (ax / ratio.min()) ** 2) * (1 + 1e-12)  # to_along(c) >= c * min ratio
     for _ in range(steps):
         mid = 0.5 * (lo + hi)
