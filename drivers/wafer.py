@@ -64,7 +64,8 @@ def array_size_mm(cfg: CameraConfig) -> tuple[float, float]:
 
 def field_size_mm(cfg: CameraConfig) -> tuple[float, float]:
     """Width and height of the sensor's field at the MLA (mm; the MLA sits roughly on the sensor scale)."""
-    return cfg.sensor.width_px * cfg.sensor.pixel_um * 1e-3, cfg.sensor.height_px * cfg.sensor.pixel_um * 1e-3
+    pix = cfg.pixel_at_mla_um * 1e-3  # the field the sensor sees in the MLA's plane (through any relay)
+    return cfg.sensor.width_px * pix, cfg.sensor.height_px * pix
 
 
 def default_pitch_mm(cfg: CameraConfig) -> float:

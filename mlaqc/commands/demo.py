@@ -9,7 +9,7 @@ import sys
 import numpy as np
 
 from mlaqc.optics.config import load_config
-from mlaqc.optics.errormap import DefectSpec, random_defects
+from mlaqc.optics.errormap import DefectSpec, physical_types, random_defects
 from mlaqc.errors import InputError
 from mlaqc.progress import ProgressBar
 
@@ -43,7 +43,7 @@ def run(args: argparse.Namespace) -> int:
         raise InputError("--defects must not be negative")
     spec = DefectSpec(pitch_um=(1.0, 4.0), decenter_um=(5.0, 12.0), radius_rel=(0.05, 0.2))
     errors = random_defects(cfg.mla.count_h, cfg.mla.count_w, args.defects, args.seed, spec=spec,
-                            packing=cfg.mla.packing)
+                            types=physical_types(("pitch", "decenter", "radius"), cfg.mla), packing=cfg.mla.packing)
     out.mkdir(exist_ok=True)
     bar = ProgressBar("rendering", enabled=False if args.quiet else None)
     try:

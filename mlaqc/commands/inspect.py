@@ -113,7 +113,8 @@ def summary(result) -> str:
              f"  this frame {detection_limit_text(result.detection_limit)}",
              *([through_focus_text(result.through_focus)] if getattr(result, "through_focus", None) is not None else []),
              *_assembly_lines(getattr(result, "assembly", None)),
-             "  time: " + ", ".join(f"{k} {v:.2f} s" for k, v in result.timings_s.items())]
+             "  time: " + ", ".join(f"{k} {v:.2f} s" for k, v in result.timings_s.items()),
+             *(f"  {note}" for note in result.notes if note.startswith("WARNING"))]
     return "\n".join(lines)
 
 

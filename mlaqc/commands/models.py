@@ -44,6 +44,8 @@ def run(args: argparse.Namespace) -> int:
 
     cfg = load_config(args.config)
     address = scheduler_address(args.scheduler)
+    if not args.quiet:
+        print_derived_numbers(cfg, args.config)
     t0 = time.perf_counter()
     bar = ProgressBar("signature renders", enabled=False if args.quiet else None)
     with contextlib.ExitStack() as stack:
@@ -53,7 +55,7 @@ def run(args: argparse.Namespace) -> int:
             signature_table(cfg, client=client, rebuild=args.rebuild, progress=bar)
         finally:
             bar.close()
-    tf_key = _through_focus_model(cfg, args.rebuild)
+    tf_key = "(none: an ideal main lens has no object side)" if cfg.main_lens.ideal else _through_focus_model(cfg, args.rebuild)
     asm_bar = ProgressBar("assembly renders", enabled=False if args.quiet else None)
     try:
         asm_key = assembly_model(cfg, rebuild=args.rebuild, progress=asm_bar).key
@@ -63,6 +65,17 @@ def run(args: argparse.Namespace) -> int:
         print(f"reference model {config_key(cfg)}, signature tables {signature_key(cfg)}, through-focus model "
               f"{tf_key} and assembly model {asm_key} ready ({time.perf_counter() - t0:.1f} s); cache: {cache_dir()}", file=sys.stderr)
     return 0
+
+
+def print_derived_numbers(cfg, source: str | None) -> None:
+    """The numbers derived from the config, to check against the instrument before trusting a verdict."""
+    from mlaqc.optics.datasheet import derived_numbers
+
+    rows = derived_numbers(cfg)
+    width = max(len(label) for label, _ in rows)
+    print(f"camera {source or '(built-in: the paper Table 1)'}:", file=sys.stderr)
+    for label, value in rows:
+        print(f"  {label:<{width}}  {value}", file=sys.stderr)
 
 
 def _through_focus_model(cfg, rebuild: bool) -> str:

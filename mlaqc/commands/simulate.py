@@ -9,7 +9,7 @@ import sys
 from mlaqc.cluster import add_scheduler_option, check_address, connect, scheduler_address
 from mlaqc.errors import InputError
 from mlaqc.optics.config import load_config
-from mlaqc.optics.errormap import ERROR_TYPES, ErrorMap, load_error_map, random_defects
+from mlaqc.optics.errormap import ERROR_TYPES, ErrorMap, load_error_map, physical_types, random_defects
 from mlaqc.optics.scene import PointScene, Scene, TextureScene, WhiteScene
 from mlaqc.optics.simulate import RAW_SUFFIXES, check_output, simulate, write_simulation
 from mlaqc.optics.throughfocus import F_NUMBER, FOCUS_OFFSET_MM, SPACING_LENSES, ThroughFocus
@@ -130,15 +130,17 @@ def build_scene(args: argparse.Namespace) -> Scene:
     return WhiteScene()
 
 
-def build_errors(args: argparse.Namespace, rows: int, cols: int, packing: str = "square") -> ErrorMap:
-    """The error map from --errors, --random-defects, or a perfect array, on the camera's lattice."""
+def build_errors(args: argparse.Namespace, mla) -> ErrorMap:
+    """The error map from --errors, --random-defects (of the types this MLA can have), or a perfect array,
+    on the camera's lattice."""
+    rows, cols, packing = mla.count_h, mla.count_w, mla.packing
     if args.errors:
         return load_error_map(args.errors, (rows, cols), packing)
     if args.random_defects is not None:
         if args.random_defects < 0:
             raise InputError("--random-defects must not be negative")
         types = tuple(t.strip() for t in args.defect_types.split(",") if t.strip())
-        return random_defects(rows, cols, args.random_defects, args.seed, types=types, packing=packing)
+        return random_defects(rows, cols, args.random_defects, args.seed, types=physical_types(types, mla), packing=packing)
     return ErrorMap.zeros(rows, cols, packing)
 
 
@@ -155,7 +157,7 @@ def run(args: argparse.Namespace) -> int:
             raise InputError("the through-focus lattice puts no pinhole on the array; choose a smaller --pinhole-offset")
     else:
         render_cfg, scene = cfg, build_scene(args)
-    errors = build_errors(args, cfg.mla.count_h, cfg.mla.count_w, cfg.mla.packing)
+    errors = build_errors(args, cfg.mla)
     from mlaqc.optics.render import Renderer
 
     renderer = Renderer(render_cfg, errors, engine=args.engine, sampler=args.sampler)

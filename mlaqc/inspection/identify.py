@@ -1422,7 +1422,9 @@ def identify(metrics: LensMetrics, missing: np.ndarray, qc: QC, table: Signature
         defects.append(Defect(int(m) + 1, int(n) + 1, kind, mag, unit, direction, float(score[m, n]),
                               abs(mag) <= limit, indexes, alternatives=alts))
         error_type[m, n] = kind
-    limits = detection_limits(table, qc, noise) | {"pitch_vs_decenter": split_limits(split, split_sigma)}
+    limits = detection_limits(table, qc, noise)
+    if "decenter" in table.magnitudes:  # (a flat-sided MLA has no decenter: nothing to tell pitch from)
+        limits["pitch_vs_decenter"] = split_limits(split, split_sigma)
     return Identification(tuple(defects), flagged, error_type, score, limits, below,
                           int(outside.sum()), noise, tuple(float(x) for x in sigmas), _readings(detect_dev, rings, trend))
 

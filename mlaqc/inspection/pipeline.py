@@ -14,26 +14,29 @@ from mlaqc.compiled import net_clock
 from mlaqc.errors import InputError
 from mlaqc.inspection.assembly import measure_assembly
 from mlaqc.inspection.calibrate import Grid, calibrate_for
+from mlaqc.inspection.cfa import balance_sites
 from mlaqc.inspection.combine import SOURCE_KEY
 from mlaqc.inspection.combine import verdict as overall_verdict
 from mlaqc.inspection.identify import identify
 from mlaqc.inspection.measure import measure_lenses
 from mlaqc.inspection.metrics import compute_metrics, reference_images
+from mlaqc.inspection.optics_check import pitch_notes
 from mlaqc.inspection.rawio import (Levels, RawFrame, check_exposure, levels_note, load_raw, normalized,
                                     resolve_levels, suppress_hot_pixels)
 from mlaqc.inspection.results import InspectionResult, LazyReferences
 from mlaqc.inspection.subimages import divide
 from mlaqc.models.position_split import position_split
 from mlaqc.models.reference import ReferenceModel, config_key, reference_model
-from mlaqc.models.signatures import SignatureSet, SignatureTable, signature_key, signature_table, um_per_px_at_mla
+from mlaqc.models.signatures import SignatureSet, SignatureTable, signature_key, signature_table, um_per_px_at_mla, window_half_px
 from mlaqc.optics.config import CameraConfig
 
 
 def prepare(frame: RawFrame) -> np.ndarray:
-    """Black-subtracted, normalized float32 image with hot pixels suppressed (per CFA channel)."""
+    """Black-subtracted, normalized float32 image with hot pixels suppressed (per CFA channel) and, on a
+    Bayer sensor, every channel scaled to a common level (mlaqc.inspection.cfa)."""
     img = normalized(frame)  # a fresh float32 array this function owns: clean it in place
     cleaned, _ = suppress_hot_pixels(img, frame.cfa, inplace=True)
-    return cleaned.astype(np.float32, copy=False)
+    return balance_sites(cleaned.astype(np.float32, copy=False), frame.cfa)
 
 
 def load_frame(path: str | Path | Sequence[str | Path], cfg: CameraConfig, levels: Levels | None = None,
@@ -113,7 +116,8 @@ def _inspect_image(img: np.ndarray, cfg: CameraConfig, *, grid: Grid | None = No
     if own_grid:
         grid = calibrate_for(img, cfg)
         lap("calibrate")
-    half = int(np.floor(cfg.layout.subimage_pitch_px / 2))
+    notes = tuple(notes) + pitch_notes(float(np.mean(grid.pitch_px)), cfg)
+    half = window_half_px(cfg)
     subs = divide(img, grid, 2 * half + 1)
     sub, cx, cy = subs.data, subs.centre_x_px, subs.centre_y_px
     lap("divide")

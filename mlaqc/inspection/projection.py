@@ -63,6 +63,8 @@ def pupil_distance_mm(cfg) -> float:
     from mlaqc.optics.raytrace import MainLens, Rays
 
     lay = cfg.layout
+    if cfg.main_lens.ideal:  # its exit pupil is where image-side rays start: exactly that distance
+        return lay.pupil_to_mla_mm
     main = MainLens(cfg)
     half = 0.5 * cfg.main_lens.diameter_mm
     g = (np.arange(201) + 0.5) / 201 * 2 - 1
@@ -100,7 +102,7 @@ def lens_centres(grid, cfg, pupil_mm: float) -> tuple[Lenses, np.ndarray, np.nda
         xl, yl = Lattice.of(cfg).centres()
     mx, my = np.asarray(grid.measured_x_px, float), np.asarray(grid.measured_y_px, float)
     ok = np.isfinite(mx) & np.isfinite(my) & ~np.asarray(grid.missing, bool) & ~np.asarray(grid.clipped, bool)
-    lenses = Lenses(xl[ok], yl[ok], pupil_mm, cfg.layout.z_sensor_mm - cfg.layout.z_mla_mm, sensor.pixel_um * 1e-3,
+    lenses = Lenses(xl[ok], yl[ok], pupil_mm, cfg.layout.z_sensor_mm - cfg.layout.z_mla_mm, cfg.pixel_at_mla_um * 1e-3,
                     sensor.width_px, sensor.height_px)
     return lenses, mx[ok], my[ok]
 

@@ -113,7 +113,7 @@ from mlaqc.errors import InputError
 from mlaqc.inspection import throughfocus_kernels as kern
 from mlaqc.inspection.calibrate import Grid
 from mlaqc.inspection.rawio import RawFrame, check_exposure, normalized
-from mlaqc.optics.config import CameraConfig
+from mlaqc.optics.config import CameraConfig, require_thick_main_lens
 from mlaqc.optics.formation import aperture_corner_radius_um
 from mlaqc.optics.lattice import SQRT3_2, Lattice, hex_edge
 from mlaqc.optics.paraxial import thick_lens
@@ -266,7 +266,7 @@ def optics(cfg: CameraConfig) -> Optics:
     lay, mla, s = cfg.layout, cfg.mla, cfg.sensor
     micro = lay.micro
     s_mm = lay.sensor_gap_mm + micro.rear_principal  # H' lies rear_principal before the rear vertex
-    pixel_mm = s.pixel_um * 1e-3
+    pixel_mm = cfg.pixel_at_mla_um * 1e-3
     span = white_level(s) - s.black_level_dn
     return Optics(s_mm=s_mm, front_to_mid_mm=0.5 * mla.thickness_um * 1e-3 - micro.front_principal,
                   pupil_mm=lay.pupil_to_mla_mm, pixel_mm=pixel_mm,
@@ -395,6 +395,7 @@ def model_curves(cfg: CameraConfig, u_mm: float, f_number: float, r_in: float, *
     pixel and the pair geometry: `model_key`; `mlaqc.models.store`), else traced now and cached (Table 1:
     6 s at +-5 mm f/11, its one shell; 8 s at +-10 mm f/8, five shells, on one core); `rebuild` traces it
     again whatever is stored."""
+    require_thick_main_lens(cfg, "the through-focus measurement (pinhole frames)")
     return _model_curves(cfg, abs(float(u_mm)), float(f_number), round(max(float(r_in), 0.0), 4), rebuild)
 
 
@@ -410,7 +411,7 @@ def model_key(cfg: CameraConfig, u_mm: float, f_number: float, r_in: float) -> s
 
     d = cfg.to_dict()
     keep = {"main_lens": d["main_lens"], "mla": mla_hash_view(d["mla"], design=True), "geometry": d["geometry"],
-            "pixel_um": d["sensor"]["pixel_um"], "fresnel": d["trace"]["fresnel"],
+            "pixel_um": cfg.pixel_at_mla_um, "fresnel": d["trace"]["fresnel"],
             **blur_key(cfg),
             "protocol": [abs(float(u_mm)), float(f_number), round(max(float(r_in), 0.0), 4)],
             "model": [MODEL_FORMAT, list(MODEL_EPS), MODEL_RAYS, MODEL_PHASES, MODEL_FINE, SPOT_REACH_MM, FIELD_POINTS,

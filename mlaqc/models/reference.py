@@ -66,12 +66,18 @@ def mla_hash_view(mla: dict, *, design: bool = False) -> dict:
     return out
 
 
+def sensor_hash_view(cfg: CameraConfig) -> dict:
+    """The sensor keys that shape the images, for a content hash: its size, and its pixel as the MLA's focal
+    plane sees it (a relay's magnification included; the sensor's own pixel when there is no relay)."""
+    s = cfg.sensor
+    return {"pixel_um": cfg.pixel_at_mla_um, "width_px": s.width_px, "height_px": s.height_px}
+
+
 def config_key(cfg: CameraConfig) -> str:
     """Hash of everything that shapes the ideal sub-images (optics, geometry, sensor geometry)."""
     d = cfg.to_dict()
     keep = {"main_lens": d["main_lens"], "mla": mla_hash_view(d["mla"], design=True), "geometry": d["geometry"],
-            "sensor": {k: d["sensor"][k] for k in ("pixel_um", "width_px", "height_px")},
-            "fresnel": d["trace"]["fresnel"], "format": FORMAT_VERSION}
+            "sensor": sensor_hash_view(cfg), "fresnel": d["trace"]["fresnel"], "format": FORMAT_VERSION}
     return hashlib.sha256(json.dumps(keep, sort_keys=True).encode()).hexdigest()[:16]
 
 
@@ -126,10 +132,11 @@ def build_reference(cfg: CameraConfig, *, rays_per_lens: int = 4_000_000, seed: 
         fine_img += np.bincount(idx, weights=w, minlength=fine_img.size)
     fine_img = fine_img.reshape(fine.sensor.height_px, fine.sensor.width_px)
     lay = cfg.layout
-    gain = lay.subimage_pitch_px / (cfg.mla.pitch_um / s.pixel_um)
+    pix = cfg.pixel_at_mla_um
+    gain = lay.subimage_pitch_px / (cfg.mla.pitch_um / pix)
     # the sub-image centre: chief ray from the pupil centre through the lens centre, on the fine grid
-    cx = (fine.sensor.width_px - 1) / 2 + x_c * gain / (s.pixel_um * 1e-3 / os_)
-    cy = (fine.sensor.height_px - 1) / 2 + y_c * gain / (s.pixel_um * 1e-3 / os_)
+    cx = (fine.sensor.width_px - 1) / 2 + x_c * gain / (pix * 1e-3 / os_)
+    cy = (fine.sensor.height_px - 1) / 2 + y_c * gain / (pix * 1e-3 / os_)
     half = int(np.ceil(0.75 * lay.subimage_pitch_px)) * os_ + os_
     template = _box_filter(_cut(fine_img, cx, cy, half), os_)
     template /= template.max()
@@ -142,12 +149,12 @@ def _fine_crop(cfg: CameraConfig, x_c: float, y_c: float) -> dict[str, int]:
     around (x_c, y_c) mm: memory stays a few MiB whatever the real sensor's size. Each crop removes an
     even number of fine pixels per axis (whole coarse pixels per side), so pixel centres stay on the
     full sensor's lattice and the template is the one the full-size fine sensor would give."""
-    s, os_ = cfg.sensor, OVERSAMPLE
-    gain = cfg.layout.subimage_pitch_px / (cfg.mla.pitch_um / s.pixel_um)
+    s, os_, pix = cfg.sensor, OVERSAMPLE, cfg.pixel_at_mla_um
+    gain = cfg.layout.subimage_pitch_px / (cfg.mla.pitch_um / pix)
     reach_px = 2.5 * cfg.layout.subimage_pitch_px + 4  # 1.5 pitches of lenses, the template's rim, blur
     out = {}
     for name, full, c_mm in (("width_px", s.width_px, x_c), ("height_px", s.height_px, y_c)):
-        half = int(np.ceil(abs(c_mm) * gain / (s.pixel_um * 1e-3) + reach_px))
+        half = int(np.ceil(abs(c_mm) * gain / (pix * 1e-3) + reach_px))
         out[name] = min(full, full % 2 + 2 * half) * os_
     return out
 

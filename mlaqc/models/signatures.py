@@ -65,6 +65,14 @@ KINDS = (
 KIND_BY_NAME = {k.name: k for k in KINDS}
 
 
+def physical_kinds(cfg: CameraConfig) -> tuple[ErrorKind, ...]:
+    """The error kinds this MLA can have: no decenter where a surface is flat (plano-convex), since shifting
+    a plane against the other surface changes nothing; a shifted lens is then a pitch error."""
+    if cfg.mla.flat_sided:
+        return tuple(k for k in KINDS if k.name != "decenter")
+    return KINDS
+
+
 @dataclass(frozen=True)
 class SignatureTable:
     """features[kind] is (len(magnitudes), len(FEATURES)) and rings[kind] (len(magnitudes), len(RINGS));
@@ -176,10 +184,14 @@ def signature_key(cfg: CameraConfig) -> str:
     """Hash of what shapes a single lens' sub-image: optics, geometry, pixel size, Fresnel."""
     d = cfg.to_dict()
     mla = {k: v for k, v in mla_hash_view(d["mla"]).items() if k not in ("count_w", "count_h")}
-    keep = {"main_lens": d["main_lens"], "mla": mla, "geometry": d["geometry"], "pixel_um": d["sensor"]["pixel_um"],
+    keep = {"main_lens": d["main_lens"], "mla": mla, "geometry": d["geometry"], "pixel_um": cfg.pixel_at_mla_um,
             "fresnel": d["trace"]["fresnel"], "version": TABLE_VERSION, **blur_key(cfg)}
     if cfg.mla.packing == "hex":  # hex tables also hold the renders across the rows (ACROSS_DEG)
         keep["y_probe"] = Y_PROBE
+    if physical_kinds(cfg) != KINDS:
+        keep["kinds"] = [k.name for k in physical_kinds(cfg)]
+    if window_half_px(cfg) != 10:  # tables rendered before the window followed the pitch were cut 21 px wide
+        keep["window_half_px"] = window_half_px(cfg)
     return hashlib.sha256(json.dumps(keep, sort_keys=True).encode()).hexdigest()[:16]
 
 
@@ -209,10 +221,14 @@ def patch_config(cfg: CameraConfig, lenses: int = PATCH) -> CameraConfig:
                                sensor=dataclasses.replace(cfg.sensor, width_px=w_px, height_px=h_px))
 
 
-def nominal_windows(img: np.ndarray, cfg: CameraConfig, half: int = 10):
+def nominal_windows(img: np.ndarray, cfg: CameraConfig, half: int | None = None):
     """(rows, cols, h, w) windows around each lens' nominal sub-image centre, and that centre in window
-    coordinates: for simulated images whose grid is known exactly (signatures, tests)."""
+    coordinates: for simulated images whose grid is known exactly (signatures, tests). `half` defaults to
+    the inspection's own, half the sub-image pitch (pipeline.inspect_image)."""
     from mlaqc.inspection.subimages import cut_windows
+
+    if half is None:
+        half = window_half_px(cfg)
 
     lat = Lattice(cfg.mla.packing, cfg.mla.count_h, cfg.mla.count_w, cfg.layout.subimage_pitch_px)
     x, y = lat.centres()
@@ -220,6 +236,11 @@ def nominal_windows(img: np.ndarray, cfg: CameraConfig, half: int = 10):
     gy = (img.shape[0] - 1) / 2 + y
     win, _, ox, oy = cut_windows(img, gx, gy, 2 * half + 1, 2 * half + 1)
     return win, gx - ox, gy - oy
+
+
+def window_half_px(cfg: CameraConfig) -> int:
+    """Half the side of the window a lens' sub-image is cut in: half the sub-image pitch, whole pixels."""
+    return int(np.floor(cfg.layout.subimage_pitch_px / 2))
 
 
 def um_per_px_at_mla(cfg: CameraConfig) -> float:
@@ -475,8 +496,10 @@ def build_signature_set(cfg: CameraConfig, *, rays_per_pixel: float = 400.0, pro
     """`build_signatures` at every blur of BLUR_VARIANTS, from one set of renders (on a Dask `client`'s
     workers if given) and one patch reference for all."""
     model = build_reference(patch_config(cfg), rays_per_lens=2_000_000)
-    images = render_patches(cfg, rays_per_pixel=rays_per_pixel, progress=progress, client=client)
-    tables = tuple(build_signatures(cfg, rays_per_pixel=rays_per_pixel, model=model, extra_blur_px=blur, images=images)
+    kinds = physical_kinds(cfg)
+    images = render_patches(cfg, rays_per_pixel=rays_per_pixel, kinds=kinds, progress=progress, client=client)
+    tables = tuple(build_signatures(cfg, rays_per_pixel=rays_per_pixel, kinds=kinds, model=model, extra_blur_px=blur,
+                                    images=images)
                    for blur in BLUR_VARIANTS)
     return SignatureSet(tables, signature_key(cfg))
 
@@ -497,7 +520,9 @@ def _edge_width(img: np.ndarray, cfg: CameraConfig) -> float:
     """The rim width the calibration measures on a healthy patch render (what a frame's grid reports)."""
     from mlaqc.inspection.calibrate import calibrate_for
 
-    grid = calibrate_for((img / img.max()).astype(np.float32), cfg)
+    # at 80 % of full scale, as an exposed frame: a noise-free render scaled to its own peak would put a
+    # flat-topped sub-image (a telecentric main lens: no cos^4 fall-off) at full scale and read as saturated
+    grid = calibrate_for((img / (1.25 * img.max())).astype(np.float32), cfg)
     return float(grid.edge_width_px)
 
 

@@ -15,6 +15,7 @@ from pathlib import Path
 from typing import Any
 
 from mlaqc.errors import InputError
+from mlaqc.optics import datasheet
 from mlaqc.optics.lattice import PACKINGS, Lattice
 from mlaqc.optics.paraxial import ThickLens, image_distance, thick_lens
 
@@ -29,13 +30,28 @@ SAMPLER_CHOICES = ("sobol", "random")
 
 @dataclass(frozen=True)
 class MainLens:
-    """Thick biconvex main lens; its rim (diameter) is the aperture stop."""
+    """The main lens: a thick biconvex lens by its surfaces (the paper's; its rim (diameter) is the aperture
+    stop), or an ideal imaging system by its datasheet numbers (mlaqc.optics.datasheet): the image-side
+    `f_number`, or an objective's `magnification` and `na` with the `tube_lens_mm` in use (its
+    `design_tube_lens_mm`, default 200 mm), and `exit_pupil_mm`, the exit pupil's distance before the MLA
+    (inf: image-side telecentric, the objective's default). The thick-lens keys then do not apply."""
 
     diameter_mm: float = 42.0
     thickness_mm: float = 14.5
     radius_front_mm: float = 106.0
     radius_back_mm: float = -106.0
     refractive_index: float = 1.5168
+    f_number: float | None = None
+    magnification: float | None = None
+    na: float | None = None
+    tube_lens_mm: float | None = None
+    design_tube_lens_mm: float | None = None
+    exit_pupil_mm: float | None = None
+
+    @property
+    def ideal(self) -> bool:
+        """An ideal imaging system given by datasheet numbers, not a thick lens traced through its surfaces."""
+        return self.f_number is not None
 
 
 @dataclass(frozen=True)
@@ -59,6 +75,10 @@ class MLA:
     point lies in (a pitch error moves the surfaces, not the cell's square or hexagonal aperture), for idealised studies; on
     it a pitch error and a decenter cannot be told apart (inspection reports them as 'position').
 
+    `focal_length_um` and `profile` ('plano-convex': convex side towards the main lens, flat back; or
+    'biconvex', symmetric) describe the lens as sold; the radii are then derived (datasheet.mla_radii_um)
+    and `mla.thickness_um` is the vertex thickness (substrate included).
+
     `black_matrix_um`: width of an opaque mask centred on the design cells' edges (grid lines; hexagon
     sides on hex) in the front vertex plane (0 = none); rays crossing that plane within half the width of
     an edge are absorbed.
@@ -81,6 +101,27 @@ class MLA:
     corners: str = "opaque"
     boundaries: str = "sag-intersection"
     black_matrix_um: float = 0.0
+    focal_length_um: float | None = None
+    profile: str | None = None
+
+    @property
+    def flat_sided(self) -> bool:
+        """A surface is flat (plano-convex): shifting it against the other (a decenter) changes nothing."""
+        return math.isinf(self.radius_front_um) or math.isinf(self.radius_back_um)
+
+
+@dataclass(frozen=True)
+class Relay:
+    """Relay optics between the MLA's focal plane and the sensor (two camera lenses nose to nose, a 50:35
+    pair...): `magnification` (> 0; the frame as stored, upright) and the relay's working `f_number` on the
+    MLA side. 1 with no f-number: no relay."""
+
+    magnification: float = 1.0
+    f_number: float | None = None
+
+    @property
+    def present(self) -> bool:
+        return self.magnification != 1.0 or self.f_number is not None
 
 
 @dataclass(frozen=True)
@@ -170,10 +211,28 @@ class CameraConfig:
     trace: Trace = field(default_factory=Trace)
     qc: QC = field(default_factory=QC)
     formation: Formation = field(default_factory=Formation)
+    relay: Relay = field(default_factory=Relay)
 
     def to_dict(self) -> dict[str, Any]:
-        """Plain dict (TOML/JSON-able) of the config as given, geometry holes left as None."""
-        return asdict(self)
+        """Plain dict (TOML/JSON-able) of the config as given, geometry holes left as None. The datasheet
+        keys (DATASHEET_KEYS) and the relay appear only when used, so a config written before them keeps
+        its dict (and the content hashes of its cached models)."""
+        d = asdict(self)
+        for sec, keys in DATASHEET_KEYS.items():
+            for key in keys:
+                if d[sec][key] is None:
+                    del d[sec][key]
+        if not self.relay.present:
+            del d["relay"]
+        if self.main_lens.ideal:  # the thick lens' defaults do not describe it
+            for key in THICK_MAIN_KEYS:
+                del d["main_lens"][key]
+        return d
+
+    @property
+    def pixel_at_mla_um(self) -> float:
+        """The size of one sensor pixel in the MLA's focal plane: the pixel over the relay's magnification."""
+        return self.sensor.pixel_um / self.relay.magnification if self.relay.present else self.sensor.pixel_um
 
     @property
     def layout(self) -> Layout:
@@ -185,7 +244,7 @@ class CameraConfig:
 class Layout:
     """Derived axial layout in mm (z = 0 at the main lens' front vertex, light along +z)."""
 
-    main: ThickLens
+    main: ThickLens | None  # None: an ideal main lens (datasheet numbers)
     micro: ThickLens  # in mm
     object_distance_mm: float
     mla_distance_mm: float
@@ -193,15 +252,26 @@ class Layout:
     z_object_mm: float
     z_mla_mm: float  # MLA mid-plane
     z_sensor_mm: float
-    pupil_to_mla_mm: float  # main lens rear principal plane to MLA mid-plane (b)
+    pupil_to_mla_mm: float  # main lens rear principal plane (an ideal lens: its exit pupil) to MLA mid-plane (b)
     subimage_pitch_px: float  # p*(b+f)/b / pixel
+    z_exit_mm: float  # where image-side rays start: the thick lens' rear vertex, an ideal lens' exit pupil
+    exit_radius_mm: float  # and the radius of that disc
+    image_f_number: float  # the main lens' image-side working f-number at the MLA
+
+
+# keys that exist only for datasheet-described optics (left out of to_dict while unset)
+DATASHEET_KEYS = {"main_lens": ("f_number", "magnification", "na", "tube_lens_mm", "design_tube_lens_mm",
+                                "exit_pupil_mm"),
+                  "mla": ("focal_length_um", "profile")}
 
 
 def compute_layout(cfg: CameraConfig) -> Layout:
     """Fill geometry holes: matched b = D*f/p; object and MLA conjugate through the main lens."""
     ml, mla, geo = cfg.main_lens, cfg.mla, cfg.geometry
-    main = thick_lens(ml.radius_front_mm, ml.radius_back_mm, ml.thickness_mm, ml.refractive_index)
     micro = thick_lens(mla.radius_front_um * 1e-3, mla.radius_back_um * 1e-3, mla.thickness_um * 1e-3, mla.refractive_index)
+    if ml.ideal:
+        return _ideal_layout(cfg, micro)
+    main = thick_lens(ml.radius_front_mm, ml.radius_back_mm, ml.thickness_mm, ml.refractive_index)
     h_front, h_rear = main.front_principal, main.rear_principal
     if geo.mla_distance_mm is None and geo.object_distance_mm is None:
         b = ml.diameter_mm * micro.efl / (mla.pitch_um * 1e-3)
@@ -226,8 +296,25 @@ def compute_layout(cfg: CameraConfig) -> Layout:
         z_mla_mm=z_mla,
         z_sensor_mm=z_sensor,
         pupil_to_mla_mm=b,
-        subimage_pitch_px=mla.pitch_um * (b + lens_to_sensor) / b / cfg.sensor.pixel_um,
+        subimage_pitch_px=mla.pitch_um * (b + lens_to_sensor) / b / cfg.pixel_at_mla_um,
+        z_exit_mm=ml.thickness_mm,
+        exit_radius_mm=0.5 * ml.diameter_mm,
+        image_f_number=b / ml.diameter_mm,
     )
+
+
+def _ideal_layout(cfg: CameraConfig, micro: ThickLens) -> Layout:
+    """An ideal main lens: its exit pupil at z = 0, the MLA `exit_pupil_mm` behind it (a telecentric one's
+    far away, datasheet.TELECENTRIC_PUPIL_MM), no object distance (white frames are traced image-side)."""
+    ml, mla, geo = cfg.main_lens, cfg.mla, cfg.geometry
+    b = datasheet.traced_pupil_mm(ml.exit_pupil_mm)
+    gap_mm = micro.bfd if geo.sensor_gap_um is None else geo.sensor_gap_um * 1e-3
+    z_sensor = b + 0.5 * mla.thickness_um * 1e-3 + gap_mm
+    return Layout(main=None, micro=micro, object_distance_mm=math.inf, mla_distance_mm=b, sensor_gap_mm=gap_mm,
+                  z_object_mm=-math.inf, z_mla_mm=b, z_sensor_mm=z_sensor, pupil_to_mla_mm=b,
+                  subimage_pitch_px=mla.pitch_um * (b + (z_sensor - b)) / b / cfg.pixel_at_mla_um,
+                  z_exit_mm=0.0, exit_radius_mm=datasheet.pupil_radius_mm(b, ml.f_number),
+                  image_f_number=ml.f_number)
 
 
 def default_config() -> CameraConfig:
@@ -266,9 +353,73 @@ def config_from_dict(data: dict[str, Any], source: str = "config") -> CameraConf
         if not isinstance(table, dict):
             raise InputError(f"{source}: config key {name!r} must be a table")
         parts[name] = _build_section(getattr(base, name), table, name, source)
+    parts["main_lens"] = _resolve_main_lens(parts["main_lens"], data.get("main_lens", {}), source)
+    parts["mla"] = _resolve_mla(parts["mla"], data.get("mla", {}), source)
     cfg = CameraConfig(**parts)
     validate(cfg, source)
     return cfg
+
+
+THICK_MAIN_KEYS = ("diameter_mm", "thickness_mm", "radius_front_mm", "radius_back_mm", "refractive_index")
+
+
+def _resolve_main_lens(ml: MainLens, given: dict[str, Any], source: str) -> MainLens:
+    """An ideal main lens from its datasheet numbers: the objective form converted to the image-side
+    f-number; keys of the two descriptions mixed, or an f-number that the objective contradicts, refused."""
+    ideal = [k for k in DATASHEET_KEYS["main_lens"] if k in given]
+    if not ideal:
+        return ml
+    thick = [k for k in THICK_MAIN_KEYS if k in given]
+    if thick:
+        raise InputError(f"{source}: config key 'main_lens.{thick[0]}' describes a thick main lens, but "
+                         f"'main_lens.{ideal[0]}' an ideal one: give the lens' surfaces or its datasheet numbers, not both")
+    if (ml.magnification is None) != (ml.na is None):
+        key = "na" if ml.na is None else "magnification"
+        raise InputError(f"{source}: config key 'main_lens.{key}' is needed: an objective is given by its "
+                         f"magnification and numerical aperture together")
+    if ml.na is None:
+        for key in ("tube_lens_mm", "design_tube_lens_mm"):
+            _require(getattr(ml, key) is None, source, f"main_lens.{key}", "only applies to an objective "
+                     "(main_lens.magnification and main_lens.na)", getattr(ml, key))
+        _require(ml.f_number is not None, source, "main_lens.f_number",
+                 "is needed: an ideal main lens is given by its image-side f-number (or an objective's "
+                 "magnification and na)", ml.f_number)
+        _require(ml.exit_pupil_mm is not None, source, "main_lens.exit_pupil_mm",
+                 "is needed with main_lens.f_number: the exit pupil's distance before the MLA in mm (inf: "
+                 "image-side telecentric)", ml.exit_pupil_mm)
+        return ml
+    for key in ("magnification", "na", "tube_lens_mm", "design_tube_lens_mm"):
+        v = getattr(ml, key)
+        _require(v is None or (math.isfinite(v) and v > 0), source, f"main_lens.{key}", "must be positive", v)
+    _require(ml.na < ml.magnification, source, "main_lens.na", "must be below the magnification (the image-side "
+             "NA is na / magnification < 1)", ml.na)
+    obj = datasheet.objective(ml.magnification, ml.na, ml.tube_lens_mm, ml.design_tube_lens_mm)
+    if ml.f_number is not None and abs(ml.f_number / obj.f_number - 1.0) > datasheet.F_NUMBER_AGREEMENT:
+        raise InputError(f"{source}: config key 'main_lens.f_number' ({ml.f_number:g}) contradicts the objective: "
+                         f"{obj.magnification:g}x / NA {ml.na:g} makes the image side f/{obj.f_number:.4g}; give one or the other")
+    return replace(ml, f_number=obj.f_number)
+
+
+def _resolve_mla(mla: MLA, given: dict[str, Any], source: str) -> MLA:
+    """An MLA by its focal length and profile: the radii derived; radii also given must be those."""
+    if mla.focal_length_um is None:
+        _require(mla.profile is None, source, "mla.profile", "only applies with mla.focal_length_um", mla.profile)
+        return mla
+    f = mla.focal_length_um
+    _require(math.isfinite(f) and f > 0, source, "mla.focal_length_um", "must be positive", f)
+    profile = mla.profile or "plano-convex"
+    _require(profile in datasheet.PROFILES, source, "mla.profile", f"must be one of {datasheet.PROFILES}", profile)
+    _require(mla.refractive_index > 1, source, "mla.refractive_index", "must be greater than 1", mla.refractive_index)
+    _require(mla.thickness_um > 0, source, "mla.thickness_um", "must be positive", mla.thickness_um)
+    try:
+        front, back = datasheet.mla_radii_um(f, mla.refractive_index, mla.thickness_um, profile)
+    except ValueError as exc:
+        raise InputError(f"{source}: config key 'mla.thickness_um' does not fit mla.focal_length_um: {exc}") from None
+    for key, derived in (("radius_front_um", front), ("radius_back_um", back)):
+        if key in given and not math.isclose(getattr(mla, key), derived, rel_tol=1e-9):
+            raise InputError(f"{source}: config key 'mla.{key}' ({getattr(mla, key):g}) contradicts mla.focal_length_um "
+                             f"= {f:g} µm ({profile}: {derived:.6g} µm); give the radii or the focal length, not both")
+    return replace(mla, radius_front_um=front, radius_back_um=back, profile=profile)
 
 
 def _build_section(default: Any, table: dict[str, Any], section: str, source: str) -> Any:
@@ -295,6 +446,10 @@ def _coerce(default: Any, value: Any, key: str, source: str, type_text: Any) -> 
         if not isinstance(value, int) or isinstance(value, bool):
             raise InputError(f"{source}: config key '{key}' must be an integer, got {value!r}")
         return value
+    if default is None and "str" in str(type_text):
+        if not isinstance(value, str):
+            raise InputError(f"{source}: config key '{key}' must be a string, got {value!r}")
+        return value
     if isinstance(default, float) or (default is None and optional):
         if not isinstance(value, (int, float)) or isinstance(value, bool):
             raise InputError(f"{source}: config key '{key}' must be a number, got {value!r}")
@@ -318,20 +473,18 @@ def _require(ok: bool, source: str, key: str, what: str, value: Any) -> None:
 def validate(cfg: CameraConfig, source: str = "config") -> None:
     """Check that the camera is physically possible; raise InputError naming the first bad key."""
     ml, mla, s, g, t = cfg.main_lens, cfg.mla, cfg.sensor, cfg.geometry, cfg.trace
-    for sec, obj in (("main_lens", ml), ("mla", mla), ("sensor", s), ("geometry", g), ("qc", cfg.qc)):
+    flat_ok = {"main_lens.exit_pupil_mm", "mla.radius_front_um", "mla.radius_back_um"}  # inf: telecentric, flat
+    for sec, obj in (("main_lens", ml), ("mla", mla), ("sensor", s), ("geometry", g), ("qc", cfg.qc), ("relay", cfg.relay)):
         for f in fields(obj):
             v = getattr(obj, f.name)
-            if isinstance(v, float):
+            if isinstance(v, float) and not (f"{sec}.{f.name}" in flat_ok and v == math.inf):
                 _require(math.isfinite(v), source, f"{sec}.{f.name}", "must be a finite number", v)
-    for key in ("diameter_mm", "thickness_mm"):
-        _require(getattr(ml, key) > 0, source, f"main_lens.{key}", "must be positive", getattr(ml, key))
-    _require(ml.refractive_index > 1, source, "main_lens.refractive_index", "must be greater than 1", ml.refractive_index)
-    for key in ("radius_front_mm", "radius_back_mm"):
-        r = getattr(ml, key)
-        _require(r != 0 and abs(r) > ml.diameter_mm / 2, source, f"main_lens.{key}",
-                 f"must exceed the lens' half-diameter {ml.diameter_mm / 2} mm in magnitude", r)
-    edge = ml.thickness_mm - _sag(ml.radius_front_mm, ml.diameter_mm / 2) + _sag(ml.radius_back_mm, ml.diameter_mm / 2)
-    _require(edge > 0, source, "main_lens.thickness_mm", f"gives a negative edge thickness ({edge:.3f} mm) at the rim", ml.thickness_mm)
+    _require(math.isfinite(mla.radius_front_um) or math.isfinite(mla.radius_back_um), source, "mla.radius_front_um",
+             "and mla.radius_back_um are both flat: the microlens has no power", mla.radius_front_um)
+    if ml.ideal:
+        _validate_ideal(cfg, source)
+    else:
+        _validate_thick(cfg, source)
     for key in ("count_w", "count_h"):
         _require(getattr(mla, key) >= 1, source, f"mla.{key}", "must be at least 1", getattr(mla, key))
     for key in ("pitch_um", "thickness_um"):
@@ -352,6 +505,8 @@ def validate(cfg: CameraConfig, source: str = "config") -> None:
         what = "the cell's circumradius" if mla.packing == "hex" else "the cell's half-diagonal"
     for key in ("radius_front_um", "radius_back_um"):
         r = getattr(mla, key)
+        if math.isinf(r):  # a flat surface covers any aperture
+            continue
         _require(r != 0 and abs(r) > reach, source, f"mla.{key}",
                  f"must exceed {what} {reach:.1f} µm in magnitude so the surface covers the aperture", r)
     _require(mla.corners in CORNER_CHOICES, source, "mla.corners", f"must be one of {CORNER_CHOICES}", mla.corners)
@@ -362,11 +517,14 @@ def validate(cfg: CameraConfig, source: str = "config") -> None:
         _require(getattr(s, key) > 0, source, f"sensor.{key}", "must be positive", getattr(s, key))
     for key in ("width_px", "height_px"):
         _require(getattr(s, key) >= 8, source, f"sensor.{key}", "must be at least 8", getattr(s, key))
-    _require(mla.count_w * mla.pitch_um <= s.width_px * s.pixel_um, source, "mla.count_w",
-             f"makes the MLA ({mla.count_w * mla.pitch_um / 1000:.3f} mm) wider than the sensor ({s.width_px * s.pixel_um / 1000:.3f} mm)", mla.count_w)
+    _validate_relay(cfg, source)
+    pix = cfg.pixel_at_mla_um
+    seen = " (as the relay images it)" if cfg.relay.present else ""
+    _require(mla.count_w * mla.pitch_um <= s.width_px * pix, source, "mla.count_w",
+             f"makes the MLA ({mla.count_w * mla.pitch_um / 1000:.3f} mm) wider than the sensor{seen} ({s.width_px * pix / 1000:.3f} mm)", mla.count_w)
     height_um = Lattice(mla.packing, mla.count_h, mla.count_w, mla.pitch_um).extent[1]
-    _require(height_um <= s.height_px * s.pixel_um, source, "mla.count_h",
-             f"makes the {mla.packing} MLA ({height_um / 1000:.3f} mm) taller than the sensor ({s.height_px * s.pixel_um / 1000:.3f} mm)", mla.count_h)
+    _require(height_um <= s.height_px * pix, source, "mla.count_h",
+             f"makes the {mla.packing} MLA ({height_um / 1000:.3f} mm) taller than the sensor{seen} ({s.height_px * pix / 1000:.3f} mm)", mla.count_h)
     _require(8 <= s.bit_depth <= 16, source, "sensor.bit_depth", "must be between 8 and 16", s.bit_depth)
     _require(0 < s.qe <= 1, source, "sensor.qe", "must be in (0, 1]", s.qe)
     _require(all(0 < q <= 1 for q in s.cfa_qe), source, "sensor.cfa_qe", "must hold three values in (0, 1]", s.cfa_qe)
@@ -394,6 +552,27 @@ def validate(cfg: CameraConfig, source: str = "config") -> None:
         v = getattr(g, key)
         _require(v is None or v > 0, source, f"geometry.{key}", "must be positive", v)
     _require(g.wavelength_nm > 0, source, "geometry.wavelength_nm", "must be positive", g.wavelength_nm)
+    if not ml.ideal:
+        _validate_thick_geometry(cfg, source)
+
+
+def _validate_thick(cfg: CameraConfig, source: str) -> None:
+    """The thick main lens' surfaces: positive sizes, radii that cover the rim, a positive edge."""
+    ml = cfg.main_lens
+    for key in ("diameter_mm", "thickness_mm"):
+        _require(getattr(ml, key) > 0, source, f"main_lens.{key}", "must be positive", getattr(ml, key))
+    _require(ml.refractive_index > 1, source, "main_lens.refractive_index", "must be greater than 1", ml.refractive_index)
+    for key in ("radius_front_mm", "radius_back_mm"):
+        r = getattr(ml, key)
+        _require(r != 0 and abs(r) > ml.diameter_mm / 2, source, f"main_lens.{key}",
+                 f"must exceed the lens' half-diameter {ml.diameter_mm / 2} mm in magnitude", r)
+    edge = ml.thickness_mm - _sag(ml.radius_front_mm, ml.diameter_mm / 2) + _sag(ml.radius_back_mm, ml.diameter_mm / 2)
+    _require(edge > 0, source, "main_lens.thickness_mm", f"gives a negative edge thickness ({edge:.3f} mm) at the rim", ml.thickness_mm)
+
+
+def _validate_thick_geometry(cfg: CameraConfig, source: str) -> None:
+    """Object and MLA distances through a thick main lens: a real image, nothing inside the lens."""
+    ml, g = cfg.main_lens, cfg.geometry
     if g.object_distance_mm is not None and g.mla_distance_mm is None:
         main = thick_lens(ml.radius_front_mm, ml.radius_back_mm, ml.thickness_mm, ml.refractive_index)
         _require(g.object_distance_mm + main.front_principal > main.efl, source, "geometry.object_distance_mm",
@@ -401,6 +580,37 @@ def validate(cfg: CameraConfig, source: str = "config") -> None:
     lay = compute_layout(cfg)
     _require(lay.mla_distance_mm > 0, source, "geometry.mla_distance_mm", "puts the MLA inside the main lens", lay.mla_distance_mm)
     _require(lay.object_distance_mm > 0, source, "geometry.object_distance_mm", "puts the object inside the main lens", lay.object_distance_mm)
+
+
+def _validate_ideal(cfg: CameraConfig, source: str) -> None:
+    """An ideal main lens: a possible f-number, a pupil in front of the MLA, no thick-lens distances."""
+    ml, g = cfg.main_lens, cfg.geometry
+    _require(ml.f_number >= 0.5, source, "main_lens.f_number", "must be at least 0.5 (sin u' <= 1)", ml.f_number)
+    _require(ml.exit_pupil_mm is None or ml.exit_pupil_mm > 0, source, "main_lens.exit_pupil_mm",
+             "must be positive (the exit pupil's distance before the MLA; inf: telecentric)", ml.exit_pupil_mm)
+    for key in ("object_distance_mm", "mla_distance_mm"):
+        _require(getattr(g, key) is None, source, f"geometry.{key}", "applies to a thick main lens; an ideal one "
+                 "(main_lens.f_number or na) is placed by main_lens.exit_pupil_mm", getattr(g, key))
+
+
+def _validate_relay(cfg: CameraConfig, source: str) -> None:
+    """A relay's magnification, and an f-number fast enough to pass the microlenses' light unclipped (the
+    model's relay is unvignetted): the cone a lens' whole aperture sends to its focal plane."""
+    r, mla = cfg.relay, cfg.mla
+    _require(r.magnification > 0, source, "relay.magnification", "must be positive (the frame as stored, upright)",
+             r.magnification)
+    if r.f_number is None:
+        return
+    _require(r.f_number > 0, source, "relay.f_number", "must be positive", r.f_number)
+    if mla.aperture == "circle":
+        reach_um = 0.5 * (mla.aperture_diameter_um or mla.pitch_um)
+    else:
+        reach_um = mla.pitch_um / (math.sqrt(3) if mla.packing == "hex" else math.sqrt(2))
+    f_um = thick_lens(mla.radius_front_um, mla.radius_back_um, mla.thickness_um, mla.refractive_index).efl
+    needed = f_um / (2.0 * reach_um)
+    _require(r.f_number <= needed, source, "relay.f_number",
+             f"would clip the light the microlenses send to their focal plane (it needs f/{needed:.3g} or faster; "
+             "mlaqc models an unvignetted relay)", r.f_number)
 
 
 def _sag(radius: float, rho: float) -> float:
@@ -429,3 +639,13 @@ def _toml_value(value: Any) -> str:
     if isinstance(value, (list, tuple)):
         return "[" + ", ".join(_toml_value(v) for v in value) + "]"
     return repr(value)
+
+
+def require_thick_main_lens(cfg: CameraConfig, what: str) -> None:
+    """Refuse, in one sentence, work that traces the object side through the main lens' surfaces when the
+    main lens is an ideal one given by datasheet numbers (white frames are traced from its exit pupil)."""
+    if cfg.main_lens.ideal:
+        raise InputError(f"{what} needs the object side traced through the main lens' surfaces; this config gives "
+                         "an ideal main lens (main_lens.f_number / na), which renders and inspects white frames only: "
+                         "describe the lens by main_lens.radius_front_mm, radius_back_mm, thickness_mm, diameter_mm "
+                         "and refractive_index for it")

@@ -243,6 +243,16 @@ class DefectSpec:
     thickness_um: tuple[float, float] = (2.0, 8.0)
 
 
+def physical_types(types: tuple[str, ...], mla) -> tuple[str, ...]:
+    """The requested defect types that the MLA can have: no decenter on a flat-sided (plano-convex) one,
+    where it would change nothing; InputError if none is left."""
+    kept = tuple(t for t in types if not (t == "decenter" and mla.flat_sided))
+    if not kept:
+        raise InputError("a decenter changes nothing on a plano-convex MLA (one surface is flat): ask for other "
+                         "defect types")
+    return kept
+
+
 def random_defects(count_h: int, count_w: int, n_defects: int, seed: int,
                    types: tuple[str, ...] = ("pitch", "decenter", "radius"),
                    spec: DefectSpec = DefectSpec(), margin: int = 1, packing: str = "square") -> ErrorMap:

@@ -68,7 +68,7 @@ def diffraction_psf(cfg: CameraConfig, step_px: float = 1.0) -> np.ndarray:
     image band-limited to its sampling). At step 1 it acts on a rendered frame; at 1/8 on the
     reference model's 8x finer render."""
     z_um = cfg.layout.sensor_gap_mm * 1e3 + 0.5 * cfg.mla.thickness_um  # aperture (≈ mid-lens) to sensor
-    psf, fine_px = _fine_psf(cfg.geometry.wavelength_nm * 1e-3, z_um, cfg.sensor.pixel_um, cfg.mla.pitch_um,
+    psf, fine_px = _fine_psf(cfg.geometry.wavelength_nm * 1e-3, z_um, cfg.pixel_at_mla_um, cfg.mla.pitch_um,
                              aperture_corner_radius_um(cfg), aperture_shape(cfg), cfg.mla.aperture_diameter_um or 0.0)
     half = int(round(KERNEL_HALF_PX / step_px))
     out = np.arange(-half, half + 1) * step_px

@@ -115,17 +115,24 @@ def direction_vector(angle_deg: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 
 class MainLens:
-    """The thick main lens: two spheres, the rim (diameter) as aperture stop on both surfaces."""
+    """The thick main lens: two spheres, the rim (diameter) as aperture stop on both surfaces. An ideal
+    main lens (datasheet numbers) is two unbounded planes of air at its exit pupil: image-side rays pass
+    unchanged (weight 1 to rounding; the exit pupil disc where they start is its stop)."""
 
     def __init__(self, cfg: CameraConfig) -> None:
         ml = cfg.main_lens
+        self.fresnel = cfg.trace.fresnel
+        if ml.ideal:
+            self.n, self.mu_in, self.mu_out = 1.0, 1.0, 1.0
+            self.c1 = self.c2 = self.z2 = 0.0
+            self.rim2 = math.inf
+            return
         self.n = ml.refractive_index
         self.mu_in, self.mu_out = 1.0 / self.n, self.n
         self.c1 = 1.0 / ml.radius_front_mm
         self.c2 = 1.0 / ml.radius_back_mm
         self.z2 = ml.thickness_mm
         self.rim2 = (0.5 * ml.diameter_mm) ** 2
-        self.fresnel = cfg.trace.fresnel
 
     def trace(self, r: Rays) -> None:
         """Refract object-side rays (travelling +z) through both surfaces in place; vignetted rays get weight 0."""
@@ -317,16 +324,17 @@ class MicrolensArray:
 
     def _pair_margins(self, rear: bool) -> tuple[np.ndarray, np.ndarray]:
         """side_margins_mm, computed: each flawed pair's _pair_margin, candidate direction by direction."""
+        cands = self.neighbours(self.gx, self.gy)
+        k_all = np.arange(self.rows * self.cols)
+        on = np.stack([ok & (nb != k_all) for nb, ok in cands], axis=1)
+        if (self.c2_design if rear else self.c1_design) == 0.0:  # a flat side (plano-convex): one plane, no
+            return np.zeros(on.shape), on  # boundaries between lenses: each point is its own cell's
         u, w, radius = self.sphere_offsets_mm(rear)
         r0 = abs(1.0 / (self.c2_design if rear else self.c1_design))
         ra = np.abs(radius)
         flawed = (u > 1e-9) | (np.abs(w) > 1e-9) | (np.abs(ra - r0) > 1e-12 * r0)  # mm; rounding is not an error
-        cands = self.neighbours(self.gx, self.gy)
-        d = np.zeros((self.rows * self.cols, len(cands)))
-        on = np.zeros(d.shape, dtype=bool)
-        k_all = np.arange(self.rows * self.cols)
+        d = np.zeros(on.shape)
         for j, (nb, ok) in enumerate(cands):
-            on[:, j] = ok & (nb != k_all)
             k = k_all[on[:, j]]
             i = nb[k]
             pair = flawed[k] | flawed[i]
@@ -705,7 +713,7 @@ class Camera:
         self.shift_y = g["mla_shift_y_um"] * 1e-3
         self.z_sensor = self.layout.z_sensor_mm + g["mla_sensor_distance_um"] * 1e-3
         s = cfg.sensor
-        self.pixel = s.pixel_um * 1e-3
+        self.pixel = cfg.pixel_at_mla_um * 1e-3  # a relay's sensor, seen in the MLA's focal plane
         self.inv_pixel = 1.0 / self.pixel
         self.width, self.height = s.width_px, s.height_px
         self.sx0 = -0.5 * s.width_px * self.pixel

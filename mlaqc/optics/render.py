@@ -29,7 +29,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from mlaqc.optics.config import CameraConfig
+from mlaqc.optics.config import CameraConfig, require_thick_main_lens
 from mlaqc.optics.errormap import ErrorMap
 from mlaqc.errors import InputError
 from mlaqc.optics import lowdisc
@@ -180,8 +180,8 @@ def image_region(camera: Camera) -> ImageRegion:
     """The MLA's bounding box plus one pitch (image-side sampling) and the rear aperture disc."""
     hx, hy = _mla_half_extent(camera)
     pad = camera.cfg.mla.pitch_um * 1e-3
-    ml = camera.cfg.main_lens
-    return ImageRegion(camera.z_mla, hx + pad, hy + pad, ml.thickness_mm, 0.5 * ml.diameter_mm,
+    lay = camera.layout
+    return ImageRegion(camera.z_mla, hx + pad, hy + pad, lay.z_exit_mm, lay.exit_radius_mm,
                        camera.shift_x, camera.shift_y)
 
 
@@ -192,6 +192,7 @@ def source_region(camera: Camera) -> SourceRegion:
     border lenses get all the light they would get from an infinite plane.
     """
     cfg, lay = camera.cfg, camera.layout
+    require_thick_main_lens(cfg, "a scene other than a white frame")
     mag = lay.pupil_to_mla_mm / (lay.object_distance_mm + lay.main.front_principal)
     hx, hy = _mla_half_extent(camera)
     pupil = 0.5 * cfg.main_lens.diameter_mm
@@ -305,12 +306,17 @@ class Renderer:
         self.cfg = cfg
         self.camera = Camera(cfg, errors)
         self.sampling = sampling
-        self.region = source_region(self.camera)
+        if cfg.main_lens.ideal:  # no object side: white frames, traced from the exit pupil
+            if sampling == "object":
+                require_thick_main_lens(cfg, "object-side sampling")
+            self.region, self.texture_half_mm = None, (0.0, 0.0)
+        else:
+            self.region = source_region(self.camera)
+            hx, hy = _mla_half_extent(self.camera)
+            mag = self.region.magnification
+            self.texture_half_mm = (hx / mag, hy / mag)  # a texture spans the object-side conjugate of the MLA
         self.image_region = image_region(self.camera)
         self.cells = cell_grid(self.camera, self.image_region)
-        mag = self.region.magnification
-        hx, hy = _mla_half_extent(self.camera)
-        self.texture_half_mm = (hx / mag, hy / mag)  # a texture spans the object-side conjugate of the MLA
         self.fast = (_kernels().FastCamera(self.camera, self.image_region, self.region, self.texture_half_mm,
                                                  self.cells if self.sampler == "sobol" else None)
                      if engine == "numba" else None)
@@ -353,6 +359,8 @@ class Renderer:
 
     def plan(self, scene: Scene, rays: int | None, rays_per_pixel: float | None, seed: int) -> RenderPlan:
         """The jobs, their keys and their chunks for a render; the same wherever the jobs then run."""
+        if not isinstance(scene, WhiteScene):
+            require_thick_main_lens(self.cfg, f"a {type(scene).__name__.removesuffix('Scene').lower()} scene")
         jobs = self.jobs(scene, ray_count(self.cfg, rays, rays_per_pixel))
         keys = np.random.SeedSequence(seed).generate_state(len(jobs), np.uint64)
         if jobs and jobs[0].cells is not None:  # one key: a cell's shift must not depend on how it was batched
@@ -452,7 +460,7 @@ class Renderer:
             reg, lay = self.region, self.camera.layout
             ratio = (lay.z_mla_mm - self.cfg.main_lens.thickness_mm) / -lay.z_object_mm
             image_area = 4 * reg.half_x_mm * reg.half_y_mm * ratio * ratio
-        pixel_area = (self.cfg.sensor.pixel_um * 1e-3) ** 2
+        pixel_area = (self.cfg.pixel_at_mla_um * 1e-3) ** 2
         return self.cfg.sensor.exposure_photons * (image_area / pixel_area) / total
 
 

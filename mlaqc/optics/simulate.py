@@ -19,6 +19,7 @@ from typing import Any
 import numpy as np
 
 from mlaqc import __version__
+from mlaqc.optics.datasheet import telecentric
 from mlaqc.atomic import atomic_path
 from mlaqc.errors import InputError
 from mlaqc.inspection.rawio import write_raw
@@ -128,11 +129,14 @@ def protocol_record(cfg: CameraConfig, tf: ThroughFocus) -> dict[str, Any]:
 
 def _layout(cfg: CameraConfig) -> dict[str, Any]:
     lay = cfg.layout
-    return {
-        "object_distance_mm": lay.object_distance_mm,
-        "mla_distance_mm": lay.mla_distance_mm,
+    if lay.main is None:  # an ideal main lens: where its exit pupil is, and its f-number
+        far = telecentric(cfg.main_lens.exit_pupil_mm)  # null: at infinity
+        main = {"exit_pupil_to_mla_mm": None if far else lay.pupil_to_mla_mm, "image_f_number": lay.image_f_number}
+    else:
+        main = {"object_distance_mm": lay.object_distance_mm, "mla_distance_mm": lay.mla_distance_mm,
+                "main_efl_mm": lay.main.efl}
+    return main | {
         "sensor_gap_mm": lay.sensor_gap_mm,
-        "main_efl_mm": lay.main.efl,
         "microlens_efl_um": lay.micro.efl * 1e3,
         "subimage_pitch_px": lay.subimage_pitch_px,
     }
