@@ -16,7 +16,6 @@ import pytest
 from mlaqc.cli import main
 from mlaqc.errors import InputError
 from mlaqc.inspection.calibrate import calibrate
-from mlaqc.inspection.cfa import balance_sites
 from mlaqc.models.signatures import KINDS, physical_kinds, window_half_px
 from mlaqc.optics.config import config_from_dict, config_to_toml, default_config, load_config
 from mlaqc.optics.datasheet import mla_radii_um, objective
@@ -186,19 +185,6 @@ def test_a_flat_sided_mla_has_no_decenter_kind():
 def test_windows_follow_the_subimage_pitch():
     assert window_half_px(default_config()) == 10
     assert window_half_px(LFM) == 23
-
-
-def test_a_bayer_white_frame_is_balanced_to_one_level_per_site():
-    rng = np.random.default_rng(0)
-    mono = rng.uniform(0.1, 0.8, (64, 64)).astype(np.float32)
-    qe = np.array([[0.45, 0.6], [0.6, 0.4]], np.float32)
-    raw = mono * np.tile(qe, (32, 32))
-    out = balance_sites(raw.copy(), "RGGB")
-    ratio = out / mono
-    assert np.ptp(ratio) < 0.05 * ratio.mean()  # one gain for every site, to the sites' quantile's noise
-    assert balance_sites(mono.copy(), None) is not None
-    with pytest.raises(InputError, match="CFA site"):
-        balance_sites(np.tile(np.array([[0.5, 0.5], [0.5, 0.0]], np.float32), (8, 8)), "RGGB")
 
 
 def test_a_frame_whose_pitch_the_config_cannot_explain_is_warned_naming_the_keys():

@@ -3,12 +3,17 @@
 from __future__ import annotations
 
 import argparse
+import sys
 import time
 from pathlib import Path
+
+import numpy as np
 
 from mlaqc.commands.levels import add_level_options, stated_levels
 from mlaqc.errors import InputError
 from mlaqc.inspection.calibrate import calibrate
+from mlaqc.inspection.flatfield import check_flat_field
+from mlaqc.inspection.optics_check import pitch_notes
 from mlaqc.inspection.rawio import Levels, check_exposure, load_raw, normalized, resolve_levels, suppress_hot_pixels
 from mlaqc.optics.config import load_config
 
@@ -59,10 +64,13 @@ def run(args: argparse.Namespace) -> int:
         img, _ = suppress_hot_pixels(normalized(frame), frame.cfa)
     grid = calibrate(img, expected_pitch_px=cfg.layout.subimage_pitch_px,
                      expected_shape=(cfg.mla.count_h, cfg.mla.count_w), packing=cfg.mla.packing)
+    check_flat_field(np.where(grid.missing | grid.clipped, np.nan, grid.flux), "the white frame")
     grid.save(out)
     if not args.quiet:
         print(f"wrote {out}: {grid.rows}x{grid.cols} lenses, pitch {grid.pitch_px[0]:.4f} x {grid.pitch_px[1]:.4f} px "
               f"(expected {cfg.layout.subimage_pitch_px:.4f}), rotation {grid.rotation_deg:+.4f} deg, "
               f"{grid.lenses_found} found, {grid.lenses_missing} missing, "
               f"RMS residual {grid.rms_residual_px:.4f} px ({time.perf_counter() - start:.2f} s)")
+    for note in pitch_notes(float(np.mean(grid.pitch_px)), cfg):
+        print(note, file=sys.stderr)
     return 0

@@ -14,9 +14,9 @@ from mlaqc.compiled import net_clock
 from mlaqc.errors import InputError
 from mlaqc.inspection.assembly import measure_assembly
 from mlaqc.inspection.calibrate import Grid, calibrate_for
-from mlaqc.inspection.cfa import balance_sites
 from mlaqc.inspection.combine import SOURCE_KEY
 from mlaqc.inspection.combine import verdict as overall_verdict
+from mlaqc.inspection.flatfield import check_flat_field
 from mlaqc.inspection.identify import identify
 from mlaqc.inspection.measure import measure_lenses
 from mlaqc.inspection.metrics import compute_metrics, reference_images
@@ -32,11 +32,10 @@ from mlaqc.optics.config import CameraConfig
 
 
 def prepare(frame: RawFrame) -> np.ndarray:
-    """Black-subtracted, normalized float32 image with hot pixels suppressed (per CFA channel) and, on a
-    Bayer sensor, every channel scaled to a common level (mlaqc.inspection.cfa)."""
+    """Black-subtracted, normalized float32 image with hot pixels suppressed (per CFA channel)."""
     img = normalized(frame)  # a fresh float32 array this function owns: clean it in place
     cleaned, _ = suppress_hot_pixels(img, frame.cfa, inplace=True)
-    return balance_sites(cleaned.astype(np.float32, copy=False), frame.cfa)
+    return cleaned.astype(np.float32, copy=False)
 
 
 def load_frame(path: str | Path | Sequence[str | Path], cfg: CameraConfig, levels: Levels | None = None,
@@ -136,6 +135,8 @@ def _inspect_image(img: np.ndarray, cfg: CameraConfig, *, grid: Grid | None = No
     # its indexes are read from part of the window (the rim's tail and the neighbours' light off the frame
     # are lost), biased against every other lens', and as a baseline neighbour they bias the next lenses'
     clipped = np.asarray(grid.clipped, bool) | ~subs.valid.all(axis=(-2, -1))
+    check_flat_field(np.where(clipped | grid.missing, np.nan, metrics["flux"]),
+                     f"frame {source}" if source else "the frame")
     found = identify(metrics, grid.missing | ~np.isfinite(metrics["flux"]), cfg.qc, table, position, phase,
                      outside=clipped, split=position_split(cfg), packing=cfg.mla.packing, aperture=cfg.mla.aperture)
     defects, flagged, error_type = found.defects, found.flagged, found.error_type
