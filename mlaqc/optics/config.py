@@ -309,10 +309,10 @@ def _ideal_layout(cfg: CameraConfig, micro: ThickLens) -> Layout:
     ml, mla, geo = cfg.main_lens, cfg.mla, cfg.geometry
     b = datasheet.traced_pupil_mm(ml.exit_pupil_mm)
     gap_mm = micro.bfd if geo.sensor_gap_um is None else geo.sensor_gap_um * 1e-3
-    z_sensor = b + 0.5 * mla.thickness_um * 1e-3 + gap_mm
+    lens_to_sensor = 0.5 * mla.thickness_um * 1e-3 + gap_mm
     return Layout(main=None, micro=micro, object_distance_mm=math.inf, mla_distance_mm=b, sensor_gap_mm=gap_mm,
-                  z_object_mm=-math.inf, z_mla_mm=b, z_sensor_mm=z_sensor, pupil_to_mla_mm=b,
-                  subimage_pitch_px=mla.pitch_um * (b + (z_sensor - b)) / b / cfg.pixel_at_mla_um,
+                  z_object_mm=-math.inf, z_mla_mm=b, z_sensor_mm=b + lens_to_sensor, pupil_to_mla_mm=b,
+                  subimage_pitch_px=mla.pitch_um * (b + lens_to_sensor) / b / cfg.pixel_at_mla_um,
                   z_exit_mm=0.0, exit_radius_mm=datasheet.pupil_radius_mm(b, ml.f_number),
                   image_f_number=ml.f_number)
 

@@ -93,7 +93,7 @@ def derived_numbers(cfg) -> list[tuple[str, str]]:
         rows.append(("exit pupil", "at infinity (image-side telecentric)" if telecentric(ml.exit_pupil_mm)
                      else f"{ml.exit_pupil_mm:g} mm before the MLA"))
     else:
-        rows.append(("main lens (thick)", f"EFL {lay.main.efl:.4f} mm, f/{lay.main.efl / ml.diameter_mm:.4g}, "
+        rows.append(("main lens (thick)", f"EFL {lay.main.efl:.4f} mm, f/{lay.main.efl / ml.diameter_mm:.4g} at infinity, "
                                           f"MLA {lay.mla_distance_mm:.3f} mm behind its rear vertex, object "
                                           f"{lay.object_distance_mm:.3f} mm before its front vertex"))
     if mla.focal_length_um is not None:
@@ -103,7 +103,7 @@ def derived_numbers(cfg) -> list[tuple[str, str]]:
     rows.append(("microlens focal length", f"{lay.micro.efl * 1e3:.2f} µm (back focal distance "
                                            f"{lay.micro.bfd * 1e3:.2f} µm)"))
     rows.append(("matched f-number", f"f/{lay.micro.efl * 1e3 / mla.pitch_um:.4g} (microlens focal length / pitch); "
-                                     f"the main lens is f/{lay.image_f_number:.4g}"))
+                                     f"the main lens' image-side working f-number f/{lay.image_f_number:.4g}"))
     rows.append(("sensor gap", f"{lay.sensor_gap_mm * 1e3:.2f} µm behind the MLA's rear vertex"
                                + (" (the relay's object plane)" if cfg.relay.present else "")))
     if cfg.relay.present:
