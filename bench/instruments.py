@@ -2,8 +2,9 @@
 frames the tracer did not make: the analytic model of tests/analytic_frames.py (discs with an Airy rim, no
 code shared with the tracer) given each fixture's first-order optics, at several noise levels from
 noise-free up, written in real containers and inspected as a user's file would be. Prints per cell: false
-flags, recall of the seeded anomalies, centre RMS against the true centres, the frame's detection limits
-and the inspection's time; then the same frames as a scene (a smooth random brightness over the lenses,
+flags, recall of the seeded anomalies, how many of the shifted, dimmed, missing and resized discs are typed
+pitch, dim, missing and radius, centre RMS against the true centres, the frame's detection limits and the
+inspection's time; then the same frames as a scene (a smooth random brightness over the lenses,
 as a fluorescent sample gives), which must be refused, not inspected.
 
     python bench/instruments.py            # both fixtures, noise 0 / 1 / 3 %, 24 anomalies each
@@ -82,9 +83,18 @@ def run_cell(cfg, name: str, noise: float, seed: int, tmp: Path) -> Cell:
     result = inspect_file(path, cfg)
     cell = Cell(f"{name} analytic noise {noise:.0%}", seconds=time.perf_counter() - t0)
     truth = {(a.row + 1, a.col + 1): {"kind": f"{a.kind} {a.magnitude:.2f}", "magnitude": None} for a in anomalies}
-    score(cell, result, _match_truth(result, model, truth))
+    matched = _match_truth(result, model, truth)
+    score(cell, result, matched)
     cell.centre_rms_px, cell.grid_rms_px = centre_rms(result, model, set(truth))
+    flagged = {(d.m, d.n): d.error_type for d in result.defects}
+    typed = [(TYPE_OF[t["kind"].split()[0]], flagged.get(key)) for key, t in matched.items()
+             if t["kind"].split()[0] in TYPE_OF]
+    cell.name += f" [typed {sum(want == got for want, got in typed)}/{len(typed)}]"
     return cell
+
+
+# the physical type an analytic anomaly is: a whole disc moved, its light scaled, none, its size changed
+TYPE_OF = {"shift": "pitch", "dim": "dim", "missing": "missing", "size": "radius"}
 
 
 def scene_refused(cfg, name: str, contrast: float, seed: int, tmp: Path) -> str:

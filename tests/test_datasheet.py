@@ -196,3 +196,11 @@ def test_a_frame_whose_pitch_the_config_cannot_explain_is_warned_naming_the_keys
     assert note.startswith("WARNING") and "relay.magnification" in note and "-2.0%" in note
     (note,) = pitch_notes(default_config().layout.subimage_pitch_px * 1.03, default_config())
     assert "geometry.mla_distance_mm" in note and "relay" not in note
+
+
+def test_a_flat_back_leaves_the_aperture_to_the_front_sag_alone():
+    from mlaqc.optics.formation import aperture_corner_radius_um
+
+    r, t = LFM.mla.radius_front_um, LFM.mla.thickness_um
+    assert aperture_corner_radius_um(LFM) == pytest.approx(math.sqrt(r * r - (r - t) ** 2), rel=1e-9)  # sag = t
+    assert math.isinf(aperture_corner_radius_um(HANDHELD))  # 30 µm substrate, 3.7 µm sag at the hexagon's corner

@@ -73,8 +73,9 @@ from mlaqc.inspection.metrics_kernels import median_baselines
 from mlaqc.inspection.results import Defect, LensMetrics
 from mlaqc.models.position_split import (PositionSplit, contrast_spread, neighbour_contrast, split_limits,
                                          type_position)
-from mlaqc.models.signatures import (FEATURES, KIND_BY_NAME, RINGS, SignatureTable, along_gain_small, lens_features,
+from mlaqc.models.signatures import (FEATURES, RINGS, SignatureTable, along_gain_small, lens_features,
                                      to_along_xy)
+from mlaqc.models.transmission import CLASSIFIED_KINDS, with_dim
 from mlaqc.optics.config import QC
 from mlaqc.optics.lattice import Lattice
 from mlaqc.parallel import thread_map
@@ -739,7 +740,8 @@ def min_reportable(qc: QC) -> dict[str, float]:
     deviation smaller than what such an error causes is not flagged however significant it is."""
     f = qc.report_fraction
     return {"pitch": f * qc.pitch_um, "position": f * qc.pitch_um, "decenter": f * qc.decenter_um,
-            "radius": f * qc.radius_rel, "tilt": f * qc.tilt_deg, "thickness": f * qc.thickness_um}
+            "radius": f * qc.radius_rel, "tilt": f * qc.tilt_deg, "thickness": f * qc.thickness_um,
+            "dim": f * qc.dim_rel}
 
 
 def response(table: SignatureTable, kind: str, magnitude: float) -> np.ndarray:
@@ -944,7 +946,7 @@ def classify(table: SignatureTable, vec: np.ndarray, shift_dir: float, sigmas: n
     `fit_all` entry when already computed; `whiten` as in `fit_kind`."""
     fits = fits if fits is not None else {k: fit_kind(table, k, vec, sigmas, whiten=whiten) for k in table.magnitudes}
     best = min(fits, key=lambda k: fits[k][1])
-    kind = KIND_BY_NAME[best]
+    kind = CLASSIFIED_KINDS[best]
     direction = (shift_dir - table.phi0_deg[best]) % 360.0 if kind.directional else None
     alternatives: tuple = ()
     if best in ("pitch", "decenter") and "pitch" in fits and "decenter" in fits:
@@ -962,6 +964,7 @@ def classify(table: SignatureTable, vec: np.ndarray, shift_dir: float, sigmas: n
 def tolerance_for(error_type: str, qc: QC) -> float:
     """The QC limit of a type, in its unit (radius errors are relative)."""
     return {"pitch": qc.pitch_um, "position": qc.pitch_um, "decenter": qc.decenter_um, "radius": qc.radius_rel,
+            "dim": qc.dim_rel,
             "tilt": qc.tilt_deg, "thickness": qc.thickness_um}.get(error_type, 0.0)
 
 
@@ -1384,7 +1387,8 @@ def identify(metrics: LensMetrics, missing: np.ndarray, qc: QC, table: Signature
     features = [_feature_vector(feat_dev, rings, m, n) for m, n in lenses]
     vecs = np.array([f[0] for f in features]) if features else np.zeros((0, len(sigmas) + len(RINGS)))
     across = _across_share([f[1] for f in features]) if table.across else None
-    fits = dict(zip(lenses, fit_all(table, vecs, sigmas, rings.whiten, across)))
+    typing = with_dim(table)  # the kinds a flagged lens may be typed as: the rendered ones and a dim lens
+    fits = dict(zip(lenses, fit_all(typing, vecs, sigmas, rings.whiten, across)))
     shifts = dict(zip(lenses, features))
     mins = min_reportable(qc)
     contrast = neighbour_contrast(dev["asym_x"], dev["asym_y"], packing) if split is not None else None
@@ -1398,7 +1402,7 @@ def identify(metrics: LensMetrics, missing: np.ndarray, qc: QC, table: Signature
             error_type[m, n] = "missing"
             continue
         vec, shift_dir = shifts[(m, n)]
-        kind, mag, unit, direction, alts = classify(table, vec, shift_dir, sigmas, fits[(m, n)], rings.whiten)
+        kind, mag, unit, direction, alts = classify(typing, vec, shift_dir, sigmas, fits[(m, n)], rings.whiten)
         if kind == "position" and split is not None:
             kind, mag, direction, alts = _split_reading(split, contrast, m, n, vec[0], split_sigma, alts)
         uv = _unit_noise(vec, sigmas, rings.whiten)
@@ -1413,7 +1417,7 @@ def identify(metrics: LensMetrics, missing: np.ndarray, qc: QC, table: Signature
             # -2 % radius error gives 7; its -1.2 % radius reading left 60 % unexplained), or which deviates
             # more than an error of its kind at the reportable size would: not a small error of that kind
             if not (excess[(m, n)] > qc.detect_sigma
-                    or _beyond_reportable(table, kind, mag, float(uv @ uv), sigmas, rings.whiten, dof, mins)):
+                    or _beyond_reportable(typing, kind, mag, float(uv @ uv), sigmas, rings.whiten, dof, mins)):
                 flagged[m, n] = False  # significant, but smaller than any error worth reporting
                 below += 1
                 continue

@@ -47,9 +47,12 @@ def aperture_corner_radius_um(cfg: CameraConfig) -> float:
         return math.inf
     r1, r2, t = abs(mla.radius_front_um), abs(mla.radius_back_um), mla.thickness_um
 
+    def sag(r: float, rho: float) -> float:  # a flat surface (r = inf) has none
+        return 0.0 if math.isinf(r) else r - math.sqrt(max(r * r - rho * rho, 0.0))
+
     def edge(rho: float) -> float:  # thickness left at radius rho (convex front and back)
-        s1 = r1 - math.sqrt(max(r1 * r1 - rho * rho, 0.0)) if mla.radius_front_um > 0 else -(r1 - math.sqrt(max(r1 * r1 - rho * rho, 0.0)))
-        s2 = r2 - math.sqrt(max(r2 * r2 - rho * rho, 0.0)) if mla.radius_back_um < 0 else -(r2 - math.sqrt(max(r2 * r2 - rho * rho, 0.0)))
+        s1 = sag(r1, rho) if mla.radius_front_um > 0 else -sag(r1, rho)
+        s2 = sag(r2, rho) if mla.radius_back_um < 0 else -sag(r2, rho)
         return t - s1 - s2
 
     lo, hi = 0.0, min(r1, r2)

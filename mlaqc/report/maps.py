@@ -28,6 +28,7 @@ ERROR_COLOURS: dict[str, tuple[int, int, int]] = {
     "radius": (0, 158, 115),  # bluish green
     "tilt": (240, 228, 66),  # yellow
     "thickness": (204, 121, 167),  # reddish purple
+    "dim": (255, 255, 255),  # white: a transmission loss, the sub-image's shape kept
     "missing": (213, 94, 0),  # vermillion, drawn as a ring with a cross
     "unknown": (0, 114, 178),  # blue
 }
