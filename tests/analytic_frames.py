@@ -49,13 +49,16 @@ def table1_pitch_px() -> float:
 @dataclass(frozen=True)
 class Anomaly:
     """One seeded anomaly on lens (row, col), 0-based. magnitude: shift px, skew relative tilt over the
-    radius, blur factor on the rim sigma, size factor on the radius, dim factor on the flux."""
+    radius, blur factor on the rim sigma, size factor on the radius, dim factor on the flux; spot (not in
+    KINDS: a dust shadow) the light lost over a round patch covering `area` of the disc, its centre towards
+    `direction_deg` as far out as the disc holds it."""
 
     row: int
     col: int
     kind: str
     magnitude: float
     direction_deg: float = 0.0
+    area: float = 0.25
 
 
 @dataclass(frozen=True)
@@ -146,6 +149,9 @@ class AnalyticModel:
         for chunk in np.array_split(np.arange(rows * cols), max(1, rows * cols // 1500)):
             self._add_discs(img, x.ravel()[chunk], y.ravel()[chunk], radius.ravel()[chunk], blur.ravel()[chunk],
                             flux.ravel()[chunk], skew.reshape(-1, 2)[chunk], edge)
+        for a in self.anomalies:
+            if a.kind == "spot":
+                self._darken_spot(img, x[a.row, a.col], y[a.row, a.col], a)
         if self.background:
             img += self.background
         img *= self._vignetting()
@@ -160,6 +166,20 @@ class AnalyticModel:
         if self.prnu_rms:
             img *= 1.0 + np.random.default_rng(self.sensor_seed).normal(0.0, self.prnu_rms, self.shape)
         return img
+
+    def _darken_spot(self, img, cx: float, cy: float, a: Anomaly) -> None:
+        """Multiply the pixels of a round patch (area `a.area` of the disc, its edge smoothed over half a
+        pixel) by 1 - depth, the patch as far out towards `a.direction_deg` as the disc holds it."""
+        rho = self.radius_px * math.sqrt(a.area)
+        d = max(0.0, 0.95 * self.radius_px - rho)
+        t = math.radians(a.direction_deg)
+        sx, sy = cx + d * math.cos(t), cy - d * math.sin(t)
+        r = int(math.ceil(rho + 2))
+        y0, x0 = int(round(sy)) - r, int(round(sx)) - r
+        yy, xx = np.mgrid[y0:y0 + 2 * r + 1, x0:x0 + 2 * r + 1]
+        inside = 0.5 * erfc((np.hypot(xx - sx, yy - sy) - rho) / 0.5)
+        ok = (yy >= 0) & (yy < img.shape[0]) & (xx >= 0) & (xx < img.shape[1])
+        img[yy[ok], xx[ok]] *= 1.0 - a.magnitude * inside[ok]
 
     def _edge(self):
         """The rim's edge-spread function of the signed distance inside the rim (px) and a blur factor."""

@@ -964,7 +964,7 @@ def classify(table: SignatureTable, vec: np.ndarray, shift_dir: float, sigmas: n
 def tolerance_for(error_type: str, qc: QC) -> float:
     """The QC limit of a type, in its unit (radius errors are relative)."""
     return {"pitch": qc.pitch_um, "position": qc.pitch_um, "decenter": qc.decenter_um, "radius": qc.radius_rel,
-            "dim": qc.dim_rel,
+            "dim": qc.dim_rel, "obscuration": qc.obscuration_area,
             "tilt": qc.tilt_deg, "thickness": qc.thickness_um}.get(error_type, 0.0)
 
 
@@ -982,6 +982,7 @@ class Identification:
     noise: Noise | None = None  # the frame's noise the detection worked against (for measurements)
     feature_sigmas: tuple[float, ...] = ()  # the classification FEATURES' spreads on this frame
     readings: dict = field(default_factory=dict)  # per-lens index values against the typical lens (`_readings`)
+    unreported: np.ndarray | None = None  # (rows, cols) bool: the `below_reportable` lenses (a later reading may name them)
 
 
 def detection_limits(table: SignatureTable, qc: QC, noise: Noise) -> dict:
@@ -1393,7 +1394,7 @@ def identify(metrics: LensMetrics, missing: np.ndarray, qc: QC, table: Signature
     mins = min_reportable(qc)
     contrast = neighbour_contrast(dev["asym_x"], dev["asym_y"], packing) if split is not None else None
     split_sigma = contrast_spread(contrast) if split is not None else float("nan")
-    below = 0
+    unreported = np.zeros(flagged.shape, bool)  # significant, no error of its kind worth reporting
     excess = _reach_excesses(lenses, detect_dev, noise, table, qc)
     for m, n in zip(*np.nonzero(flagged)):
         indexes = metrics.at(m + 1, n + 1)
@@ -1419,7 +1420,7 @@ def identify(metrics: LensMetrics, missing: np.ndarray, qc: QC, table: Signature
             if not (excess[(m, n)] > qc.detect_sigma
                     or _beyond_reportable(typing, kind, mag, float(uv @ uv), sigmas, rings.whiten, dof, mins)):
                 flagged[m, n] = False  # significant, but smaller than any error worth reporting
-                below += 1
+                unreported[m, n] = True
                 continue
             kind, mag, unit, direction, alts = "unknown", float("nan"), "", None, ()
         limit = tolerance_for(kind, qc)
@@ -1429,8 +1430,9 @@ def identify(metrics: LensMetrics, missing: np.ndarray, qc: QC, table: Signature
     limits = detection_limits(table, qc, noise)
     if "decenter" in table.magnitudes:  # (a flat-sided MLA has no decenter: nothing to tell pitch from)
         limits["pitch_vs_decenter"] = split_limits(split, split_sigma)
-    return Identification(tuple(defects), flagged, error_type, score, limits, below,
-                          int(outside.sum()), noise, tuple(float(x) for x in sigmas), _readings(detect_dev, rings, trend))
+    return Identification(tuple(defects), flagged, error_type, score, limits, int(unreported.sum()),
+                          int(outside.sum()), noise, tuple(float(x) for x in sigmas), _readings(detect_dev, rings, trend),
+                          unreported)
 
 
 __all__ = ["identify", "Identification", "classify", "deviations", "detection_score", "detection_limits", "FEATURES"]

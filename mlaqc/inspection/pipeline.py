@@ -20,6 +20,7 @@ from mlaqc.inspection.flatfield import check_flat_field
 from mlaqc.inspection.identify import identify
 from mlaqc.inspection.measure import measure_lenses
 from mlaqc.inspection.metrics import compute_metrics, reference_images
+from mlaqc.inspection.obscuration import obscuration_readings, retype
 from mlaqc.inspection.optics_check import pitch_notes
 from mlaqc.inspection.rawio import (Levels, RawFrame, check_exposure, levels_note, load_raw, normalized,
                                     resolve_levels, suppress_hot_pixels)
@@ -139,6 +140,9 @@ def _inspect_image(img: np.ndarray, cfg: CameraConfig, *, grid: Grid | None = No
                      f"frame {source}" if source else "the frame")
     found = identify(metrics, grid.missing | ~np.isfinite(metrics["flux"]), cfg.qc, table, position, phase,
                      outside=clipped, split=position_split(cfg), packing=cfg.mla.packing, aperture=cfg.mla.aperture)
+    spots = obscuration_readings(sub, cx + metrics["offset_x_px"], cy + metrics["offset_y_px"],
+                                 found.flagged | found.unreported, (found.flagged | found.unreported) & ~grid.missing)
+    found = retype(found, spots, cfg.qc, metrics)
     defects, flagged, error_type = found.defects, found.flagged, found.error_type
     lap("identify")
     measured = measure_lenses(found, table, cfg, (grid.residual_x_px, grid.residual_y_px) if own_grid else None)

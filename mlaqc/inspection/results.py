@@ -59,7 +59,9 @@ class Defect:
 
     m: int
     n: int
-    error_type: str  # 'pitch', 'decenter', 'position' (pitch or decenter), 'radius', 'tilt', 'thickness', 'missing'
+    # 'pitch', 'decenter', 'position' (pitch or decenter), 'radius', 'tilt', 'thickness', 'dim', 'obscuration',
+    # 'missing', 'unknown'
+    error_type: str
     magnitude: float  # in `unit`; signed for radius/thickness errors
     unit: str
     direction_deg: float | None  # counterclockwise from the image's +x towards its top; None if not directional

@@ -1,0 +1,176 @@
+"""Local obscuration: dust, residue or a dig on a lens darkens part of its sub-image, the rest unchanged.
+No error of the lens' shape does that: a shift or decenter moves the rim, a radius or thickness error
+changes the whole disc symmetrically, a transmission loss scales it all. So a flagged lens is read here,
+after it was typed, against the typical sub-image of this very frame (healthy lenses averaged about their
+measured centres on a grid OVERSAMPLE times finer, then sampled at the flagged lens' own centre): their
+ratio over the disc's interior (the rim left out, where a shift or a defocus shows) is scaled by its
+median (a dim lens is then flat) and smoothed over 3 x 3 pixels, and a dark region holding 3 to 70 % of
+the interior, at least SPOT_DEPTH deep, neither a ring round the centre nor beside a brightened region
+(over the whole disc: light moved to the rim is a shift's or a decenter's),
+while the rest of the disc keeps its light, is an obscuration: its area fraction, its depth
+(mean loss) and its position (the angle of its centroid from the sub-image's centre) replace the reading
+of the lens' shape, which stays as the alternative.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import warnings
+
+import numpy as np
+from scipy.ndimage import map_coordinates, uniform_filter
+
+from mlaqc.inspection.identify import edge_classes
+from mlaqc.inspection.results import Defect
+
+INTERIOR = 0.9  # pixels where the typical sub-image exceeds this share of its peak: the disc inside its rim
+MIN_AREA, MAX_AREA = 0.03, 0.7  # a region smaller is noise or a rim effect; larger is the lens' whole light
+NOISE_SIGMAS = 5.0  # the darkening threshold, in the smoothed ratio's noise over healthy lenses
+MIN_DEPTH = 0.03  # and never below this loss
+SPOT_DEPTH = 0.06  # a spot's loss (its 90th percentile) must reach this: a rim blurred x2 darkens by 4 %
+BRIGHT_SHARE = 0.3  # a brightened region this large against the dark one: light moved (a shift, a skew), not lost
+RING_REACH = 0.6  # dark pixels all round the centre this far out are a rim's, not a spot's
+OVERSAMPLE = 4
+TEMPLATE_LENSES = 400  # healthy lenses averaged into the frame's typical sub-image
+UNIT = "area"
+
+
+def obscuration_readings(sub, cx, cy, flagged, candidates):
+    """{(row, col): (area fraction, depth, direction_deg)} of the `candidates` lenses (bool map) two or more
+    lenses in from the array's edge whose sub-image is locally obscured (see the module note); `sub`
+    (rows, cols, h, w) windows and (cx, cy) the lenses' measured centres in window pixels, `flagged` the
+    lenses left out of the template and the noise."""
+    if not candidates.any():
+        return {}
+    inner = edge_classes(flagged.shape) == 2  # lenses with a full neighbourhood: the border's differ
+    healthy = inner & ~flagged & np.isfinite(cx) & np.isfinite(cy) & np.isfinite(sub).all(axis=(-2, -1))
+    keys = np.argwhere(healthy)
+    if len(keys) < 9:
+        return {}
+    template = _typical(sub, cx, cy, keys[:: max(1, len(keys) // TEMPLATE_LENSES)])
+    noise = _ratios(sub, cx, cy, template, keys[:: max(1, len(keys) // 100)])[0]
+    spread = float(np.nanmedian(np.nanstd(noise, axis=(1, 2)))) if np.isfinite(noise).any() else float("nan")
+    if not np.isfinite(spread):
+        return {}
+    threshold = max(MIN_DEPTH, NOISE_SIGMAS * spread)
+    keys = np.argwhere(candidates & inner)  # a border lens' sub-image is not the inner lenses' typical one
+    if not len(keys):
+        return {}
+    ratio, dy, dx, whole = _ratios(sub, cx, cy, template, keys)
+    inside = np.isfinite(ratio)
+    dark = inside & (ratio < -threshold)
+    n_dark = dark.sum(axis=(1, 2))
+    share = n_dark / np.maximum(inside.sum(axis=(1, 2)), 1)  # of the interior: what decides
+    with np.errstate(invalid="ignore", divide="ignore"), warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # a lens with no dark pixel: an all-NaN slice
+        rest = np.nanmedian(np.where(inside & ~dark, ratio, np.nan).reshape(len(keys), -1), axis=1)
+        depth = -np.nanpercentile(np.where(dark, ratio, np.nan).reshape(len(keys), -1), 10, axis=1)
+        sx, sy = np.where(dark, dx, 0.0).sum(axis=(1, 2)) / n_dark, np.where(dark, dy, 0.0).sum(axis=(1, 2)) / n_dark
+        area = _spot_area(whole, dy, dx, depth, sx, sy, n_dark)
+        n_disc = np.maximum(np.isfinite(whole).sum(axis=(1, 2)), 1)
+        lit = (whole > np.maximum(threshold, depth)[:, None, None]).sum(axis=(1, 2)) / n_disc
+    bright = (inside & (ratio > threshold)).sum(axis=(1, 2)) / np.maximum(inside.sum(axis=(1, 2)), 1)
+    spot = ((share >= MIN_AREA) & (area >= MIN_AREA) & (lit < BRIGHT_SHARE * area) & (depth >= SPOT_DEPTH) & (share <= MAX_AREA) & (np.abs(rest) < 0.5 * threshold) & (bright < BRIGHT_SHARE * share)
+            & ~_ring(dark, inside, dy, dx))
+    direction = np.degrees(np.arctan2(-sy, sx)) % 360.0
+    return {(int(m), int(n)): (float(area[i]), float(depth[i]), float(direction[i]))
+            for i, (m, n) in enumerate(keys) if spot[i]}
+
+
+def _spot_area(whole, dy, dx, depth, sx, sy, n_dark) -> np.ndarray:
+    """The spot's share of the whole disc (to its rim's half height): the disc's pixels darker than half the
+    spot's depth within twice the radius of the interior's dark region from its centroid (a spot near the
+    rim reaches past the interior; the rim's own noise elsewhere is not counted)."""
+    reach = 2.0 * np.sqrt(n_dark / np.pi) + 1.0
+    near = np.hypot(dy - sy[:, None, None], dx - sx[:, None, None]) <= reach[:, None, None]
+    dark = near & (whole < -0.5 * depth[:, None, None])
+    return dark.sum(axis=(1, 2)) / np.maximum(np.isfinite(whole).sum(axis=(1, 2)), 1)
+
+
+def _ring(dark, inside, dy, dx) -> np.ndarray:
+    """Per lens whether its dark pixels surround the centre near the rim (a smaller or defocused disc, not a
+    spot): in at least 7 of 8 sectors, at a mean distance beyond RING_REACH of the interior's radius."""
+    r = np.hypot(dy, dx)
+    reach = np.where(inside, r, 0.0).max(axis=(1, 2))
+    sector = (np.floor(np.arctan2(dy, dx) / (np.pi / 4)).astype(np.int64) % 8)[..., None] == np.arange(8)
+    sectors = (dark[..., None] & sector).any(axis=(1, 2)).sum(axis=1)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        mean_r = np.where(dark, r, 0.0).sum(axis=(1, 2)) / dark.sum(axis=(1, 2))
+    return (sectors >= 7) & (mean_r > RING_REACH * reach)
+
+
+def _typical(sub, cx, cy, keys):
+    """The mean sub-image of lenses `keys` about their centres, each scaled to unit mean, on a grid
+    OVERSAMPLE times finer whose centre (index OVERSAMPLE * half) is the lens' centre."""
+    h, w = sub.shape[-2:]
+    half = max(h, w) // 2 + 1
+    size = 2 * half * OVERSAMPLE + 1
+    m, n = keys[:, 0], keys[:, 1]
+    win = np.asarray(sub[m, n], dtype=np.float64)
+    win = win / np.maximum(win.mean(axis=(1, 2), keepdims=True), 1e-12)
+    yy, xx = np.mgrid[0:h, 0:w]
+    gy = np.rint((yy[None] - cy[m, n][:, None, None]) * OVERSAMPLE).astype(np.int64) + half * OVERSAMPLE
+    gx = np.rint((xx[None] - cx[m, n][:, None, None]) * OVERSAMPLE).astype(np.int64) + half * OVERSAMPLE
+    ok = (gy >= 0) & (gy < size) & (gx >= 0) & (gx < size)
+    idx = gy[ok] * size + gx[ok]
+    acc = np.bincount(idx, weights=win[ok], minlength=size * size)
+    cnt = np.bincount(idx, minlength=size * size)
+    return np.where(cnt > 0, acc / np.maximum(cnt, 1), 0.0).reshape(size, size)
+
+
+def _ratios(sub, cx, cy, template, keys):
+    """Per lens of `keys` (K, 2): its sub-image over the typical one sampled at its centre, smoothed over
+    3 x 3 pixels, scaled to a median of 1, minus 1, NaN outside the disc's interior; and the pixels'
+    offsets (dy, dx) from the lens' centre, (K, h, w) each."""
+    h, w = sub.shape[-2:]
+    m, n = keys[:, 0], keys[:, 1]
+    win = np.asarray(sub[m, n], dtype=np.float64)
+    yy, xx = np.mgrid[0:h, 0:w]
+    dy, dx = yy[None] - cy[m, n][:, None, None], xx[None] - cx[m, n][:, None, None]
+    centre = (template.shape[0] - 1) / 2
+    ref = map_coordinates(template, (dy * OVERSAMPLE + centre, dx * OVERSAMPLE + centre), order=1, mode="constant")
+    peak = ref.max(axis=(1, 2), keepdims=True)
+    disc = (ref > 0.5 * peak) & np.isfinite(win)  # the sub-image to its rim's half height
+    inside = disc & (ref > INTERIOR * peak)
+    raw = np.where(disc, win / np.where(disc, ref, 1.0), 0.0)
+    ratio, whole = (_smoothed(raw, zone) for zone in (inside, disc))  # each smoothed within its own zone
+    with np.errstate(invalid="ignore"), warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        med = np.nanmedian(ratio.reshape(len(keys), -1), axis=1)[:, None, None]
+    return ratio / med - 1.0, dy, dx, whole / med - 1.0
+
+
+def _smoothed(raw, zone):
+    """The 3 x 3 mean of `raw` over the pixels of `zone` (per lens), NaN outside it."""
+    num = uniform_filter(np.where(zone, raw, 0.0), (1, 3, 3))
+    den = uniform_filter(zone.astype(np.float64), (1, 3, 3))
+    return np.where(zone, num / np.maximum(den, 1e-9), np.nan)
+
+
+def retype(found, readings, qc, metrics):
+    """`found` (an Identification) with the obscured lenses typed 'obscuration' (magnitude: the area fraction;
+    direction: where the spot sits; depth in the indexes), judged against `qc.obscuration_area`: a flagged
+    lens' shape reading stays as the alternative, and a lens whose deviation was significant but read as an
+    error below the reportable size (`found.unreported`) is flagged now."""
+    if not readings:
+        return found
+    defects, error_type, flagged = [], found.error_type.copy(), found.flagged.copy()
+    unreported = found.unreported.copy() if found.unreported is not None else np.zeros(flagged.shape, bool)
+    typed = {(d.m - 1, d.n - 1): d for d in found.defects}
+    for (m, n), (area, depth, direction) in readings.items():
+        d = typed.get((m, n))
+        if d is None and not unreported[m, n] or d is not None and d.error_type == "missing":
+            continue
+        spot = {"error_type": "obscuration", "magnitude": area, "unit": UNIT, "direction_deg": direction,
+                "within_tolerance": area <= qc.obscuration_area}
+        if d is None:
+            d = Defect(m + 1, n + 1, score=float(found.score[m, n]), indexes=metrics.at(m + 1, n + 1), **spot)
+            unreported[m, n], flagged[m, n] = False, True
+        else:
+            was = (d.error_type, d.magnitude, d.unit, d.direction_deg)
+            d = dataclasses.replace(d, alternatives=(was,) if was[0] != "unknown" else (), **spot)
+        typed[(m, n)] = dataclasses.replace(d, indexes={**d.indexes, "spot_area": area, "spot_depth": depth})
+        error_type[m, n] = "obscuration"
+    defects = tuple(typed[k] for k in sorted(typed))
+    return dataclasses.replace(found, defects=defects, error_type=error_type, flagged=flagged,
+                               unreported=unreported, below_reportable=int(unreported.sum()))
