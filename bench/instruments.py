@@ -52,7 +52,8 @@ def analytic_model(cfg) -> am.AnalyticModel:
     pitch = lay.subimage_pitch_px
     radius = min(lay.micro.efl * 1e3 / (2.0 * lay.image_f_number) / pix, 0.5 * pitch)
     airy = 1.22 * cfg.geometry.wavelength_nm * 1e-3 * (lay.micro.efl * 1e3 / cfg.mla.pitch_um) / pix
-    pupil_px = 1e12 if cfg.main_lens.ideal and telecentric(cfg.main_lens.exit_pupil_mm) else lay.pupil_to_mla_mm * 1e3 / pix
+    far = cfg.main_lens.ideal and telecentric(cfg.main_lens.exit_pupil_mm)
+    pupil_px = 1e12 if far else lay.pupil_to_mla_mm * 1e3 / pix
     return am.AnalyticModel(shape=(cfg.sensor.height_px, cfg.sensor.width_px), lenses=(cfg.mla.count_h, cfg.mla.count_w),
                             pitch_px=pitch, radius_px=radius, rim="airy", airy_radius_px=airy, exit_pupil_px=pupil_px,
                             packing=cfg.mla.packing, phase_px=(0.37, 0.21))

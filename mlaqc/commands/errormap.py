@@ -34,7 +34,8 @@ def run(args: argparse.Namespace) -> int:
         if args.count < 0:
             raise InputError("the defect count must not be negative")
         types = tuple(t.strip() for t in args.types.split(",") if t.strip())
-        emap = random_defects(*shape, args.count, args.seed, types=physical_types(types, cfg.mla), packing=cfg.mla.packing)
+        emap = random_defects(*shape, args.count, args.seed, types=physical_types(types, cfg.mla),
+                              packing=cfg.mla.packing)
         emap.save(args.out)
         print(f"wrote {args.out}: {args.count} defects on a {shape[0]}x{shape[1]} {cfg.mla.packing} MLA (seed {args.seed})", file=sys.stderr)
         return 0

@@ -55,7 +55,8 @@ def run(args: argparse.Namespace) -> int:
             signature_table(cfg, client=client, rebuild=args.rebuild, progress=bar)
         finally:
             bar.close()
-    tf_key = "(none: an ideal main lens has no object side)" if cfg.main_lens.ideal else _through_focus_model(cfg, args.rebuild)
+    ideal = cfg.main_lens.ideal  # no object side to put pinholes on
+    tf_key = "(none: an ideal main lens has no object side)" if ideal else _through_focus_model(cfg, args.rebuild)
     asm_bar = ProgressBar("assembly renders", enabled=False if args.quiet else None)
     try:
         asm_key = assembly_model(cfg, rebuild=args.rebuild, progress=asm_bar).key

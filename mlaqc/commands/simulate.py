@@ -140,7 +140,8 @@ def build_errors(args: argparse.Namespace, mla) -> ErrorMap:
         if args.random_defects < 0:
             raise InputError("--random-defects must not be negative")
         types = tuple(t.strip() for t in args.defect_types.split(",") if t.strip())
-        return random_defects(rows, cols, args.random_defects, args.seed, types=physical_types(types, mla), packing=packing)
+        return random_defects(rows, cols, args.random_defects, args.seed, types=physical_types(types, mla),
+                              packing=packing)
     return ErrorMap.zeros(rows, cols, packing)
 
 

@@ -982,7 +982,8 @@ class Identification:
     noise: Noise | None = None  # the frame's noise the detection worked against (for measurements)
     feature_sigmas: tuple[float, ...] = ()  # the classification FEATURES' spreads on this frame
     readings: dict = field(default_factory=dict)  # per-lens index values against the typical lens (`_readings`)
-    unreported: np.ndarray | None = None  # (rows, cols) bool: the `below_reportable` lenses (a later reading may name them)
+    unreported: np.ndarray | None = None  # (rows, cols) bool: the `below_reportable` lenses (a later reading
+    # may name them: mlaqc.inspection.obscuration)
 
 
 def detection_limits(table: SignatureTable, qc: QC, noise: Noise) -> dict:
@@ -1431,8 +1432,8 @@ def identify(metrics: LensMetrics, missing: np.ndarray, qc: QC, table: Signature
     if "decenter" in table.magnitudes:  # (a flat-sided MLA has no decenter: nothing to tell pitch from)
         limits["pitch_vs_decenter"] = split_limits(split, split_sigma)
     return Identification(tuple(defects), flagged, error_type, score, limits, int(unreported.sum()),
-                          int(outside.sum()), noise, tuple(float(x) for x in sigmas), _readings(detect_dev, rings, trend),
-                          unreported)
+                          int(outside.sum()), noise, tuple(float(x) for x in sigmas),
+                          _readings(detect_dev, rings, trend), unreported)
 
 
 __all__ = ["identify", "Identification", "classify", "deviations", "detection_score", "detection_limits", "FEATURES"]

@@ -18,8 +18,6 @@ import dataclasses
 import warnings
 
 import numpy as np
-from scipy.ndimage import map_coordinates, uniform_filter
-
 from mlaqc.inspection.identify import edge_classes
 from mlaqc.inspection.results import Defect
 
@@ -70,7 +68,8 @@ def obscuration_readings(sub, cx, cy, flagged, candidates):
         n_disc = np.maximum(np.isfinite(whole).sum(axis=(1, 2)), 1)
         lit = (whole > np.maximum(threshold, depth)[:, None, None]).sum(axis=(1, 2)) / n_disc
     bright = (inside & (ratio > threshold)).sum(axis=(1, 2)) / np.maximum(inside.sum(axis=(1, 2)), 1)
-    spot = ((share >= MIN_AREA) & (area >= MIN_AREA) & (lit < BRIGHT_SHARE * area) & (depth >= SPOT_DEPTH) & (share <= MAX_AREA) & (np.abs(rest) < 0.5 * threshold) & (bright < BRIGHT_SHARE * share)
+    spot = ((share >= MIN_AREA) & (share <= MAX_AREA) & (area >= MIN_AREA) & (depth >= SPOT_DEPTH)
+            & (np.abs(rest) < 0.5 * threshold) & (bright < BRIGHT_SHARE * share) & (lit < BRIGHT_SHARE * area)
             & ~_ring(dark, inside, dy, dx))
     direction = np.degrees(np.arctan2(-sy, sx)) % 360.0
     return {(int(m), int(n)): (float(area[i]), float(depth[i]), float(direction[i]))
@@ -128,7 +127,7 @@ def _ratios(sub, cx, cy, template, keys):
     yy, xx = np.mgrid[0:h, 0:w]
     dy, dx = yy[None] - cy[m, n][:, None, None], xx[None] - cx[m, n][:, None, None]
     centre = (template.shape[0] - 1) / 2
-    ref = map_coordinates(template, (dy * OVERSAMPLE + centre, dx * OVERSAMPLE + centre), order=1, mode="constant")
+    ref = _bilinear(template, dy * OVERSAMPLE + centre, dx * OVERSAMPLE + centre)
     peak = ref.max(axis=(1, 2), keepdims=True)
     disc = (ref > 0.5 * peak) & np.isfinite(win)  # the sub-image to its rim's half height
     inside = disc & (ref > INTERIOR * peak)
@@ -142,9 +141,30 @@ def _ratios(sub, cx, cy, template, keys):
 
 def _smoothed(raw, zone):
     """The 3 x 3 mean of `raw` over the pixels of `zone` (per lens), NaN outside it."""
-    num = uniform_filter(np.where(zone, raw, 0.0), (1, 3, 3))
-    den = uniform_filter(zone.astype(np.float64), (1, 3, 3))
+    num, den = _box3(np.where(zone, raw, 0.0)), _box3(zone.astype(np.float64))
     return np.where(zone, num / np.maximum(den, 1e-9), np.nan)
+
+
+def _box3(a):
+    """3 x 3 sums over the last two axes, zero beyond the edges (plain NumPy: an inspection loads no
+    scipy.ndimage, tests/test_compiled.py)."""
+    p = np.pad(a, ((0, 0), (1, 1), (1, 1)))
+    h, w = a.shape[-2:]
+    return sum(p[:, i:i + h, j:j + w] for i in range(3) for j in range(3))
+
+
+def _bilinear(image, y, x):
+    """`image` interpolated bilinearly at (y, x) (index units), 0 beyond it."""
+    y0, x0 = np.floor(y).astype(np.int64), np.floor(x).astype(np.int64)
+    fy, fx = y - y0, x - x0
+    h, w = image.shape
+    out = np.zeros(np.shape(y))
+    for dy, wy in ((0, 1.0 - fy), (1, fy)):
+        for dx, wx in ((0, 1.0 - fx), (1, fx)):
+            yy, xx = y0 + dy, x0 + dx
+            ok = (yy >= 0) & (yy < h) & (xx >= 0) & (xx < w)
+            out += np.where(ok, image[np.clip(yy, 0, h - 1), np.clip(xx, 0, w - 1)], 0.0) * wy * wx
+    return out
 
 
 def retype(found, readings, qc, metrics):

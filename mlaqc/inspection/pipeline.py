@@ -28,7 +28,8 @@ from mlaqc.inspection.results import InspectionResult, LazyReferences
 from mlaqc.inspection.subimages import divide
 from mlaqc.models.position_split import position_split
 from mlaqc.models.reference import ReferenceModel, config_key, reference_model
-from mlaqc.models.signatures import SignatureSet, SignatureTable, signature_key, signature_table, um_per_px_at_mla, window_half_px
+from mlaqc.models.signatures import (SignatureSet, SignatureTable, signature_key, signature_table, um_per_px_at_mla,
+                                     window_half_px)
 from mlaqc.optics.config import CameraConfig
 
 
