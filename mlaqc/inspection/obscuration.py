@@ -5,8 +5,9 @@ after it was typed, against the typical sub-image of this very frame (healthy le
 measured centres on a grid OVERSAMPLE times finer, then sampled at the flagged lens' own centre): their
 ratio over the disc's interior (the rim left out, where a shift or a defocus shows) is scaled by its
 median (a dim lens is then flat) and smoothed over 3 x 3 pixels, and a dark region holding 3 to 70 % of
-the interior, at least SPOT_DEPTH deep, neither a ring round the centre nor beside a brightened region
-(over the whole disc: light moved to the rim is a shift's or a decenter's),
+the interior (of at least MIN_INTERIOR_PX pixels: a sub-image about 7 px in radius or more), at least
+SPOT_DEPTH deep, neither a ring round the centre nor beside a brightened region (over the whole disc:
+light moved to the rim is a shift's or a decenter's),
 while the rest of the disc keeps its light, is an obscuration: its area fraction, its depth
 (mean loss) and its position (the angle of its centroid from the sub-image's centre) replace the reading
 of the lens' shape, which stays as the alternative.
@@ -28,6 +29,7 @@ MIN_DEPTH = 0.03  # and never below this loss
 SPOT_DEPTH = 0.06  # a spot's loss (its 90th percentile) must reach this: a rim blurred x2 darkens by 4 %
 BRIGHT_SHARE = 0.3  # a brightened region this large against the dark one: light moved (a shift, a skew), not lost
 RING_REACH = 0.6  # dark pixels all round the centre this far out are a rim's, not a spot's
+MIN_INTERIOR_PX = 100  # fewer interior pixels cannot tell a spot's shape from a skew or a smaller disc
 OVERSAMPLE = 4
 TEMPLATE_LENSES = 400  # healthy lenses averaged into the frame's typical sub-image
 UNIT = "area"
@@ -68,7 +70,8 @@ def obscuration_readings(sub, cx, cy, flagged, candidates):
         n_disc = np.maximum(np.isfinite(whole).sum(axis=(1, 2)), 1)
         lit = (whole > np.maximum(threshold, depth)[:, None, None]).sum(axis=(1, 2)) / n_disc
     bright = (inside & (ratio > threshold)).sum(axis=(1, 2)) / np.maximum(inside.sum(axis=(1, 2)), 1)
-    spot = ((share >= MIN_AREA) & (share <= MAX_AREA) & (area >= MIN_AREA) & (depth >= SPOT_DEPTH)
+    resolved = inside.sum(axis=(1, 2)) >= MIN_INTERIOR_PX
+    spot = (resolved & (share >= MIN_AREA) & (share <= MAX_AREA) & (area >= MIN_AREA) & (depth >= SPOT_DEPTH)
             & (np.abs(rest) < 0.5 * threshold) & (bright < BRIGHT_SHARE * share) & (lit < BRIGHT_SHARE * area)
             & ~_ring(dark, inside, dy, dx))
     direction = np.degrees(np.arctan2(-sy, sx)) % 360.0
