@@ -250,7 +250,7 @@ def _baseline_oracle(values: np.ndarray, size: int, axis: str) -> np.ndarray:
     """`local_deviation`'s baseline, lens by lens: the median over the scipy filter's window (clipped to
     the array: mode 'nearest', an edge lens along its edge line, a corner along the columns for an x
     index) of the lenses that belong in it: never a lens not measured (NaN), and not the array's
-    outermost lenses for a lens two or more rows in."""
+    outermost lenses for a lens two or more rows in, or one whose window they would fill half of."""
     rows, cols = values.shape
     half = size // 2
     edges = rows >= size and cols >= size
@@ -265,9 +265,11 @@ def _baseline_oracle(values: np.ndarray, size: int, axis: str) -> np.ndarray:
                 line, k = (values[:, n], m) if on_col else (values[m, :], n)
                 win = [line[clip(k + d, line.size)] for d in range(-half, half + 1)]
             else:
-                win = [values[i, j] for i in (clip(m + d, rows) for d in range(-half, half + 1))
-                       for j in (clip(n + d, cols) for d in range(-half, half + 1))
-                       if not (edges and ring >= 2 and min(i, j, rows - 1 - i, cols - 1 - j) == 0)]
+                cells = [(i, j) for i in (clip(m + d, rows) for d in range(-half, half + 1))
+                         for j in (clip(n + d, cols) for d in range(-half, half + 1))]
+                outer = [min(i, j, rows - 1 - i, cols - 1 - j) == 0 for i, j in cells]
+                leave = edges and (ring >= 2 or np.mean(outer) >= 0.5)  # beside a corner they fill half of it
+                win = [values[i, j] for (i, j), o in zip(cells, outer) if not (leave and o)]
             win = np.array(win)
             if np.isfinite(win).any():
                 out[m, n] = np.median(win[np.isfinite(win)])
