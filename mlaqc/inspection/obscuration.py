@@ -4,13 +4,12 @@ changes the whole disc symmetrically, a transmission loss scales it all. So a fl
 after it was typed, against the typical sub-image of this very frame (healthy lenses averaged about their
 measured centres on a grid OVERSAMPLE times finer, then sampled at the flagged lens' own centre): their
 ratio over the disc's interior (the rim left out, where a shift or a defocus shows) is scaled by its
-median (a dim lens is then flat) and smoothed over 3 x 3 pixels, and a dark region holding 3 to 70 % of
-the interior (of at least MIN_INTERIOR_PX pixels: a sub-image about 7 px in radius or more), at least
-SPOT_DEPTH deep, neither a ring round the centre nor beside a brightened region (over the whole disc:
-light moved to the rim is a shift's or a decenter's),
-while the rest of the disc keeps its light, is an obscuration: its area fraction, its depth
-(mean loss) and its position (the angle of its centroid from the sub-image's centre) replace the reading
-of the lens' shape, which stays as the alternative.
+median (a dim lens is then flat) and smoothed over 3 x 3 pixels. A dark region holding 3 to 70 % of an
+interior of at least MIN_INTERIOR_PX pixels (a sub-image about 7 px in radius or more), at least SPOT_DEPTH
+deep, not a ring round the centre, with no brightened region beside it (over the whole disc: light moved
+to the rim is a shift's or a decenter's) and the rest of the disc keeping its light, is an obscuration:
+its area fraction, its depth (the loss of its darkest tenth) and its position (the angle of its centroid
+from the sub-image's centre) replace the reading of the lens' shape, which stays as the alternative.
 """
 
 from __future__ import annotations
@@ -19,6 +18,7 @@ import dataclasses
 import warnings
 
 import numpy as np
+
 from mlaqc.inspection.identify import edge_classes
 from mlaqc.inspection.results import Defect
 
