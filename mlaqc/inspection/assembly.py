@@ -150,6 +150,9 @@ def measure_assembly(grid, cfg, model=None) -> Assembly:
     camera, through its assembly model (mlaqc.models.assembly_model; looked up when None: shipped or
     cached, never rendered here — `mlaqc models` renders it once for new optics)."""
     count = cfg.mla.count_h * cfg.mla.count_w
+    if cfg.mla.counts_auto:
+        return not_read("the frame sees part of the array (mla.count_w / count_h = \"auto\"): the array's placement "
+                        "needs its edges in view")
     if grid.shape != (cfg.mla.count_h, cfg.mla.count_w):
         return not_read(f"the grid has {grid.cols} x {grid.rows} lenses, the camera's MLA "
                         f"{cfg.mla.count_w} x {cfg.mla.count_h}: the array's placement needs the whole array")

@@ -1,4 +1,4 @@
-"""Does the frame show the optics the config describes? The sub-image pitch a frame measures against the
+"""Does the frame show the optics the config describes, and how are its lenses numbered? The sub-image pitch a frame measures against the
 one the config predicts (lens pitch x relay magnification / pixel, spread by (b + gap) / b for an exit pupil
 b before the MLA): a reference model and signatures rendered for other optics would type defects wrongly,
 so a disagreement larger than the array itself can explain is said, naming the keys that set it.
@@ -39,3 +39,14 @@ def pitch_notes(measured_px: float, cfg: CameraConfig) -> tuple[str, ...]:
             f"({off:+.1%}), more than the array's own pitch scale or placement explains: the reference model and "
             f"signatures are for other optics, so defect types and sizes are not to be trusted; check "
             f"{pitch_keys(cfg)} (`mlaqc models -c CONFIG` prints what they give).",)
+
+
+def anchoring_notes(cfg: CameraConfig) -> tuple[str, ...]:
+    """How the lens indexes U(m,n) were anchored, when not to the array's corner: with count_w = count_h =
+    "auto" the frame sees part of an array larger than it."""
+    if not cfg.mla.counts_auto:
+        return ()
+    return (f"Lens indexes are relative to the frame (mla.count_w / count_h = \"auto\": {cfg.mla.count_w} x "
+            f"{cfg.mla.count_h} lenses cover the sensor): U(1,1) is the top-left lens the frame cuts, not the "
+            "array's corner; the lenses the frame cuts are not inspected (report.json not_inspected; a saved grid marks "
+            "them clipped).",)

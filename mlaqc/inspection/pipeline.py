@@ -21,7 +21,7 @@ from mlaqc.inspection.identify import identify
 from mlaqc.inspection.measure import measure_lenses
 from mlaqc.inspection.metrics import compute_metrics, reference_images
 from mlaqc.inspection.obscuration import obscuration_readings, retype
-from mlaqc.inspection.optics_check import pitch_notes
+from mlaqc.inspection.optics_check import anchoring_notes, pitch_notes
 from mlaqc.inspection.rawio import (Levels, RawFrame, check_exposure, levels_note, load_raw, normalized,
                                     resolve_levels, suppress_hot_pixels)
 from mlaqc.inspection.results import InspectionResult, LazyReferences
@@ -117,7 +117,7 @@ def _inspect_image(img: np.ndarray, cfg: CameraConfig, *, grid: Grid | None = No
     if own_grid:
         grid = calibrate_for(img, cfg)
         lap("calibrate")
-    notes = tuple(notes) + pitch_notes(float(np.mean(grid.pitch_px)), cfg)
+    notes = tuple(notes) + pitch_notes(float(np.mean(grid.pitch_px)), cfg) + anchoring_notes(cfg)
     half = window_half_px(cfg)
     subs = divide(img, grid, 2 * half + 1)
     sub, cx, cy = subs.data, subs.centre_x_px, subs.centre_y_px

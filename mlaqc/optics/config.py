@@ -103,6 +103,7 @@ class MLA:
     black_matrix_um: float = 0.0
     focal_length_um: float | None = None
     profile: str | None = None
+    counts_auto: bool = False  # count_w / count_h given as "auto": the lenses the sensor sees (COUNT_AUTO)
 
     @property
     def flat_sided(self) -> bool:
@@ -226,6 +227,9 @@ class CameraConfig:
                     del d[sec][key]
         if not self.relay.present:
             del d["relay"]
+        if self.mla.counts_auto:  # written as given: derived again from the sensor when read
+            d["mla"]["count_w"] = d["mla"]["count_h"] = "auto"
+        del d["mla"]["counts_auto"]
         if self.main_lens.ideal:  # the thick lens' defaults do not describe it
             for key in THICK_MAIN_KEYS:
                 del d["main_lens"][key]
@@ -354,12 +358,46 @@ def config_from_dict(data: dict[str, Any], source: str = "config") -> CameraConf
         table = data.get(name, {})
         if not isinstance(table, dict):
             raise InputError(f"{source}: config key {name!r} must be a table")
+        if name == "mla":
+            table = _auto_counts_marked(table, source)
         parts[name] = _build_section(getattr(base, name), table, name, source)
     parts["main_lens"] = _resolve_main_lens(parts["main_lens"], data.get("main_lens", {}), source)
     parts["mla"] = _resolve_mla(parts["mla"], data.get("mla", {}), source)
     cfg = CameraConfig(**parts)
+    if cfg.mla.counts_auto:
+        cfg = replace(cfg, mla=replace(cfg.mla, **_counts_seen(cfg)))
     validate(cfg, source)
     return cfg
+
+
+COUNT_AUTO = "auto"
+
+
+def _auto_counts_marked(table: dict[str, Any], source: str) -> dict[str, Any]:
+    """The [mla] table with count_w / count_h = "auto" taken out and `counts_auto` set (both go together:
+    a frame that sees part of the array sees it in both directions)."""
+    auto = [k for k in ("count_w", "count_h") if table.get(k) == COUNT_AUTO]
+    if not auto:
+        return table
+    if len(auto) == 1:
+        other = "count_h" if auto[0] == "count_w" else "count_w"
+        raise InputError(f"{source}: config key 'mla.{other}' must be \"auto\" too when 'mla.{auto[0]}' is: "
+                         "the lenses a frame holds are counted in both directions")
+    if "counts_auto" in table:
+        raise InputError(f"{source}: unknown config key 'mla.counts_auto'; write count_w = count_h = \"auto\"")
+    out = {k: v for k, v in table.items() if k not in auto}
+    out["counts_auto"] = True
+    return out
+
+
+def _counts_seen(cfg: CameraConfig) -> dict[str, int]:
+    """count_w / count_h for "auto": an array centred on the axis whose sub-images cover the whole sensor
+    with at least half a sub-image to spare on every side (the MLA larger than the sensor, as in a
+    microscope or a cropped region of interest: the frame's border lenses are cut)."""
+    mla, s = cfg.mla, cfg.sensor
+    pitch_px = compute_layout(replace(cfg, mla=replace(mla, count_w=1, count_h=1))).subimage_pitch_px
+    row_px = pitch_px * (math.sqrt(3.0) / 2.0 if mla.packing == "hex" else 1.0)
+    return {"count_w": math.ceil(s.width_px / pitch_px) + 2, "count_h": math.ceil(s.height_px / row_px) + 2}
 
 
 THICK_MAIN_KEYS = ("diameter_mm", "thickness_mm", "radius_front_mm", "radius_back_mm", "refractive_index")
@@ -522,10 +560,10 @@ def validate(cfg: CameraConfig, source: str = "config") -> None:
     _validate_relay(cfg, source)
     pix = cfg.pixel_at_mla_um
     seen = " (as the relay images it)" if cfg.relay.present else ""
-    _require(mla.count_w * mla.pitch_um <= s.width_px * pix, source, "mla.count_w",
+    _require(mla.counts_auto or mla.count_w * mla.pitch_um <= s.width_px * pix, source, "mla.count_w",
              f"makes the MLA ({mla.count_w * mla.pitch_um / 1000:.3f} mm) wider than the sensor{seen} ({s.width_px * pix / 1000:.3f} mm)", mla.count_w)
     height_um = Lattice(mla.packing, mla.count_h, mla.count_w, mla.pitch_um).extent[1]
-    _require(height_um <= s.height_px * pix, source, "mla.count_h",
+    _require(mla.counts_auto or height_um <= s.height_px * pix, source, "mla.count_h",
              f"makes the {mla.packing} MLA ({height_um / 1000:.3f} mm) taller than the sensor{seen} ({s.height_px * pix / 1000:.3f} mm)", mla.count_h)
     _require(8 <= s.bit_depth <= 16, source, "sensor.bit_depth", "must be between 8 and 16", s.bit_depth)
     _require(0 < s.qe <= 1, source, "sensor.qe", "must be in (0, 1]", s.qe)
