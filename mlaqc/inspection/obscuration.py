@@ -3,8 +3,8 @@ No error of the lens' shape does that: a shift or decenter moves the rim, a radi
 changes the whole disc symmetrically, a transmission loss scales it all. So a flagged lens is read here,
 after it was typed, against the typical sub-image of this very frame (healthy lenses averaged about their
 measured centres on a grid OVERSAMPLE times finer, then sampled at the flagged lens' own centre): their
-ratio over the disc's interior (the rim left out, where a shift or a defocus shows) is scaled by its
-median (a dim lens is then flat) and smoothed over 3 x 3 pixels. A dark region holding 3 to 70 % of an
+ratio over the disc's interior (the rim left out, where a shift or a defocus shows) is smoothed over
+3 x 3 pixels and scaled by its unobscured level (its 80th percentile: a dim lens is then flat). A dark region holding 3 to 70 % of an
 interior of at least MIN_INTERIOR_PX pixels (a sub-image about 7 px in radius or more), at least SPOT_DEPTH
 deep, not a ring round the centre, with no brightened region beside it (over the whole disc: light moved
 to the rim is a shift's or a decenter's) and the rest of the disc keeping its light, is an obscuration:
@@ -30,6 +30,7 @@ SPOT_DEPTH = 0.06  # a spot's loss (its 90th percentile) must reach this: a rim 
 BRIGHT_SHARE = 0.3  # a brightened region this large against the dark one: light moved (a shift, a skew), not lost
 RING_REACH = 0.6  # dark pixels all round the centre this far out are a rim's, not a spot's
 MIN_INTERIOR_PX = 100  # fewer interior pixels cannot tell a spot's shape from a skew or a smaller disc
+LEVEL_PERCENTILE = 80  # the interior's unobscured light: a spot may cover up to 70 % of it
 OVERSAMPLE = 4
 TEMPLATE_LENSES = 400  # healthy lenses averaged into the frame's typical sub-image
 UNIT = "area"
@@ -122,8 +123,9 @@ def _typical(sub, cx, cy, keys):
 
 def _ratios(sub, cx, cy, template, keys):
     """Per lens of `keys` (K, 2): its sub-image over the typical one sampled at its centre, smoothed over
-    3 x 3 pixels, scaled to a median of 1, minus 1, NaN outside the disc's interior; and the pixels'
-    offsets (dy, dx) from the lens' centre, (K, h, w) each."""
+    3 x 3 pixels, scaled to its unobscured level (LEVEL_PERCENTILE) of 1, minus 1, NaN outside the disc's
+    interior; the pixels' offsets (dy, dx) from the lens' centre; and the same ratio over the whole disc
+    (to its rim's half height), (K, h, w) each."""
     h, w = sub.shape[-2:]
     m, n = keys[:, 0], keys[:, 1]
     win = np.asarray(sub[m, n], dtype=np.float64)
@@ -138,8 +140,9 @@ def _ratios(sub, cx, cy, template, keys):
     ratio, whole = (_smoothed(raw, zone) for zone in (inside, disc))  # each smoothed within its own zone
     with np.errstate(invalid="ignore"), warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)
-        med = np.nanmedian(ratio.reshape(len(keys), -1), axis=1)[:, None, None]
-    return ratio / med - 1.0, dy, dx, whole / med - 1.0
+        # the unobscured level: a high quantile, so that a spot over most of the interior is still the dark part
+        level = np.nanpercentile(ratio.reshape(len(keys), -1), LEVEL_PERCENTILE, axis=1)[:, None, None]
+    return ratio / level - 1.0, dy, dx, whole / level - 1.0
 
 
 def _smoothed(raw, zone):
