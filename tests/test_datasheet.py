@@ -204,3 +204,14 @@ def test_a_flat_back_leaves_the_aperture_to_the_front_sag_alone():
     r, t = LFM.mla.radius_front_um, LFM.mla.thickness_um
     assert aperture_corner_radius_um(LFM) == pytest.approx(math.sqrt(r * r - (r - t) ** 2), rel=1e-9)  # sag = t
     assert math.isinf(aperture_corner_radius_um(HANDHELD))  # 30 µm substrate, 3.7 µm sag at the hexagon's corner
+
+
+def test_models_prints_the_derived_numbers_a_user_checks(capsys):
+    from mlaqc.commands.models import print_derived_numbers
+
+    print_derived_numbers(LFM, "lfm.toml")
+    err = capsys.readouterr().err
+    assert "f/21.05" in err and "46.1540 px" in err and "1374.00 µm" in err and "2314.13 µm" in err
+    print_derived_numbers(default_config(), None)
+    err = capsys.readouterr().err
+    assert "20.0478 px" in err and "417.14 µm" in err and "f/2.5 at infinity" in err
