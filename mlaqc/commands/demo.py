@@ -43,7 +43,8 @@ def run(args: argparse.Namespace) -> int:
         raise InputError("--defects must not be negative")
     spec = DefectSpec(pitch_um=(1.0, 4.0), decenter_um=(5.0, 12.0), radius_rel=(0.05, 0.2))
     errors = random_defects(cfg.mla.count_h, cfg.mla.count_w, args.defects, args.seed, spec=spec,
-                            types=physical_types(("pitch", "decenter", "radius"), cfg.mla), packing=cfg.mla.packing)
+                            types=physical_types(("pitch", "decenter", "radius"), cfg.mla),
+                            packing=cfg.mla.packing)
     out.mkdir(exist_ok=True)
     bar = ProgressBar("rendering", enabled=False if args.quiet else None)
     try:

@@ -200,8 +200,9 @@ def _refine_baselines(stack: np.ndarray, finite: np.ndarray, base: np.ndarray, s
     lenses, which miss neighbours and carry their own bias, are left out of the neighbourhoods of the
     lenses two or more rows in (those next to the edge are their own class, judged against their own
     spread, and keep them, but beside a corner, where they would fill half the window and be its median:
-    a microscope's 46 px sub-images read the outer lenses' 1.7 % flux deficit there at 28 sigma). Without this a lens beside the not-inspected part of an edge, or two lenses
-    in from the edge, is judged against a baseline pulled towards another population. `outer_from`: the
+    a microscope's 46 px sub-images read the outer lenses' 1.7 % flux deficit there at 28 sigma). Without
+    this a lens beside the not-inspected part of an edge, or two lenses in from the edge, is judged against a
+    baseline pulled towards another population. `outer_from`: the
     ring (distance to the edge) from which on the outermost lenses are left out (hex: 1, every lens).
     `centred`: the lenses opposite those left out (the window point-mirrored through the lens: beyond the
     outermost or a lens not measured) are left out too, two or more lenses in, so the window stays

@@ -48,5 +48,5 @@ def anchoring_notes(cfg: CameraConfig) -> tuple[str, ...]:
         return ()
     return (f"Lens indexes are relative to the frame (mla.count_w / count_h = \"auto\": {cfg.mla.count_w} x "
             f"{cfg.mla.count_h} lenses cover the sensor): U(1,1) is the top-left lens the frame cuts, not the "
-            "array's corner; the lenses the frame cuts are not inspected (report.json not_inspected; a saved grid marks "
-            "them clipped).",)
+            "array's corner; the lenses the frame cuts are not inspected (report.json not_inspected; a saved "
+            "grid marks them clipped).",)

@@ -141,8 +141,9 @@ def _inspect_image(img: np.ndarray, cfg: CameraConfig, *, grid: Grid | None = No
                      f"frame {source}" if source else "the frame")
     found = identify(metrics, grid.missing | ~np.isfinite(metrics["flux"]), cfg.qc, table, position, phase,
                      outside=clipped, split=position_split(cfg), packing=cfg.mla.packing, aperture=cfg.mla.aperture)
-    spots = obscuration_readings(sub, cx + metrics["offset_x_px"], cy + metrics["offset_y_px"],
-                                 found.flagged | found.unreported, (found.flagged | found.unreported) & ~grid.missing)
+    significant = found.flagged | found.unreported
+    spots = obscuration_readings(sub, cx + metrics["offset_x_px"], cy + metrics["offset_y_px"], significant,
+                                 significant & ~grid.missing)
     found = retype(found, spots, cfg.qc, metrics)
     defects, flagged, error_type = found.defects, found.flagged, found.error_type
     lap("identify")

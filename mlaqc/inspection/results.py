@@ -189,7 +189,9 @@ def detection_limit_text(limit: dict[str, Any]) -> str:
         return "not detectable" if v is None else f"{v * scale:.3g} {unit}"
 
     no_decenter = "pitch_um" in limit and "decenter_um" not in limit  # a flat-sided MLA has none
-    parts = [f"pitch {fmt('pitch_um', 1, 'µm')}"] + ([] if no_decenter else [f"decenter {fmt('decenter_um', 1, 'µm')}"])
+    parts = [f"pitch {fmt('pitch_um', 1, 'µm')}"]
+    if not no_decenter:
+        parts.append(f"decenter {fmt('decenter_um', 1, 'µm')}")
     parts.append(f"radius −{fmt('radius_rel_neg', 100, '%')} / +{fmt('radius_rel_pos', 100, '%')}")
     text = "detects at least: " + ", ".join(parts).replace("−not", "not").replace("+not", "not")
     text += _noise_text(limit.get("noise"))

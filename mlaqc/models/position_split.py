@@ -123,12 +123,12 @@ _SPLITS: dict[str, PositionSplit] = {}
 
 def position_split(cfg: CameraConfig) -> PositionSplit | None:
     """The split of `cfg`'s optics (the package's for Table 1 optics, else the disk cache, else rendered,
-    about 10 s, and cached), or None on a flat-sided MLA, or with grid boundaries or circular apertures (each centred on its own
-    front vertex, as a chrome mask makes them: no boundary is shared), where no neighbour sees either error."""
-    from mlaqc.models.signatures import KINDS, physical_kinds, signature_key
-
-    if cfg.mla.boundaries != "sag-intersection" or cfg.mla.aperture == "circle" or physical_kinds(cfg) != KINDS:
-        return None  # (a flat-sided MLA has no decenter: a shifted lens is a pitch error)
+    about 10 s, and cached), or None with grid boundaries or circular apertures (each centred on its own
+    front vertex, as a chrome mask makes them: no boundary is shared), where no neighbour sees either error,
+    and on a flat-sided MLA, which has no decenter (a shifted lens is a pitch error)."""
+    if cfg.mla.boundaries != "sag-intersection" or cfg.mla.aperture == "circle" or cfg.mla.flat_sided:
+        return None
+    from mlaqc.models.signatures import signature_key
 
     key = signature_key(cfg)
     if key not in _SPLITS:

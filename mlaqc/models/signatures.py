@@ -188,7 +188,7 @@ def signature_key(cfg: CameraConfig) -> str:
             "fresnel": d["trace"]["fresnel"], "version": TABLE_VERSION, **blur_key(cfg)}
     if cfg.mla.packing == "hex":  # hex tables also hold the renders across the rows (ACROSS_DEG)
         keep["y_probe"] = Y_PROBE
-    if physical_kinds(cfg) != KINDS:
+    if cfg.mla.flat_sided:  # (tables of both surfaces curved, every table before, keep their keys)
         keep["kinds"] = [k.name for k in physical_kinds(cfg)]
     if window_half_px(cfg) != 10:  # tables rendered before the window followed the pitch were cut 21 px wide
         keep["window_half_px"] = window_half_px(cfg)

@@ -19,13 +19,17 @@ CLASSIFIED_KINDS = {**KIND_BY_NAME, DIM.name: DIM}  # what a flagged lens may be
 
 
 def with_dim(table: SignatureTable) -> SignatureTable:
-    """`table` with the dim kind's analytic curve added (features zero but the flux's, rings zero)."""
+    """`table` with the dim kind's analytic curve added (features zero but the flux's, rings zero); made once
+    per table, as `across_table` is, so its dense curves are computed once for every frame."""
     if DIM.name in table.magnitudes:
         return table
-    mags = np.asarray(DIM.magnitudes, float)
-    feats = np.zeros((mags.size, len(FEATURES)))
-    feats[:, FEATURES.index("flux")] = mags
-    return SignatureTable({**table.magnitudes, DIM.name: mags}, {**table.features, DIM.name: feats},
-                          {**table.phi0_deg, DIM.name: 0.0}, table.key,
-                          {**table.rings, DIM.name: np.zeros((mags.size, len(RINGS)))}, dict(table.settings),
-                          dict(table.across))
+    cache = table.__dict__.setdefault("_with_dim", {})
+    if "t" not in cache:
+        mags = np.asarray(DIM.magnitudes, float)
+        feats = np.zeros((mags.size, len(FEATURES)))
+        feats[:, FEATURES.index("flux")] = mags
+        cache["t"] = SignatureTable({**table.magnitudes, DIM.name: mags}, {**table.features, DIM.name: feats},
+                                    {**table.phi0_deg, DIM.name: 0.0}, table.key,
+                                    {**table.rings, DIM.name: np.zeros((mags.size, len(RINGS)))},
+                                    dict(table.settings), dict(table.across))
+    return cache["t"]

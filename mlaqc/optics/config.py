@@ -376,6 +376,8 @@ COUNT_AUTO = "auto"
 def _auto_counts_marked(table: dict[str, Any], source: str) -> dict[str, Any]:
     """The [mla] table with count_w / count_h = "auto" taken out and `counts_auto` set (both go together:
     a frame that sees part of the array sees it in both directions)."""
+    if "counts_auto" in table:
+        raise InputError(f"{source}: unknown config key 'mla.counts_auto'; write count_w = count_h = \"auto\"")
     auto = [k for k in ("count_w", "count_h") if table.get(k) == COUNT_AUTO]
     if not auto:
         return table
@@ -383,8 +385,6 @@ def _auto_counts_marked(table: dict[str, Any], source: str) -> dict[str, Any]:
         other = "count_h" if auto[0] == "count_w" else "count_w"
         raise InputError(f"{source}: config key 'mla.{other}' must be \"auto\" too when 'mla.{auto[0]}' is: "
                          "the lenses a frame holds are counted in both directions")
-    if "counts_auto" in table:
-        raise InputError(f"{source}: unknown config key 'mla.counts_auto'; write count_w = count_h = \"auto\"")
     out = {k: v for k, v in table.items() if k not in auto}
     out["counts_auto"] = True
     return out
