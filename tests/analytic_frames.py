@@ -51,7 +51,9 @@ class Anomaly:
     """One seeded anomaly on lens (row, col), 0-based. magnitude: shift px, skew relative tilt over the
     radius, blur factor on the rim sigma, size factor on the radius, dim factor on the flux; spot (not in
     KINDS: a dust shadow) the light lost over a round patch covering `area` of the disc, its centre towards
-    `direction_deg` as far out as the disc holds it."""
+    `direction_deg` as far out as the disc holds it; scratch (not in KINDS) the light lost along a line
+    `width_px` wide and `length_px` long through the lens' sub-image centre at `direction_deg` (it moves with
+    the array and may run on through the neighbours' sub-images)."""
 
     row: int
     col: int
@@ -59,6 +61,19 @@ class Anomaly:
     magnitude: float
     direction_deg: float = 0.0
     area: float = 0.25
+    length_px: float = 0.0
+    width_px: float = 1.5
+
+
+@dataclass(frozen=True)
+class SensorSpot:
+    """A shadow on the sensor (dust on its cover glass): the light lost (`depth`) over a round patch of
+    `radius_px` centred at (x_px, y_px) in frame pixels, wherever the array sits."""
+
+    x_px: float
+    y_px: float
+    radius_px: float
+    depth: float
 
 
 @dataclass(frozen=True)
@@ -83,6 +98,7 @@ class AnalyticModel:
     packing: str = "square"  # or "hex": rows pitch·√3/2 apart, rows 1, 3, ... (0-based; U(2,n), U(4,n), ...) +pitch/2 in x
     background: float = 0.0  # unfocused light through clear gaps between circular lenses, level under and between discs
     aperture_rel: float = 1.0  # the lens aperture: 1 fills its cell; < 1 a circle of this diameter over the pitch
+    sensor_spots: tuple[SensorSpot, ...] = ()  # shadows fixed on the sensor, not on the array
 
     def with_anomalies(self, anomalies) -> AnalyticModel:
         return dataclasses.replace(self, anomalies=tuple(anomalies))
@@ -152,6 +168,10 @@ class AnalyticModel:
         for a in self.anomalies:
             if a.kind == "spot":
                 self._darken_spot(img, x[a.row, a.col], y[a.row, a.col], a)
+            elif a.kind == "scratch":
+                self._darken_line(img, x[a.row, a.col], y[a.row, a.col], a)
+        for s in self.sensor_spots:
+            _darken_disc(img, s.x_px, s.y_px, s.radius_px, s.depth)
         if self.background:
             img += self.background
         img *= self._vignetting()
@@ -173,13 +193,20 @@ class AnalyticModel:
         rho = self.radius_px * math.sqrt(a.area)
         d = max(0.0, 0.95 * self.radius_px - rho)
         t = math.radians(a.direction_deg)
-        sx, sy = cx + d * math.cos(t), cy - d * math.sin(t)
-        r = int(math.ceil(rho + 2))
-        y0, x0 = int(round(sy)) - r, int(round(sx)) - r
+        _darken_disc(img, cx + d * math.cos(t), cy - d * math.sin(t), rho, a.magnitude)
+
+    def _darken_line(self, img, cx: float, cy: float, a: Anomaly) -> None:
+        """Multiply the pixels within `a.width_px / 2` of a segment `a.length_px` long through (cx, cy) at
+        `a.direction_deg` by 1 - depth (edges smoothed over half a pixel)."""
+        t = math.radians(a.direction_deg)
+        ux, uy = math.cos(t), -math.sin(t)
+        r = int(math.ceil(a.length_px / 2 + a.width_px + 2))
+        y0, x0 = int(round(cy)) - r, int(round(cx)) - r
         yy, xx = np.mgrid[y0:y0 + 2 * r + 1, x0:x0 + 2 * r + 1]
-        inside = 0.5 * erfc((np.hypot(xx - sx, yy - sy) - rho) / 0.5)
-        ok = (yy >= 0) & (yy < img.shape[0]) & (xx >= 0) & (xx < img.shape[1])
-        img[yy[ok], xx[ok]] *= 1.0 - a.magnitude * inside[ok]
+        along = (xx - cx) * ux + (yy - cy) * uy
+        across = np.abs(-(xx - cx) * uy + (yy - cy) * ux)
+        inside = (0.5 * erfc((across - a.width_px / 2) / 0.5)) * (0.5 * erfc((np.abs(along) - a.length_px / 2) / 0.5))
+        _apply(img, yy, xx, 1.0 - a.magnitude * inside)
 
     def _edge(self):
         """The rim's edge-spread function of the signed distance inside the rim (px) and a blur factor."""
@@ -231,6 +258,21 @@ class AnalyticModel:
         if self.extra_falloff:
             out = out * (1.0 - self.extra_falloff * r2 / ((w / 2) ** 2 + (h / 2) ** 2))
         return out
+
+
+def _darken_disc(img, sx: float, sy: float, rho: float, depth: float) -> None:
+    """Multiply the pixels of a round patch of radius `rho` at (sx, sy) by 1 - depth (edge smoothed over half
+    a pixel)."""
+    r = int(math.ceil(rho + 2))
+    y0, x0 = int(round(sy)) - r, int(round(sx)) - r
+    yy, xx = np.mgrid[y0:y0 + 2 * r + 1, x0:x0 + 2 * r + 1]
+    _apply(img, yy, xx, 1.0 - depth * 0.5 * erfc((np.hypot(xx - sx, yy - sy) - rho) / 0.5))
+
+
+def _apply(img, yy, xx, factor) -> None:
+    """img[yy, xx] *= factor where (yy, xx) lies on the frame."""
+    ok = (yy >= 0) & (yy < img.shape[0]) & (xx >= 0) & (xx < img.shape[1])
+    img[yy[ok], xx[ok]] *= factor[ok]
 
 
 def _airy_esf(airy_radius_px: float):

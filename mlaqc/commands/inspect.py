@@ -23,6 +23,10 @@ folder whose plan had a [through_focus] step pairs each white frame with the pin
 batch (mlaqc.inspection.darks), checked against every raw's sidecar before anything is inspected or
 written, subtracted from every frame and from --white; --stack N averages every N consecutive raws into
 one frame (named by the first), and several --white frames are averaged likewise.
+
+--sensor-dust (a batch, on this machine) inspects every frame before writing any report: a shadow at the
+same pixels in frames that show the array at different positions is the sensor's
+(mlaqc.inspection.sensor_dust), written once to --out/sensor_dust.json and taken off each frame's lenses.
 """
 
 from __future__ import annotations
@@ -81,6 +85,11 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--stack", type=int, default=1, metavar="N",
                    help="average every N consecutive raws (frames of one state) into one before inspecting: the "
                         "noise drops by √N (default 1)")
+    p.add_argument("--sensor-dust", action="store_true",
+                   help="batch: a dark spot or line that stays at the same pixels while the array moves (stage "
+                        "positions in the frames' sidecars, or a different lens under it) is the sensor's: "
+                        "reported once in sensor_dust.json and taken off the lenses' flags (holds every frame's "
+                        "result until the batch ends)")
     p.add_argument("--config", "-c", help="camera config TOML (default: the paper's Table 1 camera)")
     p.add_argument("--out", "-o", required=True, help="output folder for the report set(s)")
     p.add_argument("--quiet", "-q", action="store_true", help="no summary on stderr")
@@ -376,6 +385,54 @@ def rows_here(raws: list[str], folders: list[Path], cfg: CameraConfig, grid,
         yield i, row
 
 
+def rows_with_sensor_dust(raws: list[str], folders: list[Path], cfg: CameraConfig, grid, levels: Levels | None,
+                          out: Path, quiet: bool, pinholes: dict | None = None, stacks: dict | None = None,
+                          darks: dict | None = None) -> Iterator[tuple[int, dict]]:
+    """(index, row) of every frame, inspected first, then cleared of the sensor's shadows
+    (mlaqc.inspection.sensor_dust) and reported; sensor_dust.json written once for the batch."""
+    from mlaqc.inspection.sensor_dust import sensor_shadows
+    from mlaqc.report import write_report
+
+    results: list = []
+    errors: dict[int, str] = {}
+    seconds: list[float] = []
+    for i, raw in enumerate(raws):
+        t0 = time.perf_counter()
+        try:
+            results.append(inspect_raw(raw, cfg, grid, levels, through_focus=(pinholes or {}).get(raw, ()),
+                                       stack=(stacks or {}).get(raw, ()), dark=(darks or {}).get(raw)))
+        except InputError as exc:
+            results.append(None)
+            errors[i] = str(exc)
+        seconds.append(time.perf_counter() - t0)
+        if not quiet:
+            cluster.echo(f"[{i + 1}/{len(raws)}] {raws[i]}: inspected ({seconds[-1]:.2f} s)")
+    meta = [_meta_or_empty(r) for r in raws]
+    shadows, results, notes = sensor_shadows(results, meta, cfg)
+    doc = {"shadows": [s.to_json_dict() for s in shadows], "notes": list(notes), "frames": len(raws)}
+    write_bytes_atomic(out / "sensor_dust.json", (json.dumps(doc, indent=1) + "\n").encode())
+    if not quiet:
+        for line in [f"{len(shadows)} sensor shadow(s): {out / 'sensor_dust.json'}",
+                     *(s.sentence(len({f for f, _, _ in s.lenses})) for s in shadows), *notes]:
+            print(line, file=sys.stderr)
+    for i, (raw, folder, result) in enumerate(zip(raws, folders, results)):
+        if result is None:
+            yield i, error_row(raw, errors[i])
+            continue
+        write_report(result, folder, config_dict=cfg.to_dict())
+        yield i, frame_row(result, folder, seconds[i])
+
+
+def _meta_or_empty(raw: str) -> dict:
+    """A raw's sidecar, {} when it has none or it cannot be read (the inspection said so already)."""
+    from mlaqc.inspection.darks import read_meta
+
+    try:
+        return read_meta(raw)
+    except InputError:
+        return {}
+
+
 def error_row(raw: str, sentence: str) -> dict:
     """The batch.csv row of a frame that could not be inspected."""
     return {"raw": raw, "verdict": "ERROR", "error": sentence, "report": ""}
@@ -391,12 +448,18 @@ def run(args: argparse.Namespace) -> int:
     address = cluster.scheduler_address(args.scheduler)
     if address is not None:
         cluster.check_address(address)  # a malformed address is bad input, said before any work
+    dust = getattr(args, "sensor_dust", False)
+    if dust and (not batch or address is not None):
+        raise InputError("--sensor-dust compares the frames of a batch on this machine: give two raws or more "
+                         "(or a scan folder), without --scheduler")
     levels = stated_levels(args)
     darks, white_dark = master_darks(args, raws, stacks, cfg, levels)
     grid = shared_grid(args, cfg, white_dark)
     folders = report_folders(out, raws) if batch else [out]
     with contextlib.ExitStack() as stack:
-        if address is None:
+        if dust:
+            frames = rows_with_sensor_dust(raws, folders, cfg, grid, levels, out, args.quiet, pinholes, stacks, darks)
+        elif address is None:
             frames = rows_here(raws, folders, cfg, grid, levels, pinholes, stacks, darks)
         else:  # connected before anything is written: an unreachable cluster leaves no output
             client = stack.enter_context(cluster.connect(address, quiet=args.quiet))

@@ -981,7 +981,7 @@ def classify(table: SignatureTable, vec: np.ndarray, shift_dir: float, sigmas: n
 def tolerance_for(error_type: str, qc: QC) -> float:
     """The QC limit of a type, in its unit (radius errors are relative)."""
     return {"pitch": qc.pitch_um, "position": qc.pitch_um, "decenter": qc.decenter_um, "radius": qc.radius_rel,
-            "dim": qc.dim_rel, "obscuration": qc.obscuration_area,
+            "dim": qc.dim_rel, "obscuration": qc.obscuration_area, "scratch": qc.scratch_area,
             "tilt": qc.tilt_deg, "thickness": qc.thickness_um}.get(error_type, 0.0)
 
 

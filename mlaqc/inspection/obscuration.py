@@ -21,6 +21,7 @@ import numpy as np
 
 from mlaqc.inspection.identify import edge_classes
 from mlaqc.inspection.results import Defect
+from mlaqc.inspection.scratches import is_line, line_shape
 
 INTERIOR = 0.9  # pixels where the typical sub-image exceeds this share of its peak: the disc inside its rim
 MIN_AREA, MAX_AREA = 0.03, 0.7  # a region smaller is noise or a rim effect; larger is the lens' whole light
@@ -36,11 +37,27 @@ TEMPLATE_LENSES = 400  # healthy lenses averaged into the frame's typical sub-im
 UNIT = "area"
 
 
-def obscuration_readings(sub, cx, cy, flagged, candidates):
-    """{(row, col): (area fraction, depth, direction_deg)} of the `candidates` lenses (bool map) two or more
-    lenses in from the array's edge whose sub-image is locally obscured (see the module note); `sub`
-    (rows, cols, h, w) windows and (cx, cy) the lenses' measured centres in window pixels, `flagged` the
-    lenses left out of the template and the noise."""
+@dataclasses.dataclass(frozen=True)
+class SpotReading:
+    """One lens' dark region: its share of the disc, its loss, where it sits (the angle of its centroid
+    and the centroid's offset from the sub-image's centre, px, y down) and its shape (`scratches.line_shape`)."""
+
+    area: float
+    depth: float
+    direction_deg: float
+    dx_px: float
+    dy_px: float
+    elongation: float
+    axis_deg: float
+    length_px: float
+    width_px: float
+
+
+def obscuration_readings(sub, cx, cy, flagged, candidates) -> dict[tuple[int, int], SpotReading]:
+    """{(row, col): SpotReading} of the `candidates` lenses (bool map) two or more lenses in from the array's
+    edge whose sub-image is locally obscured (see the module note); `sub` (rows, cols, h, w) windows and
+    (cx, cy) the lenses' measured centres in window pixels, `flagged` the lenses left out of the template
+    and the noise."""
     if not candidates.any():
         return {}
     inner = edge_classes(flagged.shape) == 2  # lenses with a full neighbourhood: the border's differ
@@ -76,7 +93,9 @@ def obscuration_readings(sub, cx, cy, flagged, candidates):
             & (np.abs(rest) < 0.5 * threshold) & (bright < BRIGHT_SHARE * share) & (lit < BRIGHT_SHARE * area)
             & ~_ring(dark, inside, dy, dx))
     direction = np.degrees(np.arctan2(-sy, sx)) % 360.0
-    return {(int(m), int(n)): (float(area[i]), float(depth[i]), float(direction[i]))
+    shape = line_shape(dark, dx, dy, sx, sy)
+    return {(int(m), int(n)): SpotReading(float(area[i]), float(depth[i]), float(direction[i]), float(sx[i]),
+                                          float(sy[i]), *(float(v[i]) for v in shape))
             for i, (m, n) in enumerate(keys) if spot[i]}
 
 
@@ -134,7 +153,10 @@ def _ratios(sub, cx, cy, template, keys):
     centre = (template.shape[0] - 1) / 2
     ref = _bilinear(template, dy * OVERSAMPLE + centre, dx * OVERSAMPLE + centre)
     peak = ref.max(axis=(1, 2), keepdims=True)
-    disc = (ref > 0.5 * peak) & np.isfinite(win)  # the sub-image to its rim's half height
+    # the sub-image to its rim's half height, and no farther out than half the window (about half a pitch):
+    # the template holds the neighbours' discs too, and a neighbour's spot is not this lens'
+    own = np.hypot(dy, dx) <= 0.5 * (min(h, w) - 1)
+    disc = (ref > 0.5 * peak) & np.isfinite(win) & own
     inside = disc & (ref > INTERIOR * peak)
     raw = np.where(disc, win / np.where(disc, ref, 1.0), 0.0)
     ratio, whole = (_smoothed(raw, zone) for zone in (inside, disc))  # each smoothed within its own zone
@@ -173,30 +195,47 @@ def _bilinear(image, y, x):
     return out
 
 
-def retype(found, readings, qc, metrics):
+def retype(found, readings, qc, metrics, centres, candidates=None):
     """`found` (an Identification) with the obscured lenses typed 'obscuration' (magnitude: the area fraction;
-    direction: where the spot sits; depth in the indexes), judged against `qc.obscuration_area`: a flagged
-    lens' shape reading stays as the alternative, and a lens whose deviation was significant but read as an
-    error below the reportable size (`found.unreported`) is flagged now."""
+    direction: where the spot sits) or, where the dark region is a line, 'scratch' (magnitude: the area
+    fraction; direction: the line's axis, 0-180°), judged against `qc.obscuration_area` / `qc.scratch_area`;
+    depth and the spot's centroid on the sensor (`centres`: every lens' centre in frame pixels, x and y)
+    in the indexes. A flagged lens' shape reading stays as the alternative, and a lens whose deviation was
+    significant but read as an error below the reportable size (`found.unreported`), or taken for a
+    neighbour's echo (`candidates`: those over the detection threshold), is flagged now: a line through
+    three lenses darkens each, and the middle one was taken for its neighbours' echo."""
     if not readings:
         return found
     defects, error_type, flagged = [], found.error_type.copy(), found.flagged.copy()
     unreported = found.unreported.copy() if found.unreported is not None else np.zeros(flagged.shape, bool)
     typed = {(d.m - 1, d.n - 1): d for d in found.defects}
-    for (m, n), (area, depth, direction) in readings.items():
+    extra = unreported | (candidates if candidates is not None else False)
+    for (m, n), r in readings.items():
         d = typed.get((m, n))
-        if d is None and not unreported[m, n] or d is not None and d.error_type == "missing":
+        if d is None and not extra[m, n] or d is not None and d.error_type == "missing":
             continue
-        spot = {"error_type": "obscuration", "magnitude": area, "unit": UNIT, "direction_deg": direction,
-                "within_tolerance": area <= qc.obscuration_area}
+        spot = _typed_spot(r, qc)
         if d is None:
             d = Defect(m + 1, n + 1, score=float(found.score[m, n]), indexes=metrics.at(m + 1, n + 1), **spot)
             unreported[m, n], flagged[m, n] = False, True
         else:
             was = (d.error_type, d.magnitude, d.unit, d.direction_deg)
             d = dataclasses.replace(d, alternatives=(was,) if was[0] != "unknown" else (), **spot)
-        typed[(m, n)] = dataclasses.replace(d, indexes={**d.indexes, "spot_area": area, "spot_depth": depth})
-        error_type[m, n] = "obscuration"
+        where = {"spot_area": r.area, "spot_depth": r.depth, "spot_x_px": float(centres[0][m, n]) + r.dx_px,
+                 "spot_y_px": float(centres[1][m, n]) + r.dy_px}
+        if spot["error_type"] == "scratch":
+            where |= {"scratch_length_px": r.length_px, "scratch_width_px": r.width_px}
+        typed[(m, n)] = dataclasses.replace(d, indexes={**d.indexes, **where})
+        error_type[m, n] = spot["error_type"]
     defects = tuple(typed[k] for k in sorted(typed))
     return dataclasses.replace(found, defects=defects, error_type=error_type, flagged=flagged,
                                unreported=unreported, below_reportable=int(unreported.sum()))
+
+
+def _typed_spot(r: SpotReading, qc) -> dict:
+    """The Defect fields of a dark region: a line is a scratch (direction: its axis), else an obscuration."""
+    if is_line(r):
+        return {"error_type": "scratch", "magnitude": r.area, "unit": UNIT, "direction_deg": r.axis_deg,
+                "within_tolerance": r.area <= qc.scratch_area}
+    return {"error_type": "obscuration", "magnitude": r.area, "unit": UNIT, "direction_deg": r.direction_deg,
+            "within_tolerance": r.area <= qc.obscuration_area}

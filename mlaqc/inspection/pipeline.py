@@ -21,6 +21,7 @@ from mlaqc.inspection.identify import identify
 from mlaqc.inspection.measure import measure_lenses
 from mlaqc.inspection.metrics import compute_metrics, reference_images
 from mlaqc.inspection.obscuration import obscuration_readings, retype
+from mlaqc.inspection.scratches import scratch_notes
 from mlaqc.inspection.optics_check import anchoring_notes, pitch_notes
 from mlaqc.inspection.rawio import (Levels, RawFrame, check_exposure, levels_note, load_raw, normalized,
                                     resolve_levels, suppress_hot_pixels)
@@ -141,11 +142,14 @@ def _inspect_image(img: np.ndarray, cfg: CameraConfig, *, grid: Grid | None = No
                      f"frame {source}" if source else "the frame")
     found = identify(metrics, grid.missing | ~np.isfinite(metrics["flux"]), cfg.qc, table, position, phase,
                      outside=clipped, split=position_split(cfg), packing=cfg.mla.packing, aperture=cfg.mla.aperture)
-    significant = found.flagged | found.unreported
+    # significant: flagged, below the reportable size, or taken for a flagged neighbour's echo
+    significant = found.flagged | found.unreported | ((found.score > cfg.qc.detect_sigma) & ~clipped)
     spots = obscuration_readings(sub, cx + metrics["offset_x_px"], cy + metrics["offset_y_px"], significant,
                                  significant & ~grid.missing)
-    found = retype(found, spots, cfg.qc, metrics)
+    centres = (grid.grid_x_px + metrics["offset_x_px"], grid.grid_y_px + metrics["offset_y_px"])
+    found = retype(found, spots, cfg.qc, metrics, centres, significant)
     defects, flagged, error_type = found.defects, found.flagged, found.error_type
+    notes = notes + scratch_notes(defects)
     lap("identify")
     measured = measure_lenses(found, table, cfg, (grid.residual_x_px, grid.residual_y_px) if own_grid else None)
     lap("measure")

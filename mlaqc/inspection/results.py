@@ -59,7 +59,7 @@ class Defect:
 
     m: int
     n: int
-    # 'pitch', 'decenter', 'position' (pitch or decenter), 'radius', 'tilt', 'thickness', 'dim', 'obscuration',
+    # 'pitch', 'decenter', 'position' (pitch or decenter), 'radius', 'tilt', 'thickness', 'dim', 'obscuration', 'scratch',
     # 'missing', 'unknown'
     error_type: str
     magnitude: float  # in `unit`; signed for radius/thickness errors

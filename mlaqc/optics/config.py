@@ -192,6 +192,7 @@ class QC:
     thickness_um: float = 3.0
     dim_rel: float = 0.1  # a dim lens' transmission loss (relative; its sub-image keeps its shape)
     obscuration_area: float = 0.1  # a local obscuration's (dust, residue, dig) share of the sub-image's disc
+    scratch_area: float = 0.05  # a scratch's (a dark line through the sub-image) share of the sub-image's disc
     detect_sigma: float = 6.0  # robust z-score above which a lens is flagged (noise peaks near 4.7 over 10,404 lenses)
     max_out_of_tolerance: int = 0  # more than this many out-of-tolerance lenses fails the array
     max_missing: int = 0  # more than this many missing lenses fails the array
@@ -574,7 +575,7 @@ def validate(cfg: CameraConfig, source: str = "config") -> None:
     _require(0 <= s.black_level_dn < 2 ** s.bit_depth, source, "sensor.black_level_dn", f"must be in [0, {2 ** s.bit_depth})", s.black_level_dn)
     _require(s.cfa in CFA_CHOICES, source, "sensor.cfa", f"must be one of {CFA_CHOICES}", s.cfa)
     for key in ("pitch_um", "decenter_um", "radius_rel", "tilt_deg", "thickness_um", "dim_rel", "obscuration_area",
-                "detect_sigma", "report_fraction"):
+                "scratch_area", "detect_sigma", "report_fraction"):
         _require(getattr(cfg.qc, key) > 0, source, f"qc.{key}", "must be positive", getattr(cfg.qc, key))
     fm = cfg.formation
     _require(math.isfinite(fm.crosstalk) and 0 <= fm.crosstalk < 0.2, source, "formation.crosstalk", "must be in [0, 0.2)", fm.crosstalk)

@@ -30,6 +30,7 @@ ERROR_COLOURS: dict[str, tuple[int, int, int]] = {
     "thickness": (204, 121, 167),  # reddish purple
     "dim": (255, 255, 255),  # white: a transmission loss, the sub-image's shape kept
     "obscuration": (170, 255, 0),  # lime: dust, residue or a dig darkening part of the sub-image
+    "scratch": (255, 140, 200),  # pink: a dark line through the sub-image
     "missing": (213, 94, 0),  # vermillion, drawn as a ring with a cross
     "unknown": (0, 114, 178),  # blue
 }
