@@ -21,7 +21,7 @@ from mlaqc.inspection.identify import identify
 from mlaqc.inspection.measure import measure_lenses
 from mlaqc.inspection.metrics import compute_metrics, reference_images
 from mlaqc.inspection.obscuration import obscuration_readings, retype
-from mlaqc.inspection.scratches import scratch_notes
+from mlaqc.inspection.scratches import is_line, next_to_lines, scratch_notes
 from mlaqc.inspection.optics_check import anchoring_notes, pitch_notes
 from mlaqc.inspection.rawio import (Levels, RawFrame, check_exposure, levels_note, load_raw, normalized,
                                     resolve_levels, suppress_hot_pixels)
@@ -148,6 +148,8 @@ def _inspect_image(img: np.ndarray, cfg: CameraConfig, *, grid: Grid | None = No
                                  significant & ~grid.missing)
     centres = (grid.grid_x_px + metrics["offset_x_px"], grid.grid_y_px + metrics["offset_y_px"])
     found = retype(found, spots, cfg.qc, metrics, centres, significant)
+    found = _lines_followed(found, sub, cx + metrics["offset_x_px"], cy + metrics["offset_y_px"], clipped | grid.missing,
+                            cfg.qc, metrics, centres)
     defects, flagged, error_type = found.defects, found.flagged, found.error_type
     notes = notes + scratch_notes(defects)
     lap("identify")
@@ -166,6 +168,21 @@ def _inspect_image(img: np.ndarray, cfg: CameraConfig, *, grid: Grid | None = No
                             notes=tuple(notes), detection_limit=found.detection_limit,
                             below_reportable=found.below_reportable, not_inspected=found.not_inspected,
                             measurements=measured, assembly=assembly, lens_boundaries=cfg.mla.boundaries)
+
+
+def _lines_followed(found, sub, cx, cy, skip, qc, metrics, centres):
+    """`found` with a scratch followed into the neighbours it runs on through: those whose own reading is a
+    line too (mlaqc.inspection.scratches.next_to_lines), until no new lens joins."""
+    for _ in range(4):  # a line crosses a few sub-images; each pass reaches one lens farther
+        nearby = next_to_lines(found.defects, found.flagged.shape) & ~found.flagged & ~skip
+        if not nearby.any():
+            return found
+        lines = {k: r for k, r in obscuration_readings(sub, cx, cy, found.flagged | found.unreported, nearby).items()
+                 if is_line(r)}
+        if not lines:
+            return found
+        found = retype(found, lines, qc, metrics, centres, nearby)
+    return found
 
 
 _MODELS: dict[tuple[str, str], tuple[ReferenceModel, SignatureSet]] = {}

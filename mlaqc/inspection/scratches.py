@@ -45,6 +45,17 @@ def is_line(reading) -> bool:
     return reading.elongation >= ELONGATION and reading.length_px >= MIN_LENGTH_PX
 
 
+def next_to_lines(defects, shape: tuple[int, int]) -> np.ndarray:
+    """(rows, cols) bool: the lenses next to a scratched one, where its line may run on though their own
+    deviation stayed under the detection threshold (the middle lens of a line through three is darkened
+    symmetrically, and shows less than its neighbours, which the line enters from one side)."""
+    out = np.zeros(shape, bool)
+    for d in defects:
+        if d.error_type == "scratch":
+            out[max(d.m - 2, 0):d.m + 1, max(d.n - 2, 0):d.n + 1] = True
+    return out
+
+
 def scratch_groups(defects) -> list[list]:
     """The scratched lenses (Defects typed 'scratch', their `spot_x_px`/`spot_y_px` on the sensor) grouped
     into scratches: lattice neighbours whose lines are one line."""
@@ -95,8 +106,8 @@ def scratch_notes(defects) -> tuple[str, ...]:
         ys = [d.indexes["spot_y_px"] for d in group]
         ends = (group[0].indexes.get("scratch_length_px", 0.0) + group[-1].indexes.get("scratch_length_px", 0.0)) / 2
         span = math.hypot(max(xs) - min(xs), max(ys) - min(ys)) + ends  # centroid to centroid, plus the ends
-        axis = _mean_axis(group)
-        notes.append(f"scratch: a dark line at {axis:.0f}° through {names} ({len(group)} lens"
+        axis = round(_mean_axis(group)) % 180  # 179.7° is the line at 0°
+        notes.append(f"scratch: a dark line at {axis}° through {names} ({len(group)} lens"
                      f"{'es' if len(group) > 1 else ''}, about {span:.0f} px on the sensor); it is drawn inside "
                      "the sub-images, so it lies near the sensor-side focus (the array's back surface or the "
                      "sensor's cover glass), not on the lenses' curved faces; frames at two stage positions "

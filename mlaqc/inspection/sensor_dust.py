@@ -33,7 +33,7 @@ class SensorShadow:
 
     x_px: float
     y_px: float
-    area: float  # share of a sub-image's disc (the mean over the frames that show it)
+    area: float  # share of a sub-image's disc it darkens in a frame (the mean over the frames)
     depth: float  # its loss
     kind: str  # 'obscuration' (a spot) or 'scratch' (a line)
     lenses: tuple[tuple[str, int, int], ...]
@@ -65,8 +65,10 @@ def sensor_shadows(results: list, meta: list[dict], cfg) -> tuple[list[SensorSha
         if not _array_moved(group, meta, cfg, results):
             undecided += 1
             continue
-        shadows.append(_shadow(group, results))
+        shadows.append(group)
         taken.update((i, d.m, d.n) for i, d in group)
+    # one shadow over the rims of two sub-images darkens each: its parts, less than a sub-image apart, are one
+    shadows = [_shadow(g, results) for g in _joined(shadows, 0.5 * cfg.layout.subimage_pitch_px)]
     notes = ()
     if undecided:
         notes = (f"{undecided} dark region(s) sit at the same pixels in several frames, but no two of those frames "
@@ -92,6 +94,24 @@ def _same_pixels(spots: list, tol: float) -> list[list]:
         else:
             groups.append([(i, d)])
     return groups
+
+
+def _joined(groups: list[list], reach_px: float) -> list[list]:
+    """Groups whose mean positions lie within `reach_px` of each other's, joined (transitively)."""
+    out: list[list] = []
+    for g in groups:
+        xy = _centre(g)
+        near = [h for h in out if math.dist(_centre(h), xy) <= reach_px]
+        for h in near:
+            out.remove(h)
+            g = h + g
+        out.append(g)
+    return out
+
+
+def _centre(group: list) -> tuple[float, float]:
+    return (float(np.mean([d.indexes["spot_x_px"] for _, d in group])),
+            float(np.mean([d.indexes["spot_y_px"] for _, d in group])))
 
 
 def _array_moved(group: list, meta: list[dict], cfg, results: list) -> bool:
@@ -121,11 +141,16 @@ def _stage_mm(meta: dict) -> tuple[float, float] | None:
 
 
 def _shadow(group: list, results: list) -> SensorShadow:
+    """The shadow its parts (frame index, Defect) make: the parts' area-weighted mean position, the area
+    they cover in a frame (the mean over the frames) and their mean depth."""
     ds = [d for _, d in group]
+    area = np.array([d.indexes.get("spot_area", d.magnitude) for d in ds], dtype=float)
+    frames = sorted({i for i, _ in group})
+    per_frame = [sum(a for (i, _), a in zip(group, area) if i == f) for f in frames]
     kinds = [d.error_type for d in ds]
-    return SensorShadow(float(np.mean([d.indexes["spot_x_px"] for d in ds])),
-                        float(np.mean([d.indexes["spot_y_px"] for d in ds])),
-                        float(np.mean([d.indexes.get("spot_area", d.magnitude) for d in ds])),
+    return SensorShadow(float(np.average([d.indexes["spot_x_px"] for d in ds], weights=area)),
+                        float(np.average([d.indexes["spot_y_px"] for d in ds], weights=area)),
+                        float(np.mean(per_frame)),
                         float(np.mean([d.indexes.get("spot_depth", float("nan")) for d in ds])),
                         max(set(kinds), key=kinds.count),
                         tuple((results[i].source, d.m, d.n) for i, d in group))
