@@ -14,7 +14,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from mlaqc.inspection.identify import _NAMES, identify, local_deviations
+from mlaqc.inspection.baselines import local_deviations
+from mlaqc.inspection.identify import _NAMES, identify
 from mlaqc.inspection.results import LensMetrics
 from mlaqc.models.signatures import FEATURES, RINGS
 from mlaqc.optics.config import load_config

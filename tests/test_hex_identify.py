@@ -158,6 +158,7 @@ def test_the_second_rows_of_a_rotated_hex_array_are_as_quiet_as_the_inner_lenses
     import analytic_frames as am
 
     from mlaqc.inspection import identify as ident
+    from mlaqc.inspection import phase_pattern
     from mlaqc.inspection.calibrate import calibrate_for
     from mlaqc.inspection.metrics import compute_metrics
     from mlaqc.inspection.pipeline import _models
@@ -176,9 +177,9 @@ def test_the_second_rows_of_a_rotated_hex_array_are_as_quiet_as_the_inner_lenses
     ref = _models(cfg)[0]
     metrics = compute_metrics(subs.data, subs.centre_x_px, subs.centre_y_px, ref, um_per_px_at_mla=um_per_px_at_mla(cfg))
     position = (0.5 * (grid.residual_x_px + metrics["offset_x_px"]), 0.5 * (grid.residual_y_px + metrics["offset_y_px"]))
-    phase = ident.phase_model((np.mod(grid.grid_x_px, 1.0), np.mod(grid.grid_y_px, 1.0)), "hex")
+    phase = phase_pattern.phase_model((np.mod(grid.grid_x_px, 1.0), np.mod(grid.grid_y_px, 1.0)), "hex")
     raw, _ = ident._local_planes(metrics, position, phase, "hex")
-    dev = ident._deviation_maps(metrics, ident.remove_phase_pattern(raw, phase), position)[2]
+    dev = ident._deviation_maps(metrics, phase_pattern.remove_phase_pattern(raw, phase), position)[2]
     m, n = np.mgrid[:rows, :cols]
     middle = (n >= 4) & (n < cols - 4)
     second = ((m == 2) | (m == rows - 3)) & middle

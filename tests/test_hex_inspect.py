@@ -13,7 +13,8 @@ import numpy as np
 import pytest
 
 from mlaqc.errors import InputError
-from mlaqc.inspection.identify import local_deviations, spill
+from mlaqc.inspection.baselines import local_deviations
+from mlaqc.inspection.identify import spill
 from mlaqc.models.position_split import contrast_sigma, neighbour_contrast
 from mlaqc.models.reference import _lattice_cell_sums
 from mlaqc.models.signatures import nominal_windows, patch_centre, patch_config, patch_errors, signature_key
@@ -383,7 +384,7 @@ def test_hex_edge_classes_are_the_steps_off_the_array():
     """`edge_classes` (min of the row and column distances to the edge) is, on hex too, the number of
     neighbour steps from a lens to the nearest site off the array, less one (breadth-first search over
     the lattice's own neighbours, clipped at 2)."""
-    from mlaqc.inspection.identify import edge_classes
+    from mlaqc.inspection.lens_classes import edge_classes
     from mlaqc.optics.lattice import Lattice
 
     rows, cols = 13, 11

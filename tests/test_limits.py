@@ -11,12 +11,9 @@ import pytest
 from analytic_frames import AnalyticModel, Anomaly
 
 from mlaqc.inspection.filters import lattice_max_of_neighbours, with_neighbours
-from mlaqc.inspection.identify import (
-    class_sigmas,
-    noise_classes,
-    phase_model,
-    remove_phase_pattern,
-)
+from mlaqc.inspection.identify import class_sigmas
+from mlaqc.inspection.lens_classes import noise_classes
+from mlaqc.inspection.phase_pattern import phase_model, remove_phase_pattern
 from mlaqc.inspection.pipeline import inspect_image, prepare
 from mlaqc.inspection.rawio import RawFrame
 from mlaqc.optics.config import CameraConfig, load_config

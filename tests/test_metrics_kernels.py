@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 from scipy.ndimage import gaussian_filter
 
-from mlaqc.inspection.identify import _scipy_baseline, local_deviation, local_deviations
+from mlaqc.inspection.baselines import _scipy_baseline, local_deviation, local_deviations
 from mlaqc.inspection.metrics import compute_metrics, reference_images, reference_windows
 from mlaqc.inspection.metrics_kernels import INDEX_NAMES, MEDIAN25_PAIRS, N_RING, RING_EDGES, TAPER_PX, median_baselines
 from mlaqc.models.reference import reference_model

@@ -6,7 +6,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from mlaqc.inspection.identify import class_sigmas, noise_classes, second_ring
+from mlaqc.inspection.identify import class_sigmas
+from mlaqc.inspection.lens_classes import noise_classes, second_ring
 
 
 def _noise(shape=(24, 24), seed=3) -> np.ndarray:

@@ -1,10 +1,9 @@
 """Identification: flag lenses whose indexes leave the normal population, then say what is wrong.
 
-Detection compares every lens with its own neighbourhood (5 x 5 local median, which cancels vignetting,
-exposure and slow field variation; on a hex lattice the same 5 x 5 window of offset coordinates, see
-`local_deviations`). What a frame does the same way everywhere is modelled and removed,
-not flagged: the pattern the sub-pixel phase of the lens centres draws in every index (`PhaseModel`),
-and the bias and spread of the edge classes. Each index is judged against the frame's own noise,
+Detection compares every lens with its own neighbourhood (a 5 x 5 local median: mlaqc.inspection.baselines).
+What a frame does the same way everywhere is modelled and removed, not flagged: the pattern the sub-pixel
+phase of the lens centres draws in every index (mlaqc.inspection.phase_pattern), and the bias and spread
+of the edge classes (mlaqc.inspection.lens_classes). Each index is judged against the frame's own noise,
 measured per lens class with a tail-aware spread and never below a floor set by the smallest reportable
 error, so a noise-free frame is the easy case. Defocus (radius, thickness) is tested on the residual's
 ring profile with a matched filter against the table's defocus signatures, whitened by the rings'
@@ -36,14 +35,13 @@ whose opposite sign fits about as well carries the other reading in `alternative
 spherical aberration puts best focus in front of the paraxial focus the sensor sits at).
 
 Hex lattices (`packing="hex"`, mlaqc.optics.lattice): a lens' neighbours are the lattice's six, each
-along its own direction (echoes, the pitch/decenter contrast); the outer lenses, whose windows miss the
-strip of the rows beyond, are left out of every other lens' baseline, and the row ends that stick out
-are compared with each other (`_hex_edge_columns`, `hex_row_ends`); the second ring and the two kinds
-of row end each have their own sub-pixel phase pattern (`_groups`). A shift across the rows registers
-at about half its size (the pitch-wide discs overlap the rows above and below), the less the larger it
-is, and blurs and dims its sub-image otherwise: the features are read with the y offset and tilt mapped
-to the along-row scale (`signatures.to_along`), and fitted against the kind's curves rendered along and
-across the rows, mixed by how much of the lens' shift lies across them (`fit_all`).
+along its own direction (echoes, the pitch/decenter contrast); the outer lenses and the row ends that
+stick out have baselines (mlaqc.inspection.baselines) and sub-pixel phase patterns (lens_classes' groups)
+of their own. A shift across the rows registers at about half its size (the pitch-wide discs overlap the
+rows above and below), the less the larger it is, and blurs and dims its sub-image otherwise: the
+features are read with the y offset and tilt mapped to the along-row scale (`signatures.to_along`), and
+fitted against the kind's curves rendered along and across the rows, mixed by how much of the lens' shift
+lies across them (`fit_all`).
 
 Circular apertures (`mla.aperture = "circle"`), and hex: a lens' flux does not answer to its focal
 errors behind its circle, so the flux noise floor is ~50 times lower than with cells, low enough for a
@@ -54,22 +52,22 @@ pass leaves the first pass' flagged lenses out of every baseline (`identify`).
 
 from __future__ import annotations
 
-import functools
-import hashlib
-import os
 import warnings
 from dataclasses import dataclass, field
-from itertools import pairwise
 
 import numpy as np
 
+from mlaqc.inspection.baselines import local_deviations
 from mlaqc.inspection.filters import (
     lattice_max_of_neighbours,
     lattice_neighbours,
     max_filter_nearest,
     with_neighbours,
 )
-from mlaqc.inspection.metrics_kernels import median_baselines
+from mlaqc.inspection.lens_classes import (SECOND_RING_MIN, edge_classes, edge_groups, hex_row_ends, noise_classes,
+                                           second_ring)
+from mlaqc.inspection.phase_pattern import (PhaseModel, _column_medians, _phase_skips, phase_model,
+                                            remove_phase_pattern, remove_phase_trend)
 from mlaqc.inspection.results import Defect, LensMetrics
 from mlaqc.models.position_split import (PositionSplit, contrast_spread, neighbour_contrast, split_limits,
                                          type_position)
@@ -78,229 +76,11 @@ from mlaqc.models.signatures import (FEATURES, RINGS, SignatureTable, along_gain
 from mlaqc.models.transmission import CLASSIFIED_KINDS, with_dim
 from mlaqc.optics.config import QC
 from mlaqc.optics.lattice import Lattice
-from mlaqc.parallel import thread_map
 
 UNEXPLAINED = 0.75  # a best fit leaving more than this share of the deviation's chi-square: type 'unknown' (measured: tracer defects leave 0.1-0.7, foreign anomalies 0.8-0.95)
 LIMIT_MARGIN = 2.0  # a lens at the detection limit scores detect_sigma + 2 on average: found 97.7 % of the time
 _CHI2_AMBIGUOUS = 9.0  # an opposite-sign reading closer than this (3 sigma) is listed as an alternative
 FOCUS_KINDS = ("radius", "thickness")  # errors that defocus the lens: what the focus test looks for
-
-
-def local_deviation(values: np.ndarray, size: int = 5, axis: str = "", packing: str = "square") -> np.ndarray:
-    """values minus a NaN-robust local baseline: the median over size x size lenses inside the array
-    (leaving out lenses not measured, and the outermost ones for lenses two or more in: see
-    `_refine_baselines`); along an edge the running median of that edge (its lenses miss the same
-    neighbours). A corner lens misses neighbours on two sides: for an x index (axis='x') it is compared
-    along its left/right edge, otherwise along its top/bottom edge (and flagged only at 1.5 x the
-    threshold, see `identify`)."""
-    return local_deviations([values], [axis], size, packing)[0]
-
-
-def local_deviations(planes: list[np.ndarray], axes: list[str], size: int = 5,
-                     packing: str = "square", centred: bool = False,
-                     exclude: np.ndarray | None = None, only: np.ndarray | None = None) -> list[np.ndarray]:
-    """`local_deviation` of several (rows, cols) index maps at once: one compiled median pass over all of
-    them (scipy's median_filter cost 16 ms per map); even sizes or all-NaN maps take the scipy route.
-
-    Hex (`packing`): the window is the same size x size block of offset coordinates (U(m,n) indexes). It
-    is local (every lens in it lies within 2.6 pitches) but not point-symmetric: rows m +- 1 sit half a
-    pitch to one side. Its median is still the lens' own value on a linear trend along x, y or the
-    lattice directions, and off by at most 0.33 pitch times the trend's slope per pitch in between (a
-    trend of 1 % per pitch reads 0.0033), far below any index' noise; the slow maps it removes
-    (vignetting, exposure, distortion) change by much less per pitch. The left and right columns,
-    whose lenses alternately stick out (missing 3 of 6 neighbours) and sit in (missing 1), take the
-    running median of the lenses of their own row parity (`_hex_edge_columns`). `centred`: the windows
-    that leave the outermost lenses out stay centred on their lens (`_refine_baselines`). `exclude`:
-    lenses left out of every baseline (as a lens not measured is), each still compared with its own.
-    `only`: the lenses whose deviations the caller reads (the others' edge rules are skipped: each lens'
-    baseline is its own window's, so theirs come out as without it)."""
-    measured = planes
-    if exclude is not None and exclude.any():
-        planes = [np.where(exclude, np.nan, v) for v in planes]
-    fills = []
-    for values in planes:
-        finite = np.isfinite(values)
-        fills.append(values if finite.all() else np.where(finite, values, np.nanmedian(values)))
-    stack = np.array(fills, dtype=np.float64)
-    if size % 2 == 1 and np.isfinite(stack).all():
-        base = np.empty_like(stack)
-        x_axis = np.array([a == "x" for a in axes])
-        workers = min(len(stack) // 2, os.cpu_count() or 1)  # the kernel releases the GIL: planes in parallel
-        if stack[0].size < _THREADED_FROM:  # (a strip's few lenses: the threads cost more than they save)
-            workers = 1
-        if workers > 1:
-            cuts = np.linspace(0, len(stack), workers + 1).astype(int)
-            thread_map(lambda ab: median_baselines(stack[ab[0]:ab[1]], int(size), x_axis[ab[0]:ab[1]],
-                                                   base[ab[0]:ab[1]]), pairwise(cuts))
-        else:
-            median_baselines(stack, int(size), x_axis, base)
-    else:
-        base = np.stack([_scipy_baseline(f, size, a) for f, a in zip(stack, axes)])
-    finite = np.isfinite(np.array(planes, dtype=np.float64))
-    # hex: a window 2 px taller than the 0.87-pitch row step holds a strip of the rows above and below,
-    # so the outer lenses, missing theirs, differ from the others far more than on a square lattice
-    # (measured: SSIM 0.56 against 0.97): they are left out of every other lens' neighbourhood
-    _refine_baselines(stack, finite, base, size, [a == "x" for a in axes], 1 if packing == "hex" else 2, centred, only)
-    if packing == "hex":
-        _hex_edge_columns(stack, finite, base, size, [a == "x" for a in axes], only)
-    return [values - b for values, b in zip(measured, base)]
-
-
-_THREADED_FROM = 4096  # lenses per map from which the compiled median pass runs its planes in threads
-
-
-def _hex_edge_columns(stack: np.ndarray, finite: np.ndarray, base: np.ndarray, size: int,
-                      x_axis: list[bool], only: np.ndarray | None = None) -> None:
-    """Hex lattice: the baselines of the first and last columns, in place, as the running median (size
-    lenses, clipped) of the finite lenses of the same column and row parity: a shifted row's end lens
-    misses other neighbours than an unshifted row's, and the two carry different biases. Corners are
-    left to the rows for planes not along x (as `median_baselines` leaves them), and out of the other
-    lenses' medians: outermost along their row too, they are another population (measured: a corner's
-    tilt 0.2 against 0.003 along the column), which the window's clipping at the column's end counts
-    twice, so that one lens not measured beside it made it half the median). `only`: as
-    `_refine_baselines` takes it (a column with none of those lenses is left as it is)."""
-    _, rows, cols = stack.shape
-    if rows < 2 * size or cols < size:
-        return
-    half = size // 2
-    x_planes = np.asarray(x_axis, bool)
-    for col in (0, cols - 1):
-        if only is not None and not only[:, col].any():
-            continue
-        for parity in (0, 1):
-            r = np.arange(parity, rows, 2)
-            idx = np.clip(np.arange(len(r))[:, None] + np.arange(-half, half + 1)[None, :], 0, len(r) - 1)
-            vals = stack[:, r, col][:, idx]
-            corner = (r == 0) | (r == rows - 1)
-            # a corner lens (outermost along its row too) is no sample of the column's population
-            use = finite[:, r, col][:, idx] & ~(corner[idx] & ~corner[:, None])[None]
-            med, ok = _nan_medians(np.where(use, vals, np.nan))
-            write = ok & (~corner[None, :] | x_planes[:, None])
-            base[:, r, col] = np.where(write, med, base[:, r, col])
-
-
-def _outer_share(rows: int, cols: int, size: int) -> np.ndarray:
-    """Per lens the share of its size x size window, clipped to the array (mode 'nearest': an edge row
-    counted again for each row beyond it), that the array's outermost lenses fill."""
-    off = np.arange(size) - size // 2
-    inner_rows = np.clip(np.arange(rows)[:, None] + off, 0, rows - 1)
-    inner_cols = np.clip(np.arange(cols)[:, None] + off, 0, cols - 1)
-    r_in = ((inner_rows > 0) & (inner_rows < rows - 1)).sum(axis=1)
-    c_in = ((inner_cols > 0) & (inner_cols < cols - 1)).sum(axis=1)
-    return 1.0 - np.outer(r_in, c_in) / float(size * size)
-
-
-def _refine_baselines(stack: np.ndarray, finite: np.ndarray, base: np.ndarray, size: int,
-                      x_axis: list[bool], outer_from: int = 2, centred: bool = False,
-                      only: np.ndarray | None = None) -> None:
-    """Recompute, in place, the baselines of the few lenses whose neighbourhood (the compiled pass'
-    window, clipped to the array as scipy's mode 'nearest') holds lenses that do not belong in it, as the
-    median of the others (`stack`: the maps, read only where `finite`). A lens not measured (NaN: off
-    the sensor, lost) is left out instead of counted as the whole map's median; the array's outermost
-    lenses, which miss neighbours and carry their own bias, are left out of the neighbourhoods of the
-    lenses two or more rows in (those next to the edge are their own class, judged against their own
-    spread, and keep them, but beside a corner, where they would fill half the window and be its median:
-    a microscope's 46 px sub-images read the outer lenses' 1.7 % flux deficit there at 28 sigma). Without
-    this a lens beside the not-inspected part of an edge, or two lenses in from the edge, is judged against a
-    baseline pulled towards another population. `outer_from`: the
-    ring (distance to the edge) from which on the outermost lenses are left out (hex: 1, every lens).
-    `centred`: the lenses opposite those left out (the window point-mirrored through the lens: beyond the
-    outermost or a lens not measured) are left out too, two or more lenses in, so the window stays
-    centred on its lens: one reaching a row further to one side reads a
-    slow trend (vignetting: 0.24 % of flux per row near a Table 1 frame's top and bottom) as half a row's
-    worth of deviation, which a frame whose flux noise floor is low (circular apertures: a lens' flux
-    does not answer to its focal errors) flags along the whole second row. `only`: the lenses whose
-    baselines are wanted (None: all); the others' windows are not recomputed."""
-    n_f, rows, cols = stack.shape
-    half = size // 2
-    edges = rows >= size and cols >= size
-    ring = ring_distance((rows, cols)) if edges else np.zeros((rows, cols), np.int64)
-    outer = edges & (ring == 0)
-    # left out of a window: NaN lenses; the outermost ones too for lenses two or more in
-    near_nan = max_filter_nearest(~finite.all(axis=0), size)
-    # left out also where they would be half a lens' window (clipped as the compiled pass clips it): beside a
-    # corner, where the outer lenses' own bias (their light lacks the neighbours beyond them) is the median
-    crowded = _outer_share(rows, cols, size) >= 0.5 if edges else np.zeros_like(outer)
-    leave_out = (ring >= outer_from) | crowded
-    near_outer = max_filter_nearest(outer, size) & leave_out if edges else np.zeros_like(outer)
-    todo = (near_nan | near_outer) & ~outer
-    m, n = np.nonzero(todo if only is None else todo & only)
-    if m.size:
-        off = np.arange(-half, half + 1)
-        ii, jj = np.broadcast_arrays(m[:, None, None] + off[None, :, None], n[:, None, None] + off[None, None, :])
-        ii, jj = np.clip(ii, 0, rows - 1).reshape(m.size, -1), np.clip(jj, 0, cols - 1).reshape(m.size, -1)
-        same = (finite == finite[0]).all()  # (the usual case: every map measured at the same lenses)
-        drop = ~(finite[:1] if same else finite)[:, ii, jj] | (outer[ii, jj] & leave_out[m, n][:, None])[None]
-        if centred:  # two or more in, also those opposite them (mirrored through the lens): centred on it
-            drop = drop | (drop[..., ::-1] & (ring[m, n] >= 2)[None, :, None])
-        if same:
-            med, ok = _kept_medians(stack.reshape(n_f, -1), ii * cols + jj, drop[0])
-        else:
-            med, ok = _nan_medians(np.where(drop, np.nan, stack[:, ii, jj]))
-        base[:, m, n] = np.where(ok, med, base[:, m, n])
-    if not edges:
-        return
-    # the outermost lenses, along their edge line: only the lenses not measured are left out (all maps at
-    # once; a corner keeps the value of the line the compiled pass wrote last: columns for an x index)
-    if finite[:, outer].all():
-        return
-    x_planes = np.asarray(x_axis, bool)
-    for sl, corner_wins in (((0, slice(None)), ~x_planes), ((-1, slice(None)), ~x_planes),
-                            ((slice(None), 0), x_planes), ((slice(None), -1), x_planes)):
-        line_ok = finite[(slice(None),) + sl]  # (F, L)
-        if line_ok.all():
-            continue
-        q = np.flatnonzero(np.convolve(~line_ok.all(axis=0), np.ones(size), mode="same") > 0)
-        idx = np.clip(q[:, None] + np.arange(-half, half + 1)[None, :], 0, line_ok.shape[1] - 1)
-        med, ok = _nan_medians(np.where(line_ok[:, idx], stack[(slice(None),) + sl][:, idx], np.nan))
-        line = base[(slice(None),) + sl]  # (a view: written through)
-        ends = (q == 0) | (q == line_ok.shape[1] - 1)  # the corners: only where this line wins them
-        write = ok & (~ends[None, :] | corner_wins[:, None])
-        line[:, q] = np.where(write, med, line[:, q])
-
-
-def _kept_medians(flat: np.ndarray, idx: np.ndarray, drop: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """`_nan_medians` of flat[:, idx] (F, N, K) with the values where `drop` (N, K) left out, the same
-    lenses in every map: per count of values kept, one gather of those alone and a partition at the
-    two middle ranks (no NaN to sort; the same order statistics, so the same medians bit for bit)."""
-    k = (~drop).sum(axis=1)
-    med = np.zeros((flat.shape[0], len(k)))
-    if len(k):
-        order = np.argsort(drop, axis=1, kind="stable")  # the kept values first, in window order
-        kept = np.take_along_axis(idx, order, axis=1)
-        for kk in np.unique(k[k > 0]):
-            sel = np.flatnonzero(k == kk)
-            lo, hi = (kk - 1) // 2, kk // 2
-            part = np.partition(flat[:, kept[sel, :kk]], np.unique([lo, hi]), axis=-1)
-            med[:, sel] = 0.5 * (part[..., lo] + part[..., hi])
-    return med, np.broadcast_to(k > 0, med.shape)
-
-
-def _nan_medians(vals: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Median over the last axis of the finite values of `vals` (…, K), and where there was any: one sort
-    (NaN sorts last), two order statistics (np.nanmedian goes through masked arrays, ten times slower)."""
-    k = np.isfinite(vals).sum(axis=-1)
-    s = np.sort(vals, axis=-1)
-    lo = np.maximum((k - 1) // 2, 0)[..., None]
-    hi = np.maximum(k // 2, 0)[..., None]
-    hi = np.minimum(hi, vals.shape[-1] - 1)
-    med = 0.5 * (np.take_along_axis(s, lo, -1) + np.take_along_axis(s, hi, -1))[..., 0]
-    return med, k > 0
-
-
-def _scipy_baseline(fill: np.ndarray, size: int, axis: str) -> np.ndarray:
-    """The local median baseline of one NaN-filled map with scipy (the reference formulation)."""
-    from scipy.ndimage import median_filter
-
-    base = median_filter(fill, size=size, mode="nearest")
-    rows, cols = fill.shape
-    if rows >= size and cols >= size:
-        horizontal = ((0, slice(None)), (-1, slice(None)))
-        vertical = ((slice(None), 0), (slice(None), -1))
-        order = horizontal + vertical if axis == "x" else vertical + horizontal  # the last one wins at corners
-        for sl in order:
-            base[sl] = median_filter(fill[sl], size=size, mode="nearest")
-    return base
 
 
 def robust_sigma(dev: np.ndarray) -> float:
@@ -309,240 +89,6 @@ def robust_sigma(dev: np.ndarray) -> float:
     if d.size == 0:
         return np.inf
     return max(1.4826 * float(np.median(np.abs(d - np.median(d)))), 1e-9)
-
-
-@functools.lru_cache(maxsize=8)
-def ring_distance(shape: tuple[int, int]) -> np.ndarray:
-    """Per lens its distance to the array's edge in lenses (0 = the outer row or column): the ring it
-    is on. The fewest lattice steps off the array on hex too (see `edge_classes`)."""
-    rows, cols = shape
-    m, n = np.ogrid[:rows, :cols]
-    return _frozen(np.minimum(np.minimum(m, n), np.minimum(rows - 1 - m, cols - 1 - n)))
-
-
-@functools.lru_cache(maxsize=8)
-def edge_classes(shape: tuple[int, int]) -> np.ndarray:
-    """Per lens its distance to the array's edge in lenses, clipped at 2 (0 = outer row/column, 1 = the
-    next, 2 = inner): edge lenses miss neighbours, so their indexes have their own bias and spread.
-    The same on a hex lattice: one step to a neighbour changes the row or the column index by at most
-    one, and straight along a row or column reaches the edge, so the fewest steps from U(m,n) off the
-    array are min(m, rows + 1 - m, n, cols + 1 - n) there too (each shifted row's end lens, missing one
-    neighbour, is in the outer class with the unshifted rows' ends, which miss three; their baselines
-    are kept apart, see `_hex_edge_columns`)."""
-    return _frozen(ring_distance(shape).clip(max=2))
-
-
-@functools.lru_cache(maxsize=8)
-def noise_classes(shape: tuple[int, int]) -> np.ndarray:
-    """`edge_classes`, with the 4 x 4 lenses at each corner a class of their own (3): their
-    neighbourhoods reach past the array on two sides, and their deviations are wider still."""
-    rows, cols = shape
-    m, n = np.ogrid[:rows, :cols]
-    zone = (np.minimum(m, rows - 1 - m) <= 3) & (np.minimum(n, cols - 1 - n) <= 3)
-    cls = edge_classes(shape)
-    return _frozen(np.where(zone & (rows > 12) & (cols > 12), 3, cls))
-
-
-@functools.lru_cache(maxsize=8)
-def second_ring(shape: tuple[int, int]) -> np.ndarray:
-    """The inner lenses (`noise_classes` 2) of the second ring in: their baseline windows leave the
-    outermost lenses out (`_refine_baselines`: 3 or 4 rows of 5), so the frame's systematics read in
-    them otherwise. Judged against their own spread where it is wider than the inner lenses' (which they
-    stay part of) where the ring has SECOND_RING_MIN of them: behind circles the sub-pixel phase pattern
-    a 3-row median leaves reached 6.6 sigma of the inner spread on a noise-free frame."""
-    return _frozen((ring_distance(shape) == 2) & (noise_classes(shape) == 2))
-
-
-@functools.lru_cache(maxsize=8)
-def _groups(shape: tuple[int, int], packing: str = "square", centred: bool = False) -> tuple[np.ndarray, ...]:
-    """Lens groups that share a systematic pattern: the inner lenses, and each edge class per side; on
-    hex, and wherever the baselines are `centred`, also the second ring per side where it has the lenses
-    to fit it (`SECOND_RING_MIN`); on hex the row ends that stick out apart from those that sit in
-    (`hex_row_ends`: their windows hold other neighbours, and their indexes answer otherwise to the
-    sub-pixel phase)."""
-    inner = edge_classes(shape) == 2
-    second = []
-    if packing == "hex" or centred:
-        side = _sides(shape)
-        ring = ring_distance(shape)
-        second = [g for g in ((ring == 2) & (side == s) for s in range(4)) if g.sum() >= SECOND_RING_MIN]
-        for g in second:
-            inner = inner & ~g
-    return tuple(_frozen(g) for g in [inner] + second) + edge_groups(shape, packing)
-
-
-def _sides(shape: tuple[int, int]) -> np.ndarray:
-    """Per lens the array side it is nearest to: 0 top, 1 bottom, 2 left, 3 right."""
-    rows, cols = shape
-    m, n = np.ogrid[:rows, :cols]
-    return np.argmin(np.stack(np.broadcast_arrays(m, rows - 1 - m, n, cols - 1 - n)), axis=0)
-
-
-@functools.lru_cache(maxsize=8)
-def edge_groups(shape: tuple[int, int], packing: str = "square") -> tuple[np.ndarray, ...]:
-    """The outer two rings' lenses by ring and side (a corner lens goes with the side it is nearest to,
-    the top or bottom on a tie); on hex the outer ring's row ends that stick out apart from those that
-    sit in (`hex_row_ends`; a top or bottom row's end lens among them is a group of its own): lenses whose
-    windows reach past the array alike."""
-    cls, side = edge_classes(shape), _sides(shape)
-    edges = [(cls == c) & (side == s) for c in (0, 1) for s in range(4)]
-    if packing == "hex":
-        ends = hex_row_ends(shape)
-        edges = [part for g in edges for part in ((g & ends, g & ~ends) if (g & ends).any() else (g,))]
-    return tuple(_frozen(g) for g in edges)
-
-
-# Hex: the second ring's baselines leave the outermost lenses out (`_refine_baselines`), so their windows
-# span 4 rows or columns, not 5, and take up another share of the sub-pixel phase pattern (which drifts
-# 0.15 px per row on an array rotated 0.5°): measured on the analytic model, the second rows' x offset and
-# tilt deviations kept 2.7 times the inner lenses' spread after the inner lenses' pattern was removed
-# (false flags at z 6.3). Square windows kept centred (circular apertures) span 3 rows there: its
-# intensity tilt along the edge kept 3.5 times the inner spread on an Airy-rimmed frame rotated 1.3°
-# (14 false flags on that ring of 102 x 102). Each side's second ring is fitted on its own where it has
-# this many lenses (the phase basis needs 40 for one harmonic), else with the inner lenses as before.
-SECOND_RING_MIN = 40
-
-
-def _frozen(a: np.ndarray) -> np.ndarray:
-    """`a`, read-only: the class maps are cached per array shape and shared by every frame."""
-    a.flags.writeable = False
-    return a
-
-
-def phase_basis(phase_x: np.ndarray, phase_y: np.ndarray, harmonics: int = 2) -> np.ndarray:
-    """Fourier basis (…, terms) of a lens' sub-pixel phase (fractional part of its grid centre, x and y):
-    how a sub-image samples the pixel grid, the source of index patterns that beat with the pitch."""
-    terms = [np.ones_like(phase_x)]
-    for k in range(1, harmonics + 1):
-        for a in (phase_x, phase_y):
-            terms += [np.cos(2 * np.pi * k * a), np.sin(2 * np.pi * k * a)]
-    if harmonics > 1:
-        for a in (phase_x + phase_y, phase_x - phase_y):
-            terms += [np.cos(2 * np.pi * a), np.sin(2 * np.pi * a)]
-    return np.stack(terms, axis=-1)
-
-
-@dataclass(frozen=True)
-class PhaseModel:
-    """The sub-pixel phase basis of every lens group (`_groups`), built once per frame and shared by all
-    the index maps it is fitted to: per group its mask, basis (n, P), the basis' outer products (n, P²)
-    and their sum (the Gram matrix when no lens is left out)."""
-
-    groups: tuple[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray], ...]
-
-
-_PHASE_MODELS: dict[bytes, PhaseModel] = {}
-
-
-def phase_model(phase: tuple[np.ndarray, np.ndarray], packing: str = "square", centred: bool = False) -> PhaseModel:
-    """`PhaseModel` of lenses whose grid centres have sub-pixel phases `phase` (x, y); a group gets two
-    harmonics from 80 lenses on, one from 40, none below (too few lenses to fit it). Kept for the last
-    few grids: a batch on one saved grid builds it once. `packing`, `centred`: the lattice and the
-    baselines' windows (`_groups`)."""
-    key = hashlib.sha1(np.ascontiguousarray(phase[0]).tobytes() + np.ascontiguousarray(phase[1]).tobytes()
-                       + packing.encode() + bytes([centred])).digest()
-    hit = _PHASE_MODELS.get(key)
-    if hit is not None:
-        return hit
-    groups = []
-    for sel in _groups(phase[0].shape, packing, centred):
-        count = int(sel.sum())
-        harmonics = 2 if count >= 80 else 1 if count >= 40 else 0
-        if harmonics:
-            basis = phase_basis(phase[0][sel], phase[1][sel], harmonics)
-            n, p = basis.shape
-            outer = (basis[:, :, None] * basis[:, None, :]).reshape(n, p * p)
-            groups.append((sel, basis, outer, outer.sum(axis=0)))
-    if len(_PHASE_MODELS) >= 4:
-        _PHASE_MODELS.pop(next(iter(_PHASE_MODELS)))
-    model = _PHASE_MODELS[key] = PhaseModel(tuple(groups))
-    return model
-
-
-def remove_phase_pattern(planes: list[np.ndarray], model: PhaseModel,
-                         exclude: np.ndarray | None = None) -> list[np.ndarray]:
-    """Deviation maps minus their fitted dependence on sub-pixel phase, per lens group.
-
-    A sub-image that differs from the reference in profile (another rim blur, diffraction, pixel MTF)
-    is registered and indexed with a small error that depends on where it falls on the pixel grid; over
-    a rotated or non-integer-pitch grid that error draws a pattern across the array which the local
-    median cannot remove. It is a property of the frame, not of a lens: it is fitted (Fourier terms of
-    the phase, robustly: outliers beyond 4 sigma left out, so a defect does not bend the fit) and removed.
-    `exclude`: lenses also left out of the fit (a defect's neighbours, within 4 sigma but not noise),
-    as `_phase_skips` says."""
-    stack = np.stack(planes, axis=-1).astype(np.float64)  # (rows, cols, J)
-    for (sel, basis, outer, full), skip in zip(model.groups, _phase_skips(model, exclude)):
-        stack[sel] = _phase_fit(stack[sel], basis, outer, full, skip)
-    return [stack[..., j] for j in range(len(planes))]
-
-
-def _phase_skips(model: PhaseModel, exclude: np.ndarray | None) -> list[np.ndarray | None]:
-    """Per lens group, the lenses of `exclude` its phase fit leaves out: where they are at least 5 % of
-    the group (a small array's: fewer hardly bend a robust fit, which leaves the strongest out anyway,
-    and refitting a large array moved readings at the reportable size, -2.07 % to -1.99 %) and at least
-    four lenses per fitted term are left; else None (all lenses fitted)."""
-    skips: list[np.ndarray | None] = []
-    for sel, basis, _, _ in model.groups:
-        skip = exclude[sel] if exclude is not None else None
-        if skip is not None and not (skip.sum() >= 0.05 * len(skip) and (~skip).sum() >= 4 * basis.shape[1]):
-            skip = None
-        skips.append(skip)
-    return skips
-
-
-def remove_phase_trend(planes: list[np.ndarray], model: PhaseModel) -> list[np.ndarray]:
-    """Smooth maps (local baselines) minus their plain least-squares fit on each group's phase basis:
-    a 5 x 5 median keeps the phase pattern, which beats with the pitch over ~20 lenses. No outlier pass:
-    a median baseline has none."""
-    stack = np.stack(planes, axis=-1).astype(np.float64)
-    for sel, basis, _, full in model.groups:
-        y = stack[sel]
-        p = basis.shape[1]
-        coef = np.linalg.solve(full.reshape(p, p) + 1e-9 * np.eye(p), basis.T @ np.where(np.isfinite(y), y, 0.0))
-        stack[sel] = y - basis @ coef
-    return [stack[..., j] for j in range(len(planes))]
-
-
-def _phase_fit(y: np.ndarray, basis: np.ndarray, outer: np.ndarray, full: np.ndarray,
-               skip: np.ndarray | None = None) -> np.ndarray:
-    """Columns of y (n, J) minus their robust least-squares fit on `basis` (n, P), all columns at once:
-    a fit on the finite values, then a refit without those beyond 4 robust sigma of the first. Each
-    column's Gram matrix is the full one (`full`, summed `outer`) less the few lenses it leaves out;
-    `skip` (n,): lenses never fitted (their residuals are still returned)."""
-    p = basis.shape[1]
-    fit = np.isfinite(y) if skip is None else np.isfinite(y) & ~skip[:, None]
-    keep = fit
-    y0 = np.where(keep, y, 0.0)
-    resid = y
-    for step in range(2):
-        left_out = ~keep
-        rows = np.flatnonzero(left_out.any(axis=1))
-        gram = np.broadcast_to(full, (y.shape[1], p * p)) - left_out[rows].T.astype(np.float64) @ outer[rows]
-        gram = gram.reshape(-1, p, p) + 1e-9 * np.eye(p)
-        coef = np.linalg.solve(gram, (np.where(keep, y0, 0.0).T @ basis)[..., None])[..., 0]
-        coef[keep.sum(axis=0) < 2 * p] = 0.0
-        resid = y - basis @ coef.T
-        if step == 0:  # every column's robust sigma at once (from at most ~2,000 lenses: enough for a 4-sigma cut)
-            sample = (resid if skip is None else np.where(fit, resid, np.nan))[:: max(1, len(resid) // 2000)]
-            mad = _column_medians(np.abs(sample - _column_medians(sample)))
-            with np.errstate(invalid="ignore"):
-                keep = fit & (np.abs(resid) <= 4 * np.maximum(1.4826 * mad, 1e-9))
-    return resid
-
-
-def _column_medians(a: np.ndarray) -> np.ndarray:
-    """Median of each column of a (n, J) over its finite values (NaN for a column with none): one sort,
-    where np.nanmedian along an axis goes through masked arrays and costs ten times more."""
-    k = np.isfinite(a).sum(axis=0)
-    lo, hi = np.maximum((k - 1) // 2, 0), np.maximum(k // 2, 0)
-    filled = np.ascontiguousarray(np.where(np.isfinite(a), a, np.inf).T)  # each column contiguous
-    if (k == k[0]).all() and k[0] > 0:  # the usual case: two order statistics, not a sort
-        s = np.partition(filled, np.unique([lo[0], hi[0]]), axis=1).T
-    else:
-        s = np.sort(filled, axis=1).T
-    cols = np.arange(a.shape[1])
-    with np.errstate(invalid="ignore"):
-        return np.where(k > 0, 0.5 * (s[lo, cols] + s[np.minimum(hi, len(s) - 1), cols]), np.nan)
 
 
 def class_sigmas(dev: np.ndarray, floor: float | np.ndarray = 0.0, exclude: np.ndarray | None = None,
@@ -1225,19 +771,6 @@ def class_centred(planes: list[np.ndarray], packing: str = "square") -> list[np.
                 q[sel] -= np.median(q[sel])
         out.append(q)
     return out
-
-
-@functools.lru_cache(maxsize=8)
-def hex_row_ends(shape: tuple[int, int]) -> np.ndarray:
-    """On a hex lattice, the row ends that stick out half a pitch past the rows above and below (the
-    unshifted rows' first lenses, the shifted rows' last): they miss 3 of their 6 neighbours, the other
-    ends 1, and their sub-images differ the more (measured: flux 0.905 against 0.985)."""
-    rows, cols = shape
-    r = np.arange(rows)
-    ends = np.zeros(shape, bool)
-    ends[r % 2 == 0, 0] = True
-    ends[r % 2 == 1, cols - 1] = True
-    return _frozen(ends)
 
 
 def _isotropic(dev: dict[str, np.ndarray], sig: dict[str, float], table: SignatureTable):

@@ -19,7 +19,7 @@ import warnings
 
 import numpy as np
 
-from mlaqc.inspection.identify import edge_classes
+from mlaqc.inspection.lens_classes import edge_classes
 from mlaqc.inspection.results import Defect
 from mlaqc.inspection.scratches import is_line, line_shape
 
