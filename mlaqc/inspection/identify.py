@@ -13,7 +13,7 @@ fit (`_disturbed`): in a small array a few defects' neighbourhoods are a large s
 the noise of a sub-image must not depend on the array's size. A lens whose window misses lenses (not
 inspected, lost, left out) is compared with the median of its neighbours' values less the phase pattern
 (`_phase_removed`): the pattern is too fast for a median, and one over other lenses aliases it otherwise.
-Each frame also reports its detection limit (`detection_limits`).
+Each frame also reports its detection limit (mlaqc.inspection.detection_limits).
 
 Classification inverts the signature table (matched to the frame's rim width by the caller): the
 flagged lens' feature changes, taken along and across its own shift, and its ring profile are fitted by
@@ -64,8 +64,8 @@ from mlaqc.inspection.filters import (
     max_filter_nearest,
     with_neighbours,
 )
-from mlaqc.inspection.lens_classes import (SECOND_RING_MIN, edge_classes, edge_groups, hex_row_ends, noise_classes,
-                                           second_ring)
+from mlaqc.inspection.lens_classes import (SECOND_RING_MIN, corner_lenses, edge_classes, edge_groups, hex_row_ends,
+                                           noise_classes, second_ring)
 from mlaqc.inspection.phase_pattern import (PhaseModel, _column_medians, _phase_skips, phase_model,
                                             remove_phase_pattern, remove_phase_trend)
 from mlaqc.inspection.results import Defect, LensMetrics
@@ -80,6 +80,7 @@ from mlaqc.optics.lattice import Lattice
 UNEXPLAINED = 0.75  # a best fit leaving more than this share of the deviation's chi-square: type 'unknown' (measured: tracer defects leave 0.1-0.7, foreign anomalies 0.8-0.95)
 LIMIT_MARGIN = 2.0  # a lens at the detection limit scores detect_sigma + 2 on average: found 97.7 % of the time
 _CHI2_AMBIGUOUS = 9.0  # an opposite-sign reading closer than this (3 sigma) is listed as an alternative
+TWIN_SHARE = 0.05  # radius and thickness readings whose chi-squares differ by less than this share: alike
 FOCUS_KINDS = ("radius", "thickness")  # errors that defocus the lens: what the focus test looks for
 
 
@@ -120,14 +121,14 @@ def class_sigmas(dev: np.ndarray, floor: float | np.ndarray = 0.0, exclude: np.n
     _raise_to_own(out, second, stack[quiet], lambda v: _column_tail_sigmas(v, floor))
     for group in edge_groups(stack.shape[:2], packing):
         quiet = group if exclude is None else group & ~exclude
-        _raise_to_own(out, group, stack[quiet], _column_robust_sigmas)
+        _raise_to_own(out, group, stack[quiet], _column_robust_sigmas, EDGE_GROUP_MIN)
     return out[..., 0] if dev.ndim == 2 else out
 
 
-def _raise_to_own(out: np.ndarray, group: np.ndarray, values: np.ndarray, spread_of) -> None:
+def _raise_to_own(out: np.ndarray, group: np.ndarray, values: np.ndarray, spread_of, least: int = SECOND_RING_MIN) -> None:
     """out[group] raised, map by map, to the group's own spread (`spread_of` its `values`, (n, J)) where
-    that map has SECOND_RING_MIN finite values (lenses off the sensor read NaN: a clipped side is too few)."""
-    enough = np.isfinite(values).sum(axis=0) >= SECOND_RING_MIN
+    that map has `least` finite values (lenses off the sensor read NaN: a clipped side is too few)."""
+    enough = np.isfinite(values).sum(axis=0) >= least
     if enough.any():
         spread = spread_of(values)
         out[group] = np.maximum(out[group], np.where(enough & np.isfinite(spread), spread, 0.0))
@@ -163,6 +164,11 @@ def _column_tail_sigmas(a: np.ndarray, floor: float | np.ndarray = 0.0) -> np.nd
     return np.where(k > 0, out, np.inf)
 
 
+# An edge group (one side's outer or second ring) is judged against its own robust spread from this many
+# measured lenses: on a small array the four sides' systematics differ (the outer ring's intensity tilt
+# follows the sub-pixel phase across a side, which no phase fit can take off ten lenses), and pooled in one
+# class spread a quiet side's hid a busy one's (12 x 12 analytic frames at 1 % noise: 17 false flags in 3).
+EDGE_GROUP_MIN = 8
 TAIL_OUTLIER = 10.0  # tail spreads leave out deviations beyond this many robust sigma: defects, not noise nor systematics
 
 _NAMES = ("offset_x_px", "offset_y_px", "asym_x", "asym_y", "blur", "flux", "ssim", "sharpness")
@@ -524,6 +530,19 @@ def classify(table: SignatureTable, vec: np.ndarray, shift_dir: float, sigmas: n
     return best, fits[best][0], kind.unit, direction, alternatives
 
 
+def _reportable_twin(fits: dict[str, tuple[float, float]], kind: str, mins: dict[str, float]):
+    """(the other defocus kind, its magnitude) when `kind` is one of FOCUS_KINDS and the other's reading
+    fits about as well (its chi-square within _CHI2_AMBIGUOUS, or TWIN_SHARE of the best one's: a best fit
+    far above its degrees of freedom says the table's curves miss this lens by more than the noise, and a
+    few per cent of that tells nothing) and is at least its reportable size; else None."""
+    if kind not in FOCUS_KINDS:
+        return None
+    twin = next(k for k in FOCUS_KINDS if k != kind)
+    if twin not in fits or fits[twin][1] - fits[kind][1] >= max(_CHI2_AMBIGUOUS, TWIN_SHARE * fits[kind][1]):
+        return None
+    return (twin, fits[twin][0]) if abs(fits[twin][0]) >= mins.get(twin, 0.0) - 1e-12 else None
+
+
 def tolerance_for(error_type: str, qc: QC) -> float:
     """The QC limit of a type, in its unit (radius errors are relative)."""
     return {"pitch": qc.pitch_um, "position": qc.pitch_um, "decenter": qc.decenter_um, "radius": qc.radius_rel,
@@ -539,7 +558,7 @@ class Identification:
     flagged: np.ndarray  # (rows, cols) bool
     error_type: np.ndarray  # (rows, cols) object: the flagged lens' type, '' elsewhere
     score: np.ndarray  # (rows, cols) detection z
-    detection_limit: dict  # per error type the smallest magnitude this frame detects (see `detection_limits`)
+    detection_limit: dict  # per error type the smallest magnitude this frame detects (detection_limits.py)
     below_reportable: int  # significant deviations smaller than the minimum reportable error (not flagged)
     not_inspected: int  # lenses whose sub-image leaves the sensor
     noise: Noise | None = None  # the frame's noise the detection worked against (for measurements)
@@ -547,50 +566,7 @@ class Identification:
     readings: dict = field(default_factory=dict)  # per-lens index values against the typical lens (`_readings`)
     unreported: np.ndarray | None = None  # (rows, cols) bool: the `below_reportable` lenses (a later reading
     # may name them: mlaqc.inspection.obscuration)
-
-
-def detection_limits(table: SignatureTable, qc: QC, noise: Noise) -> dict:
-    """Per error type, the smallest magnitude from which on an inner lens of this frame is flagged (97.7 %
-    of the time): the table's response must exceed the detection threshold by LIMIT_MARGIN against this
-    frame's noise (the DETECTORS' spreads and the ring matched filter), at this and every larger rendered
-    magnitude, and be at least the minimum reportable size. Radius and thickness per sign; None where
-    even the largest rendered magnitude is not detectable."""
-    cls = edge_classes(noise.sigma.shape[:2])
-    inner = cls == 2 if (cls == 2).any() else np.ones(cls.shape, bool)
-    sigma = np.nanmedian(noise.sigma[inner], axis=0)
-    templates = _focus_templates(table)
-    mins = min_reportable(qc)
-    limits: dict = {}
-    for kind, unit in (("pitch", "µm"), ("decenter", "µm"), ("radius", "rel"), ("thickness", "µm")):
-        if kind not in table.magnitudes:
-            continue
-        grid_m, grid_f = _kind_curve(table, kind, 0)
-        z = (_detector_values(grid_f[:, :len(FEATURES)]) / sigma)[:, _DETECTING].max(axis=1)
-        if kind in FOCUS_KINDS and templates.size:
-            tw = templates @ noise.rings.whiten
-            tw /= np.linalg.norm(tw, axis=1, keepdims=True)
-            z = np.maximum(z, ((grid_f[:, len(FEATURES):] @ noise.rings.whiten) @ tw.T).max(axis=1))
-        ok = (z > qc.detect_sigma + LIMIT_MARGIN) & (np.abs(grid_m) >= mins[kind] - 1e-12)
-        signs = ((+1, "+"), (-1, "-")) if np.any(grid_m < 0) else ((+1, ""),)
-        for sign, tag in signs:
-            side = np.sign(grid_m) == sign
-            name = f"{kind}_{'um' if unit == 'µm' else 'rel'}" + ({"+": "_pos", "-": "_neg"}.get(tag, ""))
-            limits[name] = _lowest_from_which_all(np.abs(grid_m[side]), ok[side])
-    limits["detect_sigma"] = qc.detect_sigma
-    limits["min_reportable"] = {k: v for k, v in min_reportable(qc).items() if k != "position"}
-    return limits
-
-
-def _lowest_from_which_all(mags: np.ndarray, ok: np.ndarray) -> float | None:
-    """The smallest magnitude from which every larger one (to the largest rendered) is detectable: a
-    response need not grow with the error (a radius error first sharpens the sub-image, then blurs it)."""
-    order = np.argsort(mags)
-    mags, ok = mags[order], ok[order]
-    if not ok.size or not ok[-1]:
-        return None
-    bad = np.flatnonzero(~ok)
-    first = bad[-1] + 1 if bad.size else 0
-    return float(f"{mags[first]:.4g}")
+    corners_not_judged: int = 0  # the array's corner lenses on the frame, not judged (lens_classes.corner_lenses)
 
 
 def _quiet_inner(inner: np.ndarray, exclude: np.ndarray | None, least: int = 20) -> np.ndarray:
@@ -908,7 +884,7 @@ def identify(metrics: LensMetrics, missing: np.ndarray, qc: QC, table: Signature
         position = None if position is None else tuple(np.where(outside, np.nan, p) for p in position)
         missing = missing & ~outside
     threshold = np.full(missing.shape, qc.detect_sigma)
-    threshold[[0, 0, -1, -1], [0, -1, 0, -1]] *= 1.5  # corner windows hold dark margin on two sides: noisier
+    corners = corner_lenses(missing.shape) & ~outside & ~missing  # not judged (their deviation is always 0)
     # a missing lens' neighbours lack its light: left out of every baseline, or the windows of the lenses
     # two and three away read them (hex, Airy rims, 1 % noise: asymmetry z 6.1-6.3 three lenses off). The
     # missing lens itself stays in (measured: left out too, a Table 1 Airy frame's lens two away read
@@ -917,7 +893,7 @@ def identify(metrics: LensMetrics, missing: np.ndarray, qc: QC, table: Signature
     # each lens left out, and flagged 3 lenses beside them.)
     echoes = with_neighbours(missing, packing) & ~missing if missing.any() and aperture != "circle" else None
     judged = _judged(metrics, position, phase, table, qc, (outside, missing), packing, centred, echoes)
-    flagged = ((judged[-1] > threshold) & ~outside) | missing
+    flagged = ((judged[-1] > threshold) & ~outside & ~corners) | missing
     if aperture == "circle" and flagged.any():
         # circles: once more with the flagged lenses left out of every baseline, as a lens not measured is.
         # A median over a window spanning a steep trend (vignetting: up to 1.5 % of flux per lens near a
@@ -927,7 +903,7 @@ def identify(metrics: LensMetrics, missing: np.ndarray, qc: QC, table: Signature
         # flagged at z 6-8 on noise-free analytic frames. (Hex cells do not need it: 0-1 false flags per
         # cell on the analytic matrix with or without, for 2x the identification time.)
         judged = _judged(metrics, position, phase, table, qc, (outside, missing), packing, centred, flagged)
-        flagged = ((judged[-1] > threshold) & ~outside) | missing
+        flagged = ((judged[-1] > threshold) & ~outside & ~corners) | missing
     dev, sig, rings, detect_dev, trend, noise, score = judged
     flagged &= ~spill(_strength(detect_dev, noise, score), flagged, asym=(dev["asym_x"], dev["asym_y"]),
                       offset=(detect_dev["offset_x_px"], detect_dev["offset_y_px"]), packing=packing) | missing
@@ -968,22 +944,33 @@ def identify(metrics: LensMetrics, missing: np.ndarray, qc: QC, table: Signature
             # the reportable size gives (a rim blurred x2 behind an Airy rim: sharpness z 32-37 where a
             # -2 % radius error gives 7; its -1.2 % radius reading left 60 % unexplained), or which deviates
             # more than an error of its kind at the reportable size would: not a small error of that kind
-            if not (excess[(m, n)] > qc.detect_sigma
-                    or _beyond_reportable(typing, kind, mag, float(uv @ uv), sigmas, rings.whiten, dof, mins)):
+            if excess[(m, n)] > qc.detect_sigma or _beyond_reportable(typing, kind, mag, float(uv @ uv), sigmas,
+                                                                      rings.whiten, dof, mins):
+                kind, mag, unit, direction, alts = "unknown", float("nan"), "", None, ()
+            elif twin := _reportable_twin(fits[(m, n)], kind, mins):
+                # defocused: read as a thickness error too small to report while a radius error worth
+                # reporting fits about as well (or the other way round); the frame cannot tell them apart,
+                # and its detection limit promises the radius error (a +7.7 % radius read 0.5 µm of
+                # thickness and was dropped on a frame stating +5.6 %): the reportable reading, the other
+                # as its alternative
+                alts = ((kind, mag, unit, None),)
+                kind, mag, unit = twin[0], twin[1], CLASSIFIED_KINDS[twin[0]].unit
+            else:
                 flagged[m, n] = False  # significant, but smaller than any error worth reporting
                 unreported[m, n] = True
                 continue
-            kind, mag, unit, direction, alts = "unknown", float("nan"), "", None, ()
         limit = tolerance_for(kind, qc)
         defects.append(Defect(int(m) + 1, int(n) + 1, kind, mag, unit, direction, float(score[m, n]),
                               abs(mag) <= limit, indexes, alternatives=alts))
         error_type[m, n] = kind
-    limits = detection_limits(table, qc, noise)
+    from mlaqc.inspection.detection_limits import detection_limits  # (it reads this module's tables' helpers)
+
+    limits = detection_limits(table, qc, noise, ~outside & ~corners)
     if "decenter" in table.magnitudes:  # (a flat-sided MLA has no decenter: nothing to tell pitch from)
         limits["pitch_vs_decenter"] = split_limits(split, split_sigma)
     return Identification(tuple(defects), flagged, error_type, score, limits, int(unreported.sum()),
                           int(outside.sum()), noise, tuple(float(x) for x in sigmas),
-                          _readings(detect_dev, rings, trend), unreported)
+                          _readings(detect_dev, rings, trend), unreported, int(corners.sum()))
 
 
-__all__ = ["identify", "Identification", "classify", "deviations", "detection_score", "detection_limits", "FEATURES"]
+__all__ = ["identify", "Identification", "classify", "deviations", "detection_score", "FEATURES"]

@@ -151,7 +151,7 @@ def _inspect_image(img: np.ndarray, cfg: CameraConfig, *, grid: Grid | None = No
     found = _lines_followed(found, sub, cx + metrics["offset_x_px"], cy + metrics["offset_y_px"], clipped | grid.missing,
                             cfg.qc, metrics, centres)
     defects, flagged, error_type = found.defects, found.flagged, found.error_type
-    notes = notes + scratch_notes(defects)
+    notes = notes + scratch_notes(defects) + corner_notes(found.corners_not_judged)
     lap("identify")
     measured = measure_lenses(found, table, cfg, (grid.residual_x_px, grid.residual_y_px) if own_grid else None)
     lap("measure")
@@ -168,6 +168,15 @@ def _inspect_image(img: np.ndarray, cfg: CameraConfig, *, grid: Grid | None = No
                             notes=tuple(notes), detection_limit=found.detection_limit,
                             below_reportable=found.below_reportable, not_inspected=found.not_inspected,
                             measurements=measured, assembly=assembly, lens_boundaries=cfg.mla.boundaries)
+
+
+def corner_notes(corners: int) -> tuple[str, ...]:
+    """What the report says about the array's corner lenses on the frame (not judged)."""
+    if not corners:
+        return ()
+    return (f"the array's {corners} corner lens{'es are' if corners > 1 else ' is'} not judged: a corner is the outermost "
+            "lens of two edge lines, no other lens shares its neighbourhood to compare it with (a missing one is "
+            "still found)",)
 
 
 def _lines_followed(found, sub, cx, cy, skip, qc, metrics, centres):

@@ -194,6 +194,7 @@ def detection_limit_text(limit: dict[str, Any]) -> str:
         parts.append(f"decenter {fmt('decenter_um', 1, 'µm')}")
     parts.append(f"radius −{fmt('radius_rel_neg', 100, '%')} / +{fmt('radius_rel_pos', 100, '%')}")
     text = "detects at least: " + ", ".join(parts).replace("−not", "not").replace("+not", "not")
+    text += _border_text(limit.get("border"))
     text += _noise_text(limit.get("noise"))
     if no_decenter:
         return text + "; no decenter on a flat-sided (plano-convex) MLA: a shifted lens is a pitch error"
@@ -205,6 +206,19 @@ def detection_limit_text(limit: dict[str, Any]) -> str:
                        "is shared; reported as 'position')")
     return text + (f"; tells pitch from decenter from {split['pitch_um']:.3g} µm pitch / {split['decenter_um']:.3g} µm "
                    "decenter (sag-intersection lens boundaries)")
+
+
+def _border_text(border: Any) -> str:
+    """The two outer rings' limits, where they are another than the inner lenses': ' (outer two rings: ...)'."""
+    if not isinstance(border, dict) or not border:
+        return ""
+
+    def fmt(key: str, scale: float, unit: str) -> str:
+        v = border.get(key)
+        return "not detectable" if v is None else f"{v * scale:.3g} {unit}"
+
+    return (f" (outer two rings: pitch {fmt('pitch_um', 1, 'µm')}, radius −{fmt('radius_rel_neg', 100, '%')} / "
+            f"+{fmt('radius_rel_pos', 100, '%')})").replace("−not", "not").replace("+not", "not")
 
 
 def _noise_text(noise: Any) -> str:

@@ -1,0 +1,85 @@
+"""What a frame can detect: per error type the smallest magnitude from which a lens of this frame is flagged.
+
+The signature table's response to each error kind is read against this frame's own noise (the DETECTORS'
+spreads per lens, and the ring matched filter): a magnitude is detectable where the response exceeds the
+detection threshold by LIMIT_MARGIN (97.7 % of such lenses flagged), at it and every larger rendered
+magnitude. Stated twice: for the inner lenses (at their median spread), and for the two outer rings (the
+worst of their lenses: their spreads are their own classes' and sides', wider on a small array, where those
+rings are half the lenses). Never below the reportable size times FLOOR_MARGIN: readings scatter about the
+truth (on the independent analytic model a shift reads 0.88-0.92 of it: the tables' gain is the tracer's),
+so an error at the reportable size itself is reported about half the time. The array's four corner lenses
+are not judged (`lens_classes.corner_lenses`).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from mlaqc.inspection.identify import (_DETECTING, FEATURES, FOCUS_KINDS, LIMIT_MARGIN, Noise, _detector_values,
+                                       _focus_templates, _kind_curve, min_reportable)
+from mlaqc.inspection.lens_classes import corner_lenses, edge_classes
+from mlaqc.models.signatures import SignatureTable
+from mlaqc.optics.config import QC
+
+FLOOR_MARGIN = 1.2
+KINDS = (("pitch", "µm"), ("decenter", "µm"), ("radius", "rel"), ("thickness", "µm"))
+
+
+def detection_limits(table: SignatureTable, qc: QC, noise: Noise, judged: np.ndarray | None = None) -> dict:
+    """Per error type (radius and thickness per sign) the smallest magnitude an inner lens of this frame is
+    flagged from, None where even the largest rendered one is not; under "border" the same for the lenses
+    of the two outer rings that are judged (`judged`, default all but the corners)."""
+    shape = noise.sigma.shape[:2]
+    cls = edge_classes(shape)
+    judged = ~corner_lenses(shape) if judged is None else judged
+    inner = (cls == 2) & judged
+    inner = inner if inner.any() else judged if judged.any() else np.ones(shape, bool)
+    limits: dict = {k: v[0] for k, v in _limits_at(table, qc, noise, np.nanmedian(noise.sigma[inner], axis=0)[None]).items()}
+    border = (cls < 2) & judged
+    if border.any() and (cls == 2).any():
+        per_lens = _limits_at(table, qc, noise, noise.sigma[border])
+        limits["border"] = {k: _worst(v) for k, v in per_lens.items()}
+    limits["detect_sigma"] = qc.detect_sigma
+    limits["min_reportable"] = {k: v for k, v in min_reportable(qc).items() if k != "position"}
+    return limits
+
+
+def _worst(values: list[float | None]) -> float | None:
+    """The largest limit over lenses; None if any lens cannot detect the kind at all."""
+    return None if any(v is None for v in values) else float(max(values))
+
+
+def _limits_at(table: SignatureTable, qc: QC, noise: Noise, sigma: np.ndarray) -> dict[str, list[float | None]]:
+    """Per limit key, one limit per row of `sigma` (S, DETECTORS): the detectors' spreads of a lens."""
+    templates = _focus_templates(table)
+    mins = min_reportable(qc)
+    out: dict[str, list[float | None]] = {}
+    for kind, unit in KINDS:
+        if kind not in table.magnitudes:
+            continue
+        grid_m, grid_f = _kind_curve(table, kind, 0)
+        det = _detector_values(grid_f[:, :len(FEATURES)])  # (G, DETECTORS)
+        z = (det[None, :, :] / sigma[:, None, :])[..., _DETECTING].max(axis=-1)  # (S, G)
+        if kind in FOCUS_KINDS and templates.size:
+            tw = templates @ noise.rings.whiten
+            tw /= np.linalg.norm(tw, axis=1, keepdims=True)
+            z = np.maximum(z, ((grid_f[:, len(FEATURES):] @ noise.rings.whiten) @ tw.T).max(axis=1)[None, :])
+        ok = (z > qc.detect_sigma + LIMIT_MARGIN) & (np.abs(grid_m) >= FLOOR_MARGIN * mins[kind] - 1e-12)[None, :]
+        signs = ((+1, "+"), (-1, "-")) if np.any(grid_m < 0) else ((+1, ""),)
+        for sign, tag in signs:
+            side = np.sign(grid_m) == sign
+            name = f"{kind}_{'um' if unit == 'µm' else 'rel'}" + ({"+": "_pos", "-": "_neg"}.get(tag, ""))
+            out[name] = [_lowest_from_which_all(np.abs(grid_m[side]), row[side]) for row in ok]
+    return out
+
+
+def _lowest_from_which_all(mags: np.ndarray, ok: np.ndarray) -> float | None:
+    """The smallest magnitude from which every larger one (to the largest rendered) is detectable: a
+    response need not grow with the error (a radius error first sharpens the sub-image, then blurs it)."""
+    order = np.argsort(mags)
+    mags, ok = mags[order], ok[order]
+    if not ok.size or not ok[-1]:
+        return None
+    bad = np.flatnonzero(~ok)
+    first = bad[-1] + 1 if bad.size else 0
+    return float(f"{mags[first]:.4g}")
