@@ -3,9 +3,9 @@ frames the tracer did not make: the analytic model of tests/analytic_frames.py (
 code shared with the tracer) given each fixture's first-order optics, at several noise levels from
 noise-free up, written in real containers and inspected as a user's file would be. Prints per cell: false
 flags, recall of the seeded anomalies, how many of the shifted, dimmed, missing and resized discs are typed
-pitch, dim, missing and radius, centre RMS against the true centres, the frame's detection limits and the
-inspection's time; then the same frames as a scene (a smooth random brightness over the lenses,
-as a fluorescent sample gives), which must be refused, not inspected.
+pitch, dim, missing and a focal type (radius or thickness: see TYPE_OF), centre RMS against the true
+centres, the frame's detection limits and the inspection's time; then the same frames as a scene (a smooth
+random brightness over the lenses, as a fluorescent sample gives), which must be refused, not inspected.
 
     python bench/instruments.py            # both fixtures, noise 0 / 1 / 3 %, 24 anomalies each
     python bench/instruments.py --quick    # noise 0 and 1 % only
@@ -90,12 +90,19 @@ def run_cell(cfg, name: str, noise: float, seed: int, tmp: Path) -> Cell:
     flagged = {(d.m, d.n): d.error_type for d in result.defects}
     typed = [(TYPE_OF[t["kind"].split()[0]], flagged.get(key)) for key, t in matched.items()
              if t["kind"].split()[0] in TYPE_OF]
-    cell.name += f" [typed {sum(want == got for want, got in typed)}/{len(typed)}]"
+    resized = sorted(flagged.get(key) or "none" for key, t in matched.items() if t["kind"].startswith("size"))
+    cell.name += (f" [typed {sum(got in want for want, got in typed)}/{len(typed)}; resized read as "
+                  f"{', '.join(f'{k} {resized.count(k)}' for k in dict.fromkeys(resized))}]")
     return cell
 
 
-# the physical type an analytic anomaly is: a whole disc moved, its light scaled, none, its size changed
-TYPE_OF = {"shift": "pitch", "dim": "dim", "missing": "missing", "size": "radius"}
+# the physical types an analytic anomaly is: a whole disc moved, its light scaled, none, its size changed.
+# A resized disc (the pupil's image scaled, its rim as sharp) is a focal-type change: the pupil's image
+# scales with the distance from the lens' rear principal plane to the sensor, which a radius error moves
+# on a thick biconvex lens and an axial (thickness) error on any; the disc model has no blur to tell them
+# by, and which the table's signatures read it as depends on the lens' form (the microscope's: radius; the
+# hand-held's f/2 lenses: thickness). The bench counts the family; the kind read is printed apart.
+TYPE_OF = {"shift": {"pitch", "position"}, "dim": {"dim"}, "missing": {"missing"}, "size": {"radius", "thickness"}}
 
 
 def scene_refused(cfg, name: str, contrast: float, seed: int, tmp: Path) -> str:

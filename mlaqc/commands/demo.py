@@ -101,11 +101,16 @@ def _missed(errors, kind: str, m: int, n: int, limit: dict) -> str:
         key, sign = ("radius_rel_pos", "+") if rel > 0 else ("radius_rel_neg", "−")
     else:
         return "MISSED"
-    lim = (limit or {}).get(key)
+    rows, cols = e["pitch_um"].shape
+    border = min(m, n, rows - 1 - m, cols - 1 - n) < 2 and isinstance((limit or {}).get("border"), dict)
+    if m in (0, rows - 1) and n in (0, cols - 1):
+        return "MISSED (a corner lens: not judged, the report says so)"
+    lim = (limit["border"] if border else limit or {}).get(key)
     if lim is None:
         return "MISSED (this frame cannot detect it at any rendered size)" if limit else "MISSED"
     where = "below" if size < lim else "at or above"
-    return f"MISSED ({where} this frame's detection limit, {sign}{lim * scale:.3g}{unit})"
+    ring = " for the outer two rings" if border else ""
+    return f"MISSED ({where} this frame's detection limit{ring}, {sign}{lim * scale:.3g}{unit})"
 
 
 def _truth(errors, kind: str, m: int, n: int) -> str:

@@ -194,7 +194,7 @@ def detection_limit_text(limit: dict[str, Any]) -> str:
         parts.append(f"decenter {fmt('decenter_um', 1, 'µm')}")
     parts.append(f"radius −{fmt('radius_rel_neg', 100, '%')} / +{fmt('radius_rel_pos', 100, '%')}")
     text = "detects at least: " + ", ".join(parts).replace("−not", "not").replace("+not", "not")
-    text += _border_text(limit.get("border"))
+    text += _border_text(limit.get("border"), limit)
     text += _noise_text(limit.get("noise"))
     if no_decenter:
         return text + "; no decenter on a flat-sided (plano-convex) MLA: a shifted lens is a pitch error"
@@ -208,9 +208,10 @@ def detection_limit_text(limit: dict[str, Any]) -> str:
                    "decenter (sag-intersection lens boundaries)")
 
 
-def _border_text(border: Any) -> str:
+def _border_text(border: Any, inner: dict[str, Any]) -> str:
     """The two outer rings' limits, where they are another than the inner lenses': ' (outer two rings: ...)'."""
-    if not isinstance(border, dict) or not border:
+    keys = ("pitch_um", "radius_rel_neg", "radius_rel_pos")
+    if not isinstance(border, dict) or all(border.get(k) == inner.get(k) for k in keys):
         return ""
 
     def fmt(key: str, scale: float, unit: str) -> str:
