@@ -35,6 +35,8 @@ sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "tests"))
 
 import mlaqc.inspection.calibrate as calibration  # noqa: E402
+import mlaqc.inspection.disc_fit as disc_fit  # noqa: E402
+import mlaqc.inspection.fourier_lattice as fourier_lattice  # noqa: E402
 from mlaqc.inspection.calibrate import calibrate  # noqa: E402
 from mlaqc.inspection.rawio import load_raw, normalized, suppress_hot_pixels  # noqa: E402
 from mlaqc.inspection.subimages import divide  # noqa: E402
@@ -81,7 +83,8 @@ def timed(fn, repeat: int):
     return out, wall, cpu
 
 
-# calibration steps timed by --steps (module functions and disc-fit methods; nested ones included in their callers)
+# calibration steps timed by --steps (calibrate's module functions, called from calibrate(), and disc-fit methods;
+# nested ones included in their callers)
 STEPS = ("_check_levels", "_fft_lattice", "_candidates", "_radius_guess", "_measure", "_DiscFit._normals",
          "_DiscFit.iterate", "_assemble", "_fit_model")
 
@@ -106,7 +109,7 @@ def step_times(fn, repeat: int) -> dict[str, float]:
 
     for label in STEPS:
         owner, _, attr = label.rpartition(".")
-        wrap(getattr(calibration, owner) if owner else calibration, attr, label)
+        wrap(getattr(disc_fit, owner) if owner else calibration, attr, label)
     best: dict[str, float] = {}
     try:
         for _ in range(repeat):
@@ -203,7 +206,7 @@ def main() -> int:
     ap.add_argument("--bars", action="store_true", help="print the hex bars (analytic model, hex vs square)")
     args = ap.parse_args()
     if args.threads:
-        calibration._workers = lambda: args.threads  # noqa: E731
+        disc_fit._workers = fourier_lattice._workers = lambda: args.threads  # noqa: E731
     if args.bars:
         return bars(args.repeat)
     if args.packing == "hex":

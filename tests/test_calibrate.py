@@ -264,7 +264,7 @@ def test_disc_kernel_matches_a_numpy_reference(weighted, halves):
     """The fused kernel (float32 profiles, neighbours' discs cut 10 edge widths out) against plain NumPy, in
     both pixel orders (`halves`: the hex fit's, whose neighbours' discs run on the vector units)."""
     from mlaqc.inspection import calibrate_kernels as kernels
-    from mlaqc.inspection.calibrate import _lattice_neighbours
+    from mlaqc.inspection.disc_fit import _lattice_neighbours
 
     img, tx, ty = synthetic_white(shape=(110, 130), rows=5, cols=6, noise=0.05, seed=7)
     rng = np.random.default_rng(1)
@@ -305,7 +305,7 @@ def test_disc_kernel_on_a_hex_layout_matches_a_numpy_reference(weighted, halves)
     """The kernel with the hex neighbour table (six side neighbours, each disc overlapping the lens' rim)
     against plain NumPy, lenses cut by the frame included, in both pixel orders."""
     from mlaqc.inspection import calibrate_kernels as kernels
-    from mlaqc.inspection.calibrate import _lattice_neighbours
+    from mlaqc.inspection.disc_fit import _lattice_neighbours
 
     pitch, edge, half_band = 20.05, 0.3, 2.0
     jj, ii = (a.ravel() for a in np.meshgrid(np.arange(6), np.arange(5)))  # axial: a1 = (p, 0), a2 at 60 deg
@@ -334,11 +334,11 @@ def test_disc_kernel_on_a_hex_layout_matches_a_numpy_reference(weighted, halves)
 
 def test_second_ring_of_neighbours_changes_nothing_where_discs_do_not_reach(monkeypatch):
     """Large discs bring the second ring of lattice neighbours in; where it is out of reach, the fit is the same."""
-    import mlaqc.inspection.calibrate as calibration
+    import mlaqc.inspection.disc_fit as disc_fit
     img, tx, ty = synthetic_white(noise=0.05, seed=5)
     first = calibrate(img, expected_shape=tx.shape)
-    table = calibration._lattice_neighbours
-    monkeypatch.setattr(calibration, "_lattice_neighbours", lambda j, i, *_: table(j, i, 2))
+    table = disc_fit._lattice_neighbours
+    monkeypatch.setattr(disc_fit, "_lattice_neighbours", lambda j, i, *_: table(j, i, 2))
     second = calibrate(img, expected_shape=tx.shape)
     np.testing.assert_allclose(second.measured_x_px, first.measured_x_px, atol=1e-9)
     np.testing.assert_allclose(second.measured_y_px, first.measured_y_px, atol=1e-9)

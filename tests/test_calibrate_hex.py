@@ -109,12 +109,12 @@ def test_both_pixel_orders_of_the_disc_kernel_give_the_same_hex_fit(monkeypatch,
     """Hex fits its discs with the kernel's `halves` pixel order (neighbours' discs on the vector units),
     square with row spans; either order on a noisy hex frame gives the same centres, to float32 rounding
     (1e-4 px: far below the noise's 0.01 - 0.04)."""
-    import mlaqc.inspection.calibrate as calibration
+    import mlaqc.inspection.disc_fit as disc_fit
 
     m = hex_model(rotation_deg=0.7, phase_px=(0.3, -0.2), radius_px=radius)
     img = frame(m, noise=0.05, seed=4)
     fast = hex_calibrate(img, m)
-    monkeypatch.setitem(calibration.HALVES_ORDER, "hex", False)
+    monkeypatch.setitem(disc_fit.HALVES_ORDER, "hex", False)
     spans = hex_calibrate(img, m)
     assert np.array_equal(fast.missing, spans.missing)
     found = ~fast.missing
@@ -256,7 +256,7 @@ def test_the_fourier_lattice_lands_on_sub_image_centres(radius, noise):
     """The Fourier phase leaves a half period open (a disc's transform changes sign at |k| R ~ 0.61): the
     origin must still be a true centre, from small discs with wide gaps to discs overlapping past the cell
     corners (0.577 p), where every brightness test is fooled by the twice-lit overlaps."""
-    from mlaqc.inspection.calibrate import _fft_lattice
+    from mlaqc.inspection.fourier_lattice import _fft_lattice
 
     m = hex_model(rotation_deg=0.4, radius_px=radius, rim_sigma_px=0.8)
     img = m.render()
@@ -273,7 +273,7 @@ def test_the_fourier_lattice_lands_on_sub_image_centres(radius, noise):
 def test_neighbour_table_and_colours_follow_the_hex_geometry():
     """The disc fit's neighbour table holds exactly the lattice points one pitch away (6), then those
     within two steps (sqrt(3) and 2 pitches: 12 more); the three colours never put neighbours together."""
-    from mlaqc.inspection.calibrate import _colours, _lattice_neighbours
+    from mlaqc.inspection.disc_fit import _colours, _lattice_neighbours
 
     jj, ii = (a.ravel() for a in np.meshgrid(np.arange(-6, 7), np.arange(-5, 6)))
     a1, a2 = np.array([1.0, 0.0]), np.array([0.5, SQRT3_2])  # the axial basis: a2 at 60 degrees

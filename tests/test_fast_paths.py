@@ -16,7 +16,7 @@ import pytest
 
 from mlaqc.cli import _parser_for
 from mlaqc.errors import InputError
-from mlaqc.inspection.calibrate import FORMAT, VERSION, Grid, _rounded_column
+from mlaqc.inspection.grid import FORMAT, VERSION, Grid, _rounded_column
 from mlaqc.inspection.metrics import reference_images
 from mlaqc.inspection.results import LazyReferences
 from mlaqc.models.reference import reference_model
