@@ -37,7 +37,8 @@ def detection_limits(table: SignatureTable, qc: QC, noise: Noise, judged: np.nda
     limits: dict = {k: v[0] for k, v in _limits_at(table, qc, noise, np.nanmedian(noise.sigma[inner], axis=0)[None]).items()}
     border = (cls < 2) & judged
     if border.any() and (cls == 2).any():
-        per_lens = _limits_at(table, qc, noise, noise.sigma[border])
+        # (a lens' spreads are its class' and side's: a few distinct rows, not one per lens)
+        per_lens = _limits_at(table, qc, noise, np.unique(noise.sigma[border], axis=0))
         limits["border"] = {k: _worst(v) for k, v in per_lens.items()}
     limits["detect_sigma"] = qc.detect_sigma
     limits["min_reportable"] = {k: v for k, v in min_reportable(qc).items() if k != "position"}
