@@ -18,11 +18,12 @@ is shifted in a random direction by L x (1.0, 1.1, 1.25, 1.5, 2.0) µm of pitch 
 a sub-image d (b + f) / b on the sensor). Seeded lenses widen the spread a frame judges by, so the seeded
 frame may state a higher limit of its own; then round 2 seeds the same lenses at that limit x the same
 factors. The bar's recall counts, over both rounds, the seeded lenses at or above the limit that frame's
-report states, on the two outer rings (edge classes 0 and 1, the array's four corner lenses among them) and
-inside; round 1's recall per factor of the healthy frame's L is shown beside it. Seeded lenses the
-inspection does not inspect (window off the sensor: the 102 x 102 frame's outer ring) are counted apart.
+report states for where they sit: the edge zone (detection_limits.edge_zone: the three outer rings and the
+4 x 4 corner zones) or inside; round 1's recall per factor of the healthy frame's L is shown beside it.
+Seeded lenses the inspection does not inspect (window off the sensor: the 102 x 102 frame's outer ring) and
+the array's four corner lenses, which the report says it does not judge, are counted apart ("skip").
 Each missed lens is listed with its detection score against the threshold, its offset spread against the
-inner lenses' median (the stated limit is an inner lens' at that median: identify.detection_limits) and
+inner lenses' median (the inner limit is an inner lens' at that median: inspection.detection_limits) and
 why it was not flagged: under the threshold, read below the reportable size, or taken for an echo.
 The camera: fixtures/small_camera.toml with N x N lenses on bench/size_limits.py's sensor; 102 is
 fixtures/paper_table1.toml.
@@ -50,6 +51,7 @@ import analytic_frames as am  # noqa: E402
 from robustness import _match_truth, centre_rms  # noqa: E402
 
 import mlaqc.inspection.pipeline as pipeline  # noqa: E402
+from mlaqc.inspection.detection_limits import edge_zone  # noqa: E402
 from mlaqc.inspection.lens_classes import ring_distance  # noqa: E402
 from mlaqc.optics.config import CameraConfig, load_config  # noqa: E402
 
@@ -118,7 +120,7 @@ class Frame:
     centre_rms: float
     inner_rms: float
     seeded_limits: list = field(default_factory=list)  # each seeded round's own stated limit
-    border_limits: list = field(default_factory=list)  # and its stated limit for the outer two rings
+    border_limits: list = field(default_factory=list)  # and its stated limit for the edge zone
     hits: dict = field(default_factory=lambda: defaultdict(lambda: [0, 0]))  # round 1: (where, factor) -> [found, n]
     own: dict = field(default_factory=lambda: defaultdict(lambda: [0, 0]))  # every round, at/above its own limit
     false: int = 0
@@ -190,6 +192,7 @@ def score_round(fr: Frame, step: int, cfg, result, found, truth: dict, own: floa
     the outer two rings'); the array's corner lenses, which the report says it does not judge, apart."""
     flagged = {(d.m, d.n): d for d in result.defects}
     ring = ring_distance(result.flagged.shape)
+    zone = edge_zone(result.flagged.shape)
     rows, cols = result.flagged.shape
     skip = not_inspected(result)
     fr.false += sum(key not in truth for key in flagged)
@@ -197,7 +200,7 @@ def score_round(fr: Frame, step: int, cfg, result, found, truth: dict, own: floa
         if skip[m - 1, n - 1] or (m in (1, rows) and n in (1, cols)):
             fr.skipped += step == 1
             continue
-        where = "border" if ring[m - 1, n - 1] < 2 else "inner"
+        where = "border" if zone[m - 1, n - 1] else "inner"
         limit = own_border if where == "border" else own
         hit = flagged.get((m, n))
         if step == 1:
@@ -232,7 +235,7 @@ def miss_detail(found, cfg, m: int, n: int, factor: float, um: float, ring: int,
     if found is None:
         return d
     i, j = m - 1, n - 1
-    thr = cfg.qc.detect_sigma * (1.5 if corner else 1.0)
+    thr = cfg.qc.detect_sigma
     d["score"], d["threshold"] = float(found.score[i, j]), thr
     sig = found.noise.sigma
     inner = ring_distance(sig.shape[:2]) >= 2
@@ -274,7 +277,7 @@ def _median_of(frames: list[Frame]) -> str:
 def table(groups: dict, ref_rms: dict) -> list[tuple[str, bool, str]]:
     """Print one row per (size, noise); return the bars (label, ok, detail)."""
     print(f"{'':>14} {'limit µm':^35}  {'recall at/above own L':^29}  {'round 1: recall at L x':^45}")
-    print(f"{'size':>8} {'noise':>5} {'clean':>11} {'seeded':>11} {'outer two':>11}  {'all':>9} {'border':>9} {'inner':>9}  "
+    print(f"{'size':>8} {'noise':>5} {'clean':>11} {'seeded':>11} {'edge zone':>11}  {'all':>9} {'border':>9} {'inner':>9}  "
           + " ".join(f"{f'×{f:g}':>7}" for f in FACTORS)
           + f" {'false':>5} {'clean':>5} {'unk':>4} {'skip':>4} {'read':>5} {'ctr rms':>8} {'inner':>7} {'/102':>5}")
     bars = []
@@ -362,7 +365,7 @@ def main() -> int:
                       f"{sum(f.seconds for f in frames):.1f} s inspecting", flush=True)
     print(f"\n{packing}; shifts every {args.spacing} lenses both ways at L x {', '.join(f'{f:g}' for f in FACTORS)} "
           "(L: the healthy frame's stated pitch limit; a second round at the seeded frame's own limit where it "
-          "states a higher one). Recall over the seeded lenses inspected (border: edge rings 0-1); false: "
+          "states a higher one). Recall over the seeded lenses inspected (border: the edge zone the report states its own limit for, the three outer rings and the 4 x 4 corner zones); false: "
           "flagged, not seeded (seeded frames); clean: flagged on the healthy frames; unk: found, typed "
           "'unknown'; skip: seeded, not inspected; read: median pitch reading over the seeded error (found lenses); "
           "centre RMS (px): healthy frames, median over seeds; /102: "

@@ -99,6 +99,8 @@ class AnalyticModel:
     background: float = 0.0  # unfocused light through clear gaps between circular lenses, level under and between discs
     aperture_rel: float = 1.0  # the lens aperture: 1 fills its cell; < 1 a circle of this diameter over the pitch
     sensor_spots: tuple[SensorSpot, ...] = ()  # shadows fixed on the sensor, not on the array
+    resize_keeps_flux: bool = False  # a 'size' anomaly keeps the lens' light (the pupil's image rescaled by a
+    # focal or axial error: the same light over another area), not its level (the default, as before)
 
     def with_anomalies(self, anomalies) -> AnalyticModel:
         return dataclasses.replace(self, anomalies=tuple(anomalies))
@@ -152,6 +154,8 @@ class AnalyticModel:
             t = math.radians(a.direction_deg)
             if a.kind == "size":
                 radius[k] *= a.magnitude
+                if self.resize_keeps_flux:
+                    flux[k] /= a.magnitude ** 2
             elif a.kind == "blur":
                 blur[k] *= a.magnitude
             elif a.kind == "dim":

@@ -106,3 +106,22 @@ def test_the_batch_writes_the_shadow_once_and_a_single_frame_is_refused(tmp_path
     lone = tmp_path / "lone"
     assert main(["inspect", str(paths[0]), "-c", str(cfg_path), "--sensor-dust", "-o", str(lone)]) == 2
     assert "--sensor-dust compares the frames of a batch" in capsys.readouterr().err and not lone.exists()
+
+
+def test_a_bad_frame_in_the_batch_is_one_error_row_and_the_others_are_still_judged(tmp_path):
+    """A truncated raw among the frames: its row says why (exit 2), the two good frames are still compared
+    and reported, and a sidecar whose stage position is malformed counts as none."""
+    cfg_path = tmp_path / "cam20.toml"
+    cfg_path.write_text(camera_toml())
+    paths = frames(tmp_path, 20, (-THREE / 2 + 0.2, THREE / 2 + 0.2), 0.01)
+    bad = tmp_path / "bad.tif"
+    bad.write_bytes(paths[0].read_bytes()[:5000])
+    (tmp_path / "pos0.tif.meta.json").write_text('{"stage_position_mm": ["x", null]}')
+    out = tmp_path / "out"
+    assert main(["inspect", str(paths[0]), str(bad), str(paths[1]), "-c", str(cfg_path), "--sensor-dust",
+                 "-o", str(out), "-q"]) == 2
+    rows = (out / "batch.csv").read_text().splitlines()
+    assert rows[2].startswith(str(bad)) and ",ERROR," in rows[2]
+    doc = json.loads((out / "sensor_dust.json").read_text())
+    assert len(doc["shadows"]) == 1 and doc["frames"] == 3  # fixed counts: a different lens under it decides
+    assert not (out / "bad").exists() and (out / "pos0" / "report.json").is_file()

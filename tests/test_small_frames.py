@@ -1,6 +1,6 @@
 """A small frame states the detection limit it reaches: on 12 x 12 and 24 x 24 frames of the independent
 analytic model (tests/analytic_frames.py), every lens shifted by at least the pitch limit its report states
-(the inner lenses', or the outer two rings' where it sits there) is flagged; a healthy frame flags nothing;
+(the inner lenses', or the edge zone's where it sits there: the three outer rings and the corner zones) is flagged; a healthy frame flags nothing;
 the array's corner lenses are said not to be judged. bench/small_frames.py measures the same over more
 seeds, noise levels and the 102 x 102 frame."""
 
@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 import analytic_frames as am
-from mlaqc.inspection.lens_classes import ring_distance
+from mlaqc.inspection.detection_limits import edge_zone
 from mlaqc.inspection.pipeline import inspect_file
 from mlaqc.optics.config import load_config
 
@@ -44,22 +44,24 @@ def test_every_shift_at_the_stated_limit_is_flagged(tmp_path, lenses, noise):
     assert any("corner lenses are not judged" in n for n in healthy.notes)
     limit = healthy.detection_limit
     inner, border = limit["pitch_um"], limit["border"]["pitch_um"]
-    assert border >= inner  # the outer rings' spreads are their own: wider
-    ring = ring_distance((lenses, lenses))
+    assert border >= inner  # the edge zone's spreads are their own: wider
+    zone = edge_zone((lenses, lenses))
     rng = np.random.default_rng(4)
     seeded = {}
-    for m in range(0, lenses, 4):
-        for n in range(0, lenses, 4):
-            if m in (0, lenses - 1) and n in (0, lenses - 1):
-                continue  # a corner: not judged
-            stated = border if ring[m, n] < 2 else inner
-            um = stated * (1.0 if (m + n) % 8 == 0 else 1.25)
-            seeded[(m, n)] = am.Anomaly(m, n, "shift", um * UM_TO_PX, float(rng.uniform(0, 360)))
+    sites = {(m, n) for m in range(0, lenses, 4) for n in range(0, lenses, 4)} | {(2, 6), (3, 3), (lenses - 3, 5)}
+    for m, n in sorted(sites):  # every ring, the second and third ring and a corner zone among them
+        if m in (0, lenses - 1) and n in (0, lenses - 1):
+            continue  # a corner: not judged
+        if any(abs(m - a) <= 1 and abs(n - b) <= 1 for a, b in seeded):
+            continue  # two lenses apart
+        stated = border if zone[m, n] else inner
+        um = stated * (1.0 if (m + n) % 8 == 0 else 1.25)
+        seeded[(m, n)] = am.Anomaly(m, n, "shift", um * UM_TO_PX, float(rng.uniform(0, 360)))
     result = inspect(cfg, model.with_anomalies(seeded.values()), noise, tmp_path, 2)
     own = result.detection_limit
     flagged = {(d.m - 1, d.n - 1) for d in result.defects}
     for (m, n), a in seeded.items():
-        stated = own["border"]["pitch_um"] if ring[m, n] < 2 else own["pitch_um"]
+        stated = own["border"]["pitch_um"] if zone[m, n] else own["pitch_um"]
         if a.magnitude / UM_TO_PX >= stated - 1e-9:  # at or above what this frame's report states
             assert (m, n) in flagged, ((m, n), a.magnitude / UM_TO_PX, stated)
     assert flagged <= set(seeded), sorted(flagged - set(seeded))

@@ -93,6 +93,9 @@ def describe(d) -> str:
 def _missed(errors, kind: str, m: int, n: int, limit: dict) -> str:
     """'MISSED', and whether the seeded size was below what this frame detects (an honest miss) or not."""
     e = errors.lens
+    rows, cols = e["pitch_um"].shape
+    if m in (0, rows - 1) and n in (0, cols - 1):
+        return "MISSED (a corner lens: not judged, the report says so)"
     if kind in ("pitch", "decenter"):
         size, key, sign, scale, unit = e[f"{kind}_um"][m, n], f"{kind}_um", "", 1.0, " µm"
     elif kind == "radius":
@@ -101,15 +104,14 @@ def _missed(errors, kind: str, m: int, n: int, limit: dict) -> str:
         key, sign = ("radius_rel_pos", "+") if rel > 0 else ("radius_rel_neg", "−")
     else:
         return "MISSED"
-    rows, cols = e["pitch_um"].shape
-    border = min(m, n, rows - 1 - m, cols - 1 - n) < 2 and isinstance((limit or {}).get("border"), dict)
-    if m in (0, rows - 1) and n in (0, cols - 1):
-        return "MISSED (a corner lens: not judged, the report says so)"
+    from mlaqc.inspection.detection_limits import edge_zone
+
+    border = bool(edge_zone((rows, cols))[m, n]) and isinstance((limit or {}).get("border"), dict)
     lim = (limit["border"] if border else limit or {}).get(key)
     if lim is None:
         return "MISSED (this frame cannot detect it at any rendered size)" if limit else "MISSED"
     where = "below" if size < lim else "at or above"
-    ring = " for the outer two rings" if border else ""
+    ring = " near the edge" if border else ""
     return f"MISSED ({where} this frame's detection limit{ring}, {sign}{lim * scale:.3g}{unit})"
 
 

@@ -389,38 +389,52 @@ def rows_with_sensor_dust(raws: list[str], folders: list[Path], cfg: CameraConfi
                           out: Path, quiet: bool, pinholes: dict | None = None, stacks: dict | None = None,
                           darks: dict | None = None) -> Iterator[tuple[int, dict]]:
     """(index, row) of every frame, inspected first, then cleared of the sensor's shadows
-    (mlaqc.inspection.sensor_dust) and reported; sensor_dust.json written once for the batch."""
-    from mlaqc.inspection.sensor_dust import sensor_shadows
-    from mlaqc.report import write_report
+    (mlaqc.inspection.sensor_dust) and reported; sensor_dust.json written once for the batch. A frame with
+    no dark spot or line is reported at once (no shadow can change it): only the others are held."""
+    from mlaqc.inspection.sensor_dust import SPOT_TYPES, sensor_shadows
 
-    results: list = []
-    errors: dict[int, str] = {}
+    held: list = [None] * len(raws)
+    rows: dict[int, dict] = {}
     seconds: list[float] = []
     for i, raw in enumerate(raws):
         t0 = time.perf_counter()
         try:
-            results.append(inspect_raw(raw, cfg, grid, levels, through_focus=(pinholes or {}).get(raw, ()),
-                                       stack=(stacks or {}).get(raw, ()), dark=(darks or {}).get(raw)))
+            result = inspect_raw(raw, cfg, grid, levels, through_focus=(pinholes or {}).get(raw, ()),
+                                 stack=(stacks or {}).get(raw, ()), dark=(darks or {}).get(raw))
         except InputError as exc:
-            results.append(None)
-            errors[i] = str(exc)
+            rows[i] = error_row(raw, str(exc))
+            result = None
         seconds.append(time.perf_counter() - t0)
+        if result is not None and any(d.error_type in SPOT_TYPES for d in result.defects):
+            held[i] = result
+        elif result is not None:
+            rows[i] = _reported(raw, result, folders[i], cfg, seconds[i])
         if not quiet:
             cluster.echo(f"[{i + 1}/{len(raws)}] {raws[i]}: inspected ({seconds[-1]:.2f} s)")
     meta = [_meta_or_empty(r) for r in raws]
-    shadows, results, notes = sensor_shadows(results, meta, cfg)
+    shadows, held, notes = sensor_shadows(held, meta, cfg)
     doc = {"shadows": [s.to_json_dict() for s in shadows], "notes": list(notes), "frames": len(raws)}
     write_bytes_atomic(out / "sensor_dust.json", (json.dumps(doc, indent=1) + "\n").encode())
     if not quiet:
         for line in [f"{len(shadows)} sensor shadow(s): {out / 'sensor_dust.json'}",
                      *(s.sentence(len({f for f, _, _ in s.lenses})) for s in shadows), *notes]:
             print(line, file=sys.stderr)
-    for i, (raw, folder, result) in enumerate(zip(raws, folders, results)):
-        if result is None:
-            yield i, error_row(raw, errors[i])
-            continue
+    for i, result in enumerate(held):
+        if result is not None:
+            rows[i] = _reported(raws[i], result, folders[i], cfg, seconds[i])
+    for i in range(len(raws)):
+        yield i, rows[i]
+
+
+def _reported(raw: str, result, folder: Path, cfg: CameraConfig, seconds: float) -> dict:
+    """Write a frame's report set: its batch row, or an error row when it cannot be written."""
+    from mlaqc.report import write_report
+
+    try:
         write_report(result, folder, config_dict=cfg.to_dict())
-        yield i, frame_row(result, folder, seconds[i])
+    except InputError as exc:
+        return error_row(raw, str(exc))
+    return frame_row(result, folder, seconds)
 
 
 def _meta_or_empty(raw: str) -> dict:
@@ -451,7 +465,7 @@ def run(args: argparse.Namespace) -> int:
     dust = getattr(args, "sensor_dust", False)
     if dust and (not batch or address is not None):
         raise InputError("--sensor-dust compares the frames of a batch on this machine: give two raws or more "
-                         "(or a scan folder), without --scheduler")
+                         "(or a scan folder), without --scheduler or $MLAQC_SCHEDULER")
     levels = stated_levels(args)
     darks, white_dark = master_darks(args, raws, stacks, cfg, levels)
     grid = shared_grid(args, cfg, white_dark)

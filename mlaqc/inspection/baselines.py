@@ -30,8 +30,8 @@ def local_deviation(values: np.ndarray, size: int = 5, axis: str = "", packing: 
     (leaving out lenses not measured, and the outermost ones for lenses two or more in: see
     `_refine_baselines`); along an edge the running median of that edge (its lenses miss the same
     neighbours). A corner lens misses neighbours on two sides: for an x index (axis='x') it is compared
-    along its left/right edge, otherwise along its top/bottom edge (and flagged only at 1.5 x the
-    threshold, see `identify`)."""
+    along its left/right edge, otherwise along its top/bottom edge, whose running median repeats its own
+    value: its deviation is 0 (not judged: `lens_classes.corner_lenses`)."""
     return local_deviations([values], [axis], size, packing)[0]
 
 

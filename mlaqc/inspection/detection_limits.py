@@ -3,9 +3,9 @@
 The signature table's response to each error kind is read against this frame's own noise (the DETECTORS'
 spreads per lens, and the ring matched filter): a magnitude is detectable where the response exceeds the
 detection threshold by LIMIT_MARGIN (97.7 % of such lenses flagged), at it and every larger rendered
-magnitude. Stated twice: for the inner lenses (at their median spread), and for the two outer rings (the
-worst of their lenses: their spreads are their own classes' and sides', wider on a small array, where those
-rings are half the lenses). Never below the reportable size times FLOOR_MARGIN: readings scatter about the
+magnitude. Stated twice: for the inner lenses (at their median spread), and for the lenses near the edge
+(`edge_zone`: the three outer rings and the 4 x 4 corner zones; the worst of them: their spreads are their
+own classes', sides' and rings', wider, and on a small array they are most of the lenses). Never below the reportable size times FLOOR_MARGIN: readings scatter about the
 truth (on the independent analytic model a shift reads 0.88-0.92 of it: the tables' gain is the tracer's),
 so an error at the reportable size itself is reported about half the time. The array's four corner lenses
 are not judged (`lens_classes.corner_lenses`).
@@ -17,7 +17,7 @@ import numpy as np
 
 from mlaqc.inspection.identify import (_DETECTING, FEATURES, FOCUS_KINDS, LIMIT_MARGIN, Noise, _detector_values,
                                        _focus_templates, _kind_curve, min_reportable)
-from mlaqc.inspection.lens_classes import corner_lenses, edge_classes
+from mlaqc.inspection.lens_classes import corner_lenses, noise_classes, ring_distance
 from mlaqc.models.signatures import SignatureTable
 from mlaqc.optics.config import QC
 
@@ -25,18 +25,24 @@ FLOOR_MARGIN = 1.2
 KINDS = (("pitch", "µm"), ("decenter", "µm"), ("radius", "rel"), ("thickness", "µm"))
 
 
+def edge_zone(shape: tuple[int, int]) -> np.ndarray:
+    """(rows, cols) bool: the lenses whose spreads are not the inner lenses' (their own edge classes, sides,
+    second ring or corner zone, `identify.class_sigmas`): the three outer rings and the 4 x 4 corner zones."""
+    return (ring_distance(shape) <= 2) | (noise_classes(shape) == 3)
+
+
 def detection_limits(table: SignatureTable, qc: QC, noise: Noise, judged: np.ndarray | None = None) -> dict:
     """Per error type (radius and thickness per sign) the smallest magnitude an inner lens of this frame is
-    flagged from, None where even the largest rendered one is not; under "border" the same for the lenses
-    of the two outer rings that are judged (`judged`, default all but the corners)."""
+    flagged from, None where even the largest rendered one is not; under "border" the same for the judged
+    lenses (`judged`, default all but the corners) of the `edge_zone`."""
     shape = noise.sigma.shape[:2]
-    cls = edge_classes(shape)
+    zone = edge_zone(shape)
     judged = ~corner_lenses(shape) if judged is None else judged
-    inner = (cls == 2) & judged
+    inner = ~zone & judged
     inner = inner if inner.any() else judged if judged.any() else np.ones(shape, bool)
     limits: dict = {k: v[0] for k, v in _limits_at(table, qc, noise, np.nanmedian(noise.sigma[inner], axis=0)[None]).items()}
-    border = (cls < 2) & judged
-    if border.any() and (cls == 2).any():
+    border = zone & judged
+    if border.any() and (~zone).any():
         # (a lens' spreads are its class' and side's: a few distinct rows, not one per lens)
         per_lens = _limits_at(table, qc, noise, np.unique(noise.sigma[border], axis=0))
         limits["border"] = {k: _worst(v) for k, v in per_lens.items()}

@@ -98,7 +98,8 @@ def class_sigmas(dev: np.ndarray, floor: float | np.ndarray = 0.0, exclude: np.n
     lenses' nor `floor`: edge lenses are noisier than inner ones, and one spread for all would flag them.
     The second ring's lenses (`second_ring`) are judged against their own spread too where it is wider,
     and so is each group of edge lenses (`edge_groups`, by its robust spread, which one defect among
-    them does not move) where it has SECOND_RING_MIN measured lenses. `dev` (rows, cols) or a stack
+    them does not move) where it has EDGE_GROUP_MIN measured lenses (the corners, whose deviation is
+    always 0, left out). `dev` (rows, cols) or a stack
     (rows, cols, J) of maps, each with its own floor; `exclude`: lenses left out of the inner,
     second-ring and edge-group spreads (`_quiet_inner`)."""
     stack = dev[..., None] if dev.ndim == 2 else dev
@@ -119,8 +120,9 @@ def class_sigmas(dev: np.ndarray, floor: float | np.ndarray = 0.0, exclude: np.n
     second = second_ring(stack.shape[:2])
     quiet = second if exclude is None else second & ~exclude  # (its spread without the defects' light)
     _raise_to_own(out, second, stack[quiet], lambda v: _column_tail_sigmas(v, floor))
+    corners = corner_lenses(stack.shape[:2])
     for group in edge_groups(stack.shape[:2], packing):
-        quiet = group if exclude is None else group & ~exclude
+        quiet = (group if exclude is None else group & ~exclude) & ~corners
         _raise_to_own(out, group, stack[quiet], _column_robust_sigmas, EDGE_GROUP_MIN)
     return out[..., 0] if dev.ndim == 2 else out
 

@@ -186,8 +186,8 @@ def _lines_followed(found, sub, cx, cy, skip, qc, metrics, centres):
         nearby = next_to_lines(found.defects, found.flagged.shape) & ~found.flagged & ~skip
         if not nearby.any():
             return found
-        lines = {k: r for k, r in obscuration_readings(sub, cx, cy, found.flagged | found.unreported, nearby).items()
-                 if is_line(r)}
+        significant = found.flagged | found.unreported | (found.score > qc.detect_sigma)  # as the first reading's
+        lines = {k: r for k, r in obscuration_readings(sub, cx, cy, significant, nearby).items() if is_line(r)}
         if not lines:
             return found
         found = retype(found, lines, qc, metrics, centres, nearby)

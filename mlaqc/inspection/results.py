@@ -154,7 +154,7 @@ class InspectionResult:
     tolerances: dict[str, float]
     timings_s: dict[str, float]
     notes: tuple[str, ...] = ()
-    # what this frame could detect (identify.detection_limits): per error type the smallest magnitude
+    # what this frame could detect (inspection.detection_limits): per error type the smallest magnitude
     # flagged at the configured threshold, None where no rendered magnitude is detectable
     detection_limit: dict[str, Any] = field(default_factory=dict)
     below_reportable: int = 0  # significant deviations smaller than the minimum reportable error
@@ -185,8 +185,7 @@ def detection_limit_text(limit: dict[str, Any]) -> str:
         return "detection limit: not measured"
 
     def fmt(key: str, scale: float, unit: str) -> str:
-        v = limit.get(key)
-        return "not detectable" if v is None else f"{v * scale:.3g} {unit}"
+        return _limit_fmt(limit, key, scale, unit)
 
     no_decenter = "pitch_um" in limit and "decenter_um" not in limit  # a flat-sided MLA has none
     parts = [f"pitch {fmt('pitch_um', 1, 'µm')}"]
@@ -209,17 +208,22 @@ def detection_limit_text(limit: dict[str, Any]) -> str:
 
 
 def _border_text(border: Any, inner: dict[str, Any]) -> str:
-    """The two outer rings' limits, where they are another than the inner lenses': ' (outer two rings: ...)'."""
-    keys = ("pitch_um", "radius_rel_neg", "radius_rel_pos")
+    """The edge zone's limits (detection_limits.edge_zone), where they are another than the inner lenses':
+    ' (near the edge: ...)'."""
+    keys = ("pitch_um", "decenter_um", "radius_rel_neg", "radius_rel_pos")
     if not isinstance(border, dict) or all(border.get(k) == inner.get(k) for k in keys):
         return ""
+    parts = [f"pitch {_limit_fmt(border, 'pitch_um', 1, 'µm')}"]
+    if "decenter_um" in border:
+        parts.append(f"decenter {_limit_fmt(border, 'decenter_um', 1, 'µm')}")
+    parts.append(f"radius −{_limit_fmt(border, 'radius_rel_neg', 100, '%')} / +{_limit_fmt(border, 'radius_rel_pos', 100, '%')}")
+    return f" (near the edge: {', '.join(parts)})".replace("−not", "not").replace("+not", "not")
 
-    def fmt(key: str, scale: float, unit: str) -> str:
-        v = border.get(key)
-        return "not detectable" if v is None else f"{v * scale:.3g} {unit}"
 
-    return (f" (outer two rings: pitch {fmt('pitch_um', 1, 'µm')}, radius −{fmt('radius_rel_neg', 100, '%')} / "
-            f"+{fmt('radius_rel_pos', 100, '%')})").replace("−not", "not").replace("+not", "not")
+def _limit_fmt(limit: dict[str, Any], key: str, scale: float, unit: str) -> str:
+    """One limit for people: its value in `unit`, or 'not detectable'."""
+    v = limit.get(key)
+    return "not detectable" if v is None else f"{v * scale:.3g} {unit}"
 
 
 def _noise_text(noise: Any) -> str:

@@ -81,18 +81,28 @@ def sensor_shadows(results: list, meta: list[dict], cfg) -> tuple[list[SensorSha
 
 
 def _same_pixels(spots: list, tol: float) -> list[list]:
-    """The spots grouped by position: each joins the first group whose mean lies within `tol` px."""
+    """The spots grouped by position: each joins the first group (one spot per frame) whose mean lies within
+    `tol` px; groups kept in a grid of `tol` cells with running sums, so a long batch's many spots cost
+    no more per spot than a short one's."""
     groups: list[list] = []
+    sums: list[list[float]] = []  # per group: sum x, sum y, count
+    cells: dict[tuple[int, int], list[int]] = {}
     for i, d in spots:
-        xy = (d.indexes["spot_x_px"], d.indexes["spot_y_px"])
-        for g in groups:
-            gx = float(np.mean([e.indexes["spot_x_px"] for _, e in g]))
-            gy = float(np.mean([e.indexes["spot_y_px"] for _, e in g]))
-            if math.hypot(xy[0] - gx, xy[1] - gy) <= tol and all(j != i for j, _ in g):
-                g.append((i, d))
+        x, y = d.indexes["spot_x_px"], d.indexes["spot_y_px"]
+        if not (math.isfinite(x) and math.isfinite(y)):
+            continue
+        cx, cy = int(math.floor(x / tol)), int(math.floor(y / tol))
+        near = [g for dx in (-1, 0, 1) for dy in (-1, 0, 1) for g in cells.get((cx + dx, cy + dy), ())]
+        for g in sorted(near):
+            sx, sy, n = sums[g]
+            if math.hypot(x - sx / n, y - sy / n) <= tol and all(j != i for j, _ in groups[g]):
+                groups[g].append((i, d))
+                sums[g] = [sx + x, sy + y, n + 1]
                 break
         else:
             groups.append([(i, d)])
+            sums.append([x, y, 1])
+            cells.setdefault((cx, cy), []).append(len(groups) - 1)
     return groups
 
 
@@ -133,9 +143,11 @@ def _array_moved(group: list, meta: list[dict], cfg, results: list) -> bool:
 def _stage_mm(meta: dict) -> tuple[float, float] | None:
     """A sidecar's stage position (mm), or None."""
     p = meta.get("stage_position_mm") if isinstance(meta, dict) else None
+    if not isinstance(p, (list, tuple)) or len(p) < 2:
+        return None
     try:
         x, y = float(p[0]), float(p[1])
-    except (TypeError, ValueError, IndexError):
+    except (TypeError, ValueError):
         return None
     return (x, y) if math.isfinite(x) and math.isfinite(y) else None
 
