@@ -5,9 +5,10 @@ spreads per lens, and the ring matched filter): a magnitude is detectable where 
 detection threshold by LIMIT_MARGIN (97.7 % of such lenses flagged), at it and every larger rendered
 magnitude. Stated twice: for the inner lenses (at their median spread), and for the lenses near the edge
 (`edge_zone`: the three outer rings and the 4 x 4 corner zones; the worst of them: their spreads are their
-own classes', sides' and rings', wider, and on a small array they are most of the lenses). Never below the reportable size times FLOOR_MARGIN: readings scatter about the
-truth (on the independent analytic model a shift reads 0.88-0.92 of it: the tables' gain is the tracer's),
-so an error at the reportable size itself is reported about half the time. The array's four corner lenses
+own classes', sides' and rings', wider, and on a small array they are most of the lenses). Never below the
+reportable size times FLOOR_MARGIN: readings scatter about the truth (on the independent analytic model a
+shift reads 0.88-0.92 of it: the tables' gain is the tracer's), so an error at the reportable size itself is
+reported about half the time. The array's four corner lenses
 are not judged (`lens_classes.corner_lenses`).
 """
 
@@ -40,7 +41,8 @@ def detection_limits(table: SignatureTable, qc: QC, noise: Noise, judged: np.nda
     judged = ~corner_lenses(shape) if judged is None else judged
     inner = ~zone & judged
     inner = inner if inner.any() else judged if judged.any() else np.ones(shape, bool)
-    limits: dict = {k: v[0] for k, v in _limits_at(table, qc, noise, np.nanmedian(noise.sigma[inner], axis=0)[None]).items()}
+    at_median = _limits_at(table, qc, noise, np.nanmedian(noise.sigma[inner], axis=0)[None])
+    limits: dict = {k: v[0] for k, v in at_median.items()}
     border = zone & judged
     if border.any() and (~zone).any():
         # (a lens' spreads are its class' and side's: a few distinct rows, not one per lens)

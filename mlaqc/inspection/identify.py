@@ -127,7 +127,8 @@ def class_sigmas(dev: np.ndarray, floor: float | np.ndarray = 0.0, exclude: np.n
     return out[..., 0] if dev.ndim == 2 else out
 
 
-def _raise_to_own(out: np.ndarray, group: np.ndarray, values: np.ndarray, spread_of, least: int = SECOND_RING_MIN) -> None:
+def _raise_to_own(out: np.ndarray, group: np.ndarray, values: np.ndarray, spread_of,
+                  least: int = SECOND_RING_MIN) -> None:
     """out[group] raised, map by map, to the group's own spread (`spread_of` its `values`, (n, J)) where
     that map has `least` finite values (lenses off the sensor read NaN: a clipped side is too few)."""
     enough = np.isfinite(values).sum(axis=0) >= least

@@ -148,8 +148,8 @@ def _inspect_image(img: np.ndarray, cfg: CameraConfig, *, grid: Grid | None = No
                                  significant & ~grid.missing)
     centres = (grid.grid_x_px + metrics["offset_x_px"], grid.grid_y_px + metrics["offset_y_px"])
     found = retype(found, spots, cfg.qc, metrics, centres, significant)
-    found = _lines_followed(found, sub, cx + metrics["offset_x_px"], cy + metrics["offset_y_px"], clipped | grid.missing,
-                            cfg.qc, metrics, centres)
+    found = _lines_followed(found, sub, cx + metrics["offset_x_px"], cy + metrics["offset_y_px"],
+                            clipped | grid.missing, cfg.qc, metrics, centres)
     defects, flagged, error_type = found.defects, found.flagged, found.error_type
     notes = notes + scratch_notes(defects) + corner_notes(found.corners_not_judged)
     lap("identify")
@@ -174,9 +174,9 @@ def corner_notes(corners: int) -> tuple[str, ...]:
     """What the report says about the array's corner lenses on the frame (not judged)."""
     if not corners:
         return ()
-    return (f"the array's {corners} corner lens{'es are' if corners > 1 else ' is'} not judged: a corner is the outermost "
-            "lens of two edge lines, no other lens shares its neighbourhood to compare it with (a missing one is "
-            "still found)",)
+    lenses = "lenses are" if corners > 1 else "lens is"
+    return (f"the array's {corners} corner {lenses} not judged: a corner is the outermost lens of two edge lines, "
+            "no other lens shares its neighbourhood to compare it with (a missing one is still found)",)
 
 
 def _lines_followed(found, sub, cx, cy, skip, qc, metrics, centres):

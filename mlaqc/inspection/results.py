@@ -216,7 +216,8 @@ def _border_text(border: Any, inner: dict[str, Any]) -> str:
     parts = [f"pitch {_limit_fmt(border, 'pitch_um', 1, 'µm')}"]
     if "decenter_um" in border:
         parts.append(f"decenter {_limit_fmt(border, 'decenter_um', 1, 'µm')}")
-    parts.append(f"radius −{_limit_fmt(border, 'radius_rel_neg', 100, '%')} / +{_limit_fmt(border, 'radius_rel_pos', 100, '%')}")
+    neg, pos = _limit_fmt(border, "radius_rel_neg", 100, "%"), _limit_fmt(border, "radius_rel_pos", 100, "%")
+    parts.append(f"radius −{neg} / +{pos}")
     return f" (near the edge: {', '.join(parts)})".replace("−not", "not").replace("+not", "not")
 
 
