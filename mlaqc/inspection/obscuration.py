@@ -40,7 +40,8 @@ UNIT = "area"
 @dataclasses.dataclass(frozen=True)
 class SpotReading:
     """One lens' dark region: its share of the disc, its loss, where it sits (the angle of its centroid
-    and the centroid's offset from the sub-image's centre, px, y down) and its shape (`scratches.line_shape`)."""
+    and the centroid's offset from the sub-image's centre, px, y down), its shape (`scratches.line_shape`)
+    and the radius of the interior it was read in (px)."""
 
     area: float
     depth: float
@@ -51,6 +52,7 @@ class SpotReading:
     axis_deg: float
     length_px: float
     width_px: float
+    interior_px: float = 0.0
 
 
 def obscuration_readings(sub, cx, cy, flagged, candidates) -> dict[tuple[int, int], SpotReading]:
@@ -94,8 +96,9 @@ def obscuration_readings(sub, cx, cy, flagged, candidates) -> dict[tuple[int, in
             & ~_ring(dark, inside, dy, dx))
     direction = np.degrees(np.arctan2(-sy, sx)) % 360.0
     shape = line_shape(dark, dx, dy, sx, sy)
+    interior = np.sqrt(inside.sum(axis=(1, 2)) / np.pi)
     return {(int(m), int(n)): SpotReading(float(area[i]), float(depth[i]), float(direction[i]), float(sx[i]),
-                                          float(sy[i]), *(float(v[i]) for v in shape))
+                                          float(sy[i]), *(float(v[i]) for v in shape), float(interior[i]))
             for i, (m, n) in enumerate(keys) if spot[i]}
 
 

@@ -21,6 +21,7 @@ import numpy as np
 
 ELONGATION = 3.0  # length over width of a line; a round spot is 1, one cut by the interior's edge under 2.5
 MIN_LENGTH_PX = 6.0  # a shorter dark region is a spot whatever its shape
+MIN_LENGTH_INTERIOR = 0.6  # nor a line shorter than this share of the interior's radius (large sub-images)
 AXIS_DEG = 20.0  # neighbours' lines this close in angle (and collinear) are one scratch
 REACH_PX = 3.0
 
@@ -42,7 +43,8 @@ def line_shape(dark, dx, dy, sx, sy):
 
 def is_line(reading) -> bool:
     """Whether a lens' dark region (an obscuration.SpotReading) is a line: long and narrow."""
-    return reading.elongation >= ELONGATION and reading.length_px >= MIN_LENGTH_PX
+    shortest = max(MIN_LENGTH_PX, MIN_LENGTH_INTERIOR * getattr(reading, "interior_px", 0.0))
+    return reading.elongation >= ELONGATION and reading.length_px >= shortest
 
 
 def next_to_lines(defects, shape: tuple[int, int]) -> np.ndarray:
