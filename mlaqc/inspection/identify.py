@@ -121,7 +121,10 @@ def class_sigmas(dev: np.ndarray, floor: float | np.ndarray = 0.0, exclude: np.n
     quiet = second if exclude is None else second & ~exclude  # (its spread without the defects' light)
     _raise_to_own(out, second, stack[quiet], lambda v: _column_tail_sigmas(v, floor))
     corners = corner_lenses(stack.shape[:2])
-    for group in edge_groups(stack.shape[:2], packing):
+    groups = list(edge_groups(stack.shape[:2], packing))
+    if packing == "hex":  # the row ends that stick out, both sides together: a side alone may hold too few
+        groups.append(hex_row_ends(stack.shape[:2]) & (edge_classes(stack.shape[:2]) == 0))
+    for group in groups:
         quiet = (group if exclude is None else group & ~exclude) & ~corners
         _raise_to_own(out, group, stack[quiet], _column_robust_sigmas, EDGE_GROUP_MIN)
     return out[..., 0] if dev.ndim == 2 else out
