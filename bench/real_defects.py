@@ -77,9 +77,7 @@ def scratch_row(cfg, model, noise, tmp, through: int = 1) -> str:
     width = max(1.0, 0.12 * r0)
     length = 1.2 * r0 if through == 1 else (through - 1) * model.pitch_px + 1.2 * r0
     keys = sites(model, 16 if through == 1 else 9)
-    axis = [0.0 if through > 1 else float(rng.uniform(0, 180)) for _ in keys]  # lines along the rows
-    if through > 1 and model.packing == "hex":
-        axis = [0.0] * len(keys)
+    axis = [0.0 if through > 1 else float(rng.uniform(0, 180)) for _ in keys]  # a longer line: along its row
     seeded = [am.Anomaly(m, n, "scratch", 0.3, t, length_px=length, width_px=width) for (m, n), t in zip(keys, axis)]
     r = inspect(cfg, model, seeded, noise, tmp)
     found = {(d.m - 1, d.n - 1): d for d in r.defects}

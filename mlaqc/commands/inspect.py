@@ -417,7 +417,7 @@ def rows_with_sensor_dust(raws: list[str], folders: list[Path], cfg: CameraConfi
     write_bytes_atomic(out / "sensor_dust.json", (json.dumps(doc, indent=1) + "\n").encode())
     if not quiet:
         for line in [f"{len(shadows)} sensor shadow(s): {out / 'sensor_dust.json'}",
-                     *(s.sentence(len({f for f, _, _ in s.lenses})) for s in shadows), *notes]:
+                     *(s.sentence() for s in shadows), *notes]:
             print(line, file=sys.stderr)
     for i, result in enumerate(held):
         if result is not None:

@@ -52,7 +52,7 @@ class SpotReading:
     axis_deg: float
     length_px: float
     width_px: float
-    interior_px: float = 0.0
+    interior_px: float
 
 
 def obscuration_readings(sub, cx, cy, flagged, candidates) -> dict[tuple[int, int], SpotReading]:

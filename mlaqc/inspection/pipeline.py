@@ -142,14 +142,13 @@ def _inspect_image(img: np.ndarray, cfg: CameraConfig, *, grid: Grid | None = No
                      f"frame {source}" if source else "the frame")
     found = identify(metrics, grid.missing | ~np.isfinite(metrics["flux"]), cfg.qc, table, position, phase,
                      outside=clipped, split=position_split(cfg), packing=cfg.mla.packing, aperture=cfg.mla.aperture)
-    # significant: flagged, below the reportable size, or taken for a flagged neighbour's echo
-    significant = found.flagged | found.unreported | ((found.score > cfg.qc.detect_sigma) & ~clipped)
-    spots = obscuration_readings(sub, cx + metrics["offset_x_px"], cy + metrics["offset_y_px"], significant,
-                                 significant & ~grid.missing)
-    centres = (grid.grid_x_px + metrics["offset_x_px"], grid.grid_y_px + metrics["offset_y_px"])
+    # dark spots and lines read against the frame's typical sub-image, at each lens' registered centre
+    at_x, at_y = cx + metrics["offset_x_px"], cy + metrics["offset_y_px"]  # window pixels
+    centres = (grid.grid_x_px + metrics["offset_x_px"], grid.grid_y_px + metrics["offset_y_px"])  # frame pixels
+    significant = _significant(found, cfg.qc, clipped)
+    spots = obscuration_readings(sub, at_x, at_y, significant, significant & ~grid.missing)
     found = retype(found, spots, cfg.qc, metrics, centres, significant)
-    found = _lines_followed(found, sub, cx + metrics["offset_x_px"], cy + metrics["offset_y_px"],
-                            clipped | grid.missing, cfg.qc, metrics, centres)
+    found = _lines_followed(found, sub, at_x, at_y, clipped, grid.missing, cfg.qc, metrics, centres)
     defects, flagged, error_type = found.defects, found.flagged, found.error_type
     notes = notes + scratch_notes(defects) + corner_notes(found.corners_not_judged)
     lap("identify")
@@ -179,14 +178,20 @@ def corner_notes(corners: int) -> tuple[str, ...]:
             "no other lens shares its neighbourhood to compare it with (a missing one is still found)",)
 
 
-def _lines_followed(found, sub, cx, cy, skip, qc, metrics, centres):
+def _significant(found, qc, clipped: np.ndarray) -> np.ndarray:
+    """The lenses a spot reading may name and leaves out of the typical sub-image: flagged, below the
+    reportable size, or taken for a flagged neighbour's echo (over the threshold), the clipped ones not."""
+    return found.flagged | found.unreported | ((found.score > qc.detect_sigma) & ~clipped)
+
+
+def _lines_followed(found, sub, cx, cy, clipped, missing, qc, metrics, centres):
     """`found` with a scratch followed into the neighbours it runs on through: those whose own reading is a
     line too (mlaqc.inspection.scratches.next_to_lines), until no new lens joins."""
     for _ in range(4):  # a line crosses a few sub-images; each pass reaches one lens farther
-        nearby = next_to_lines(found.defects, found.flagged.shape) & ~found.flagged & ~skip
+        nearby = next_to_lines(found.defects, found.flagged.shape) & ~found.flagged & ~clipped & ~missing
         if not nearby.any():
             return found
-        significant = found.flagged | found.unreported | (found.score > qc.detect_sigma)  # as the first reading's
+        significant = _significant(found, qc, clipped)
         lines = {k: r for k, r in obscuration_readings(sub, cx, cy, significant, nearby).items() if is_line(r)}
         if not lines:
             return found

@@ -43,7 +43,7 @@ def line_shape(dark, dx, dy, sx, sy):
 
 def is_line(reading) -> bool:
     """Whether a lens' dark region (an obscuration.SpotReading) is a line: long and narrow."""
-    shortest = max(MIN_LENGTH_PX, MIN_LENGTH_INTERIOR * getattr(reading, "interior_px", 0.0))
+    shortest = max(MIN_LENGTH_PX, MIN_LENGTH_INTERIOR * reading.interior_px)
     return reading.elongation >= ELONGATION and reading.length_px >= shortest
 
 

@@ -43,7 +43,9 @@ class SensorShadow:
                 "depth": round(self.depth, 4), "kind": self.kind,
                 "lenses": [{"frame": f, "row": m, "col": n} for f, m, n in self.lenses]}
 
-    def sentence(self, frames: int) -> str:
+    def sentence(self) -> str:
+        """One line for the console and each frame's report."""
+        frames = len({f for f, _, _ in self.lenses})
         where = "; ".join(f"U({m},{n}) in {f}" for f, m, n in self.lenses)
         shape = "line" if self.kind == "scratch" else "spot"
         return (f"sensor shadow at x {self.x_px:.1f}, y {self.y_px:.1f} px (a {shape}, {self.area:.0%} of a "
@@ -59,8 +61,7 @@ def sensor_shadows(results: list, meta: list[dict], cfg) -> tuple[list[SensorSha
     tol = max(TOLERANCE_PX, 0.1 * cfg.layout.subimage_pitch_px)
     shadows, taken, undecided = [], set(), 0
     for group in _same_pixels(spots, tol):
-        frames = sorted({i for i, _ in group})
-        if len(frames) < 2:
+        if len({i for i, _ in group}) < 2:
             continue
         if not _array_moved(group, meta, cfg, results):
             undecided += 1
@@ -178,8 +179,6 @@ def _without(result, lenses: set, shadows: list[SensorShadow], cfg):
     flagged, error_type = result.flagged.copy(), result.error_type.copy()
     for m, n in lenses:
         flagged[m - 1, n - 1], error_type[m - 1, n - 1] = False, ""
-    frames = [len({f for f, _, _ in s.lenses}) for s in mine]
-    notes = tuple(s.sentence(k) for s, k in zip(mine, frames))
     return dataclasses.replace(result, defects=defects, flagged=flagged, error_type=error_type,
                                verdict=overall_verdict(defects, cfg.qc, result.assembly),
-                               notes=tuple(result.notes) + notes)
+                               notes=tuple(result.notes) + tuple(s.sentence() for s in mine))
