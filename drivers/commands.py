@@ -12,6 +12,7 @@ import argparse
 import math
 import sys
 
+from mlaqc.commands.recording import Recorder, add_db_options
 from mlaqc.errors import InputError
 from mlaqc.progress import ProgressBar
 
@@ -59,6 +60,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                         "--through-focus FRAME ...`), into <frame>.inspect.json; a failed inspection is reported and "
                         "the scan goes on (--resume tries it again)")
     s.add_argument("--quiet", "-q", action="store_true", help="no progress bar or summary")
+    add_db_options(s, array=False)  # with --inspect: each frame recorded, its position's label the array's
     s.set_defaults(func=run_scan_command)
 
 
@@ -106,11 +108,15 @@ def run_scan_command(args: argparse.Namespace) -> int:
 
     plan = load_plan(args.plan)
     inspect = None
+    recorder = None
     if args.inspect:
         inspect = default_inspect_hook()
         if inspect is None:
             print("note: --inspect: the inspection pipeline (mlaqc.inspection.pipeline.scan_frame_hook) is not available yet, "
                   "so frames are captured and recorded without inspection.", file=sys.stderr)
+        else:
+            recorder = Recorder(args, "scan")
+            inspect = _recording(inspect, recorder)
     bar = ProgressBar("scan", enabled=False if args.quiet else None)
 
     base: list[int] = []  # positions already done when this run started (a resume): not in the ETA
@@ -145,9 +151,27 @@ def run_scan_command(args: argparse.Namespace) -> int:
         result = runner.run()
     finally:
         bar.close()
+        if recorder is not None:
+            recorder.close()
     if not args.quiet:
         print(result.summary(), file=sys.stderr)
-    return 0 if result.all_passed else 1
+    status = 0 if result.all_passed else 1
+    return recorder.status(status) if recorder is not None else status
+
+
+def _recording(hook, recorder):
+    """The inspection hook, each frame's result recorded in the results database as the scan writes its
+    .inspect.json (the position's label names the array)."""
+    from mlaqc.commands.recording import record_from_scan_summary
+
+    def inspect(frame):
+        summary = hook(frame)
+        if isinstance(summary, dict):
+            label = (frame.record or {}).get("label")
+            recorder.record(record_from_scan_summary(summary), str(frame.out_dir), label)
+        return summary
+
+    return inspect
 
 
 def _note(bar: ProgressBar, text: str) -> None:

@@ -2,7 +2,8 @@
 
 Each subcommand lives in a module with `register(subparsers)` that adds its parser and sets `func`.
 Hardware (`drivers`) and GUI commands are reached only from here, lazily, as DESIGN.md asks.
-Exit status: 0 success (or PASS), 1 FAIL, 2 bad input, 3 device error, 130 interrupted.
+Exit status: 0 success (or PASS), 1 FAIL, 2 bad input, 3 device error, 4 results database error,
+130 interrupted.
 """
 
 from __future__ import annotations
@@ -28,6 +29,7 @@ COMMANDS = {
     "models": ("mlaqc.commands.models",
                "build (or rebuild) a camera's reference model, signature tables, through-focus model and assembly calibration"),
     "kernels": ("mlaqc.commands.kernels", "compile the inspection kernels ahead of time for this machine (or check them)"),
+    "lot": ("mlaqc.commands.lot", "lot views of the results database: yield, Pareto, defect map, repeating defects"),
     "demo": ("mlaqc.commands.demo", "simulate an MLA with seeded defects, inspect it, report found vs seeded"),
     "capture": ("drivers.commands", "capture raw frames (or averages) from a camera with provenance sidecars"),
     "scan": ("drivers.commands", "XY scan: move, settle, capture at each plan position; resumable"),

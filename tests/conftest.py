@@ -11,6 +11,12 @@ import pytest
 
 os.environ.setdefault("QT_QPA_PLATFORM", "offscreen")
 os.environ.pop("MLAQC_SCHEDULER", None)  # a developer's cluster must not take over the tests that inspect locally
+# every inspection records into a results database (mlaqc.resultsdb): the tests' go into one of the run's own,
+# never the developer's (set before xdist starts its workers, which inherit it); a test that reads records
+# names its own with --db
+if "MLAQC_TEST_DB_DIR" not in os.environ:
+    os.environ["MLAQC_TEST_DB_DIR"] = tempfile.mkdtemp(prefix="mlaqc-test-db-")
+    os.environ["MLAQC_DB"] = os.path.join(os.environ["MLAQC_TEST_DB_DIR"], "results.sqlite")
 
 # ------------------------------------------------------------------------------------ Numba warm-up
 # The tracer's kernel is compiled once per variant (which of its MLA-rotation, global-rotation and

@@ -49,6 +49,7 @@ from typing import Any
 from mlaqc import cluster
 from mlaqc.atomic import write_bytes_atomic
 from mlaqc.commands.levels import add_level_options, stated_levels
+from mlaqc.commands.recording import Recorder, add_db_options, render_with_record
 from mlaqc.errors import DeviceError, InputError
 from mlaqc.inspection.rawio import Levels
 from mlaqc.inspection.results import detection_limit_text
@@ -65,7 +66,8 @@ def register(sub: argparse._SubParsersAction) -> None:
                                    "report.html. Several raws share one calibration (--white or --grid) and get "
                                    "one report folder each under --out, plus batch.csv. Exit status 0 = every "
                                    "frame PASS, 1 = some frame FAIL, 2 = input error (in a batch: some frame "
-                                   "could not be inspected; the others still are), 3 = the Dask cluster failed.")
+                                   "could not be inspected; the others still are), 3 = the Dask cluster failed, 4 = the "
+                                   "reports are written but the results database could not record them.")
     p.add_argument("raw", nargs="+", help="raw image(s) (DNG, vendor raw, TIFF, PNG, NPY), or a scan folder")
     src = p.add_mutually_exclusive_group()
     src.add_argument("--white", "-w", nargs="+", metavar="W",
@@ -95,6 +97,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--quiet", "-q", action="store_true", help="no summary on stderr")
     add_level_options(p)
     cluster.add_scheduler_option(p)
+    add_db_options(p)
     p.set_defaults(func=run)
 
 
@@ -281,12 +284,13 @@ def frame_row(result, folder: Path, seconds: float) -> dict:
 def inspect_one(raw: str, cfg: CameraConfig, grid, folder: Path, levels: Levels | None = None,
                 through_focus: tuple[str, ...] = (), stack: tuple[str, ...] = (), dark=None) -> dict:
     """Load, inspect and report one raw; a row of batch.csv (InputError propagates)."""
-    from mlaqc.report import write_report
+    from mlaqc.report import write_report_files
 
     t0 = time.perf_counter()
     result = inspect_raw(raw, cfg, grid, levels, through_focus=through_focus, stack=stack, dark=dark)
-    write_report(result, folder, config_dict=cfg.to_dict())
-    return {"result": result, **frame_row(result, folder, time.perf_counter() - t0)}
+    contents = render_with_record(result, cfg.to_dict())
+    write_report_files(contents, folder)
+    return {"result": result, **frame_row(result, folder, time.perf_counter() - t0), "record": contents["record"]}
 
 
 def write_batch_csv(path: Path, rows: list[dict]) -> None:
@@ -317,15 +321,13 @@ def inspect_remote(spec: BatchSpec, raw: str, path: str, client_sees_it: bool, t
     memory; nothing is written. Returns {"row": batch.csv row, "contents": {file key: bytes}}, or
     {"error": sentence} for a frame that is bad input (a value, not an exception: Dask must not retry
     it), or {"unseen": host} when this worker cannot see a file the client can."""
-    from mlaqc.report import render_report
-
     if client_sees_it and not os.path.exists(path):
         return {"unseen": socket.gethostname()}
     t0 = time.perf_counter()
     try:
         result = inspect_raw(raw, spec.cfg, spec.grid, spec.levels, path=path, through_focus=through_focus,
                              stack=stack, dark=spec.darks.get(raw))
-        contents = render_report(result, spec.config_dict)
+        contents = render_with_record(result, spec.config_dict)
     except InputError as exc:
         return {"error": str(exc)}
     return {"row": frame_row(result, Path(), time.perf_counter() - t0), "contents": contents}
@@ -367,7 +369,8 @@ def rows_on_cluster(client: Any, raws: list[str], folders: list[Path], spec: Bat
             yield i, error_row(raws[i], str(exc))
             continue
         row = value["row"]
-        yield i, {**row, "report": str(folders[i]), "seconds": round(row["seconds"] + time.perf_counter() - t0, 3)}
+        yield i, {**row, "report": str(folders[i]), "seconds": round(row["seconds"] + time.perf_counter() - t0, 3),
+                  "record": value["contents"].get("record")}
 
 
 def rows_here(raws: list[str], folders: list[Path], cfg: CameraConfig, grid,
@@ -428,13 +431,14 @@ def rows_with_sensor_dust(raws: list[str], folders: list[Path], cfg: CameraConfi
 
 def _reported(raw: str, result, folder: Path, cfg: CameraConfig, seconds: float) -> dict:
     """Write a frame's report set: its batch row, or an error row when it cannot be written."""
-    from mlaqc.report import write_report
+    from mlaqc.report import write_report_files
 
     try:
-        write_report(result, folder, config_dict=cfg.to_dict())
+        contents = render_with_record(result, cfg.to_dict())
+        write_report_files(contents, folder)
     except InputError as exc:
         return error_row(raw, str(exc))
-    return frame_row(result, folder, seconds)
+    return {**frame_row(result, folder, seconds), "record": contents["record"]}
 
 
 def _meta_or_empty(raw: str) -> dict:
@@ -453,8 +457,8 @@ def error_row(raw: str, sentence: str) -> dict:
 
 
 def run(args: argparse.Namespace) -> int:
-    """Inspect and report; 0 all PASS, 1 some FAIL, 2 some frame was bad input (batch) or bad input,
-    3 the Dask cluster failed."""
+    """Inspect, report and record; 0 all PASS, 1 some FAIL, 2 some frame was bad input (batch) or bad input,
+    3 the Dask cluster failed, 4 the results database did not record every frame (the reports are written)."""
     out = check_out_dir(args.out)
     stacks: dict[str, tuple[str, ...]] = {}
     raws, pinholes, batch = batch_raws(args.raw, args.through_focus, getattr(args, "stack", 1), stacks)
@@ -466,11 +470,16 @@ def run(args: argparse.Namespace) -> int:
     if dust and (not batch or address is not None):
         raise InputError("--sensor-dust compares the frames of a batch on this machine: give two raws or more "
                          "(or a scan folder), without --scheduler or $MLAQC_SCHEDULER")
+    if batch and getattr(args, "array", None):
+        raise InputError("--array names one array: give one raw (a batch's frames are named by their scan "
+                         "positions' labels, or their raws)")
     levels = stated_levels(args)
     darks, white_dark = master_darks(args, raws, stacks, cfg, levels)
     grid = shared_grid(args, cfg, white_dark)
     folders = report_folders(out, raws) if batch else [out]
     with contextlib.ExitStack() as stack:
+        recorder = Recorder(args, "inspect")  # opened before the work: a database that cannot be used is said first
+        stack.callback(recorder.close)
         if dust:
             frames = rows_with_sensor_dust(raws, folders, cfg, grid, levels, out, args.quiet, pinholes, stacks, darks)
         elif address is None:
@@ -479,8 +488,9 @@ def run(args: argparse.Namespace) -> int:
             client = stack.enter_context(cluster.connect(address, quiet=args.quiet))
             frames = rows_on_cluster(client, raws, folders, BatchSpec(cfg, grid, levels, cfg.to_dict(), darks),
                                      args.quiet, pinholes, stacks)
+        frames = _recorded(frames, recorder, raws)
         if not batch:
-            return _single(frames, out, args.quiet)
+            return recorder.status(_single(frames, out, args.quiet))
         out.mkdir(exist_ok=True)
         rows: list[dict] = [{}] * len(raws)
         t0 = time.perf_counter()
@@ -496,7 +506,20 @@ def run(args: argparse.Namespace) -> int:
         dt = time.perf_counter() - t0
         print(f"{verdicts.count('PASS')} PASS, {verdicts.count('FAIL')} FAIL, {verdicts.count('ERROR')} ERROR "
               f"in {dt:.1f} s ({dt / len(rows):.2f} s/frame); {out / 'batch.csv'}", file=sys.stderr)
-    return 2 if "ERROR" in verdicts else (1 if "FAIL" in verdicts else 0)
+    if not args.quiet and recorder.recorded:
+        print(f"{recorder.recorded} inspection(s) recorded in {recorder.where}", file=sys.stderr)
+    return recorder.status(2 if "ERROR" in verdicts else (1 if "FAIL" in verdicts else 0))
+
+
+def _recorded(frames: Iterator[tuple[int, dict]], recorder: Recorder, raws: list[str]) -> Iterator[tuple[int, dict]]:
+    """The frames' rows, each frame recorded in the results database as its report folder is written (a
+    scan frame with its position's label)."""
+    for i, row in frames:
+        record = row.pop("record", None)
+        if record is not None:
+            scan = _meta_or_empty(raws[i]).get("scan")
+            recorder.record(record, row.get("report"), scan.get("label") if isinstance(scan, dict) else None)
+        yield i, row
 
 
 def master_darks(args: argparse.Namespace, raws: list[str], stacks: dict[str, tuple[str, ...]], cfg: CameraConfig,

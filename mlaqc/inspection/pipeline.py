@@ -286,7 +286,7 @@ def scan_frame_hook(frame) -> dict:
     the default. Dark frames in the scan folder (`darks.scan_dark_frames`) are subtracted (their master
     built once). Returns a summary the scan writes beside the raw as `<raw>.inspect.json`; with pinhole
     frames it has `through_focus`: their names and the pairs' summary (as report.json's); `lattice`: the
-    lattice U(m,n) indexes, with its convention."""
+    lattice U(m,n) indexes, with its convention; `config`: the camera config it was inspected with."""
     from mlaqc.optics.config import config_from_dict, default_config
 
     header = frame.header
@@ -308,7 +308,7 @@ def scan_frame_hook(frame) -> dict:
                     "rms_residual_px": result.grid.rms_residual_px},
            "lattice": result.lattice_facts(),
            "assembly": _plain(result.assembly.to_json_dict()) if result.assembly is not None else None,
-           "timings_s": result.timings_s}
+           "timings_s": result.timings_s, "config": cfg.to_dict(), "source": str(frame.path)}
     tf = getattr(result, "through_focus", None)
     if tf is not None:
         read = sum(1 for d in result.defects if SOURCE_KEY in d.indexes)

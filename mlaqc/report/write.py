@@ -42,12 +42,17 @@ def write_report(result: InspectionResult, out_dir: str | os.PathLike[str], *,
     return write_report_files(render_report(result, config_dict), out_dir)
 
 
-def render_report(result: InspectionResult, config_dict: dict | None = None) -> dict[str, bytes]:
-    """Every file of the report set in memory, {key of REPORT_FILES: bytes}; nothing is written.
+def render_report(result: InspectionResult, config_dict: dict | None = None, *,
+                  document: bool = False) -> dict:
+    """Every file of the report set in memory, {key of REPORT_FILES: bytes}; nothing is written. With
+    `document`, also report.json's content as a dict under "document" (read without parsing the file).
 
     Raises InputError (one sentence) if the result is inconsistent."""
     with _no_collection():
-        return _render_all(View(result), config_dict)
+        contents = _render_all(View(result), config_dict)
+    if not document:
+        del contents["document"]
+    return contents
 
 
 @contextlib.contextmanager
@@ -106,8 +111,8 @@ def _write_bytes(path: Path, data: bytes) -> None:
     path.write_bytes(data)
 
 
-def _render_all(view: View, config_dict: dict | None) -> dict[str, bytes]:
-    """Every file's bytes, keyed like REPORT_FILES: lenses.csv (compiled formatting) and the PNGs' bands
+def _render_all(view: View, config_dict: dict | None) -> dict:
+    """Every file's bytes, keyed like REPORT_FILES, and report.json's dict ("document"): lenses.csv (compiled formatting) and the PNGs' bands
     (deflate) run on the pool's threads, both releasing the GIL, while this thread draws the maps and
     builds the JSON and then the HTML."""
     csv_text = _in_background(lenses_csv, view, _pitch_um(config_dict))  # first: queued before the PNGs' bands
@@ -123,7 +128,7 @@ def _render_all(view: View, config_dict: dict | None) -> dict[str, bytes]:
     text = {"json": _dumps(report), "csv": csv_text.result()}
     pngs = {"defect_map": full_png.result(), "defect_map_small": small_png.result(), "lens_maps": lens_png.result()}
     text["html"] = _html(view, report, pngs["defect_map_small"], pngs["lens_maps"])
-    return {**{k: t.encode("utf-8") for k, t in text.items()}, **pngs}
+    return {**{k: t.encode("utf-8") for k, t in text.items()}, **pngs, "document": report}
 
 
 def _pitch_um(config_dict: dict | None) -> float | None:
