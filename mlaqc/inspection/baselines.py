@@ -22,6 +22,7 @@ import numpy as np
 from mlaqc.inspection.filters import max_filter_nearest
 from mlaqc.inspection.lens_classes import ring_distance
 from mlaqc.inspection.metrics_kernels import median_baselines
+from mlaqc.inspection.phase_pattern import middles
 from mlaqc.parallel import thread_map
 
 
@@ -200,8 +201,8 @@ def _refine_baselines(stack: np.ndarray, finite: np.ndarray, base: np.ndarray, s
 
 def _kept_medians(flat: np.ndarray, idx: np.ndarray, drop: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """`_nan_medians` of flat[:, idx] (F, N, K) with the values where `drop` (N, K) left out, the same
-    lenses in every map: per count of values kept, one gather of those alone and a partition at the
-    two middle ranks (no NaN to sort; the same order statistics, so the same medians bit for bit)."""
+    lenses in every map: per count of values kept, one gather of those alone and its two middle ranks
+    (`middles`: no NaN to sort; the same order statistics, so the same medians bit for bit)."""
     k = (~drop).sum(axis=1)
     med = np.zeros((flat.shape[0], len(k)))
     if len(k):
@@ -209,9 +210,7 @@ def _kept_medians(flat: np.ndarray, idx: np.ndarray, drop: np.ndarray) -> tuple[
         kept = np.take_along_axis(idx, order, axis=1)
         for kk in np.unique(k[k > 0]):
             sel = np.flatnonzero(k == kk)
-            lo, hi = (kk - 1) // 2, kk // 2
-            part = np.partition(flat[:, kept[sel, :kk]], np.unique([lo, hi]), axis=-1)
-            med[:, sel] = 0.5 * (part[..., lo] + part[..., hi])
+            med[:, sel] = middles(flat[:, kept[sel, :kk]], (kk - 1) // 2, kk // 2)
     return med, np.broadcast_to(k > 0, med.shape)
 
 

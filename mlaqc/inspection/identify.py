@@ -66,7 +66,7 @@ from mlaqc.inspection.filters import (
 )
 from mlaqc.inspection.lens_classes import (SECOND_RING_MIN, corner_lenses, edge_classes, edge_groups, hex_row_ends,
                                            noise_classes, second_ring)
-from mlaqc.inspection.phase_pattern import (PhaseModel, _column_medians, _phase_skips, phase_model,
+from mlaqc.inspection.phase_pattern import (PhaseModel, _column_medians, _phase_skips, finite_median, phase_model,
                                             remove_phase_pattern, remove_phase_trend)
 from mlaqc.inspection.results import Defect, LensMetrics
 from mlaqc.models.position_split import (PositionSplit, contrast_spread, neighbour_contrast, split_limits,
@@ -89,7 +89,7 @@ def robust_sigma(dev: np.ndarray) -> float:
     d = dev[np.isfinite(dev)]
     if d.size == 0:
         return np.inf
-    return max(1.4826 * float(np.median(np.abs(d - np.median(d)))), 1e-9)
+    return max(1.4826 * finite_median(np.abs(d - finite_median(d))), 1e-9)
 
 
 def class_sigmas(dev: np.ndarray, floor: float | np.ndarray = 0.0, exclude: np.ndarray | None = None,
@@ -247,7 +247,7 @@ def ring_noise(metrics: LensMetrics, phase: PhaseModel | None = None, floor: np.
     for c in range(3):
         sel = (cls == c) & finite
         if sel.any():
-            dev[sel] -= np.median(dev[sel], axis=0)
+            dev[sel] -= _column_medians(dev[sel])  # (np.median's, finite values)
     inner = (cls == 2) & finite
     quiet = _quiet_inner(inner, exclude, 4 * len(RINGS) + 1)  # enough for a covariance, the defects left out
     flat = dev[quiet] if quiet is not inner or inner.sum() > 8 * len(RINGS) else dev[finite]
@@ -599,8 +599,16 @@ def _strength(detect_dev: dict[str, np.ndarray], noise: Noise, score: np.ndarray
     inner = edge_classes(score.shape) == 2
     if not inner.any():
         return score
-    sigma = np.broadcast_to(np.nanmedian(noise.sigma[inner], axis=0), noise.sigma.shape)
+    sigma = np.broadcast_to(_nan_medians(noise.sigma[inner]), noise.sigma.shape)
     return np.maximum(score, detection_score(detect_dev, Noise(sigma, noise.rings)))
+
+
+def _nan_medians(a: np.ndarray) -> np.ndarray:
+    """np.nanmedian(a, axis=0) of a (n, J), by `_column_medians` where every value is finite and n is
+    large enough for NumPy's own to take each column's median alone (the same values, to the bit)."""
+    if len(a) < 600 or not np.isfinite(a).all():  # (np.nanmedian: masked arrays below 600, or NaN/inf)
+        return np.nanmedian(a, axis=0)
+    return _column_medians(a)
 
 
 def _local_planes(metrics: LensMetrics, position, phase: PhaseModel | None, packing: str = "square",
@@ -743,7 +751,7 @@ def class_centred(planes: list[np.ndarray], packing: str = "square") -> list[np.
         for c in range(4):
             sel = (cls == c) & finite[0]
             if sel.any():
-                stack[:, sel] -= np.median(stack[:, sel], axis=1)[:, None]
+                stack[:, sel] -= _column_medians(stack[:, sel].T)[:, None]  # (np.median's, finite values)
         return list(stack)
     out = []
     for q in stack:

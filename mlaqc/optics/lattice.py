@@ -160,6 +160,26 @@ class Lattice:
         inside = (r >= 0) & (r < self.rows) & (c >= 0) & (c < self.cols)
         return r.astype(np.int64), c.astype(np.int64), inside
 
+    def nearest_on_grid(self, x: Any, y: Any) -> tuple[np.ndarray, np.ndarray]:
+        """`nearest` for every point of the grid of columns x (w,) and rows y (h,): (h, w) flat indices
+        (row * cols + col; any value off the array) and whether each is a lens of the array. The same cells
+        as `nearest`, each rule worked per grid row or column where it depends on one of them alone (a
+        report's hex panel is ~10^6 points)."""
+        u0, v0 = self.centre_uv()
+        u = np.asarray(x, dtype=np.float64)[None, :] / self.pitch + u0
+        v = np.asarray(y, dtype=np.float64)[:, None] / self.pitch + v0
+        if not self.hex:
+            return self._flat(np.floor(v + 0.5), np.floor(u + 0.5))
+        (ra, ca, dua, dva), (rb, cb, dub, dvb) = _hex_candidates(u, v)
+        take = dub * dub + dvb * dvb < dua * dua + dva * dva
+        (flat_a, in_a), (flat_b, in_b) = self._flat(ra, ca), self._flat(rb, cb)
+        return np.where(take, flat_b, flat_a), np.where(take, in_b, in_a)
+
+    def _flat(self, r: np.ndarray, c: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Flat indices of rows r (h, 1) and columns c (1, w) (floats), and whether each is on the array."""
+        inside = ((r >= 0) & (r < self.rows)) & ((c >= 0) & (c < self.cols))
+        return r.astype(np.int64) * self.cols + c.astype(np.int64), inside
+
     def neighbours(self, diagonal: bool = True) -> np.ndarray:
         """(rows * cols, k) flat indices of every lens' nearest neighbours (`neighbour_offsets` order), -1
         where the neighbour lies off the array."""
@@ -191,14 +211,19 @@ def hex_cell(u, v):
     sqrt(3)/2); the nearer of their nearest points (each by rounding) wins, the even row's on a tie
     (Lattice.nearest is this). Plain arithmetic and selects: the compiled tracer
     (mlaqc.optics.raytrace_kernels.hex_locate) does the same operations."""
+    (ra, ca, dua, dva), (rb, cb, dub, dvb) = _hex_candidates(u, v)
+    take = dub * dub + dvb * dvb < dua * dua + dva * dva
+    return np.where(take, rb, ra), np.where(take, cb, ca), np.where(take, dub, dua), np.where(take, dvb, dva)
+
+
+def _hex_candidates(u, v):
+    """`hex_cell`'s two candidates: (row, column, du, dv) of the nearest even-row lattice point, then of
+    the nearest odd-row one. Row and dv follow v alone, column and du u alone."""
     ja = np.floor(v * INV_ROW_PAIR_HEX + 0.5)  # nearest even row: 2 ja
     jb = np.floor(v * INV_ROW_PAIR_HEX)  # nearest odd row: 2 jb + 1
     ca, cb = np.floor(u + 0.5), np.floor(u)  # their nearest columns (odd rows' centres at cb + 1/2)
     ra, rb = 2.0 * ja, 2.0 * jb + 1.0
-    dua, dva = u - ca, v - ra * SQRT3_2
-    dub, dvb = u - (cb + 0.5), v - rb * SQRT3_2
-    take = dub * dub + dvb * dvb < dua * dua + dva * dva
-    return np.where(take, rb, ra), np.where(take, cb, ca), np.where(take, dub, dua), np.where(take, dvb, dva)
+    return (ra, ca, u - ca, v - ra * SQRT3_2), (rb, cb, u - (cb + 0.5), v - rb * SQRT3_2)
 
 
 def hex_edge(du, dv):

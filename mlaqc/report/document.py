@@ -327,12 +327,15 @@ def lenses_csv(view: View | InspectionResult, pitch_um: float | None = None) -> 
     written as Python's %-format writes it (mlaqc.report.numtext, compiled: 10,404 lenses in ~15 ms). A hex
     array's file adds HEX_CSV_COLUMNS (design centres; in µm with `pitch_um`, the config's mla.pitch_um)."""
     v = view if isinstance(view, View) else View(view)
-    text = _csv_text(v)
-    return _with_design_columns(v, text, pitch_um) if v.hex else text
+    return _csv_text(v, _design_columns(v, pitch_um) if v.hex else None)
 
 
-def _csv_text(v: View) -> str:
-    """lenses.csv's common columns (CSV_COLUMNS) for every lens."""
+_DESIGN_FORMATS = ("%.6g", "%.6g", "%.4f", "%.4f")  # HEX_CSV_COLUMNS'
+
+
+def _csv_text(v: View, design: np.ndarray | None = None) -> str:
+    """lenses.csv's common columns (CSV_COLUMNS) for every lens, then the `design` columns (HEX_CSV_COLUMNS,
+    (lenses, 4): `_design_columns`) if given, written in the same pass."""
     m, n = np.meshgrid(np.arange(1, v.rows + 1), np.arange(1, v.cols + 1), indexing="ij")
     flagged = v.flagged.ravel()
     types = np.where(flagged, v.error_type.ravel(), "")
@@ -342,33 +345,40 @@ def _csv_text(v: View) -> str:
         type_index = type_index - 1
         table = table[1:]
     if any(c in t for t in table for c in ',"\r\n') or any(c in name for name in CSV_COLUMNS for c in ',"\r\n'):
-        return _quoted_csv(v)
+        text = _quoted_csv(v)
+        return text if design is None else _with_design_columns(text, design)
     columns = [m.ravel(), n.ravel(), *(np.ravel(a) for a in (v.mx, v.my, v.gx, v.gy)), flagged, type_index,
                *(np.ravel(np.asarray(v.result.metrics[k], dtype=float)) for k in METRICS),
                *(np.ravel(_measured(v, k)) for k in (*MEASUREMENTS, *TF_MEASUREMENTS))]
     formats = ["%d", "%d", *["%.3f"] * 4, "%d", "%s", *["%.6g"] * len(METRICS),
                *["%.5g"] * (len(MEASUREMENTS) + len(TF_MEASUREMENTS))]
+    names = CSV_COLUMNS
+    if design is not None:
+        columns, formats, names = columns + list(design.T), formats + list(_DESIGN_FORMATS), names + HEX_CSV_COLUMNS
     table_text = format_rows(np.column_stack(columns).astype(np.float64), formats, table, parallel=False)
-    return ",".join(CSV_COLUMNS) + "\n" + table_text  # (on this thread: the pool deflates the report's PNGs)
+    return ",".join(names) + "\n" + table_text  # (on this thread: the pool deflates the report's PNGs)
 
 
-def _with_design_columns(v: View, text: str, pitch_um: float | None) -> str:
-    """`text` (lenses.csv) with HEX_CSV_COLUMNS appended to its header and every lens' row."""
+def _design_columns(v: View, pitch_um: float | None) -> np.ndarray:
+    """Every lens' HEX_CSV_COLUMNS values (lenses, 4): its design centre in pitches from U(1,1)'s, and in µm
+    from the array's centre with `pitch_um` (NaN without)."""
     r, c = np.divmod(np.arange(v.rows * v.cols), v.cols)
     u, w = v.lattice.uv(r, c)
     known = pitch_um is not None and math.isfinite(pitch_um) and pitch_um > 0
     x, y = v.lattice.position(r, c) if known else (np.full(u.shape, np.nan),) * 2
     scale = float(pitch_um) if known else 1.0
-    extra = format_rows(np.column_stack([u, w, x * scale, y * scale]), ["%.6g", "%.6g", "%.4f", "%.4f"],
-                        parallel=False).split("\n")[:-1]
-    if '"' in text:  # quoted fields (may hold newlines): through the csv module
-        head, *rows = list(csv.reader(io.StringIO(text)))
-        buf = io.StringIO()
-        csv.writer(buf, lineterminator="\n").writerows(
-            [head + list(HEX_CSV_COLUMNS)] + [row + e.split(",") for row, e in zip(rows, extra)])
-        return buf.getvalue()
-    head, *rows = text.split("\n")[:-1]
-    return "\n".join([head + "," + ",".join(HEX_CSV_COLUMNS)] + [a + "," + e for a, e in zip(rows, extra)]) + "\n"
+    return np.column_stack([u, w, x * scale, y * scale])
+
+
+def _with_design_columns(text: str, design: np.ndarray) -> str:
+    """`text` (a quoted lenses.csv, fields may hold newlines) with HEX_CSV_COLUMNS appended to its header
+    and every lens' row, through the csv module."""
+    extra = format_rows(design, list(_DESIGN_FORMATS), parallel=False).split("\n")[:-1]
+    head, *rows = list(csv.reader(io.StringIO(text)))
+    buf = io.StringIO()
+    csv.writer(buf, lineterminator="\n").writerows(
+        [head + list(HEX_CSV_COLUMNS)] + [row + e.split(",") for row, e in zip(rows, extra)])
+    return buf.getvalue()
 
 
 def _quoted_csv(v: View) -> str:

@@ -49,32 +49,37 @@ def hex_cells(lattice: Lattice, px: int = HEX_LENS_PX) -> tuple[np.ndarray, np.n
     index (row * cols + col) and whether that lens is on the array (False: background round the ragged
     outline). Pixel (i, j)'s centre is ((j + 0.5) / px, (i + 0.5) / px) pitches from the top-left corner of
     the array's bounding box; U(1,1)'s centre lies half a pitch right of it and 1/sqrt(3) pitch down."""
-    return _hex_cells(lattice.packing, lattice.rows, lattice.cols, px)
+    return _hex_cells(lattice.packing, lattice.rows, lattice.cols, px)[:2]
 
 
 @lru_cache(maxsize=4)
-def _hex_cells(packing: str, rows: int, cols: int, px: int) -> tuple[np.ndarray, np.ndarray]:
-    """hex_cells, kept for the report's three panels (read-only arrays)."""
+def _hex_cells(packing: str, rows: int, cols: int, px: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """hex_cells, and each pixel's colour index for `_body` (its lens, or rows * cols: the background),
+    kept for the report's three panels (read-only arrays)."""
     unit = Lattice(packing, rows, cols)
     ext_w, ext_h = unit.extent
     w, h = max(1, math.ceil(ext_w * px)), max(1, math.ceil(ext_h * px))
     x = (np.arange(w) + 0.5) / px - 0.5 * ext_w
     y = (np.arange(h) + 0.5) / px - 0.5 * ext_h
-    r, c, inside = unit.nearest(x[None, :], y[:, None])
-    labels = np.where(inside, r * cols + c, 0)
-    labels.setflags(write=False)
-    inside.setflags(write=False)
-    return labels, inside
+    flat, inside = unit.nearest_on_grid(x, y)
+    labels = np.where(inside, flat, 0)
+    colour = np.where(inside, flat, rows * cols)
+    for a in (labels, inside, colour):
+        a.setflags(write=False)
+    return labels, inside, colour
 
 
 def _body(rgb: np.ndarray, packing: str) -> np.ndarray:
-    """The per-lens colours (rows, cols, 3) as a picture: square blocks, or hexagonal cells on white."""
+    """The per-lens colours (rows, cols, 3) as a picture: square blocks, or hexagonal cells on white (each
+    pixel's colour gathered as one 4-byte word: the background's appended after the lenses')."""
     if packing != "hex":
         return np.repeat(np.repeat(rgb, LENS_PX, 0), LENS_PX, 1)
-    labels, inside = hex_cells(Lattice(packing, rgb.shape[0], rgb.shape[1]))
-    out = rgb.reshape(-1, 3)[labels]
-    out[~inside] = _BACKGROUND
-    return out
+    colour = _hex_cells(packing, rgb.shape[0], rgb.shape[1], HEX_LENS_PX)[2]
+    palette = np.zeros((rgb.shape[0] * rgb.shape[1] + 1, 4), np.uint8)
+    palette[:-1, :3] = rgb.reshape(-1, 3)
+    palette[-1, :3] = _BACKGROUND
+    words = palette.view(np.uint32)[:, 0].take(colour)
+    return words.view(np.uint8).reshape(*colour.shape, 4)[..., :3]
 
 
 def _panel(values: np.ndarray, sigma: np.ndarray, title: str, unit: str, packing: str = "square") -> np.ndarray:
