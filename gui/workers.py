@@ -1018,17 +1018,34 @@ class IoWorker(QObject):
 
     @Slot(int, object, str, object)
     def writeReport(self, job: int, result: Any, out_dir: str, config_dict: Any) -> None:
-        from mlaqc.report import write_report
+        """Write the report set, then record the inspection in the results database (mlaqc.resultsdb, its
+        default target: $MLAQC_DB or the user's data folder); a database that cannot record it is said
+        after the report is written."""
+        from mlaqc.commands.recording import render_with_record
+        from mlaqc.report import write_report_files
 
         self.busyChanged.emit(True)
         try:
-            paths = write_report(result, out_dir, config_dict=config_dict)
+            contents = render_with_record(result, config_dict)
+            paths = write_report_files(contents, out_dir)
         except Exception as exc:  # noqa: BLE001
             self.failed.emit(job, one_sentence(exc))
         else:
             self.reportWritten.emit(job, {k: str(v) for k, v in paths.items()})
+            self._record(job, contents["record"], out_dir)
         finally:
             self.busyChanged.emit(False)
+
+    def _record(self, job: int, record: bytes, out_dir: str) -> None:
+        import json
+
+        from mlaqc.resultsdb import DatabaseError, open_database, record_identity
+
+        try:
+            with open_database() as db:
+                db.record(json.loads(record), record_identity(), out_dir)
+        except DatabaseError as exc:
+            self.failed.emit(job, f"the report is written, but {exc}")
 
     @Slot(int, object, str, object)
     def saveFrame(self, job: int, frame: Any, path: str, position_mm: Any) -> None:

@@ -4,6 +4,7 @@ scans with pause/abort, live view, clean close. Timings are printed, never asser
 from __future__ import annotations
 
 import json
+import os
 import subprocess
 import sys
 import time
@@ -258,6 +259,17 @@ def test_capture_and_inspect_seeded_defects(qtbot, window, seeded_raw, tmp_path)
         w.export_report(str(out))
     assert Path(rep.args[0]["html"]).exists() and (out / "lenses.csv").exists()
     assert json.loads((out / "report.json").read_text())["verdict"] == "FAIL"
+    # ... and recorded in the results database (the test run's own: tests/conftest.py sets $MLAQC_DB)
+    from mlaqc.resultsdb import DatabaseError, open_database
+
+    def recorded():
+        try:
+            with open_database(create=False) as db:
+                return db.query("SELECT verdict FROM inspections WHERE report_dir = ?", (os.path.abspath(out),))
+        except DatabaseError:  # not made yet
+            return []
+
+    qtbot.waitUntil(lambda: recorded() == [("FAIL",)], timeout=10_000)
 
     # closing right after asking for another report: the write is finished, not cut
     out2 = tmp_path / "report2"

@@ -17,6 +17,7 @@ import pytest
 
 import analytic_frames as am
 import pgserver
+from test_scan_inspect import PLAN as SCAN_PLAN
 from mlaqc.cli import main
 from mlaqc.optics.config import load_config
 from mlaqc.resultsdb import lot as views
@@ -356,24 +357,10 @@ def test_lot_command(tmp_path, capsys, target):
     assert main(["lot", "history", "--db", path]) == 2
 
 
-SCAN_PLAN = """
-[scan]
-settle_s = 0.0
-[[positions]]
-x_mm = 10.0
-y_mm = 10.0
-label = "W(1,1)"
-[[positions]]
-x_mm = 15.0
-y_mm = 10.0
-label = "W(1,2)"
-"""
-
-
 @pytest.mark.timeout(300)
 def test_a_scan_records_each_array_by_its_position(tmp_path):
     plan = tmp_path / "plan.toml"
-    plan.write_text(SCAN_PLAN)
+    plan.write_text(SCAN_PLAN)  # two positions of a 2 x 1 wafer, as the scan's own inspection test
     db_path = str(tmp_path / "r.sqlite")
     status = main(["scan", "--camera", "mock://?wafer=2x1&defects=3&defect_types=decenter&seed=4&rpp=40",
                    "--stage", "mock://", "--plan", str(plan), "--out", str(tmp_path / "scan"), "--inspect",
