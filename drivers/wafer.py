@@ -7,6 +7,10 @@ raw image). Each array has its own seeded `ErrorMap` (`random_defects`), so a sc
 checked found-vs-seeded array by array. The arrays are the camera config's MLA: square or hex packed
 (mla.packing; a hex array's outline is `Lattice.extent`, its error maps are made for the hex lattice).
 
+A wafer can also tell a production story (`Production`): a defect of the master (mold or stamp) that most
+replicas carry at the same lens, and a process drift — the MLA–sensor distance creeping from one array on, in
+production order over the lot (row by row, wafer after wafer: `first_index` numbers this wafer's W(1,1)).
+
 The camera looks at the wafer point under the optical axis, which is the stage position: an array
 whose centre is at C appears shifted by ``C - position`` (that is the ErrorMap's global
 ``mla_shift_x_um`` / ``mla_shift_y_um``). Only the array nearest the position is drawn; `default_pitch_mm`
@@ -15,6 +19,7 @@ keeps neighbours out of the field of view, so nothing else could be seen anyway.
 
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 import json
 import math
@@ -31,6 +36,61 @@ from mlaqc.optics.lattice import Lattice
 
 TRUTH_FORMAT = "mlaqc-mock-wafer"
 MAX_ARRAYS = 10_000
+# the master defect's kinds: the error-map fields a (type, magnitude, direction) sets
+MASTER_FIELDS = {"pitch": ("pitch_um", "pitch_dir_deg"), "decenter": ("decenter_um", "decenter_dir_deg"),
+                 "radius": ("radius_front_rel", None), "thickness": ("thickness_um", None)}
+
+
+@dataclass(frozen=True)
+class Production:
+    """A lot's story on the mock wafer: the master's defect on lens `master_lens` (type, magnitude in µm or
+    relative, direction in degrees) in a seeded `master_share` of the arrays, and from production index
+    `drift_from` on the MLA–sensor distance `drift_um` µm larger with every array."""
+
+    master_lens: tuple[int, int] | None = None
+    master_type: str = "pitch"
+    master_magnitude: float = 1.5
+    master_dir_deg: float = 30.0
+    master_share: float = 0.8
+    drift_from: int | None = None
+    drift_um: float = 0.0
+    first_index: int = 1
+
+    def check(self, cfg: CameraConfig) -> None:
+        if self.master_lens is not None:
+            m, n = self.master_lens
+            if not (1 <= m <= cfg.mla.count_h and 1 <= n <= cfg.mla.count_w):
+                raise InputError(f"master lens U({m},{n}) is not on the {cfg.mla.count_h} x {cfg.mla.count_w} array")
+            if self.master_type not in MASTER_FIELDS:
+                raise InputError(f"master defect type {self.master_type!r} must be one of {', '.join(MASTER_FIELDS)}")
+        if not (0.0 <= self.master_share <= 1.0):
+            raise InputError(f"master_share={self.master_share!r} must lie in 0..1")
+        if self.first_index < 1 or (self.drift_from is not None and self.drift_from < 1):
+            raise InputError("first_index and drift_from are production indexes: 1 or more")
+        if not math.isfinite(self.drift_um):
+            raise InputError(f"drift_um={self.drift_um!r} must be a number")
+
+    def carries_master(self, seed: int, m: int, n: int) -> bool:
+        """Whether array W(m,n) of the wafer made with `seed` carries the master's defect (a seeded draw)."""
+        if self.master_lens is None:
+            return False
+        digest = hashlib.sha256(f"mlaqc-master:{seed}:{m}:{n}".encode()).digest()
+        return int.from_bytes(digest[:4], "little") / 2**32 < self.master_share
+
+    def drift(self, index: int) -> float:
+        """The MLA–sensor distance added to the array of production index `index` (µm)."""
+        if self.drift_from is None or index < self.drift_from:
+            return 0.0
+        return self.drift_um * (index - self.drift_from + 1)
+
+    def master_error(self) -> dict[str, float]:
+        value_key, dir_key = MASTER_FIELDS[self.master_type]
+        out = {value_key: self.master_magnitude}
+        if self.master_type == "radius":
+            out["radius_back_rel"] = self.master_magnitude
+        if dir_key:
+            out[dir_key] = self.master_dir_deg
+        return out
 
 
 @dataclass(frozen=True)
@@ -86,7 +146,8 @@ class Wafer:
 
     def __init__(self, cfg: CameraConfig, *, cols: int = 1, rows: int = 1, pitch_mm: float | None = None,
                  origin_mm: tuple[float, float] = (10.0, 10.0), defects: int = 5, seed: int = 0,
-                 defect_types: tuple[str, ...] = ("pitch", "decenter", "radius")) -> None:
+                 defect_types: tuple[str, ...] = ("pitch", "decenter", "radius"),
+                 production: Production | None = None) -> None:
         if not (isinstance(cols, int) and isinstance(rows, int)) or cols < 1 or rows < 1 or cols * rows > MAX_ARRAYS:
             raise InputError(f"a wafer needs 1..{MAX_ARRAYS} arrays in cols x rows, got {cols}x{rows}")
         aw, ah = array_size_mm(cfg)
@@ -108,6 +169,8 @@ class Wafer:
         self.defects = defects
         self.seed = int(seed)
         self.defect_types = tuple(defect_types)
+        self.production = production or Production()
+        self.production.check(cfg)
         self._arrays: dict[tuple[int, int], WaferArray] = {}
 
     def __repr__(self) -> str:
@@ -133,8 +196,23 @@ class Wafer:
                                         packing=mla.packing)
             else:
                 errors = ErrorMap.zeros(mla.count_h, mla.count_w, mla.packing)
+            errors = self._story(errors, m, n)
             found = self._arrays[key] = WaferArray(m, n, self.centre_mm(m, n), seed, errors)
         return found
+
+    def index(self, m: int, n: int) -> int:
+        """Production index of W(m,n) over the lot: row by row from this wafer's `first_index`."""
+        return self.production.first_index + (m - 1) * self.cols + (n - 1)
+
+    def _story(self, errors: ErrorMap, m: int, n: int) -> ErrorMap:
+        """The production story's part of W(m,n)'s errors: the master's defect, the drift."""
+        p = self.production
+        if p.carries_master(self.seed, m, n):
+            errors = errors.with_lens(*p.master_lens, **p.master_error())
+        drift = p.drift(self.index(m, n))
+        if drift:
+            errors = errors.with_globals(mla_sensor_distance_um=errors.globals["mla_sensor_distance_um"] + drift)
+        return errors
 
     def arrays(self) -> list[WaferArray]:
         """Every array, row by row."""
@@ -162,7 +240,8 @@ class Wafer:
         return {"cols": self.cols, "rows": self.rows, "pitch_mm": self.pitch_mm, "origin_mm": list(self.origin_mm),
                 "defects_per_array": self.defects, "defect_types": list(self.defect_types), "seed": self.seed,
                 "array_size_mm": list(array_size_mm(self.cfg)), "mla_shape": [self.cfg.mla.count_h, self.cfg.mla.count_w],
-                **({"mla_packing": "hex"} if self.cfg.mla.packing == "hex" else {})}
+                **({"mla_packing": "hex"} if self.cfg.mla.packing == "hex" else {}),
+                **({"production": dataclasses.asdict(self.production)} if self.production != Production() else {})}
 
     def truth(self) -> dict[str, Any]:
         """Ground truth for the whole wafer (JSON): geometry, and per array its name, centre, seed and errors."""
@@ -172,7 +251,11 @@ class Wafer:
             **self.layout(),
             "subimage_pitch_px": self.cfg.layout.subimage_pitch_px,
             "arrays": [{"name": a.name, "m": a.m, "n": a.n, "centre_mm": list(a.centre_mm), "seed": a.seed,
-                        "error_map": a.error_map_json} for a in self.arrays()],
+                        "error_map": a.error_map_json,
+                        **({"index": self.index(a.m, a.n),
+                            "master": self.production.carries_master(self.seed, a.m, a.n),
+                            "drift_um": self.production.drift(self.index(a.m, a.n))}
+                           if self.production != Production() else {})} for a in self.arrays()],
         }
 
     def truth_digest(self) -> str:

@@ -52,3 +52,9 @@ def test_in_control_false_calls_and_a_creeping_drift():
         after = [i for i in chart.signals if i >= 60]
         delay.append(after[0] - 60 if after else 99)
     assert np.median(delay) <= 7 and np.percentile(delay, 95) <= 11
+
+
+def test_a_baseline_without_spread_calls_any_change_and_nothing_else():
+    x = np.array([0.01] * 25 + [0.01000001] + [0.01] * 3)
+    chart = individuals_chart(x, baseline=20)
+    assert chart.sigma == 0 and chart.signals == {25: [1]}

@@ -15,6 +15,11 @@ URL (every parameter optional)::
   one array, W(1,1) centred at (10, 10) mm, pitch large enough that neighbours never enter the view.
 - ``defects`` per array (default 5), ``defect_types`` (comma list, default pitch,decenter,radius), ``seed``
   (defects, render and noise; default 0).
+- A production story (drivers.wafer.Production): ``master=M,N`` the master's defect on lens U(M,N) of a
+  seeded ``master_share`` of the arrays (default 0.8), ``master_type`` (pitch, decenter, radius, thickness;
+  default pitch), ``master_size`` (µm, or relative for radius; default 1.5), ``master_dir`` (degrees, default
+  30); ``drift_from=K`` and ``drift_um=X``: from production index K on, the MLA–sensor distance X µm larger
+  with every array; ``first_index``: the production index of this wafer's W(1,1) (wafers of one lot in turn).
 - ``rpp``: rays per pixel of each render (default 4).
 - ``exposure_us`` (default 5000 µs; the config's `exposure_photons` apply at 10000 µs and photons scale
   linearly with exposure, so the default keeps the brightest sub-image centres below full well even with
@@ -90,7 +95,7 @@ from drivers.camera import register_camera_scheme
 from drivers.camera.base import DEFAULT_TIMEOUT_S, Camera, Frame, check_timeout_s
 from drivers.camera.formats import lookup_format
 from drivers.url import DeviceURL, parse_device_url
-from drivers.wafer import Wafer, WaferArray
+from drivers.wafer import Production, Wafer, WaferArray
 from mlaqc.errors import DeviceError, InputError
 from mlaqc.optics.config import CameraConfig, config_from_dict, default_config, load_config
 from mlaqc.optics.sensor import expose, white_level
@@ -101,7 +106,9 @@ log = logging.getLogger(__name__)
 
 URL_PARAMS = ("config", "wafer", "pitch_mm", "origin_mm", "defects", "defect_types", "seed", "rpp", "exposure_us",
               "gain", "pos_mm", "stage", "quantum_um", "cache_mb", "light", "faults", "threads", "f_number", "mask",
-              "mask_spacing", "z_white_mm", "a_centre_mm", "b_window_mm", "field_pitch_mm", "pinhole_photons")
+              "mask_spacing", "z_white_mm", "a_centre_mm", "b_window_mm", "field_pitch_mm", "pinhole_photons",
+              "master", "master_type", "master_size", "master_dir", "master_share", "drift_from", "drift_um",
+              "first_index")
 FAULT_KINDS = ("timeout", "disconnect", "drop", "black", "saturated")
 REFERENCE_EXPOSURE_US = 10_000.0  # the config's exposure_photons are the photons of this exposure
 DEFAULT_EXPOSURE_US = 5_000.0  # half the reference: sub-image peaks stay below full well even at low rpp
@@ -230,9 +237,15 @@ class MockCamera(Camera):
             cols, rows = p.grid("wafer", (1, 1))
             types = tuple(t.strip() for t in parsed.param("defect_types", "pitch,decenter,radius").split(",") if t.strip())
             try:
+                production = Production(
+                    master_lens=_lens(parsed.param("master", "")),
+                    master_type=parsed.param("master_type", "pitch"), master_magnitude=p.number("master_size", 1.5),
+                    master_dir_deg=p.number("master_dir", 30.0), master_share=p.number("master_share", 0.8),
+                    drift_from=p.integer("drift_from", 0, minimum=0) or None, drift_um=p.number("drift_um", 0.0),
+                    first_index=p.integer("first_index", 1, minimum=1))
                 wafer = Wafer(cfg, cols=cols, rows=rows, pitch_mm=p.number("pitch_mm", None),
                               origin_mm=p.pair("origin_mm", (10.0, 10.0)), defects=p.integer("defects", 5, minimum=0),
-                              seed=seed, defect_types=types)
+                              seed=seed, defect_types=types, production=production)
             except InputError as exc:
                 raise InputError(f"camera URL {text!r}: {exc}") from None
         threads = p.integer("threads", 0, minimum=0)
@@ -635,6 +648,17 @@ class MockCamera(Camera):
 
 
 # --------------------------------------------------------------------------------------------- URL parsing
+
+
+def _lens(text: str) -> tuple[int, int] | None:
+    """A lens 'M,N' (row, column, 1-based) of a URL parameter; None for ''."""
+    if not text:
+        return None
+    try:
+        m, n = (int(v) for v in text.split(","))
+    except ValueError:
+        raise InputError(f"master={text!r} must name a lens as 'M,N' (row, column)") from None
+    return m, n
 
 
 def parse_faults(url: str, text: str) -> list[tuple[str, int | None, int]]:

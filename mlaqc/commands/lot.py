@@ -10,7 +10,7 @@ import math
 
 from mlaqc.resultsdb.store import default_target
 
-VIEWS = ("yield", "pareto", "map", "repeats", "chart", "history")
+VIEWS = ("yield", "pareto", "map", "repeats", "chart", "history", "report")
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -23,7 +23,8 @@ def register(sub: argparse._SubParsersAction) -> None:
                                    "and direction (a defect of the master, in every replica); `chart`: an individuals "
                                    "control chart of an array-level reading (--reading) with the Western Electric "
                                    "run rules, the arrays out of control named; `history`: every inspection of one "
-                                   "array (--array), with its config and station.")
+                                   "array (--array), with its config and station; `report`: all of them on one "
+                                   "HTML page with its plots (--out).")
     p.add_argument("view", choices=VIEWS, help="what to show")
     p.add_argument("--db", metavar="TARGET", help=f"the results database (default: $MLAQC_DB, else {default_target()})")
     p.add_argument("--lot", help="only this lot")
@@ -35,6 +36,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--baseline", type=int, default=20, metavar="N",
                    help="chart: its limits from the first N arrays (default 20)")
     p.add_argument("--rules", default="1,2,3,4,5", help="chart: the run rules judged (default all: 1,2,3,4,5)")
+    p.add_argument("--out", "-o", metavar="FILE.html", help="report: the page to write")
     p.add_argument("--json", action="store_true", help="print JSON instead of a table")
     p.set_defaults(func=run)
 
@@ -46,6 +48,8 @@ def run(args: argparse.Namespace) -> int:
 
     if args.view == "history" and not args.array:
         raise InputError("`mlaqc lot history` needs --array (the array's serial or position)")
+    if args.view == "report" and not args.out:
+        raise InputError("`mlaqc lot report` needs --out FILE.html")
     rules = _rules(args.rules)
     if args.baseline < 2:
         raise InputError(f"--baseline must be at least 2 arrays, got {args.baseline}")
@@ -75,8 +79,21 @@ def run(args: argparse.Namespace) -> int:
                     "arrays": chart.labels, "values": chart.values.tolist(),
                     "out_of_control": {chart.labels[i]: r for i, r in chart.signals.items()}}
             lines = [f"{args.reading}: {len(chart.values)} arrays, centre {chart.centre:.6g}, sigma {chart.sigma:.3g} "
-                     f"(from the first {chart.baseline}); {len(chart.signals)} out of control",
+                     f"(from the first {chart.baseline}{'; no spread: any change is out of control' if not chart.sigma else ''}); "
+                     f"{len(chart.signals)} out of control",
                      *chart.sentences()]
+        elif args.view == "report":
+            from pathlib import Path
+
+            from mlaqc.atomic import write_bytes_atomic
+            from mlaqc.resultsdb.lot_report import lot_report_html
+
+            out = Path(args.out)
+            if not out.parent.is_dir():
+                raise InputError(f"cannot write the lot report: folder {out.parent} does not exist")
+            write_bytes_atomic(out, lot_report_html(db, args.lot, args.wafer, baseline=args.baseline).encode())
+            print(f"lot report: {out}")
+            return 0
         else:
             data = views.history(db, args.array, args.lot, args.wafer)
             lines = _table(data, ("recorded_utc", "lot", "wafer", "array", "verdict", "flagged", "station",

@@ -12,7 +12,8 @@ every array after is judged by the Western Electric run rules:
 4. eight in a row on one side of the centre line;
 plus the trend rule: six in a row steadily rising or falling (a creeping drift shows here first).
 
-Their price is false calls: with limits from 20 in-control arrays, the first comes after a median of 34
+A reading that did not vary over the baseline (a fixed value, a noise-free simulation) has no sigma: any
+change of it is out of control, and the run rules are not judged. Their price is false calls: with limits from 20 in-control arrays, the first comes after a median of 34
 arrays with every rule, 92 with rules 1 and 5 alone (`rules`), while a drift of a quarter sigma per array is
 called after a median of 6 arrays (every rule) or 8 (rules 1 and 5) (tests/test_control_charts.py measures
 both). A reading's own measured sigma (the assembly's) is not used: the chart's sigma is the arrays' spread.
@@ -58,8 +59,9 @@ class Chart:
         return min(self.signals) if self.signals else None
 
     def sentences(self) -> list[str]:
-        return [f"{self.labels[i]} out of control: value {self.values[i]:.6g} "
-                f"({(self.values[i] - self.centre) / self.sigma:+.1f} sigma); "
+        return [f"{self.labels[i]} out of control: value {self.values[i]:.6g} ("
+                + (f"{(self.values[i] - self.centre) / self.sigma:+.1f} sigma); " if self.sigma > 0
+                   else f"the baseline's was {self.centre:.6g} without spread); ")
                 + "; ".join(RULES[r] for r in rules) for i, rules in sorted(self.signals.items())]
 
 
@@ -72,8 +74,15 @@ def individuals_chart(values, labels=None, baseline: int = 20, rules=tuple(RULES
     centre = float(np.mean(base)) if base.size else math.nan
     mr = np.abs(np.diff(base))
     sigma = float(np.mean(mr)) / D2 if mr.size else math.nan
-    if not (math.isfinite(sigma) and sigma > 0):  # a constant baseline: any change is a signal of rule 1
-        sigma = max(abs(centre) * 1e-12, 1e-300)
+    if not (math.isfinite(sigma) and sigma > 0):
+        # a baseline without spread (a fixed value, a noise-free simulation): no run rule can be judged;
+        # any change at all is out of control (rule 1)
+        centre = float(base[0]) if base.size else math.nan
+        chart = Chart(x, labels, centre, 0.0, base.size)
+        for i in range(base.size, x.size):
+            if 1 in rules and not math.isclose(x[i], centre, rel_tol=1e-12, abs_tol=1e-300):
+                chart.signals[i] = [1]
+        return chart
     chart = Chart(x, labels, centre, sigma, base.size)
     z = (x - centre) / sigma
     for i in range(base.size, x.size):

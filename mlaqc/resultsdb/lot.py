@@ -15,7 +15,7 @@ from dataclasses import dataclass
 
 from mlaqc.resultsdb.store import ResultsDB
 
-DIRECTIONAL = ("pitch", "decenter", "tilt", "scratch")  # types whose reading has a direction
+DIRECTIONAL = ("pitch", "decenter", "position", "tilt", "scratch", "obscuration")  # types whose reading has a direction
 # a lens repeats when chance (every flag equally likely on every lens of every array, the lot's own rate)
 # explains its count with a probability under this, counted over all lenses of the array (Bonferroni)
 REPEAT_P = 1e-3
