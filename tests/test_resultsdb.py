@@ -4,7 +4,6 @@ views (yield, Pareto, repeating defects) against lots whose truth is seeded."""
 
 import json
 import math
-import os
 import sqlite3
 import subprocess
 import sys

@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import os
 import sqlite3
-import time
 from datetime import datetime, timezone
 from pathlib import Path
 from typing import Any
@@ -283,18 +282,14 @@ def _open_sqlite(path: str, create: bool) -> ResultsDB:
 
 
 def _wal(conn: sqlite3.Connection) -> None:
-    """Write-ahead logging: readers never block the writer (lot queries while stations record); kept
-    off where the file system cannot hold it (the default rollback journal then)."""
-    for attempt in range(3):
-        try:
-            conn.execute("PRAGMA journal_mode = WAL").fetchall()
-            return
-        except sqlite3.OperationalError as exc:
-            if "locked" not in str(exc).lower() or attempt == 2:
-                if "readonly" in str(exc).lower() or "read-only" in str(exc).lower():
-                    raise
-                return
-            time.sleep(0.1)
+    """Write-ahead logging: readers never block the writer (lot queries while stations record). Kept off
+    where it cannot be switched on (a file system without shared memory, another connection mid-change):
+    the default rollback journal is as safe, only slower to read beside a writer."""
+    try:
+        conn.execute("PRAGMA journal_mode = WAL").fetchall()
+    except sqlite3.OperationalError as exc:
+        if "readonly" in str(exc).lower() or "read-only" in str(exc).lower():
+            raise
 
 
 def _open_postgresql(url: str) -> ResultsDB:
