@@ -21,6 +21,7 @@ from PySide6.QtGui import QAction, QKeySequence
 from PySide6.QtWidgets import (QAbstractItemView, QApplication, QDockWidget, QFileDialog, QHeaderView, QLabel,
                                QMainWindow, QTableView, QVBoxLayout, QWidget)
 
+from gui.history import HistoryPanel
 from gui.panels import CameraPanel, InspectionPanel, ScanPanel, StagePanel
 from gui.widgets import (MONO, DefectSortProxy, DefectTableModel, ImagePanel, LensDetail, LogView, StatusDot,
                          VerdictBanner)
@@ -65,6 +66,7 @@ class MainWindow(QMainWindow):
     _inspect = Signal(int, object)
     _preview = Signal(int, str)
     _write_report = Signal(int, object, str, object)
+    _read_history = Signal(int, str)
     _save_frame = Signal(int, object, str, object)
     _scan = Signal(object)
     _describe_tf = Signal(int, object, object)
@@ -76,6 +78,7 @@ class MainWindow(QMainWindow):
     throughFocusChanged = Signal(object)  # the through-focus frames in use (a tuple of TfFrame; empty: none)
     scanFinished = Signal(str, str)
     reportWritten = Signal(object)
+    historyShown = Signal(object)
 
     def __init__(self, camera_url: str = DEFAULT_CAMERA_URL, stage_url: str = DEFAULT_STAGE_URL,
                  config_path: str | None = None, *, connect: bool = True) -> None:
@@ -104,6 +107,7 @@ class MainWindow(QMainWindow):
         self.token: CancelToken | None = None
         self.preview_job = 0
         self.io_job = 0
+        self._history_job = -1  # the io job reading the lot history (its failure is the history panel's)
         self.scan_control: ScanControl | None = None
         self.scan_plan: Any = None
         self.scan_plan_path: str | None = None
@@ -159,6 +163,7 @@ class MainWindow(QMainWindow):
         self.stage_panel = StagePanel(self.stage_url)
         self.inspection_panel = InspectionPanel()
         self.scan_panel = ScanPanel()
+        self.history_panel = HistoryPanel()
         self.lens_detail = LensDetail()
         self.log_view = LogView()
         self.table_model = DefectTableModel(self)
@@ -191,13 +196,15 @@ class MainWindow(QMainWindow):
                                          ("defects", "Flagged lenses", table_box, R),
                                          ("lens", "Lens detail", self.lens_detail, R),
                                          ("scan", "Scan", self.scan_panel, B),
+                                         ("history", "Lot history", self.history_panel, B),
                                          ("log", "Log", self.log_view, B)):
             dock = QDockWidget(title, self)
             dock.setObjectName(f"dock_{key}")
             dock.setWidget(widget)
             self.addDockWidget(area, dock)
             self.docks[key] = dock
-        self.tabifyDockWidget(self.docks["scan"], self.docks["log"])
+        self.tabifyDockWidget(self.docks["scan"], self.docks["history"])
+        self.tabifyDockWidget(self.docks["history"], self.docks["log"])
         self.docks["scan"].raise_()
         self.resizeDocks([self.docks["camera"], self.docks["inspection"]], [330, 470], Qt.Orientation.Horizontal)
         self.resizeDocks([self.docks["scan"]], [250], Qt.Orientation.Vertical)
@@ -245,6 +252,7 @@ class MainWindow(QMainWindow):
         cp.liveToggled.connect(self.set_live)
         cp.captureRequested.connect(self.capture_frame)
         cp.saveRequested.connect(self.browse_save_frame)
+        self.history_panel.refreshRequested.connect(self.read_history)
         sp.connection.connectRequested.connect(self.connect_stage)
         sp.connection.disconnectRequested.connect(self._stage_disconnect)
         sp.homeRequested.connect(self._stage_home)
@@ -312,6 +320,7 @@ class MainWindow(QMainWindow):
                           (self._ctl_stage, sc.setStage), (self._ctl_stop, sc.stop), (self._ctl_shutdown, sc.shutdown),
                           (self._inspect, iw.run), (self._preview, iw.preview),
                           (self._write_report, io.writeReport), (self._save_frame, io.saveFrame),
+                          (self._read_history, io.readHistory),
                           (self._scan, scw.run), (self._describe_tf, fw.describe), (self._load_tf_frame, fw.loadFrame)):
             sig.connect(slot, Q)
         # results (queued back to the GUI thread)
@@ -342,6 +351,7 @@ class MainWindow(QMainWindow):
         fw.frameReady.connect(self._tf_frame_ready, Q)
         fw.frameFailed.connect(self._tf_frame_failed, Q)
         io.reportWritten.connect(self._report_written, Q)
+        io.historyRead.connect(self._history_read, Q)
         io.frameSaved.connect(self._frame_saved, Q)
         io.failed.connect(self._io_failed, Q)
         io.busyChanged.connect(self._io_busy, Q)
@@ -896,8 +906,21 @@ class MainWindow(QMainWindow):
         self.reportWritten.emit(paths)
 
     def _io_failed(self, job: int, text: str) -> None:
-        self.inspection_panel.error.show_error(text)
+        if job == self._history_job:
+            self.history_panel.show_error(text)
+        else:
+            self.inspection_panel.error.show_error(text)
         self.log(text, "error")
+
+    def read_history(self, lot: str) -> None:
+        """Ask the io worker for a lot's arrays (the history panel shows them)."""
+        self.io_job += 1
+        self._history_job = self.io_job
+        self._read_history.emit(self.io_job, lot)
+
+    def _history_read(self, job: int, data: dict) -> None:
+        self.history_panel.show_history(data)
+        self.historyShown.emit(data)
 
     def _io_busy(self, busy: bool) -> None:
         self.io_busy = busy

@@ -1012,6 +1012,7 @@ class IoWorker(QObject):
     """Writes report sets and frames in the ``io`` thread; the app waits for it on close."""
 
     reportWritten = Signal(int, object)  # job, {key: path}
+    historyRead = Signal(int, object)  # job, gui.history.read_history's dict
     frameSaved = Signal(int, str)
     failed = Signal(int, str)
     busyChanged = Signal(bool)
@@ -1046,6 +1047,21 @@ class IoWorker(QObject):
                 db.record(json.loads(record), record_identity(), out_dir)
         except DatabaseError as exc:
             self.failed.emit(job, f"the report is written, but {exc}")
+
+    @Slot(int, str)
+    def readHistory(self, job: int, lot: str) -> None:
+        """A lot's arrays from the results database (gui.history.read_history)."""
+        from gui.history import read_history
+
+        self.busyChanged.emit(True)
+        try:
+            data = read_history(lot)
+        except Exception as exc:  # noqa: BLE001
+            self.failed.emit(job, one_sentence(exc))
+        else:
+            self.historyRead.emit(job, data)
+        finally:
+            self.busyChanged.emit(False)
 
     @Slot(int, object, str, object)
     def saveFrame(self, job: int, frame: Any, path: str, position_mm: Any) -> None:

@@ -467,3 +467,29 @@ def test_scan_panel_shows_every_label_whole_at_the_default_size(qtbot, window):
     panel.pause.setText("Continue")  # what a paused scan shows
     QApplication.processEvents()
     assert clipped_texts(panel) == []
+
+
+def test_lot_history_panel_reads_the_results_database(qtbot, tmp_path, monkeypatch):
+    """The history panel shows a lot's arrays, yield and repeating defects, read in the io worker; a database
+    that is not there is one sentence in the panel."""
+    from test_resultsdb import _seeded_lot
+
+    db = str(tmp_path / "lot.sqlite")
+    truth = _seeded_lot(db)
+    monkeypatch.setenv("MLAQC_DB", db)
+    w = open_window(qtbot)
+    try:
+        w.history_panel.lot.setText("L9")
+        with qtbot.waitSignal(w.historyShown, timeout=20_000):
+            qtbot.mouseClick(w.history_panel.refresh, Qt.MouseButton.LeftButton)
+        assert w.history_panel.table.rowCount() == 50
+        text = w.history_panel.summary.text()
+        assert f"L9: 50 arrays, {sum(truth['passed'].values())} pass" in text and "U(5,7) repeats: pitch" in text
+        verdicts = {w.history_panel.table.item(r, 2).text() for r in range(50)}
+        assert verdicts <= {"PASS", "FAIL"}
+        monkeypatch.setenv("MLAQC_DB", str(tmp_path / "none.sqlite"))
+        w.read_history("L9")
+        qtbot.waitUntil(lambda: "no results database" in w.history_panel.error.text(), timeout=20_000)
+        assert w.history_panel.refresh.isEnabled()
+    finally:
+        close_window(w)

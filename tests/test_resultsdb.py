@@ -395,3 +395,29 @@ def test_lot_chart_names_the_arrays_of_a_drift(target, capsys):
     assert data["centre"] == pytest.approx(20.0) and data["sigma"] == pytest.approx(sigma)
     assert main(["lot", "chart", "--db", target, "--reading", "nonsense"]) == 2
     assert main(["lot", "chart", "--db", target, "--rules", "7"]) == 2
+
+
+@pytest.mark.timeout(300)
+def test_a_batch_killed_then_run_again_records_every_frame_once(frames, tmp_path):
+    """`mlaqc inspect` on 8 frames killed (SIGKILL) once some are recorded, then run again: each frame
+    recorded exactly once, whole."""
+    import shutil
+
+    raws = []
+    for k in range(8):
+        raws.append(str(tmp_path / f"f{k}.tif"))
+        shutil.copy(frames["flawed" if k % 2 else "healthy"], raws[-1])
+    db_path = str(tmp_path / "r.sqlite")
+    cmd = [sys.executable, "-m", "mlaqc", "inspect", *raws, "-c", SMALL_TOML, "-o", str(tmp_path / "out"),
+           "--db", db_path, "--quiet"]
+    proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    deadline = time.monotonic() + 120
+    while time.monotonic() < deadline and _whole(db_path)[0] < 2 and proc.poll() is None:
+        time.sleep(0.02)
+    proc.kill()
+    proc.wait()
+    first, whole = _whole(db_path)
+    assert 1 <= first < 8 and whole == first  # killed part-way: what is there is whole
+    assert subprocess.run(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL).returncode == 1
+    assert _whole(db_path) == (8, 8)
+    assert _rows(db_path, "SELECT COUNT(DISTINCT source) FROM inspections") == [(8,)]
