@@ -27,7 +27,7 @@ def read_history(lot: str | None) -> dict[str, Any]:
 
     lot = lot or None
     with open_database(create=False) as db:
-        latest, params = views._selection(lot, None)
+        latest, params = views.latest_selection(lot, None)
         rows = db.query("SELECT wafer, COALESCE(array_id, position, source), verdict, flagged, out_of_tolerance, "
                         f"inspected_utc, station, report_dir FROM inspections WHERE id IN ({latest}) "
                         "ORDER BY wafer, inspected_utc, id", params)

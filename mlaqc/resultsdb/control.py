@@ -114,13 +114,13 @@ def lot_chart(db, reading: str, lot: str | None = None, wafer: str | None = None
               rules=tuple(RULES)) -> Chart:
     """The chart of one array-level reading over the selection's arrays, in the order they were inspected
     (each array by its latest inspection)."""
-    from mlaqc.resultsdb.lot import _selection
+    from mlaqc.resultsdb.lot import latest_selection
 
     if reading not in READINGS:
         from mlaqc.errors import InputError
 
         raise InputError(f"no chart of {reading!r}: the readings are {', '.join(READINGS)}")
-    latest, params = _selection(lot, wafer)
+    latest, params = latest_selection(lot, wafer)
     rows = db.query(f"SELECT {reading}, lot, wafer, COALESCE(array_id, position, source) FROM inspections "
                     f"WHERE id IN ({latest}) AND {reading} IS NOT NULL ORDER BY inspected_utc, recorded_utc, id", params)
     return individuals_chart([float(r[0]) for r in rows], [f"{r[1] or '-'}/{r[2] or '-'}/{r[3]}" for r in rows],

@@ -24,7 +24,7 @@ TYPE_SHARE = 0.75  # ... and one type holds at least this share of its flags
 DIRECTION_R = 0.7  # ... and, directional, their directions agree (mean resultant length at least this)
 
 
-def _selection(lot: str | None, wafer: str | None) -> tuple[str, tuple]:
+def latest_selection(lot: str | None, wafer: str | None) -> tuple[str, tuple]:
     """SQL condition and parameters of the latest inspection of every array of the selection."""
     cond, params = [], []
     if lot is not None:
@@ -41,7 +41,7 @@ def _selection(lot: str | None, wafer: str | None) -> tuple[str, tuple]:
 
 def yield_table(db: ResultsDB, lot: str | None = None, wafer: str | None = None) -> list[dict]:
     """Per lot and wafer: arrays inspected, passed, failed, and the yield."""
-    latest, params = _selection(lot, wafer)
+    latest, params = latest_selection(lot, wafer)
     rows = db.query(f"SELECT lot, wafer, COUNT(*), SUM(CASE WHEN verdict = 'PASS' THEN 1 ELSE 0 END) "
                     f"FROM inspections WHERE id IN ({latest}) GROUP BY lot, wafer ORDER BY lot, wafer", params)
     return [{"lot": r[0], "wafer": r[1], "arrays": int(r[2]), "passed": int(r[3] or 0),
@@ -52,7 +52,7 @@ def yield_table(db: ResultsDB, lot: str | None = None, wafer: str | None = None)
 def pareto(db: ResultsDB, lot: str | None = None, wafer: str | None = None) -> list[dict]:
     """Per defect type, most costly first: the arrays it failed (a flag out of tolerance), the lenses it
     flagged out of tolerance, and its share of all such lenses."""
-    latest, params = _selection(lot, wafer)
+    latest, params = latest_selection(lot, wafer)
     rows = db.query(f"SELECT error_type, COUNT(DISTINCT inspection_id), COUNT(*) FROM flagged_lenses "
                     f"WHERE within_tolerance = 0 AND inspection_id IN ({latest}) GROUP BY error_type", params)
     total = sum(int(r[2]) for r in rows)
@@ -63,7 +63,7 @@ def pareto(db: ResultsDB, lot: str | None = None, wafer: str | None = None) -> l
 
 def stacked_map(db: ResultsDB, lot: str | None = None, wafer: str | None = None) -> tuple[dict, int, tuple]:
     """({(m, n): arrays in which U(m,n) was flagged}, arrays in the selection, (rows, cols) of the largest)."""
-    latest, params = _selection(lot, wafer)
+    latest, params = latest_selection(lot, wafer)
     arrays = db.query(f"SELECT COUNT(*), MAX(lens_rows), MAX(lens_cols) FROM inspections WHERE id IN ({latest})",
                       params)[0]
     rows = db.query(f"SELECT m, n, COUNT(DISTINCT inspection_id) FROM flagged_lenses "
@@ -103,7 +103,7 @@ def repeating_defects(db: ResultsDB, lot: str | None = None, wafer: str | None =
     """The lenses flagged in more arrays than chance explains, with one consistent type (and direction)."""
     from scipy.stats import binom
 
-    latest, params = _selection(lot, wafer)
+    latest, params = latest_selection(lot, wafer)
     arrays, rows_max, cols_max = db.query(
         f"SELECT COUNT(*), MAX(lens_rows), MAX(lens_cols) FROM inspections WHERE id IN ({latest})", params)[0]
     arrays = int(arrays or 0)
