@@ -15,7 +15,7 @@ from PySide6.QtWidgets import (QHBoxLayout, QHeaderView, QLabel, QLineEdit, QPus
 
 from gui.widgets import ErrorLabel
 
-COLUMNS = ("wafer", "array", "verdict", "flagged", "out of tol.", "inspected", "station", "report")
+COLUMNS = ("wafer", "array", "verdict", "flagged", "out of tol.", "inspected", "station", "report")  # lot.ARRAY_COLUMNS
 VERDICT_COLOURS = {"PASS": "#1a7f37", "FAIL": "#cf222e"}
 
 
@@ -27,11 +27,7 @@ def read_history(lot: str | None) -> dict[str, Any]:
 
     lot = lot or None
     with open_database(create=False) as db:
-        latest, params = views.latest_selection(lot, None)
-        rows = db.query("SELECT wafer, COALESCE(array_id, position, source), verdict, flagged, out_of_tolerance, "
-                        f"inspected_utc, station, report_dir FROM inspections WHERE id IN ({latest}) "
-                        "ORDER BY wafer, inspected_utc, id", params)
-        return {"lot": lot, "where": db.where, "rows": [list(r) for r in rows],
+        return {"lot": lot, "where": db.where, "rows": [list(r) for r in views.arrays(db, lot)],
                 "yield": views.yield_table(db, lot),
                 "repeats": [d.sentence() for d in views.repeating_defects(db, lot)]}
 

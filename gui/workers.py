@@ -1040,11 +1040,11 @@ class IoWorker(QObject):
     def _record(self, job: int, record: bytes, out_dir: str) -> None:
         import json
 
-        from mlaqc.resultsdb import DatabaseError, open_database, record_identity
+        from mlaqc.resultsdb import DatabaseError, Identity, open_database
 
         try:
             with open_database() as db:
-                db.record(json.loads(record), record_identity(), out_dir)
+                db.record(json.loads(record), Identity.here(), out_dir)
         except DatabaseError as exc:
             self.failed.emit(job, f"the report is written, but {exc}")
 

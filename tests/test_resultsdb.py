@@ -72,7 +72,7 @@ def _rows(target, sql, params=()):
         return db.query(sql, params)
 
 
-def _inspect(args, capsys=None) -> int:
+def _inspect(args) -> int:
     return main(["inspect", *args, "-c", SMALL_TOML, "--quiet"])
 
 
@@ -190,12 +190,12 @@ def test_a_locked_database_is_said_after_waiting(tmp_path, monkeypatch):
         assert "locked" in str(exc)
     else:
         with db, pytest.raises(DatabaseError, match="locked by another writer"):
-            db.record_report(_report(), Identity(lot="L"))
+            db.record(record_from_report(_report()), Identity(lot="L"))
     finally:
         holder.rollback()
         holder.close()
     with open_database(path) as db:  # free again: recorded
-        db.record_report(_report(), Identity(lot="L"))
+        db.record(record_from_report(_report()), Identity(lot="L"))
         assert db.query("SELECT COUNT(*) FROM inspections") == [(1,)]
 
 
@@ -210,7 +210,7 @@ def test_a_read_only_database_is_said(tmp_path, monkeypatch):
     monkeypatch.setattr(store.sqlite3, "connect", read_only)
     db = open_database(path, create=False)
     with db, pytest.raises(DatabaseError, match="read-only"):
-        db.record_report(_report(), Identity(lot="L"))
+        db.record(record_from_report(_report()), Identity(lot="L"))
 
 
 WRITER = textwrap.dedent("""

@@ -91,14 +91,18 @@ def run(args: argparse.Namespace) -> int:
             out = Path(args.out)
             if not out.parent.is_dir():
                 raise InputError(f"cannot write the lot report: folder {out.parent} does not exist")
-            write_bytes_atomic(out, lot_report_html(db, args.lot, args.wafer, baseline=args.baseline).encode())
+            page = lot_report_html(db, args.lot, args.wafer, baseline=args.baseline).encode()
+            try:
+                write_bytes_atomic(out, page)
+            except OSError as exc:
+                raise InputError(f"cannot write the lot report {out}: {(exc.strerror or str(exc)).rstrip('.')}") from exc
             print(f"lot report: {out}")
             return 0
         else:
             data = views.history(db, args.array, args.lot, args.wafer)
             lines = _table(data, ("recorded_utc", "lot", "wafer", "array", "verdict", "flagged", "station",
                                   "operator", "software_version", "config_hash", "report_dir"))
-    print(json.dumps(data, indent=1, default=_plain) if args.json else "\n".join(lines))
+    print(json.dumps(data, indent=1, default=str) if args.json else "\n".join(lines))
     return 0
 
 
@@ -113,10 +117,6 @@ def _rules(text: str) -> tuple[int, ...]:
     if not rules or any(r not in RULES for r in rules):
         raise InputError(f"--rules must list run rules among {', '.join(map(str, RULES))} (e.g. 1,5), got {text!r}")
     return rules
-
-
-def _plain(v):
-    return None if isinstance(v, float) and not math.isfinite(v) else str(v)
 
 
 def _cell(v) -> str:

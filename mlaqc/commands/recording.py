@@ -6,6 +6,8 @@ command ends with exit status 4 (mlaqc.resultsdb.DatabaseError) where it would h
 from __future__ import annotations
 
 import argparse
+import dataclasses
+import json
 import sys
 
 from mlaqc.resultsdb.record import Identity
@@ -29,8 +31,6 @@ def add_db_options(p: argparse.ArgumentParser, array: bool = True) -> None:
 def render_with_record(result, config_dict: dict | None) -> dict:
     """A frame's report set in memory (mlaqc.report.render_report) plus "record": what the results database
     keeps of it (JSON bytes, small: it travels back from a Dask worker with the files)."""
-    import json
-
     from mlaqc.report import render_report
     from mlaqc.resultsdb.record import record_from_report
 
@@ -90,9 +90,6 @@ class Recorder:
         """Record one frame (`record`: the report's compact record, as report rendering makes it)."""
         if self.db is None or record is None:
             return
-        import dataclasses
-        import json
-
         rec = json.loads(record) if isinstance(record, (bytes, str)) else record
         identity = dataclasses.replace(self.base, position=position) if position else self.base
         try:

@@ -22,7 +22,7 @@ import numpy as np
 from mlaqc.inspection.filters import max_filter_nearest
 from mlaqc.inspection.lens_classes import ring_distance
 from mlaqc.inspection.metrics_kernels import median_baselines
-from mlaqc.inspection.phase_pattern import middles
+from mlaqc.inspection.medians import last_axis_medians, middles
 from mlaqc.parallel import thread_map
 
 
@@ -114,7 +114,7 @@ def _hex_edge_columns(stack: np.ndarray, finite: np.ndarray, base: np.ndarray, s
             corner = (r == 0) | (r == rows - 1)
             # a corner lens (outermost along its row too) is no sample of the column's population
             use = finite[:, r, col][:, idx] & ~(corner[idx] & ~corner[:, None])[None]
-            med, ok = _nan_medians(np.where(use, vals, np.nan))
+            med, ok = last_axis_medians(np.where(use, vals, np.nan))
             write = ok & (~corner[None, :] | x_planes[:, None])
             base[:, r, col] = np.where(write, med, base[:, r, col])
 
@@ -176,7 +176,7 @@ def _refine_baselines(stack: np.ndarray, finite: np.ndarray, base: np.ndarray, s
         if same:
             med, ok = _kept_medians(stack.reshape(n_f, -1), ii * cols + jj, drop[0])
         else:
-            med, ok = _nan_medians(np.where(drop, np.nan, stack[:, ii, jj]))
+            med, ok = last_axis_medians(np.where(drop, np.nan, stack[:, ii, jj]))
         base[:, m, n] = np.where(ok, med, base[:, m, n])
     if not edges:
         return
@@ -192,7 +192,7 @@ def _refine_baselines(stack: np.ndarray, finite: np.ndarray, base: np.ndarray, s
             continue
         q = np.flatnonzero(np.convolve(~line_ok.all(axis=0), np.ones(size), mode="same") > 0)
         idx = np.clip(q[:, None] + np.arange(-half, half + 1)[None, :], 0, line_ok.shape[1] - 1)
-        med, ok = _nan_medians(np.where(line_ok[:, idx], stack[(slice(None),) + sl][:, idx], np.nan))
+        med, ok = last_axis_medians(np.where(line_ok[:, idx], stack[(slice(None),) + sl][:, idx], np.nan))
         line = base[(slice(None),) + sl]  # (a view: written through)
         ends = (q == 0) | (q == line_ok.shape[1] - 1)  # the corners: only where this line wins them
         write = ok & (~ends[None, :] | corner_wins[:, None])
@@ -200,7 +200,7 @@ def _refine_baselines(stack: np.ndarray, finite: np.ndarray, base: np.ndarray, s
 
 
 def _kept_medians(flat: np.ndarray, idx: np.ndarray, drop: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """`_nan_medians` of flat[:, idx] (F, N, K) with the values where `drop` (N, K) left out, the same
+    """`last_axis_medians` of flat[:, idx] (F, N, K) with the values where `drop` (N, K) left out, the same
     lenses in every map: per count of values kept, one gather of those alone and its two middle ranks
     (`middles`: no NaN to sort; the same order statistics, so the same medians bit for bit)."""
     k = (~drop).sum(axis=1)
@@ -212,18 +212,6 @@ def _kept_medians(flat: np.ndarray, idx: np.ndarray, drop: np.ndarray) -> tuple[
             sel = np.flatnonzero(k == kk)
             med[:, sel] = middles(flat[:, kept[sel, :kk]], (kk - 1) // 2, kk // 2)
     return med, np.broadcast_to(k > 0, med.shape)
-
-
-def _nan_medians(vals: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Median over the last axis of the finite values of `vals` (…, K), and where there was any: one sort
-    (NaN sorts last), two order statistics (np.nanmedian goes through masked arrays, ten times slower)."""
-    k = np.isfinite(vals).sum(axis=-1)
-    s = np.sort(vals, axis=-1)
-    lo = np.maximum((k - 1) // 2, 0)[..., None]
-    hi = np.maximum(k // 2, 0)[..., None]
-    hi = np.minimum(hi, vals.shape[-1] - 1)
-    med = 0.5 * (np.take_along_axis(s, lo, -1) + np.take_along_axis(s, hi, -1))[..., 0]
-    return med, k > 0
 
 
 def _scipy_baseline(fill: np.ndarray, size: int, axis: str) -> np.ndarray:

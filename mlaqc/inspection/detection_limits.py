@@ -17,7 +17,8 @@ from __future__ import annotations
 import numpy as np
 
 from mlaqc.inspection.identify import (_DETECTING, FEATURES, FOCUS_KINDS, LIMIT_MARGIN, Noise, _detector_values,
-                                       _focus_templates, _kind_curve, _nan_medians, min_reportable)
+                                       _focus_templates, _kind_curve, min_reportable)
+from mlaqc.inspection.medians import nanmedian_columns
 from mlaqc.inspection.lens_classes import corner_lenses, noise_classes, ring_distance
 from mlaqc.models.signatures import SignatureTable
 from mlaqc.optics.config import QC
@@ -41,7 +42,7 @@ def detection_limits(table: SignatureTable, qc: QC, noise: Noise, judged: np.nda
     judged = ~corner_lenses(shape) if judged is None else judged
     inner = ~zone & judged
     inner = inner if inner.any() else judged if judged.any() else np.ones(shape, bool)
-    at_median = _limits_at(table, qc, noise, _nan_medians(noise.sigma[inner])[None])
+    at_median = _limits_at(table, qc, noise, nanmedian_columns(noise.sigma[inner])[None])
     limits: dict = {k: v[0] for k, v in at_median.items()}
     border = zone & judged
     if border.any() and (~zone).any():

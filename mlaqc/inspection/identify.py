@@ -66,7 +66,8 @@ from mlaqc.inspection.filters import (
 )
 from mlaqc.inspection.lens_classes import (SECOND_RING_MIN, corner_lenses, edge_classes, edge_groups, hex_row_ends,
                                            noise_classes, second_ring)
-from mlaqc.inspection.phase_pattern import (PhaseModel, _column_medians, _phase_skips, finite_median, phase_model,
+from mlaqc.inspection.medians import column_medians, finite_median, nanmedian_columns
+from mlaqc.inspection.phase_pattern import (PhaseModel, _phase_skips, phase_model,
                                             remove_phase_pattern, remove_phase_trend)
 from mlaqc.inspection.results import Defect, LensMetrics
 from mlaqc.models.position_split import (PositionSplit, contrast_spread, neighbour_contrast, split_limits,
@@ -142,14 +143,14 @@ def _raise_to_own(out: np.ndarray, group: np.ndarray, values: np.ndarray, spread
 
 def _column_robust_sigmas(a: np.ndarray) -> np.ndarray:
     """`robust_sigma` of every column of a (n, J) over its finite values (NaN for a column with none)."""
-    return 1.4826 * _column_medians(np.abs(a - _column_medians(a)))
+    return 1.4826 * column_medians(np.abs(a - column_medians(a)))
 
 
 def _column_tail_sigmas(a: np.ndarray, floor: float | np.ndarray = 0.0) -> np.ndarray:
     """`tail_sigma` of every column of a (n, J) at once (one sort); the outliers left out of the tail are
     those beyond TAIL_OUTLIER times the larger of the robust sigma and `floor` (per column)."""
     k = np.isfinite(a).sum(axis=0)
-    dev = np.abs(a - _column_medians(a))
+    dev = np.abs(a - column_medians(a))
     s = np.sort(np.ascontiguousarray(np.where(np.isfinite(dev), dev, np.inf).T), axis=1).T
     cols = np.arange(a.shape[1])
 
@@ -247,7 +248,7 @@ def ring_noise(metrics: LensMetrics, phase: PhaseModel | None = None, floor: np.
     for c in range(3):
         sel = (cls == c) & finite
         if sel.any():
-            dev[sel] -= _column_medians(dev[sel])  # (np.median's, finite values)
+            dev[sel] -= column_medians(dev[sel])  # (np.median's, finite values)
     inner = (cls == 2) & finite
     quiet = _quiet_inner(inner, exclude, 4 * len(RINGS) + 1)  # enough for a covariance, the defects left out
     flat = dev[quiet] if quiet is not inner or inner.sum() > 8 * len(RINGS) else dev[finite]
@@ -289,7 +290,7 @@ def focus_score(rings: RingNoise, table: SignatureTable) -> np.ndarray:
     # each edge class' filter outputs scaled to the inner lenses' spread where wider (as the rings are):
     # what matters is the spread along each signature, which the rings' own scaling does not bound
     cls = noise_classes(z.shape[:2])
-    inner = np.maximum(_column_medians(np.abs(z[cls == 2])) * 1.4826, 1e-9) if (cls == 2).sum() > 20 else None
+    inner = np.maximum(column_medians(np.abs(z[cls == 2])) * 1.4826, 1e-9) if (cls == 2).sum() > 20 else None
     for c in (0, 1, 3):
         sel = cls == c
         if inner is not None and sel.sum() > 20:
@@ -599,16 +600,8 @@ def _strength(detect_dev: dict[str, np.ndarray], noise: Noise, score: np.ndarray
     inner = edge_classes(score.shape) == 2
     if not inner.any():
         return score
-    sigma = np.broadcast_to(_nan_medians(noise.sigma[inner]), noise.sigma.shape)
+    sigma = np.broadcast_to(nanmedian_columns(noise.sigma[inner]), noise.sigma.shape)
     return np.maximum(score, detection_score(detect_dev, Noise(sigma, noise.rings)))
-
-
-def _nan_medians(a: np.ndarray) -> np.ndarray:
-    """np.nanmedian(a, axis=0) of a (n, J), by `_column_medians` where every value is finite and n is
-    large enough for NumPy's own to take each column's median alone (the same values, to the bit)."""
-    if len(a) < 600 or not np.isfinite(a).all():  # (np.nanmedian: masked arrays below 600, or NaN/inf)
-        return np.nanmedian(a, axis=0)
-    return _column_medians(a)
 
 
 def _local_planes(metrics: LensMetrics, position, phase: PhaseModel | None, packing: str = "square",
@@ -751,7 +744,7 @@ def class_centred(planes: list[np.ndarray], packing: str = "square") -> list[np.
         for c in range(4):
             sel = (cls == c) & finite[0]
             if sel.any():
-                stack[:, sel] -= _column_medians(stack[:, sel].T)[:, None]  # (np.median's, finite values)
+                stack[:, sel] -= column_medians(stack[:, sel].T)[:, None]  # (np.median's, finite values)
         return list(stack)
     out = []
     for q in stack:

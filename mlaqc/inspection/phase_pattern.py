@@ -18,6 +18,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from mlaqc.inspection.lens_classes import _groups
+from mlaqc.inspection.medians import column_medians
 
 
 def phase_basis(phase_x: np.ndarray, phase_y: np.ndarray, harmonics: int = 2) -> np.ndarray:
@@ -149,35 +150,7 @@ def _phase_fit(y: np.ndarray, basis: np.ndarray, full: np.ndarray, skip: np.ndar
         resid = y - basis @ coef.T
         if step == 0:  # every column's robust sigma at once (from at most ~2,000 lenses: enough for a 4-sigma cut)
             sample = (resid if skip is None else np.where(fit, resid, np.nan))[:: max(1, len(resid) // 2000)]
-            mad = _column_medians(np.abs(sample - _column_medians(sample)))
+            mad = column_medians(np.abs(sample - column_medians(sample)))
             with np.errstate(invalid="ignore"):
                 keep = fit & (np.abs(resid) <= 4 * np.maximum(1.4826 * mad, 1e-9))
     return resid
-
-
-def _column_medians(a: np.ndarray) -> np.ndarray:
-    """Median of each column of a (n, J) over its finite values (NaN for a column with none): one sort,
-    where np.nanmedian along an axis goes through masked arrays and costs ten times more."""
-    k = np.isfinite(a).sum(axis=0)
-    lo, hi = np.maximum((k - 1) // 2, 0), np.maximum(k // 2, 0)
-    filled = np.ascontiguousarray(np.where(np.isfinite(a), a, np.inf).T)  # each column contiguous
-    if (k == k[0]).all() and k[0] > 0:  # the usual case: two order statistics, not a sort
-        return middles(filled, int(lo[0]), int(hi[0]))
-    s = np.sort(filled, axis=1).T
-    cols = np.arange(a.shape[1])
-    with np.errstate(invalid="ignore"):
-        return np.where(k > 0, 0.5 * (s[lo, cols] + s[np.minimum(hi, len(s) - 1), cols]), np.nan)
-
-
-def middles(a: np.ndarray, lo: int, hi: int) -> np.ndarray:
-    """0.5 (rank lo + rank hi) along the last axis of `a`, as np.median takes the mean of its two middle
-    values: one partition at rank hi, rank lo the largest value before it (a partition at both ranks at
-    once cost NumPy three to eight times more on even counts)."""
-    s = np.partition(a, hi, axis=-1)
-    below = s[..., hi] if lo == hi else s[..., :hi].max(axis=-1)
-    return 0.5 * (below + s[..., hi])
-
-
-def finite_median(d: np.ndarray) -> float:
-    """np.median of a non-empty 1-D array of finite values, to the bit (`middles`)."""
-    return float(middles(d, (d.size - 1) // 2, d.size // 2))

@@ -11,6 +11,7 @@ Modules: `schema` (tables, versions, migrations), `store` (opening a database, r
 views: yield, Pareto, stacked defect map, repeating defects).
 """
 
-from mlaqc.resultsdb.store import DatabaseError, ResultsDB, default_target, open_database, record_identity
+from mlaqc.resultsdb.record import Identity
+from mlaqc.resultsdb.store import DatabaseError, ResultsDB, default_target, open_database
 
-__all__ = ["DatabaseError", "ResultsDB", "default_target", "open_database", "record_identity"]
+__all__ = ["DatabaseError", "Identity", "ResultsDB", "default_target", "open_database"]

@@ -64,11 +64,29 @@ def pareto(db: ResultsDB, lot: str | None = None, wafer: str | None = None) -> l
 def stacked_map(db: ResultsDB, lot: str | None = None, wafer: str | None = None) -> tuple[dict, int, tuple]:
     """({(m, n): arrays in which U(m,n) was flagged}, arrays in the selection, (rows, cols) of the largest)."""
     latest, params = latest_selection(lot, wafer)
-    arrays = db.query(f"SELECT COUNT(*), MAX(lens_rows), MAX(lens_cols) FROM inspections WHERE id IN ({latest})",
-                      params)[0]
+    arrays, shape = _extent(db, latest, params)
     rows = db.query(f"SELECT m, n, COUNT(DISTINCT inspection_id) FROM flagged_lenses "
                     f"WHERE inspection_id IN ({latest}) GROUP BY m, n", params)
-    return {(int(m), int(n)): int(k) for m, n, k in rows}, int(arrays[0] or 0), (int(arrays[1] or 0), int(arrays[2] or 0))
+    return {(int(m), int(n)): int(k) for m, n, k in rows}, arrays, shape
+
+
+def _extent(db: ResultsDB, latest: str, params: tuple) -> tuple[int, tuple[int, int]]:
+    """(arrays in the selection, (rows, cols) of the largest)."""
+    arrays, rows, cols = db.query(f"SELECT COUNT(*), MAX(lens_rows), MAX(lens_cols) FROM inspections "
+                                  f"WHERE id IN ({latest})", params)[0]
+    return int(arrays or 0), (int(rows or 0), int(cols or 0))
+
+
+ARRAY_COLUMNS = ("wafer", "array", "verdict", "flagged", "out_of_tolerance", "inspected_utc", "station", "report_dir")
+
+
+def arrays(db: ResultsDB, lot: str | None = None, wafer: str | None = None) -> list[tuple]:
+    """Every array of the selection by its latest inspection, in wafer and inspection order: tuples of
+    ARRAY_COLUMNS (the array named by its serial, else its position label, else its raw)."""
+    latest, params = latest_selection(lot, wafer)
+    return db.query("SELECT wafer, COALESCE(array_id, position, source), verdict, flagged, out_of_tolerance, "
+                    f"inspected_utc, station, report_dir FROM inspections WHERE id IN ({latest}) "
+                    "ORDER BY wafer, inspected_utc, id", params)
 
 
 @dataclass(frozen=True)
@@ -104,10 +122,8 @@ def repeating_defects(db: ResultsDB, lot: str | None = None, wafer: str | None =
     from scipy.stats import binom
 
     latest, params = latest_selection(lot, wafer)
-    arrays, rows_max, cols_max = db.query(
-        f"SELECT COUNT(*), MAX(lens_rows), MAX(lens_cols) FROM inspections WHERE id IN ({latest})", params)[0]
-    arrays = int(arrays or 0)
-    lenses = int(rows_max or 0) * int(cols_max or 0)
+    arrays, (rows, cols) = _extent(db, latest, params)
+    lenses = rows * cols
     if arrays < REPEAT_MIN_ARRAYS or not lenses:
         return []
     flags = db.query(f"SELECT m, n, inspection_id, error_type, direction_deg, magnitude, unit FROM flagged_lenses "

@@ -170,11 +170,8 @@ def lot_report_html(db: ResultsDB, lot: str | None = None, wafer: str | None = N
     pareto = views.pareto(db, lot, wafer)
     repeats = views.repeating_defects(db, lot, wafer)
     counts, arrays, shape = views.stacked_map(db, lot, wafer)
-    latest, params = views.latest_selection(lot, wafer)
-    rows = db.query(f"SELECT wafer, COALESCE(array_id, position, source), verdict FROM inspections "
-                    f"WHERE id IN ({latest}) ORDER BY wafer, id", params)
     by_wafer: dict[str, list] = {}
-    for w, label, verdict in rows:
+    for w, label, verdict, *_ in views.arrays(db, lot, wafer):
         by_wafer.setdefault(w or "-", []).append((label, verdict))
     total = sum(y["arrays"] for y in yields)
     passed = sum(y["passed"] for y in yields)

@@ -7,6 +7,7 @@ cannot be recorded still writes its report folder (the caller goes on; see mlaqc
 
 from __future__ import annotations
 
+import contextlib
 import os
 import sqlite3
 from datetime import datetime, timezone
@@ -14,7 +15,7 @@ from pathlib import Path
 from typing import Any
 
 from mlaqc.errors import MlaqcError
-from mlaqc.resultsdb.record import DEFECT_COLUMNS, Identity, record_from_report, run_key
+from mlaqc.resultsdb.record import DEFECT_COLUMNS, Identity, run_key
 from mlaqc.resultsdb.schema import SCHEMA_VERSION, statements
 
 BUSY_TIMEOUT_S = 30.0  # a writer waits this long for another station's transaction before giving up
@@ -33,11 +34,6 @@ def default_target() -> str:
         return os.environ["MLAQC_DB"]
     base = os.environ.get("XDG_DATA_HOME") or os.path.join(os.path.expanduser("~"), ".local", "share")
     return os.path.join(base, "mlaqc", "results.sqlite")
-
-
-def record_identity(lot=None, wafer=None, array=None, position=None) -> Identity:
-    """The identity of an inspection run on this machine (station and operator filled in)."""
-    return Identity.here(lot, wafer, array, position)
 
 
 def _is_url(target: str) -> bool:
@@ -101,9 +97,6 @@ class ResultsDB:
                                 [(ident, *row) for row in record["defects"]])
         return int(ident)
 
-    def record_report(self, report: dict, identity: Identity, report_dir: str | None = None) -> int:
-        return self.record(record_from_report(report), identity, report_dir)
-
     # ------------------------------------------------------------------------------------ reading
 
     def query(self, sql: str, params: tuple = ()) -> list[tuple]:
@@ -117,8 +110,24 @@ class ResultsDB:
         except Exception as exc:  # noqa: BLE001 - every driver error becomes one sentence
             raise _sentence(exc, self.where, "read") from exc
 
+    @contextlib.contextmanager
     def _transaction(self):
-        return _Transaction(self)
+        """One write transaction: BEGIN IMMEDIATE on SQLite (the write lock up front, waiting for another
+        writer up to BUSY_TIMEOUT_S), committed on success, rolled back on any error or interruption."""
+        try:
+            cur = self.conn.cursor()
+            if self.dialect == "sqlite":
+                cur.execute("BEGIN IMMEDIATE")
+        except Exception as exc:  # noqa: BLE001
+            raise _sentence(exc, self.where, "write") from exc
+        try:
+            yield cur
+            self.conn.commit()
+        except BaseException as exc:
+            _rollback(self.conn)
+            if isinstance(exc, DatabaseError) or not isinstance(exc, Exception):
+                raise
+            raise _sentence(exc, self.where, "write") from exc
 
     # ------------------------------------------------------------------------------------ schema
 
@@ -144,8 +153,7 @@ class ResultsDB:
                     cur.execute("SELECT pg_advisory_xact_lock(7120113)")
                 version = self.schema_version_in(cur)
                 if version is not None and version > SCHEMA_VERSION:
-                    raise DatabaseError(f"the results database {self.where} has schema version {version}, newer "
-                                        f"than this mlaqc knows ({SCHEMA_VERSION}): update mlaqc to write to it")
+                    raise _newer(self.where, version, "write to")
                 if version == SCHEMA_VERSION:
                     return
                 for statement in statements((version or 0) + 1, self.dialect):
@@ -168,43 +176,22 @@ class ResultsDB:
         return int(row[0]) if row and row[0] is not None else None
 
 
-class _Transaction:
-    """One write transaction: BEGIN IMMEDIATE on SQLite (the write lock up front, waiting for another
-    writer up to BUSY_TIMEOUT_S), committed on success, rolled back on any error or interruption."""
-
-    def __init__(self, db: ResultsDB) -> None:
-        self.db = db
-
-    def __enter__(self):
-        try:
-            cur = self.db.conn.cursor()
-            if self.db.dialect == "sqlite":
-                cur.execute("BEGIN IMMEDIATE")
-            self.cur = cur
-            return cur
-        except Exception as exc:  # noqa: BLE001
-            raise _sentence(exc, self.db.where, "write") from exc
-
-    def __exit__(self, kind, exc, tb) -> bool:
-        conn = self.db.conn
-        if kind is None:
-            try:
-                conn.commit()
-                return False
-            except Exception as err:  # noqa: BLE001
-                _rollback(conn)
-                raise _sentence(err, self.db.where, "write") from err
-        _rollback(conn)
-        if isinstance(exc, (DatabaseError, KeyboardInterrupt, SystemExit)) or not isinstance(exc, Exception):
-            return False
-        raise _sentence(exc, self.db.where, "write") from exc
-
-
 def _rollback(conn) -> None:
     try:
         conn.rollback()
     except Exception:  # noqa: BLE001 - the connection is gone: nothing was committed
         pass
+
+
+def _newer(where: str, version: int, doing: str) -> DatabaseError:
+    return DatabaseError(f"the results database {where} has schema version {version}, newer than this mlaqc "
+                         f"knows ({SCHEMA_VERSION}): update mlaqc to {doing} it")
+
+
+def _first_line(exc: Exception) -> str:
+    """An exception's message as one line (its type's name when it has none)."""
+    text = str(exc).strip()
+    return text.splitlines()[0] if text else type(exc).__name__
 
 
 def _now() -> str:
@@ -215,7 +202,7 @@ def _sentence(exc: Exception, where: str, doing: str) -> DatabaseError:
     """A driver's error as one sentence a bench operator can act on."""
     if isinstance(exc, DatabaseError):
         return exc
-    text = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+    text = _first_line(exc)
     low = text.lower()
     if "locked" in low or "busy" in low:
         why = f"it stayed locked by another writer for {BUSY_TIMEOUT_S:.0f} s"
@@ -246,8 +233,7 @@ def open_database(target: str | None = None, *, create: bool = True) -> ResultsD
             if version is None:
                 raise DatabaseError(f"the results database {db.where} is empty: nothing has been recorded in it")
             if version > SCHEMA_VERSION:
-                raise DatabaseError(f"the results database {db.where} has schema version {version}, newer than "
-                                    f"this mlaqc knows ({SCHEMA_VERSION}): update mlaqc to read it")
+                raise _newer(db.where, version, "read")
     except BaseException:
         db.close()
         raise
@@ -302,6 +288,5 @@ def _open_postgresql(url: str) -> ResultsDB:
     try:
         conn = psycopg.connect(url, connect_timeout=CONNECT_TIMEOUT_S)
     except Exception as exc:  # noqa: BLE001
-        raise DatabaseError(f"cannot reach the results database {where}: "
-                            f"{str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__}") from exc
+        raise DatabaseError(f"cannot reach the results database {where}: {_first_line(exc)}") from exc
     return ResultsDB(conn, "postgresql", where)
