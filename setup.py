@@ -4,7 +4,9 @@
 machine's CPU, so the first `mlaqc inspect` after `pip install` compiles nothing. A build that fails (no C
 compiler, no Numba in the build environment) only warns: the package then compiles the kernels with
 Numba's JIT on first use, as before. An editable install also byte-compiles the sources, which
-PYTHONDONTWRITEBYTECODE would otherwise have every run recompile.
+PYTHONDONTWRITEBYTECODE would otherwise have every run recompile, and compiles the ray tracer's twelve
+variants into Numba's cache beside them (mlaqc.optics.tracer_variants, one process per core), so that no
+`mlaqc simulate` or `mlaqc demo` waits for a compile. MLAQC_AOT=0 skips both compiles.
 """
 
 from __future__ import annotations
@@ -57,6 +59,25 @@ class BuildKernels(build_ext):
                 os.replace(part, dst)
         for package in ("mlaqc", "drivers", "gui"):
             compileall.compile_dir(str(HERE / package), quiet=1)
+        if os.environ.get("MLAQC_AOT", "1") != "0":
+            self._compile_tracer()
+
+    def _compile_tracer(self) -> None:
+        """The tracer's variants into Numba's cache in the source tree (where the editable install runs them)."""
+        sys.path.insert(0, str(HERE))
+        try:
+            from mlaqc.optics.tracer_variants import compile_all
+
+            print("mlaqc: compiling the ray tracer's variants into Numba's cache ...", file=sys.stderr)
+            failed = [v.name for v, _, error in compile_all(log=lambda text: print(text, file=sys.stderr)) if error]
+            if failed:
+                print(f"mlaqc: WARNING: not compiled: {', '.join(failed)} (compiled on first use instead)",
+                      file=sys.stderr)
+        except Exception as exc:  # noqa: BLE001 - the JIT compiles on first use instead
+            print(f"mlaqc: WARNING: the ray tracer was not compiled at install ({type(exc).__name__}: {exc}); "
+                  "`mlaqc kernels` compiles it", file=sys.stderr)
+        finally:
+            sys.path.remove(str(HERE))
 
     def get_outputs(self) -> list[str]:
         built = getattr(self, "_built", [])

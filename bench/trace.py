@@ -12,7 +12,8 @@ peak memory on the default camera, for each engine and thread count; then the is
                                                             # in child processes taking turns
     python bench/trace.py --kernels --quick --against OLD --rounds 6   # the same for --kernels
     python bench/trace.py --images save ref.npz   # seeded frames of every array kind (both samplers), then
-    python bench/trace.py --images check ref.npz  # after a kernel change: are they bit-identical?
+    python bench/trace.py --images check ref.npz  # after a kernel change: are they bit-identical? (every
+                                                  # array kind, and every variant of the tracer's kernel)
 
 Wall-clock rates depend on what else runs on the machine; the CPU time per ray (single thread) does not
 much, so it is printed too: compare that between revisions on a shared machine.
@@ -209,10 +210,59 @@ def reference_frames(rays: int = 400_000) -> dict[str, np.ndarray]:
     return out
 
 
+# every combination of the tracer's options the test suite used before #40 (each was a kernel of its own; a
+# global rotation and a texture are run-time switches since): (per-lens tilts, a global MLA rotation, a
+# textured scene, lens boundaries, array)
+VARIANTS = (
+    (False, False, False, "grid", "square"), (False, True, False, "grid", "square"),
+    (False, False, True, "grid", "square"), (True, True, False, "grid", "square"),
+    (True, True, True, "grid", "square"), (False, True, True, "grid", "square"), (True, False, False, "grid", "square"),
+    (False, False, False, "sag-intersection", "square"), (True, True, False, "sag-intersection", "square"),
+    (True, False, False, "sag-intersection", "square"), (False, False, False, "grid", "hex"),
+    (False, False, False, "sag-intersection", "hex"), (True, True, False, "grid", "hex"),
+    (True, True, False, "sag-intersection", "hex"), (False, False, False, "grid", "hex-circle"),
+    (True, True, False, "grid", "hex-circle"), (True, True, False, "grid", "circle"),
+)
+
+
+def variant_camera(tilted: bool, rotated: bool, boundaries: str, mla: str):
+    """A 6 x 6-lens camera of one tracer variant, with random defects (tilts among them where `tilted`)."""
+    from mlaqc.optics.config import config_from_dict
+
+    packing = "hex" if mla.startswith("hex") else "square"
+    lenses = {"count_w": 6, "count_h": 6, "boundaries": boundaries, "packing": packing}
+    if mla.endswith("circle"):
+        lenses.update(aperture="circle", aperture_diameter_um=90.0)
+    cfg = config_from_dict({"mla": lenses, "sensor": {"width_px": 160, "height_px": 160}})
+    types = ("pitch", "decenter", "radius", "thickness") + (("tilt",) if tilted else ())
+    errors = random_defects(6, 6, 4, seed=5, packing=packing, types=types)
+    if tilted and not errors.has_tilt():
+        errors = errors.with_lens(2, 3, tilt_x_deg=2.0)
+    if rotated:
+        errors = errors.with_globals(mla_rotation_deg=0.4)
+    return cfg, errors
+
+
+def variant_frames(rays: int = 200_000) -> dict[str, np.ndarray]:
+    """Seeded frames (numba, one thread) of every tracer variant (VARIANTS), both samplers."""
+    from mlaqc.optics.scene import TextureScene
+
+    texture = TextureScene(np.random.default_rng(0).uniform(0.2, 1.0, (24, 24)))
+    out = {}
+    for tilted, rotated, textured, boundaries, mla in VARIANTS:
+        cfg, errors = variant_camera(tilted, rotated, boundaries, mla)
+        for sampler in ("sobol", "random"):
+            r = Renderer(cfg, errors, engine="numba", sampler=sampler)
+            key = f"variant {mla} {boundaries} tilt{int(tilted)} rot{int(rotated)} tex{int(textured)} {sampler}"
+            out[key.replace(" ", "_")] = r.render(texture if textured else WhiteScene(), rays=rays, seed=2,
+                                                  threads=1).photons
+    return out
+
+
 def images(mode: str, path: str) -> int:
     """--images save PATH: write the reference frames; --images check PATH: compare, frame by frame, bit
     for bit; exit status 1 if any differs."""
-    frames = reference_frames()
+    frames = {**reference_frames(), **variant_frames()}
     if mode == "save":
         np.savez_compressed(path, **frames)
         print(f"saved {len(frames)} frames to {path}")

@@ -28,7 +28,7 @@ COMMANDS = {
     "inspect": ("mlaqc.commands.inspect", "inspect raw images: defective lenses, type, size, PASS/FAIL"),
     "models": ("mlaqc.commands.models",
                "build (or rebuild) a camera's reference model, signature tables, through-focus model and assembly calibration"),
-    "kernels": ("mlaqc.commands.kernels", "compile the inspection kernels ahead of time for this machine (or check them)"),
+    "kernels": ("mlaqc.commands.kernels", "compile the inspection kernels and the ray tracer for this machine (or check them)"),
     "lot": ("mlaqc.commands.lot", "lot views of the results database: yield, Pareto, defect map, repeating defects"),
     "demo": ("mlaqc.commands.demo", "simulate an MLA with seeded defects, inspect it, report found vs seeded"),
     "capture": ("drivers.commands", "capture raw frames (or averages) from a camera with provenance sidecars"),

@@ -243,16 +243,16 @@ def _notice() -> None:
 
 @contextlib.contextmanager
 def compile_notice(what: str, after_s: float = 1.5):
-    """Around a JIT call that may compile (the tracer: one to two minutes per variant on first use, on 2
-    cores): if it has not returned after `after_s`, say once per process on stderr that `what` is being
-    compiled, and why it is slow only this once."""
+    """Around a JIT call that may compile (a tracer variant the install did not compile: 25-55 s on first
+    use, on 2 cores): if it has not returned after `after_s`, say once per process on stderr that `what` is
+    being compiled, and why it is slow only this once."""
     def say() -> None:
         with _LOCK:
             if what in _STATE["announced"]:
                 return
             _STATE["announced"].add(what)
-        print(f"mlaqc: compiling {what} once for this machine (a minute or two; kept in Numba's cache "
-              "for every later run) ...", file=sys.stderr, flush=True)
+        print(f"mlaqc: compiling {what} once for this machine (under a minute; kept in Numba's cache for every "
+              "later run; `mlaqc kernels` compiles all of it ahead) ...", file=sys.stderr, flush=True)
 
     timer = threading.Timer(after_s, say)
     timer.daemon = True
@@ -261,6 +261,12 @@ def compile_notice(what: str, after_s: float = 1.5):
         yield
     finally:
         timer.cancel()
+
+
+def announced(what: str) -> None:
+    """Treat `what` as announced: a process that compiles it on purpose (`mlaqc kernels`) says so itself."""
+    with _LOCK:
+        _STATE["announced"].add(what)
 
 
 def compile_seconds() -> float:

@@ -19,40 +19,21 @@ if "MLAQC_TEST_DB_DIR" not in os.environ:
     os.environ["MLAQC_DB"] = os.path.join(os.environ["MLAQC_TEST_DB_DIR"], "results.sqlite")
 
 # ------------------------------------------------------------------------------------ Numba warm-up
-# The tracer's kernel is compiled once per variant (which of its MLA-rotation, global-rotation and
-# texture arguments are None; the lens-boundary model): one to two minutes each on one core of a 2-core
-# host (60-120 s measured), most of a cold run's time (CI's fresh clone has no compiled code). cache=True
-# keeps each compiled variant in the package's __pycache__ (or $NUMBA_CACHE_DIR), where every process
-# finds it: pytest, xdist workers, the `mlaqc` subprocesses and the Dask workers of the cluster tests.
-# Before the first test, the variants the suite uses (and the inspection kernels) are compiled there by
-# one process per core at once. Warm (the usual local case), each job is a cache load: a second or two
-# in all. A variant not listed is compiled by the first test that needs it, as before. The warm-up runs
-# for whole folders (`pytest`, `pytest tests`), not for a run of named files or tests, which compiles
-# only what it uses; MLAQC_TEST_WARMUP=1 or 0 turns it on or off whatever the run.
+# The tracer's kernel has twelve compiled variants (mlaqc.optics.tracer_variants: lens boundaries x lattice x
+# per-lens tilts). `pip install -e .` compiles them all into Numba's cache (setup.py), in the package's
+# __pycache__ (or $NUMBA_CACHE_DIR), where every process finds them: pytest, xdist workers, the `mlaqc`
+# subprocesses and the Dask workers of the cluster tests. Before the first test, one process per core loads
+# each variant (and compiles the inspection kernels' JIT rest): a second or two in all when the install
+# compiled them, as on CI's fresh clone; after a kernel source is edited, the variants compile here, both
+# cores at once, rather than in the first tests that need them. The warm-up runs for whole folders
+# (`pytest`, `pytest tests`), not for a run of named files or tests, which compiles only what it uses;
+# MLAQC_TEST_WARMUP=1 or 0 turns it on or off whatever the run.
 
-# (per-lens tilt: MLA rotation array, global MLA rotation: camera rotation array, texture, boundaries
-#  [, MLA: 'hex', 'circle', 'hex-circle'])
-TRACER_VARIANTS = (
-    (False, False, False, "grid"),
-    (False, True, False, "grid"),
-    (False, False, True, "grid"),
-    (True, True, False, "grid"),
-    (True, True, True, "grid"),
-    (False, True, True, "grid"),
-    (True, False, False, "grid"),
-    (False, False, False, "sag-intersection"),
-    (True, True, False, "sag-intersection"),
-    (True, False, False, "sag-intersection"),  # the signature tables' patches (tilts, no global rotation)
-    # hex packing and circle apertures (#22): kernels of their own (the lattice and circle arguments)
-    (False, False, False, "grid", "hex"),
-    (False, False, False, "sag-intersection", "hex"),
-    (True, True, False, "grid", "hex"),
-    (True, True, False, "sag-intersection", "hex"),
-    (False, False, False, "grid", "hex-circle"),
-    (True, True, False, "grid", "hex-circle"),
-    (True, True, False, "grid", "circle"),
-)
-WARM_JOBS = ("inspection", *TRACER_VARIANTS)
+
+def _warm_jobs() -> tuple:
+    from mlaqc.optics.tracer_variants import VARIANTS
+
+    return ("inspection", *VARIANTS)
 
 
 def warm_job(job) -> tuple[float, str]:
@@ -62,34 +43,14 @@ def warm_job(job) -> tuple[float, str]:
         if job == "inspection":
             _inspect_analytic_frame()
         else:
-            _render_variant(*job)
+            from mlaqc.optics.tracer_variants import compile_variant
+
+            seconds, error = compile_variant(job)
+            if error:
+                return seconds, f"{job.name}: {error}"
     except Exception as exc:  # noqa: BLE001 - a failed warm-up only costs time: the tests will say what broke
         return time.perf_counter() - start, f"{job}: {type(exc).__name__}: {exc}"
     return time.perf_counter() - start, ""
-
-
-def _render_variant(tilted: bool, rotated: bool, texture: bool, boundaries: str, mla: str = "square") -> None:
-    """A few rays through a 2 x 2-lens camera with the tracer's kernel for that variant (`mla`: 'square',
-    'hex', 'circle' or 'hex-circle')."""
-    import numpy as np
-
-    from mlaqc.optics.config import config_from_dict
-    from mlaqc.optics.errormap import ErrorMap
-    from mlaqc.optics.render import Renderer
-    from mlaqc.optics.scene import TextureScene, WhiteScene
-
-    packing = "hex" if mla.startswith("hex") else "square"
-    lenses = {"count_w": 2, "count_h": 2, "boundaries": boundaries, "packing": packing}
-    if mla.endswith("circle"):
-        lenses.update(aperture="circle", aperture_diameter_um=90.0)
-    cfg = config_from_dict({"mla": lenses, "sensor": {"width_px": 48, "height_px": 48}})
-    errors = ErrorMap.zeros(2, 2, packing)
-    if tilted:
-        errors = errors.with_lens(1, 1, tilt_x_deg=0.5)
-    if rotated:
-        errors = errors.with_globals(mla_rotation_deg=0.3)
-    scene = TextureScene(np.ones((3, 3))) if texture else WhiteScene()
-    Renderer(cfg, errors, engine="numba").render(scene, rays=2_000, seed=0, threads=1)
 
 
 def _inspect_analytic_frame() -> None:
@@ -133,9 +94,10 @@ def _warm_numba(config) -> None:
     cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
     start = time.perf_counter()
     # spawn: fresh interpreters (no forked pytest or Qt state), which import this file as `conftest`
-    with ProcessPoolExecutor(max_workers=max(1, min(cores, len(WARM_JOBS))),
+    jobs = _warm_jobs()
+    with ProcessPoolExecutor(max_workers=max(1, min(cores, len(jobs))),
                              mp_context=multiprocessing.get_context("spawn")) as pool:
-        results = list(pool.map(warm_job, WARM_JOBS))
+        results = list(pool.map(warm_job, jobs))
     spent = time.perf_counter() - start
     out = config.get_terminal_writer()
     for _, error in results:

@@ -1,9 +1,10 @@
-"""`mlaqc kernels`: compile the inspection kernels ahead of time for this machine, or say whether they are.
+"""`mlaqc kernels`: compile the inspection kernels and the ray tracer for this machine, or say whether they are.
 
-`pip install` does this already (setup.py); the command is for an install that could not (no C compiler
-then, `--no-build-isolation` without Numba), a kernel source edited in a development checkout, or a
-package folder moved to a machine with another CPU. Without it those runs still work: Numba compiles the
-kernels on first use instead (about a minute once, then from its cache).
+`pip install -e .` does this already (setup.py); the command is for an install that could not (no C
+compiler then, `--no-build-isolation` without Numba, a non-editable install, whose tracer cache the build
+cannot place), a kernel source edited in a development checkout, or a package folder moved to a machine
+with another CPU. Without it those runs still work: Numba compiles what they use on first use instead
+(tens of seconds per kernel, said on screen, then from its cache).
 """
 
 from __future__ import annotations
@@ -18,16 +19,23 @@ from mlaqc.errors import InputError
 
 def register(sub: argparse._SubParsersAction) -> None:
     """Add the `kernels` subcommand."""
-    p = sub.add_parser("kernels", help="compile the inspection kernels ahead of time for this machine (or check them)",
+    p = sub.add_parser("kernels", help="compile the inspection kernels and the ray tracer for this machine (or check them)",
                        description="Compile the inspection kernels ahead of time (numba.pycc) into the package folder "
-                                   "(or the user's cache when that is read-only), for this CPU, so no command compiles "
-                                   "them. `pip install` does this already; run it after editing a kernel.")
+                                   "(or the user's cache when that is read-only), and the ray tracer's variants into "
+                                   "Numba's cache, for this CPU, so no command compiles them. `pip install -e .` does "
+                                   "this already; run it after editing a kernel.")
     p.add_argument("--check", action="store_true", help="only say whether the compiled kernels are current (exit 1 if not)")
     p.add_argument("--rebuild", action="store_true", help="compile even when the compiled kernels are current")
     p.set_defaults(func=run)
 
 
 def run(args: argparse.Namespace) -> int:
+    inspection = _inspection_kernels(args)
+    tracer = _tracer(args.check, args.rebuild)
+    return max(inspection, tracer)
+
+
+def _inspection_kernels(args: argparse.Namespace) -> int:
     from mlaqc import compiled
 
     current, why = compiled.aot_status()
@@ -50,3 +58,42 @@ def run(args: argparse.Namespace) -> int:
         raise InputError(f"could not compile the kernels ahead of time ({type(exc).__name__}: {exc}); "
                          "Numba compiles them on first use instead.") from exc
     return 0
+
+
+def _tracer(check: bool, rebuild: bool) -> int:
+    """The tracer's variants: which are in Numba's cache; compile the missing ones (all with `rebuild`)."""
+    from mlaqc.optics import raytrace_kernels
+    from mlaqc.optics.tracer_variants import VARIANTS, compile_all, is_ready
+
+    if not raytrace_kernels.AVAILABLE:
+        print("tracer: Numba is not installed (the NumPy engine traces instead)")
+        return 0 if check else 1
+    missing = [v for v in VARIANTS if not is_ready(v)]
+    if check or not (missing or rebuild):
+        names = "; ".join(v.name for v in missing)
+        print(f"tracer: {len(VARIANTS) - len(missing)} of {len(VARIANTS)} variants compiled"
+              + (f"; not: {names}" if missing else ""))
+        return 1 if missing else 0
+    todo = VARIANTS if rebuild else tuple(missing)
+    if rebuild:
+        _forget_tracer_cache()
+    print(f"tracer: compiling {len(todo)} variant(s) into Numba's cache ...", file=sys.stderr, flush=True)
+    failed = [v for v, _, error in compile_all(todo, log=lambda text: print(text, file=sys.stderr)) if error]
+    if failed:
+        raise InputError(f"could not compile the tracer's {', '.join(v.name for v in failed)}; "
+                         "Numba compiles them on first use instead.")
+    return 0
+
+
+def _forget_tracer_cache() -> None:
+    """Remove the tracer's entries from Numba's cache, so that --rebuild compiles rather than loads."""
+    from mlaqc.optics import raytrace_kernels
+
+    for kernel in (raytrace_kernels.kernel, raytrace_kernels.kernel_sag):
+        try:
+            cache_path = Path(kernel._cache._cache_path)
+        except AttributeError:
+            continue
+        stem = f"{Path(raytrace_kernels.__file__).stem}.{kernel.__name__}-"
+        for entry in cache_path.glob(f"{stem}*"):
+            entry.unlink(missing_ok=True)

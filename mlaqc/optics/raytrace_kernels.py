@@ -9,8 +9,10 @@ was bound by their latency. The rare neighbour re-trace near cell edges is a sca
 both lens boundary models ('grid': the lens of the hit's cell; 'sag-intersection': the first / last of
 the 3 x 3 spheres met (hex: the cell and its 6 neighbours), for hits within a per-cell margin of the
 edge), and for circle apertures (the circle holding the hit, for gap hits near a neighbour's circle).
-Hex cells and circle apertures are kernel variants: `lat` and `circ` are None on square / cell arrays,
-and what differs is chosen when Numba compiles (overloads on `lat`), never by a branch inside a pass.
+Hex cells, circle apertures and per-lens tilts are kernel variants: `lat`, `circ` and `rot` are None on
+square / cell / untilted arrays, and what differs is chosen when Numba compiles (overloads on `lat`), never
+by a branch inside a pass. A textured scene and a global MLA rotation are not: the passes they change are
+inlined for both sides and chosen per block of rays (S_TEXTURE, S_GROT), so one compiled kernel serves both.
 Hits are appended in ray order and summed per pixel in compiled code, as np.bincount would. It releases
 the GIL, so the renderer's thread pool keeps every core busy. The NumPy path stays the reference; this
 module is used when Numba is importable.
@@ -23,6 +25,7 @@ import math
 import numpy as np
 
 from mlaqc.compiled import compile_notice
+from mlaqc.numba_inliner import shared_scope_copies
 from mlaqc.optics import lowdisc
 from mlaqc.optics.lattice import SQRT3_2
 from mlaqc.optics.raytrace import INV_ROW_PAIR_HEX
@@ -78,7 +81,10 @@ IMAGE_SIDE, POINT, OBJECT_SIDE = 0, 1, 2
  S_RCIRC2, S_CLEARGAP,
  # 1: re-traces skip candidates that provably cannot win (pair clearances); 0: every doubted ray scans
  # them all (the exhaustive path, which tests hold the pruned one to, image for image)
- S_PRUNE, S_COUNT) = range(57)
+ S_PRUNE,
+ # run-time switches (one kernel serves both sides: each pass they change is inlined once per side and chosen
+ # per block of rays, which costs nothing measurable): a textured scene, a global MLA rotation
+ S_TEXTURE, S_GROT, S_COUNT) = range(59)
 # Rows of the per-block scratch table `g`: the gathered parameters of each ray's lens (tab rows 0..6), its
 # current hit and direction in the lens frame, the distance t to it (NaN on a miss), and its pixel.
 # Sag-intersection mode also gathers the lens' front and rear margins (G_MF, G_MR) and design centre (G_CX, G_CY).
@@ -467,12 +473,13 @@ def cos_sin_2pi(u):
 
 
 @_jit_inline
-def stage1_image_side(start, m, s, key, buf, fres, texture, g, sobol, shift_coef, lat):
+def stage1_image_side(start, m, s, key, buf, fres, texture, textured, g, sobol, shift_coef, lat):
     """Rays from the rear aperture to the MLA, traced back through the main lens for their weight.
 
     Branch-free loops (sampling, rear surface, front surface) that vectorize; split because one loop
     holding the whole chain of square roots and divisions was bound by its latency. `g` is scratch and,
-    for the low-discrepancy sampler, holds the draws and cells already (sobol_draws)."""
+    for the low-discrepancy sampler, holds the draws and cells already (sobol_draws). The object point a
+    texture is looked up at is found only for a textured scene (`textured`)."""
     if sobol and s[S_PCOLS] > 0.0:  # a block of cells
         cell_starts(m, s, buf, g, shift_coef, lat)
         m = compact(m, buf)
@@ -482,7 +489,10 @@ def stage1_image_side(start, m, s, key, buf, fres, texture, g, sobol, shift_coef
                 i = start + j
                 g[G_HX, j], g[G_HY, j], g[G_HZ, j], g[G_LL, j] = draw(key, i, 0), draw(key, i, 1), draw(key, i, 2), draw(key, i, 3)
         polar_starts(m, s, buf, g)
-    image_side_surfaces(m, s, buf, fres, texture, g)
+    if textured:
+        image_side_surfaces(m, s, buf, fres, texture, g)
+    else:
+        image_side_surfaces(m, s, buf, fres, None, g)
     return m
 
 
@@ -588,7 +598,7 @@ def image_side_surfaces(m, s, buf, fres, texture, g):
         bx, by, bz = g[G_HX, j], g[G_HY, j], g[G_HZ, j]
         bL, bM, bN, tr = refract(g[G_LL, j], g[G_LM, j], g[G_LN, j], c1 * bx, c1 * by, c1 * (bz - 0.0) - 1.0, mu_out, fres, n, 1.0)
         buf[6, j] *= tr if (bx * bx + by * by <= rim2 and tr >= 0.0) else 0.0
-        if texture is not None:  # pruned at compile time when there is no texture
+        if texture is not None:  # pruned at compile time where the caller passes None (no texture)
             t = (zobj - bz) / bN
             buf[7, j], buf[8, j] = bx + t * bL, by + t * bM
 
@@ -1185,7 +1195,11 @@ def stage2_block(m, buf, s, tab, rot, grot, clear, fres, n_mla, mu_in, g, kk, fl
     version was bound by the latency of its chain of divisions and square roots); the rare re-trace near
     cell edges is a scalar pass of its own. Operations are those of raytrace.MicrolensArray, in the same
     order, so both engines agree to rounding."""
-    pass_enter(m, buf, s, tab, grot, g, kk, lat, False)
+    rotated = s[S_GROT] != 0.0
+    if rotated:
+        pass_enter(m, buf, s, tab, grot, g, kk, lat, False)
+    else:
+        pass_enter(m, buf, s, tab, None, g, kk, lat, False)
     if circ is None:
         pass_front_grid(m, buf, s, tab, rot, g, kk, flag, lat)
         pass_front_refract(m, buf, s, rot, clear, fres, n_mla, mu_in, g, kk, corner_of, False)
@@ -1197,7 +1211,9 @@ def stage2_block(m, buf, s, tab, rot, grot, clear, fres, n_mla, mu_in, g, kk, fl
         circle_fate(m, buf, s, clear, g, flag, corner_of)
         pass_front_refract(m, buf, s, rot, True, fres, n_mla, mu_in, g, kk, corner_of, True)
     pass_rear_grid(m, buf, s, tab, rot, g, kk, flag, corner_of, lat, circ is None)
-    return pass_leave(m, buf, s, rot, grot, fres, n_mla, g, kk, corner_of, rows, cols, wts, nout, box)
+    if rotated:
+        return pass_leave(m, buf, s, rot, grot, fres, n_mla, g, kk, corner_of, rows, cols, wts, nout, box)
+    return pass_leave(m, buf, s, rot, None, fres, n_mla, g, kk, corner_of, rows, cols, wts, nout, box)
 
 
 @_jit_inline
@@ -1207,7 +1223,11 @@ def stage2_block_sag(m, buf, s, tab, rot, grot, clear, fres, n_mla, mu_in, g, kk
     flag hits within a per-cell margin of the edge (front_sag, rear_sag) for the 3 x 3 neighbour pass
     (retrace_sag), and corners from the union of the rear regions (corners_sag). A kernel of its own
     (kernel_sag), so that grid kernels compile none of it."""
-    pass_enter(m, buf, s, tab, grot, g, kk, lat, lat is not None)  # hex: own_edge's design centres
+    rotated = s[S_GROT] != 0.0
+    if rotated:
+        pass_enter(m, buf, s, tab, grot, g, kk, lat, lat is not None)  # hex: own_edge's design centres
+    else:
+        pass_enter(m, buf, s, tab, None, g, kk, lat, lat is not None)
     for j in range(m):  # in a loop of its own, as gather: an indexed load keeps a pass from vectorizing
         k = kk[j]
         g[G_MF, j], g[G_MR, j] = margins[T_MARGIN_FRONT, k], margins[T_MARGIN_REAR, k]
@@ -1217,10 +1237,13 @@ def stage2_block_sag(m, buf, s, tab, rot, grot, clear, fres, n_mla, mu_in, g, kk
     pass_front_refract(m, buf, s, rot, clear, fres, n_mla, mu_in, g, kk, corner_of, True)
     rear_sag(m, buf, s, tab, rot, g, kk, flag, corner_of, lat)
     retrace_sag(m, flag, kk, buf, g, tab, rot, s, True, cflag, margins, lims, lat, corner_of)
-    return pass_leave(m, buf, s, rot, grot, fres, n_mla, g, kk, corner_of, rows, cols, wts, nout, box)
+    if rotated:
+        return pass_leave(m, buf, s, rot, grot, fres, n_mla, g, kk, corner_of, rows, cols, wts, nout, box)
+    return pass_leave(m, buf, s, rot, None, fres, n_mla, g, kk, corner_of, rows, cols, wts, nout, box)
 
 
 BLOCK = 256  # rays per block: every pass works on a block held in L1
+NO_TEXTURE = np.ones((1, 1))  # the texture argument of a scene without one (S_TEXTURE 0: never read)
 
 
 @_jit_inline
@@ -1250,11 +1273,12 @@ def stage1_block(start, m, mode, s, key, buf, fres, texture, g, sobol, shift_coe
     texture's radiance; returns the block's ray count (the image-side sampler compacts it)."""
     if sobol:
         sobol_draws(start, m, s, seeds, shifts, jtab, g, ia, icf)
+    textured = s[S_TEXTURE] != 0.0
     if mode == IMAGE_SIDE:
-        m = stage1_image_side(start, m, s, key, buf, fres, texture, g, sobol, shift_coef, lat)
+        m = stage1_image_side(start, m, s, key, buf, fres, texture, textured, g, sobol, shift_coef, lat)
     else:
         stage1_forward(start, m, mode, s, key, buf, fres, texture, g, sobol)
-    if texture is not None:
+    if textured:
         for j in range(m):
             buf[6, j] *= texel(texture, buf[7, j], buf[8, j], s[S_TEXHX], s[S_TEXHY])
     return m
@@ -1337,9 +1361,10 @@ class FastCamera:
         self.margins = (np.ascontiguousarray(np.stack([mla.margin_front, mla.margin_rear, mla.gx, mla.gy]))
                         if mla.sag else None)
         self.lims = pair_limits(mla) if mla.sag else None
-        # None (not an identity) where unused: Numba then compiles a kernel without those branches.
+        # per-lens tilts: None (not identities) where there are none, a kernel variant without those
+        # rotations (they are in most passes); a global rotation is a run-time switch (S_GROT)
         self.rot = np.ascontiguousarray(mla.rot) if mla.tilted else None
-        self.grot = np.ascontiguousarray(camera.rot) if camera.rotated else None
+        self.grot = np.ascontiguousarray(camera.rot if camera.rotated else np.eye(3), dtype=np.float64)
         self.lat = np.zeros(1) if mla.hex else None  # a marker: hex cells (its value is unused)
         self.circ = (np.ascontiguousarray(np.stack([mla.gx, mla.gy, (mla.r_circle + mla.circle_reach) ** 2,
                                                     mla.circle_clearance_mm()]))
@@ -1355,6 +1380,7 @@ class FastCamera:
         s[S_RCIRC2] = mla.r_circle ** 2
         s[S_CLEARGAP] = float(mla.clear_gap)
         s[S_PRUNE] = 1.0  # tests set 0.0: the exhaustive re-trace
+        s[S_GROT] = float(camera.rotated)
         s[S_ZMLA], s[S_ZSENS] = camera.z_mla, camera.z_sensor
         s[S_SHIFTX], s[S_SHIFTY] = camera.shift_x, camera.shift_y
         s[S_PIX], s[S_SX0], s[S_SY0], s[S_W], s[S_H] = camera.pixel, camera.sx0, camera.sy0, camera.width, camera.height
@@ -1371,8 +1397,8 @@ class FastCamera:
         self.image_region = image_region
         self.source_region = source_region
 
-    def trace_hits(self, mode: int, key: int, n: int, tile=None, point=None, texture=None, cells=None):
-        """Trace one batch; (row, col, weight) of the rays that reached the sensor and their bounding box.
+    def call(self, mode: int, key: int, n: int, tile=None, point=None, texture=None, cells=None):
+        """The kernel of this camera's variant and its arguments for one batch (output arrays included).
         `cells` = (row0, col0, rows, cols, first point) of a stratified image-side job."""
         s = self.base.copy()
         s[S_MODE] = mode
@@ -1387,22 +1413,28 @@ class FastCamera:
             s[S_X0], s[S_X1], s[S_Y0], s[S_Y1] = tile
         if point is not None:
             s[S_PX], s[S_PY] = point
-        tex = None if texture is None else np.ascontiguousarray(texture, dtype=np.float64)
-        if not AVAILABLE:
-            raise RuntimeError("numba is not installed; use the NumPy engine")
+        s[S_TEXTURE] = float(texture is not None)
+        tex = NO_TEXTURE if texture is None else np.ascontiguousarray(texture, dtype=np.float64)
         rows = np.empty(n, np.int32)
         cols = np.empty(n, np.int32)
         w = np.empty(n)
         box = np.array([2 ** 31, -1, 2 ** 31, -1], np.int64)
         args = (s, np.uint64(key), n, self.tab, self.rot, self.grot, tex, self.shift_coef, rows, cols, w, box)
         args += (self.margins, self.lims, self.lat) if self.margins is not None else (self.lat, self.circ)
-        trace = kernel if self.margins is None else kernel_sag
+        return (kernel if self.margins is None else kernel_sag), args
+
+    def trace_hits(self, mode: int, key: int, n: int, tile=None, point=None, texture=None, cells=None):
+        """Trace one batch; (row, col, weight) of the rays that reached the sensor and their bounding box."""
+        if not AVAILABLE:
+            raise RuntimeError("numba is not installed; use the NumPy engine")
+        trace, args = self.call(mode, key, n, tile, point, texture, cells)
         if self._warm:
             k = trace(*args)
-        else:  # the variant's first batch: a compile of a minute or two on first use is said, not silent
-            with compile_notice("the ray tracer"):
+        else:  # the variant's first batch: a compile on first use is said, not silent
+            with compile_notice("the ray tracer"), shared_scope_copies():
                 k = trace(*args)
             self._warm = True
+        rows, cols, w, box = args[8:12]
         return rows[:k], cols[:k], w[:k], box
 
     def trace(self, mode: int, key: int, n: int, tile=None, point=None, texture=None, cells=None):
