@@ -24,6 +24,8 @@ import time
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
+from mlaqc.parallel import cores
+
 ROOT = Path(__file__).resolve().parent.parent
 FIXTURES = ROOT / "fixtures"
 
@@ -33,10 +35,6 @@ NEW_JOB = ("from mlaqc.optics.tracer_variants import VARIANTS, compile_variant\n
            "print(compile_variant(VARIANTS[{i}])[1] or 'ok')")
 OLD_JOB = ("import sys; sys.path.insert(0, {tests!r}); import conftest\n"
            "conftest._render_variant(*conftest.TRACER_VARIANTS[{i}]); print('ok')")
-
-
-def _cores() -> int:
-    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
 
 
 def _cold(tree: Path, code: str) -> float:
@@ -63,10 +61,10 @@ def variants(against: Path | None) -> None:
         trees.append(("old", against, OLD_JOB.replace("{tests!r}", repr(tests)), count))
     for label, tree, job, count in trees:
         start = time.perf_counter()
-        with ThreadPoolExecutor(max_workers=_cores()) as pool:
+        with ThreadPoolExecutor(max_workers=cores()) as pool:
             seconds = list(pool.map(lambda i: _cold(tree, job.format(i=i)), range(count)))
         wall = time.perf_counter() - start
-        print(f"{label} ({tree}): {count} variants, {wall:.0f} s on {_cores()} cores ({sum(seconds):.0f} s of "
+        print(f"{label} ({tree}): {count} variants, {wall:.0f} s on {cores()} cores ({sum(seconds):.0f} s of "
               f"processes; each {min(seconds):.0f}-{max(seconds):.0f} s, median {sorted(seconds)[count // 2]:.0f} s)",
               flush=True)
 

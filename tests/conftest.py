@@ -91,7 +91,9 @@ def _warm_numba(config) -> None:
     import multiprocessing
     from concurrent.futures import ProcessPoolExecutor
 
-    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+    from mlaqc.parallel import cores as core_count
+
+    cores = core_count()
     start = time.perf_counter()
     # spawn: fresh interpreters (no forked pytest or Qt state), which import this file as `conftest`
     jobs = _warm_jobs()

@@ -2,6 +2,7 @@
 run-time switches that compile nothing of their own, `mlaqc kernels --check` says what is compiled, and
 the inliner's faster copy makes the same IR."""
 
+import copy
 import dataclasses
 import os
 import subprocess
@@ -96,7 +97,7 @@ def test_shared_scope_copies_make_the_same_ir_with_one_scope():
     with numba_inliner.shared_scope_copies():
         assert numba_inliner.active()
         shared = {label: inline_closurecall.copy.deepcopy(block) for label, block in func_ir.blocks.items()}
-    assert not numba_inliner.active() and inline_closurecall.copy is __import__("copy")
+    assert not numba_inliner.active() and inline_closurecall.copy is copy
     assert len({id(b.scope) for b in plain.values()}) == len(plain)  # Numba's: a scope per block
     assert len({id(b.scope) for b in shared.values()}) == 1
     assert next(iter(shared.values())).scope is not next(iter(func_ir.blocks.values())).scope

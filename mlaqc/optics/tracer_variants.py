@@ -4,7 +4,7 @@ The Numba kernel is specialised where a measurement showed it pays (raytrace_ker
 model (grid, sag-intersection, circle apertures), the lattice (square, hex) and per-lens tilts (the tilted
 kernel is 2.4-2.8x slower per ray on an untilted array). A textured scene and a global MLA rotation are
 run-time switches inside each. That makes twelve variants, which every camera the config can describe
-falls into. `pip install -e .` compiles all twelve into Numba's cache (setup.py, two processes at once),
+falls into. `pip install -e .` compiles all twelve into Numba's cache (setup.py, one process per core),
 so no command waits for a compile; `mlaqc kernels` does it for an install that could not, and
 `mlaqc kernels --check` says which are ready.
 """
@@ -12,11 +12,12 @@ so no command waits for a compile; `mlaqc kernels` does it for an install that c
 from __future__ import annotations
 
 import multiprocessing
-import os
 import time
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass
 from typing import Callable
+
+from mlaqc.parallel import cores
 
 
 @dataclass(frozen=True)
@@ -89,8 +90,7 @@ def compile_all(variants: tuple[Variant, ...] = VARIANTS, processes: int | None 
                 log: Callable[[str], None] = print) -> list[tuple[Variant, float, str]]:
     """Compile every variant into Numba's cache, `processes` at a time (default: one per core), each in a
     fresh interpreter; logs a line per variant and returns (variant, seconds, error or '')."""
-    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
-    workers = max(1, min(processes or cores, len(variants)))
+    workers = max(1, min(processes or cores(), len(variants)))
     out = []
     with ProcessPoolExecutor(max_workers=workers, mp_context=multiprocessing.get_context("spawn")) as pool:
         for variant, (seconds, error) in zip(variants, pool.map(compile_variant, variants)):
