@@ -29,6 +29,8 @@ COMMANDS = {
     "models": ("mlaqc.commands.models",
                "build (or rebuild) a camera's reference model, signature tables, through-focus model and assembly calibration"),
     "kernels": ("mlaqc.commands.kernels", "compile the inspection kernels and the ray tracer for this machine (or check them)"),
+    "decode": ("mlaqc.commands.decode",
+               "decode the light field of scene frames (views, refocusing), corrected by an inspection's report"),
     "lot": ("mlaqc.commands.lot", "lot views of the results database: yield, Pareto, defect map, repeating defects"),
     "demo": ("mlaqc.commands.demo", "simulate an MLA with seeded defects, inspect it, report found vs seeded"),
     "capture": ("drivers.commands", "capture raw frames (or averages) from a camera with provenance sidecars"),

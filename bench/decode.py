@@ -1,0 +1,259 @@
+"""Light-field decoding with the array's measured errors against the lattice other tools decode with
+(issue #41 bars). A textured scene and a point-source scene, both off the plane the MLA sees in focus (so
+that the views differ: parallax), rendered through the camera with the paper's nine example errors plus
+random ones, and through the same camera with an error-free array. The flawed frames are decoded with
+
+  (a) the design lattice, (b) the lattice calibrated on the flawed array's white frame (what PlenoptiCam,
+  LFToolbox and plenpy do), (c) the measured per-lens model (an inspection's report of that white frame);
+
+the error-free frame with its own calibrated lattice. Every decode is devignetted by its array's white.
+Each view is compared with the error-free frame's, at the flawed lenses' (s, t) and everywhere else, and
+so are refocused images (PSNR). Frames are cached in /tmp.
+
+    python bench/decode.py                                         # Table 1, noise-free and noisy
+    python bench/decode.py --config fixtures/hex_camera.toml
+    python bench/decode.py --config fixtures/lfm_40x_relay.toml --defocus-mm 0.002
+    python bench/decode.py --timing                                # a 2048² frame decoded in-process
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import hashlib
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+from mlaqc.decode.frames import load_decode_frame
+from mlaqc.decode.lightfield import decode, devignetted, rectangular, refocus, view_offsets
+from mlaqc.decode.sampling import design_sampling, lattice_sampling, measured_sampling, report_grid
+from mlaqc.inspection.calibrate import calibrate_for
+from mlaqc.inspection.pipeline import inspect_image, load_frame
+from mlaqc.optics.config import load_config
+from mlaqc.optics.errormap import ErrorMap, lens_error_fields, random_defects
+from mlaqc.optics.scene import PointScene, TextureScene, WhiteScene
+from mlaqc.optics.simulate import simulate, write_simulation
+from mlaqc.report.document import build_report_dict
+
+sys.path.insert(0, str(Path(__file__).parent))
+from paper_examples import NINE, placements  # noqa: E402  (bench/ is on sys.path)
+
+CACHE = Path(tempfile.gettempdir()) / "mlaqc_bench_decode"
+
+
+def flawed_map(cfg, random_count: int, seed: int) -> tuple[ErrorMap, list[tuple[int, int, str]]]:
+    """The paper's nine examples plus `random_count` random pitch/decenter/radius errors elsewhere."""
+    rows, cols, packing = cfg.mla.count_h, cfg.mla.count_w, cfg.mla.packing
+    em = random_defects(rows, cols, random_count, seed, types=("pitch", "decenter", "radius"), packing=packing)
+    for (m, n), (kind, mag, d) in zip(placements(rows, cols, packing), NINE):
+        em = em.with_lens(m, n, **lens_error_fields(kind, mag, d))
+    flawed = [(int(m) + 1, int(n) + 1) for m, n in zip(*np.nonzero(em.defective()))]
+    return em, flawed
+
+
+def scene_config(cfg, defocus_mm: float):
+    """The camera with its object plane moved `defocus_mm` further out, the MLA where it was: the scene is
+    out of the MLA's focus, so every view sees it from its own pupil point."""
+    lay = cfg.layout
+    geo = dataclasses.replace(cfg.geometry, mla_distance_mm=lay.mla_distance_mm,
+                              object_distance_mm=lay.object_distance_mm + defocus_mm)
+    return dataclasses.replace(cfg, geometry=geo)
+
+
+def texture(size: int = 512, seed: int = 3) -> TextureScene:
+    """A band-limited random texture with a few sharp edges: detail at every scale the views resolve."""
+    rng = np.random.default_rng(seed)
+    f = np.fft.fftfreq(size)
+    fx, fy = np.meshgrid(f, f)
+    spectrum = (rng.normal(size=(size, size)) + 1j * rng.normal(size=(size, size))) / (0.02 + np.hypot(fx, fy))
+    img = np.real(np.fft.ifft2(spectrum))
+    img = (img - img.min()) / np.ptp(img)
+    yy, xx = np.mgrid[0:size, 0:size]
+    img = 0.6 * img + 0.3 * (((xx // 64) + (yy // 64)) % 2) + 0.1
+    return TextureScene(radiance=img / img.max())
+
+
+def points(cfg, spacing_lenses: float = 7.0) -> PointScene:
+    """Point sources on a square lattice over the object plane, `spacing_lenses` lens images apart."""
+    lay = cfg.layout
+    mag = lay.object_distance_mm / lay.mla_distance_mm  # object mm per image mm (rough, for spacing only)
+    step = spacing_lenses * cfg.mla.pitch_um * 1e-3 * mag
+    half = 0.45 * cfg.mla.count_w * cfg.mla.pitch_um * 1e-3 * mag
+    xs = np.arange(-half, half + 1e-9, step)
+    pts = tuple((float(x), float(y)) for x in xs for y in xs)
+    return PointScene(pts, photons=4e7)
+
+
+def rendered(cfg, scene, errors: ErrorMap, name: str, rpp: float, noise: bool, seed: int = 11) -> Path:
+    """The raw of `scene` through `cfg` with `errors`, rendered once and cached."""
+    key = hashlib.sha1(repr((cfg.to_dict(), name, errors.to_json_dict(), rpp, noise, seed)).encode()).hexdigest()[:12]
+    path = CACHE / f"{name}_{key}.tiff"
+    if not path.exists():
+        CACHE.mkdir(exist_ok=True)
+        t0 = time.perf_counter()
+        sim = simulate(cfg, scene, errors, rays_per_pixel=rpp, seed=seed, noise=noise)
+        write_simulation(str(path), sim, cfg)
+        print(f"  rendered {name} ({time.perf_counter() - t0:.0f} s)", file=sys.stderr)
+    return path
+
+
+def rms(a: np.ndarray, b: np.ndarray, w: np.ndarray) -> float:
+    return float(np.sqrt(np.sum(w * (a - b) ** 2) / max(np.sum(w), 1e-30)))
+
+
+def psnr(img: np.ndarray, ref: np.ndarray, mask: np.ndarray) -> float:
+    err = float(np.mean((img[mask] - ref[mask]) ** 2))
+    peak = float(np.percentile(ref[mask], 99.5))
+    return 10 * np.log10(peak * peak / max(err, 1e-30))
+
+
+def lens_mask(shape, lenses, grow: int = 0) -> np.ndarray:
+    mask = np.zeros(shape, bool)
+    for m, n in lenses:
+        mask[max(0, m - 1 - grow):m + grow, max(0, n - 1 - grow):n + grow] = True
+    return mask
+
+
+def compare(cfg, scene_name, scene, flawed_em, flawed_lenses, clean_em, rpp, noise, defocus_mm, slope):
+    scfg = scene_config(cfg, defocus_mm)
+    raws = {k: rendered(c, s, e, k if k.startswith("white") else f"{k}_{scene_name}", rpp, noise)
+            for k, c, s, e in (("white_flawed", cfg, WhiteScene(), flawed_em), ("white_clean", cfg, WhiteScene(), clean_em),
+                               ("scene_flawed", scfg, scene, flawed_em), ("scene_clean", scfg, scene, clean_em))}
+    # the white frames are the same for both scenes: one cache entry each
+    white_f, white_c = (load_frame(str(raws[k]), cfg) for k in ("white_flawed", "white_clean"))
+    grid_f, grid_c = calibrate_for(white_f, cfg), calibrate_for(white_c, cfg)
+    report = build_report_dict(inspect_image(white_f, cfg, grid=grid_f), config_dict=cfg.to_dict())
+    found = {(d["row"], d["col"]) for d in report["defects"]}
+    samplings = {"a design": design_sampling(cfg, white_f.shape), "b lattice": lattice_sampling(grid_f),
+                 "c measured": measured_sampling(report_grid(report, "(in memory)"), report)}
+    img_f = load_decode_frame(str(raws["scene_flawed"]), cfg)
+    img_c = load_decode_frame(str(raws["scene_clean"]), cfg)
+    wf, wc = load_decode_frame(str(raws["white_flawed"]), cfg), load_decode_frame(str(raws["white_clean"]), cfg)
+    ref_s = lattice_sampling(grid_c)
+    offs = view_offsets(min(s.radius_px for s in samplings.values()))
+    ref = rectangular(devignetted(decode(img_c, ref_s, offs), decode(wc, ref_s, offs)))
+    ref_img, _ = refocus(ref, slope)
+    rows, cols = ref.spatial_shape
+    flawed_mask = lens_mask((cfg.mla.count_h, cfg.mla.count_w), flawed_lenses)
+    near = lens_mask((cfg.mla.count_h, cfg.mla.count_w), flawed_lenses, grow=int(np.ceil(abs(slope) * offs[-1])) + 1)
+    if ref.packing == "rect":  # compare on the resampled grid: a flawed lens marks the cells it feeds
+        flawed_mask = rect_mask(flawed_mask, rows)
+        near = rect_mask(near, rows)
+    elsewhere = ~near
+    kinds = flawed_em.lens_type()
+    type_masks = {}
+    for t in sorted({kinds[m - 1, n - 1] for m, n in flawed_lenses}):
+        mk = lens_mask(flawed_mask.shape if ref.packing != "rect" else kinds.shape,
+                       [(m, n) for m, n in flawed_lenses if kinds[m - 1, n - 1] == t])
+        type_masks[t] = rect_mask(mk, rows) if ref.packing == "rect" else mk
+    print(f"  {scene_name}: {len(flawed_lenses)} flawed lenses ({len(found & set(flawed_lenses))} flagged by the "
+          f"inspection, {len(found - set(flawed_lenses))} others), {len(offs)}x{len(offs)} views, refocus slope {slope:g}")
+    out = {}
+    for name, smp in samplings.items():
+        lf = rectangular(devignetted(decode(img_f, smp, offs), decode(wf, smp, offs)))
+        w = np.minimum(lf.weights, ref.weights) > 0.2  # reduced-weight lenses (0.5) are compared too
+        wf_ = w.astype(np.float64)
+        at = rms(lf.values, ref.values, wf_ * flawed_mask)
+        rest = rms(lf.values, ref.values, wf_ * elsewhere)
+        img, den = refocus(lf, slope)
+        ok = den > 0.5 * np.median(den)
+        p_at = psnr(img, ref_img, ok & near)
+        p_rest = psnr(img, ref_img, ok & elsewhere)
+        out[name] = (at, rest, p_at, p_rest)
+        per_type = ", ".join(f"{t} {rms(lf.values, ref.values, wf_ * m):.4f}" for t, m in type_masks.items())
+        print(f"    {name:11s}: view RMS at flawed lenses {at:.4f} ({per_type}), elsewhere {rest:.4f}; refocused "
+              f"PSNR near flawed lenses {p_at:.2f} dB, elsewhere {p_rest:.2f} dB")
+    # the render's own error: the error-free frame again with other rays, decoded the same way
+    again = load_decode_frame(str(rendered(scfg, scene, clean_em, f"scene_clean_{scene_name}_seed2", rpp, noise, seed=12)), cfg)
+    lf = rectangular(devignetted(decode(again, ref_s, offs), decode(wc, ref_s, offs)))
+    wf_ = (np.minimum(lf.weights, ref.weights) > 0.2).astype(np.float64)
+    print(f"    floor      : the error-free frame rendered again with other rays: view RMS at the flawed lenses' "
+          f"(s, t) {rms(lf.values, ref.values, wf_ * flawed_mask):.4f}, elsewhere {rms(lf.values, ref.values, wf_ * elsewhere):.4f}")
+    (ab, rb, pb, qb), (ac, rc, pc, qc) = out["b lattice"], out["c measured"]
+    print(f"    (c)/(b) at flawed lenses {ac / ab:.3f} (bar <= 0.333); elsewhere {rc / rb:.4f} (bar <= 1.02); "
+          f"refocused PSNR gain near flawed {pc - pb:+.2f} dB, elsewhere {qc - qb:+.2f} dB")
+    return out
+
+
+def rect_mask(mask: np.ndarray, t_count: int) -> np.ndarray:
+    """A hex (rows, cols) lens mask carried to the rectangular grid: a cell is marked if a lens it
+    interpolates from is."""
+    from mlaqc.decode.lightfield import LightField
+
+    rows, cols = mask.shape
+    lf = LightField(mask[None, None].astype(np.float32), np.ones((1, 1, rows, cols), np.float32), np.zeros(1),
+                    "hex", (1.0, 1.0))
+    return rectangular(lf).values[0, 0] > 0
+
+
+def timing(cfg, repeats: int = 5) -> None:
+    """A full-sensor frame decoded in-process (all views, devignetted, hex resampled), best of `repeats`."""
+    em = ErrorMap.zeros(cfg.mla.count_h, cfg.mla.count_w, cfg.mla.packing)
+    path = rendered(cfg, WhiteScene(), em, "white_clean", 50.0, True)
+    img = load_decode_frame(str(path), cfg)
+    grid = calibrate_for(load_frame(str(path), cfg), cfg)
+    smp = lattice_sampling(grid)
+    offs = view_offsets(smp.radius_px)
+    best = np.inf
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        white = decode(img, smp, offs)
+        rectangular(devignetted(decode(img, smp, offs), white))
+        best = min(best, time.perf_counter() - t0)
+    print(f"decode of a {img.shape[1]}x{img.shape[0]} frame ({cfg.mla.count_w}x{cfg.mla.count_h} lenses, "
+          f"{len(offs)}x{len(offs)} views), with its white's decode and the devignetting: {best:.3f} s (best of {repeats})")
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--config", "-c", default="fixtures/paper_table1.toml")
+    ap.add_argument("--rays-per-pixel", type=float, default=200.0)
+    ap.add_argument("--random", type=int, default=20, help="random defects besides the paper's nine")
+    ap.add_argument("--seed", type=int, default=4)
+    ap.add_argument("--defocus-mm", type=float, default=2.0, help="object plane beyond the MLA's focus, mm")
+    ap.add_argument("--slope", type=float, help="refocus slope, lenses per view pixel (default: the scene's)")
+    ap.add_argument("--noise", choices=("both", "off", "on"), default="both")
+    ap.add_argument("--timing", action="store_true")
+    args = ap.parse_args()
+    cfg = load_config(args.config)
+    if args.timing:
+        timing(cfg)
+        return 0
+    flawed_em, flawed = flawed_map(cfg, args.random, args.seed)
+    clean_em = ErrorMap.zeros(cfg.mla.count_h, cfg.mla.count_w, cfg.mla.packing)
+    slope = args.slope if args.slope is not None else scene_slope(cfg, args.defocus_mm)
+    for noise in {"both": (False, True), "off": (False,), "on": (True,)}[args.noise]:
+        print(f"{args.config}: {'noisy' if noise else 'noise-free'} frames, {args.rays_per_pixel:g} rays/pixel, "
+              f"object {args.defocus_mm:g} mm beyond focus")
+        for name, scene in (("texture", texture()), ("points", points(cfg))):
+            compare(cfg, name, scene, flawed_em, flawed, clean_em, args.rays_per_pixel, noise, args.defocus_mm, slope)
+    return 0
+
+
+def scene_slope(cfg, defocus_mm: float) -> float:
+    """The refocus slope that brings the defocused object plane into focus, from the optics: its image
+    lies dz behind/before the MLA; a view offset of one pixel is a pupil point 1/r of the pupil radius out,
+    whose ray crosses the MLA (dz / b) * pupil radius * (1/r) away from the chief ray, in lens pitches."""
+    scfg = scene_config(cfg, defocus_mm)
+    lay, slay = cfg.layout, scfg.layout
+    from mlaqc.optics.paraxial import image_distance
+
+    main_efl = lay.main.efl if lay.main is not None else None
+    if main_efl is None:
+        return 0.0
+    a = slay.object_distance_mm + lay.main.front_principal
+    b_img = image_distance(main_efl, a)
+    dz = lay.pupil_to_mla_mm - b_img  # the object's image lies dz before the MLA
+    pupil_r = lay.exit_radius_mm
+    r_px = design_sampling(cfg, (cfg.sensor.height_px, cfg.sensor.width_px)).radius_px
+    # a view u px out looks through pupil point (u / r_px) * pupil_r; its ray meets the MLA plane
+    # shifted by that * dz / b_img relative to the chief ray; the sub-image inverts the pupil: sign -1
+    return -float(dz / b_img * pupil_r / r_px / (cfg.mla.pitch_um * 1e-3))
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,205 @@
+"""`mlaqc decode`: the 4D light field of scene frames, each lens sampled where it really sends its light when
+an inspection's report of the array is given (mlaqc.decode)."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from mlaqc.commands.levels import add_level_options, stated_levels
+from mlaqc.errors import InputError
+
+HELP = "decode the light field of scene frames (views, refocusing), corrected by an inspection's report"
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    """Add the `decode` subcommand."""
+    p = sub.add_parser("decode", help=HELP, description=(
+        "Decode the 4D light field L(v, u, t, s) of scene raws: every lens' sub-image sampled at every view "
+        "(a pupil point), devignetted by the white frame. With --report (an inspection of this array's white "
+        "frame) each flagged lens is sampled at its measured sub-image centre and lenses found missing, "
+        "obscured or outside the model's range carry a lower weight. Writes lightfield.npy, weights.npy, "
+        "views.tif, mosaic.png, refocus.npy / refocus_<i>.png and decode.json into DIR (DIR/<raw name>/ each "
+        "for several raws)."))
+    p.add_argument("raw", nargs="+", help="scene raw frames (DNG or camera raw, TIFF, PNG, NPY)")
+    src = p.add_mutually_exclusive_group(required=True)
+    src.add_argument("--white", "-w", nargs="+", metavar="W",
+                     help="white frame(s) of this array and set-up: calibrated, and divided out (devignetting)")
+    src.add_argument("--grid", "-g", help="a saved calibration (mlaqc calibrate); no devignetting without --white")
+    p.add_argument("--report", "-r", help="report.json (or its folder) of an inspection of this array: decode "
+                                          "each flagged lens where it really sends its light")
+    p.add_argument("--lattice", choices=("calibrated", "design"), default="calibrated",
+                   help="without --report: the calibrated lattice's centres (default) or the design's "
+                        "(the config's pitch, centred; for comparison)")
+    p.add_argument("--views", type=int, metavar="N",
+                   help="N x N views (odd; default: every whole pixel inside the pupil's image less one)")
+    p.add_argument("--refocus", metavar="S[,S...]", default="0",
+                   help="refocus slopes, lenses per pixel of view offset (default 0: the plane in focus "
+                        "on the MLA); 'none' for no refocusing")
+    p.add_argument("--fill", action="store_true",
+                   help="fill lenses of weight under 0.5 (missing, obscured, ...) from their neighbours in (s, t)")
+    p.add_argument("--config", "-c", help="camera config TOML (default: the paper's Table 1 camera)")
+    p.add_argument("--out", "-o", required=True, help="output folder")
+    p.add_argument("--quiet", "-q", action="store_true", help="no summary")
+    add_level_options(p)
+    p.set_defaults(func=run)
+
+
+def parse_slopes(text: str) -> list[float]:
+    """'0,-0.1,0.2' -> floats; 'none' -> []."""
+    if text.strip().lower() == "none":
+        return []
+    try:
+        slopes = [float(v) for v in text.split(",") if v.strip()]
+    except ValueError:
+        raise InputError(f"--refocus must be numbers separated by commas (or 'none'), got {text!r}") from None
+    if not slopes or not all(np.isfinite(slopes)) or max(abs(s) for s in slopes) > 10:
+        raise InputError(f"--refocus slopes must be finite numbers within +-10 lenses per view pixel, got {text!r}")
+    return slopes
+
+
+def run(args: argparse.Namespace) -> int:
+    """Decode every raw; 0 when all were written, 2 on bad input (nothing written for the frame)."""
+    from mlaqc.commands.inspect import check_out_dir
+    from mlaqc.optics.config import load_config
+
+    out = check_out_dir(args.out)
+    slopes = parse_slopes(args.refocus)
+    cfg = load_config(args.config)
+    levels = stated_levels(args)
+    setup = _setup(args, cfg, levels)  # every shared input checked before any frame is read
+    raws = list(args.raw)
+    folders = [out] if len(raws) == 1 else _folders(out, raws)
+    failed = 0
+    for raw, folder in zip(raws, folders):
+        t0 = time.perf_counter()
+        try:
+            lf, facts = decode_raw(raw, cfg, levels, setup, args)
+            refocused = [(s, _refocused(lf, s)) for s in slopes]
+            from mlaqc.decode.output import write_lightfield
+
+            facts["seconds"] = round(time.perf_counter() - t0, 3)
+            write_lightfield(folder, lf, refocused, facts)
+        except InputError as exc:
+            if len(raws) == 1:
+                raise
+            failed += 1
+            print(f"mlaqc decode: {raw}: {exc}", file=sys.stderr)
+            continue
+        if not args.quiet:
+            print(_summary(raw, folder, lf, facts))
+    return 2 if failed else 0
+
+
+def _folders(out: Path, raws: list[str]) -> list[Path]:
+    from mlaqc.commands.inspect import report_folders
+
+    return report_folders(out, raws)
+
+
+def _refocused(lf, slope: float) -> np.ndarray:
+    from mlaqc.decode.lightfield import refocus
+
+    return refocus(lf, slope)[0]
+
+
+def _setup(args: argparse.Namespace, cfg: Any, levels) -> dict[str, Any]:
+    """The sampling (from the grid, the white's calibration, or the report) and the white image."""
+    from mlaqc.decode import sampling as smp
+    from mlaqc.decode.frames import averaged
+    from mlaqc.inspection.calibrate import calibrate_for, load_grid
+    from mlaqc.inspection.pipeline import load_frame
+
+    shape = (cfg.sensor.height_px, cfg.sensor.width_px)
+    white = None
+    if args.grid:
+        grid = load_grid(args.grid)
+        if tuple(grid.image_shape) != shape or grid.packing != cfg.mla.packing:
+            raise InputError(f"grid file {args.grid!r} is for a {grid.image_shape[1]}x{grid.image_shape[0]} px "
+                             f"{grid.packing} array, but the camera is {shape[1]}x{shape[0]} px, {cfg.mla.packing}")
+    else:
+        whites = list(args.white)
+        grid = calibrate_for(load_frame(whites[0] if len(whites) == 1 else whites, cfg, levels), cfg)
+        white = averaged(whites, cfg, levels)
+    if args.report:
+        from mlaqc.report.document import load_report
+
+        report = load_report(args.report)
+        rgrid = smp.report_grid(report, args.report)
+        smp.check_same_array(grid, rgrid, args.report)
+        sampling = smp.measured_sampling(rgrid, report)
+    elif args.lattice == "design":
+        sampling = smp.design_sampling(cfg, shape)
+    else:
+        sampling = smp.lattice_sampling(grid)
+    from mlaqc.decode.lightfield import view_offsets
+
+    offsets = view_offsets(sampling.radius_px, args.views)
+    return {"sampling": sampling, "white": white, "offsets": offsets,
+            "white_lf": None if white is None else _decode(white, sampling, offsets)}
+
+
+def _decode(img, sampling, offsets):
+    from mlaqc.decode.lightfield import decode
+
+    return decode(img, sampling, offsets)
+
+
+def decode_raw(raw: str, cfg: Any, levels, setup: dict[str, Any], args: argparse.Namespace):
+    """One scene frame's light field (devignetted, hex resampled, filled as asked) and its facts."""
+    from mlaqc.decode.frames import load_decode_frame
+    from mlaqc.decode.lightfield import devignetted, filled, rectangular
+
+    img = load_decode_frame(raw, cfg, levels)
+    sampling = setup["sampling"]
+    lf = _decode(img, sampling, setup["offsets"])
+    white_lf = setup["white_lf"]
+    if white_lf is not None:
+        if (white_lf.values.ndim == 5) != (lf.values.ndim == 5):
+            raise InputError(f"{raw} and the white frame differ in colour (one has a colour filter array, the "
+                             "other not): they are not of one camera")
+        lf = devignetted(lf, white_lf)
+    check_scene(lf, raw)
+    lens_weight = sampling.weight
+    if args.fill:
+        lf = filled(lf)
+    lf = rectangular(lf)
+    facts = {"source": str(raw), "sampling": sampling.source, "devignetted": white_lf is not None,
+             "lenses": {"rows": int(sampling.shape[0]), "cols": int(sampling.shape[1]),
+                        "packing": sampling.packing, "pitch_px": round(sampling.pitch_px, 4),
+                        "subimage_radius_px": round(sampling.radius_px, 3),
+                        "without_light_field": int(np.count_nonzero(lens_weight == 0)),
+                        "reduced_weight": int(np.count_nonzero((lens_weight > 0) & (lens_weight < 1))),
+                        "filled": bool(args.fill)}}
+    return lf, facts
+
+
+def check_scene(lf, raw: str) -> None:
+    """InputError when the frame is a flat field: its lenses' brightness varies only as a smooth
+    illumination does (mlaqc.inspection.flatfield), so there is no scene to decode."""
+    from mlaqc.inspection.flatfield import MIN_SPREAD, NOISE_FACTOR, brightness_spread
+
+    vals = lf.values if lf.values.ndim == 4 else lf.values.mean(axis=-1)
+    w = lf.weights
+    with np.errstate(all="ignore"):
+        flux = np.where(w.sum(axis=(0, 1)) > 0, (vals * w).sum(axis=(0, 1)) / w.sum(axis=(0, 1)), np.nan)
+    spread, noise = brightness_spread(flux)
+    if np.isfinite(spread) and spread <= max(MIN_SPREAD, NOISE_FACTOR * noise):
+        raise InputError(f"{raw} is a flat field (its lenses' brightness varies by {spread:.1%} beyond a smooth "
+                         "illumination): a white frame holds no scene to decode; give it as --white")
+
+
+def _summary(raw: str, folder: Path, lf, facts: dict[str, Any]) -> str:
+    nv, nu, rows, cols = lf.weights.shape
+    lenses = facts["lenses"]
+    how = {"measured": "each flagged lens at its measured centre (report)", "lattice": "the calibrated lattice",
+           "design": "the design lattice"}[facts["sampling"]]
+    return (f"wrote {folder}: {nv}x{nu} views of {cols}x{rows} lenses ({lf.packing}), sampled on {how}, "
+            f"{'devignetted' if facts['devignetted'] else 'not devignetted (no --white)'}; "
+            f"{lenses['without_light_field']} lenses without light field, {lenses['reduced_weight']} at reduced "
+            f"weight ({facts['seconds']:.2f} s)")

@@ -1,0 +1,1 @@
+"""Light-field decoding with the array's measured errors (issue #41)."""

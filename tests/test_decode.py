@@ -1,0 +1,254 @@
+"""Light-field decoding (mlaqc.decode, `mlaqc decode`): checked against analytic light fields that share no
+code with the decoder or the tracer (each sub-image a disc whose content is a known function of the pupil
+point and the lens), and the command's behaviour on good and bad input."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+
+from mlaqc.cli import main
+from mlaqc.decode.frames import demosaiced
+from mlaqc.decode.lightfield import LightField, bilinear, decode, devignetted, filled, rectangular, refocus, view_offsets
+from mlaqc.decode.sampling import LensSampling, measured_sampling
+from mlaqc.errors import InputError
+
+FIXTURES = Path(__file__).resolve().parent.parent / "fixtures"
+PITCH, RADIUS, ROWS, COLS = 16.0, 7.5, 9, 11
+
+
+def centres(shift: dict | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Square lattice centres (PITCH apart, a sub-pixel phase), with some lenses' sub-images moved."""
+    r, c = np.mgrid[0:ROWS, 0:COLS].astype(float)
+    x, y = 10.3 + c * PITCH, 9.6 + r * PITCH
+    for (m, n), (dx, dy) in (shift or {}).items():
+        x[m, n] += dx
+        y[m, n] += dy
+    return x, y
+
+
+def radiance(s, t, u, v):
+    """The analytic light field: lens (t, s) seen through the pupil point at offset (u, v) px: linear in
+    the view (bilinear interpolation reads it exactly), different for every lens."""
+    return 1.0 + 0.05 * s - 0.03 * t + 0.02 * u - 0.015 * v + 0.004 * s * u
+
+
+def frame(x, y, field=radiance, shape=(150, 180)) -> np.ndarray:
+    """Every pixel inside a lens' disc carries field(s, t, offset); the gaps are dark."""
+    yy, xx = np.mgrid[0:shape[0], 0:shape[1]].astype(float)
+    img = np.zeros(shape)
+    for t in range(ROWS):
+        for s in range(COLS):
+            u, v = xx - x[t, s], yy - y[t, s]
+            inside = np.hypot(u, v) <= RADIUS
+            img[inside] = field(s, t, u[inside], v[inside])
+    return img
+
+
+def sampling_at(x, y, shape=(150, 180), weight=None) -> LensSampling:
+    return LensSampling(x, y, np.ones_like(x), np.ones_like(x) if weight is None else weight, "square", PITCH,
+                        RADIUS, shape, "lattice")
+
+
+def test_bilinear_reads_a_bilinear_function_exactly():
+    yy, xx = np.mgrid[0:40, 0:50].astype(float)
+    img = (2.0 + 0.3 * xx - 0.2 * yy + 0.01 * xx * yy).astype(np.float32)
+    rng = np.random.default_rng(1)
+    x, y = rng.uniform(0, 49, 500), rng.uniform(0, 39, 500)
+    got, ok = bilinear(img, x, y)
+    assert ok.all()
+    np.testing.assert_allclose(got, 2.0 + 0.3 * x - 0.2 * y + 0.01 * x * y, rtol=2e-6)
+    out, ok = bilinear(img, np.array([-0.5, 49.5, np.nan]), np.array([3.0, 3.0, 3.0]))
+    assert not ok.any() and np.all(out == 0)
+
+
+def test_view_offsets_stay_inside_the_pupil_image():
+    assert view_offsets(7.5).tolist() == list(range(-6, 7))
+    assert view_offsets(7.5, 5).tolist() == [-2, -1, 0, 1, 2]
+    with pytest.raises(InputError, match="odd"):
+        view_offsets(7.5, 4)
+    with pytest.raises(InputError, match="beyond its radius"):
+        view_offsets(7.5, 17)
+
+
+def test_decode_recovers_the_analytic_light_field():
+    x, y = centres()
+    lf = decode(frame(x, y).astype(np.float32), sampling_at(x, y), view_offsets(RADIUS))
+    o = lf.view_offsets_px
+    v, u, t, s = np.meshgrid(o, o, np.arange(ROWS), np.arange(COLS), indexing="ij")
+    used = lf.weights > 0
+    assert used.mean() > 0.6  # the views inside the disc (radius - 0.5 px), every lens
+    # a hard-edged disc: the views whose 2 x 2 pixels all lie inside it (a real rim is soft: devignetting)
+    inner = used & (np.hypot(u, v) <= RADIUS - 1.5)
+    np.testing.assert_allclose(lf.values[inner], radiance(s, t, u, v)[inner], rtol=1e-5)
+    assert np.all(lf.values[~used] == lf.values[~used])  # finite everywhere
+
+
+def test_measured_centres_undo_a_lens_that_moved():
+    """A lens whose sub-image moved (pitch, decenter, tilt) decoded on the lattice reads the wrong pupil
+    points; at its measured centre (a flagged lens in the report) it reads the right ones."""
+    moved = {(4, 5): (1.3, -0.7)}
+    x0, y0 = centres()
+    x, y = centres(moved)
+    img = frame(x, y).astype(np.float32)
+    offs = view_offsets(RADIUS, 9)
+    truth = decode(frame(x0, y0).astype(np.float32), sampling_at(x0, y0), offs)
+    on_lattice = decode(img, sampling_at(x0, y0), offs)
+    grid = SimpleNamespace(grid_x_px=x0, grid_y_px=y0, measured_x_px=x + 0.001, measured_y_px=y - 0.001,
+                           missing=np.zeros(x.shape, bool), pitch_px=(PITCH, PITCH), radius_px=np.full(x.shape, RADIUS),
+                           image_shape=img.shape, packing="square", shape=x.shape)
+    report = {"defects": [{"row": 5, "col": 6, "error_type": "decenter"}, {"row": 2, "col": 2, "error_type": "missing"}]}
+    smp = measured_sampling(grid, report)
+    assert smp.x_px[4, 5] == pytest.approx(x[4, 5] + 0.001) and smp.x_px[3, 3] == x0[3, 3]  # only flagged lenses move
+    measured = decode(img, smp, offs)
+    both = (on_lattice.weights > 0) & (truth.weights > 0)
+    both &= (np.hypot(offs[:, None], offs[None, :]) <= RADIUS - 3.0)[:, :, None, None]  # all reads inside the disc
+    err_lattice = np.abs(on_lattice.values - truth.values)[both[:, :, 4, 5], 4, 5]
+    # the measured centre is 0.0014 px off: the samples read the analytic field 0.02 * 0.0014 off at most
+    err_measured = np.abs(measured.values - truth.values)[both[:, :, 4, 5], 4, 5]
+    assert err_lattice.max() > 0.02 and err_measured.max() < 2e-4
+    assert np.all(measured.weights[:, :, 1, 1] == 0)  # the missing lens carries no light field
+    healthy = np.ones(x.shape, bool)
+    healthy[4, 5] = healthy[1, 1] = False
+    assert np.array_equal(measured.values[:, :, healthy], on_lattice.values[:, :, healthy])
+
+
+def test_devignetting_leaves_the_scene():
+    """A scene frame = white frame x scene radiance per lens: the devignetted light field is the scene's
+    radiance in every view, whatever the white's fall-off inside the sub-image."""
+    x, y = centres()
+    white = frame(x, y, lambda s, t, u, v: 0.9 - 0.004 * (u * u + v * v))
+    scene = frame(x, y, lambda s, t, u, v: (0.9 - 0.004 * (u * u + v * v)) * (0.2 + 0.07 * s + 0.03 * t))
+    smp = sampling_at(x, y)
+    offs = view_offsets(RADIUS)
+    lf = devignetted(decode(scene.astype(np.float32), smp, offs), decode(white.astype(np.float32), smp, offs))
+    t, s = np.mgrid[0:ROWS, 0:COLS]
+    used = lf.weights > 0
+    expected = np.broadcast_to(0.2 + 0.07 * s + 0.03 * t, lf.values.shape)
+    inner = used & (np.hypot(*np.meshgrid(offs, offs, indexing="ij")) <= RADIUS - 1.5)[:, :, None, None]
+    np.testing.assert_allclose(lf.values[inner], expected[inner], rtol=2e-3)  # bilinear on a quadratic white
+    assert lf.devignetted and lf.weights.max() <= 1.0
+
+
+def test_a_hex_array_resampled_onto_a_rectangular_grid():
+    """Values linear in the lattice position come out linear in the rectangular (s, t) grid, exactly."""
+    rows, cols = 12, 10
+    r, c = np.mgrid[0:rows, 0:cols]
+    u = c + 0.5 * (r % 2)  # hex: odd 0-based rows (m even) half a pitch right
+    v = r * np.sqrt(3) / 2
+    field = 3.0 + 0.2 * u - 0.1 * v
+    lf = LightField(np.broadcast_to(field, (3, 3, rows, cols)).astype(np.float32), np.ones((3, 3, rows, cols), np.float32),
+                    np.array([-1.0, 0.0, 1.0]), "hex", (1.0, 1.0))
+    rect = rectangular(lf)
+    t, s = np.mgrid[0:rect.spatial_shape[0], 0:rect.spatial_shape[1]]
+    assert rect.packing == "rect" and rect.spatial_shape == (int((rows - 1) * np.sqrt(3) / 2) + 1, cols)
+    inner = rect.weights[0, 0] > 0.999  # cells interpolated wholly from lenses of the array
+    assert inner.mean() > 0.8
+    np.testing.assert_allclose(rect.values[0, 0][inner], (3.0 + 0.2 * s - 0.1 * t)[inner], atol=1e-5)
+
+
+def test_refocusing_brings_a_parallax_shifted_spot_into_focus():
+    """Views of a spot that moves `slope` lenses per view pixel: refocused at that slope the spot is as
+    sharp as in one view; at 0 it is smeared."""
+    o = np.arange(-3.0, 4.0)
+    slope = 1.5
+    t, s = np.mgrid[0:31, 0:31].astype(float)
+    vals = np.array([[np.exp(-((s + slope * ui - 15) ** 2 + (t + slope * vj - 15) ** 2) / 8.0) for ui in o] for vj in o])
+    lf = LightField(vals.astype(np.float32), np.ones(vals.shape, np.float32), o, "square", (1.0, 1.0))
+    sharp, _ = refocus(lf, -slope)
+    flat, _ = refocus(lf, 0.0)
+    assert sharp[15, 15] > 0.95 and flat[15, 15] < 0.5
+    assert np.unravel_index(np.argmax(sharp), sharp.shape) == (15, 15)
+
+
+def test_filling_a_lens_from_its_neighbours():
+    x, y = centres()
+    w = np.ones(x.shape)
+    w[4, 5] = 0.0
+    lf = decode(frame(x, y, lambda s, t, u, v: 0 * u + 1.0 + 0.1 * s).astype(np.float32), sampling_at(x, y, weight=w),
+                view_offsets(RADIUS, 3))
+    out = filled(lf)
+    np.testing.assert_allclose(out.values[:, :, 4, 5], 1.0 + 0.1 * 5, rtol=1e-5)  # linear: the neighbours' mean
+    assert 0 < out.weights[1, 1, 4, 5] <= 0.5 and np.array_equal(out.values[:, :, 3, 3], lf.values[:, :, 3, 3])
+
+
+@pytest.mark.parametrize("cfa", ["RGGB", "BGGR", "GRBG", "GBRG"])
+def test_demosaicing_reads_each_pattern(cfa):
+    colour = {"R": 0.8, "G": 0.5, "B": 0.2}
+    mosaic = np.zeros((16, 16), np.float32)
+    for k, (r0, c0) in enumerate(((0, 0), (0, 1), (1, 0), (1, 1))):
+        mosaic[r0::2, c0::2] = colour[cfa[k]]
+    rgb = demosaiced(mosaic, cfa)
+    np.testing.assert_allclose(rgb[4:12, 4:12].reshape(-1, 3).mean(axis=0), [0.8, 0.5, 0.2], atol=0.01)
+
+
+# ------------------------------------------------------------------------------------------ the command
+
+
+@pytest.fixture(scope="module")
+def small_frames(tmp_path_factory):
+    """The small camera's white frame, a textured scene through it, and the white's inspection report."""
+    d = tmp_path_factory.mktemp("decode")
+    cfg = str(FIXTURES / "small_camera.toml")
+    yy, xx = np.mgrid[0:64, 0:64]
+    np.save(d / "texture.npy", (0.3 + 0.7 * (((xx // 8) + (yy // 8)) % 2)).astype(np.float64))
+    assert main(["simulate", "-c", cfg, "--out", str(d / "white.tiff"), "--rays-per-pixel", "60", "--seed", "1",
+                 "--random-defects", "2", "-q"]) == 0
+    assert main(["simulate", "-c", cfg, "--out", str(d / "scene.tiff"), "--scene", "texture", "--texture",
+                 str(d / "texture.npy"), "--rays-per-pixel", "60", "--seed", "2", "--random-defects", "2", "-q"]) == 0
+    main(["inspect", str(d / "white.tiff"), "-c", cfg, "--out", str(d / "report"), "-q", "--no-db"])
+    return d, cfg
+
+
+def test_decode_command_writes_the_light_field(small_frames):
+    d, cfg = small_frames
+    out = d / "lf"
+    assert main(["decode", str(d / "scene.tiff"), "--white", str(d / "white.tiff"), "--report", str(d / "report"),
+                 "-c", cfg, "--refocus", "0,0.1", "--out", str(out), "-q"]) == 0
+    doc = json.loads((out / "decode.json").read_text())
+    values, weights = np.load(out / "lightfield.npy"), np.load(out / "weights.npy")
+    assert list(values.shape) == doc["shape"] and values.shape == weights.shape
+    assert values.shape[2:] == (24, 24) and values.shape[0] == values.shape[1] == len(doc["view_offsets_px"])
+    assert doc["sampling"] == "measured" and doc["devignetted"] and doc["refocus_slopes"] == [0.0, 0.1]
+    assert np.load(out / "refocus.npy").shape == (2, 24, 24)
+    for name in ("views.tif", "mosaic.png", "refocus_0.png", "refocus_1.png"):
+        assert (out / name).stat().st_size > 0
+    import tifffile
+
+    assert tifffile.imread(out / "views.tif").shape == (values.shape[0] * values.shape[1], 24, 24)
+    # the scene's checkerboard survives the devignetting: bright and dark lenses in the centre view
+    centre = values[values.shape[0] // 2, values.shape[1] // 2]
+    assert np.percentile(centre, 90) > 1.8 * np.percentile(centre, 10)
+
+
+@pytest.mark.parametrize("case", ["white-as-scene", "wrong-size", "other-array-report", "even-views", "bad-slopes",
+                                  "no-such-raw"])
+def test_decode_refuses_bad_input_and_writes_nothing(small_frames, case, capsys):
+    d, cfg = small_frames
+    out = d / f"bad-{case}"
+    scene, extra = str(d / "scene.tiff"), []
+    if case == "white-as-scene":
+        scene = str(d / "white.tiff")
+    elif case == "wrong-size":
+        np.save(d / "wrong.npy", np.full((100, 120), 500, np.uint16))
+        scene = str(d / "wrong.npy")
+    elif case == "other-array-report":
+        rep = json.loads((d / "report" / "report.json").read_text())
+        for lens in rep["grid"]["lenses"]:
+            lens["grid_x_px"] += 7.0
+        (d / "shifted.json").write_text(json.dumps(rep))
+        extra = ["--report", str(d / "shifted.json")]
+    elif case == "even-views":
+        extra = ["--views", "4"]
+    elif case == "bad-slopes":
+        extra = ["--refocus", "near,far"]
+    else:
+        scene = str(d / "nothing.tiff")
+    code = main(["decode", scene, "--white", str(d / "white.tiff"), "-c", cfg, "--out", str(out), *extra])
+    err = capsys.readouterr().err
+    assert code == 2 and err.count("error:") == 1
+    assert not out.exists() or not any(out.iterdir())
