@@ -4,9 +4,10 @@
 machine's CPU, so the first `mlaqc inspect` after `pip install` compiles nothing. A build that fails (no C
 compiler, no Numba in the build environment) only warns: the package then compiles the kernels with
 Numba's JIT on first use, as before. An editable install also byte-compiles the sources, which
-PYTHONDONTWRITEBYTECODE would otherwise have every run recompile, and compiles the ray tracer's twelve
-variants into Numba's cache beside them (mlaqc.optics.tracer_variants, one process per core), so that no
-`mlaqc simulate` or `mlaqc demo` waits for a compile. MLAQC_AOT=0 skips both compiles.
+PYTHONDONTWRITEBYTECODE would otherwise have every run recompile, and compiles the ray tracer's variant for
+the default camera into Numba's cache beside them (mlaqc.optics.tracer_variants), so that `mlaqc demo` and
+the Table 1 camera never wait for a compile; the other eleven variants compile in the background of the
+first command that traces (mlaqc.optics.tracer_background). MLAQC_AOT=0 skips both compiles.
 """
 
 from __future__ import annotations
@@ -63,13 +64,17 @@ class BuildKernels(build_ext):
             self._compile_tracer()
 
     def _compile_tracer(self) -> None:
-        """The tracer's variants into Numba's cache in the source tree (where the editable install runs them)."""
+        """The default camera's tracer variant into Numba's cache in the source tree (where the editable
+        install runs it): the demo and Table 1 never wait; the other variants compile in the background of
+        the first command that traces (mlaqc.optics.tracer_background), or with `mlaqc kernels`."""
         sys.path.insert(0, str(HERE))
+        os.environ["MLAQC_BACKGROUND_COMPILE"] = "0"
         try:
-            from mlaqc.optics.tracer_variants import compile_all
+            from mlaqc.optics.tracer_variants import INSTALL_VARIANTS, compile_all
 
-            print("mlaqc: compiling the ray tracer's variants into Numba's cache ...", file=sys.stderr)
-            failed = [v.name for v, _, error in compile_all(log=lambda text: print(text, file=sys.stderr)) if error]
+            print("mlaqc: compiling the ray tracer for the default camera into Numba's cache ...", file=sys.stderr)
+            failed = [v.name for v, _, error in compile_all(INSTALL_VARIANTS, log=lambda text: print(text, file=sys.stderr))
+                      if error]
             if failed:
                 print(f"mlaqc: WARNING: not compiled: {', '.join(failed)} (compiled on first use instead)",
                       file=sys.stderr)

@@ -12,8 +12,8 @@ so are refocused images (PSNR). Frames are cached in /tmp.
 
     python bench/decode.py                                         # Table 1, noise-free and noisy
     python bench/decode.py --config fixtures/hex_camera.toml
-    python bench/decode.py --config fixtures/lfm_40x_relay.toml --defocus-mm 0.002
     python bench/decode.py --timing                                # a 2048² frame decoded in-process
+    python bench/decode.py --geometry                              # error-free views against exact rays
 """
 
 from __future__ import annotations
@@ -118,7 +118,7 @@ def lens_mask(shape, lenses, grow: int = 0) -> np.ndarray:
     return mask
 
 
-def compare(cfg, scene_name, scene, flawed_em, flawed_lenses, clean_em, rpp, noise, defocus_mm, slope):
+def compare(cfg, scene_name, scene, flawed_em, flawed_lenses, clean_em, rpp, noise, defocus_mm, slope, picture=None):
     scfg = scene_config(cfg, defocus_mm)
     raws = {k: rendered(c, s, e, k if k.startswith("white") else f"{k}_{scene_name}", rpp, noise)
             for k, c, s, e in (("white_flawed", cfg, WhiteScene(), flawed_em), ("white_clean", cfg, WhiteScene(), clean_em),
@@ -153,8 +153,10 @@ def compare(cfg, scene_name, scene, flawed_em, flawed_lenses, clean_em, rpp, noi
     print(f"  {scene_name}: {len(flawed_lenses)} flawed lenses ({len(found & set(flawed_lenses))} flagged by the "
           f"inspection, {len(found - set(flawed_lenses))} others), {len(offs)}x{len(offs)} views, refocus slope {slope:g}")
     out = {}
+    decoded = {}
     for name, smp in samplings.items():
         lf = rectangular(devignetted(decode(img_f, smp, offs), decode(wf, smp, offs)))
+        decoded[name] = lf
         w = np.minimum(lf.weights, ref.weights) > 0.2  # reduced-weight lenses (0.5) are compared too
         wf_ = w.astype(np.float64)
         at = rms(lf.values, ref.values, wf_ * flawed_mask)
@@ -167,6 +169,8 @@ def compare(cfg, scene_name, scene, flawed_em, flawed_lenses, clean_em, rpp, noi
         per_type = ", ".join(f"{t} {rms(lf.values, ref.values, wf_ * m):.4f}" for t, m in type_masks.items())
         print(f"    {name:11s}: view RMS at flawed lenses {at:.4f} ({per_type}), elsewhere {rest:.4f}; refocused "
               f"PSNR near flawed lenses {p_at:.2f} dB, elsewhere {p_rest:.2f} dB")
+    if picture is not None and ref.packing == "square":
+        before_after(picture, decoded["b lattice"], decoded["c measured"], ref, flawed_em)
     # the render's own error: the error-free frame again with other rays, decoded the same way
     again = load_decode_frame(str(rendered(scfg, scene, clean_em, f"scene_clean_{scene_name}_seed2", rpp, noise, seed=12)), cfg)
     lf = rectangular(devignetted(decode(again, ref_s, offs), decode(wc, ref_s, offs)))
@@ -177,6 +181,33 @@ def compare(cfg, scene_name, scene, flawed_em, flawed_lenses, clean_em, rpp, noi
     print(f"    (c)/(b) at flawed lenses {ac / ab:.3f} (bar <= 0.333); elsewhere {rc / rb:.4f} (bar <= 1.02); "
           f"refocused PSNR gain near flawed {pc - pb:+.2f} dB, elsewhere {qc - qb:+.2f} dB")
     return out
+
+
+def before_after(path: str, lattice, measured, ref, em: ErrorMap, half: int = 5) -> None:
+    """A PNG: one outer view around the paper's 10 µm decentered lens (at 90°), decoded on the calibrated
+    lattice, as measured, and from the error-free array, with each decode's difference from the error-free
+    view (x 10), 12 px per lens."""
+    import cv2
+
+    rows, cols = em.shape
+    m, n = placements(rows, cols)[5]  # NINE[5]: decenter 10 µm at 90°
+    k = len(ref.view_offsets_px) // 2
+    j, i = k, k + int(round(0.6 * k))  # a view 0.6 of the pupil radius to the right
+    win = (slice(m - 1 - half, m + half), slice(n - 1 - half, n + half))
+    views = [lf.values[j, i][win] for lf in (lattice, measured, ref)]
+    lo, hi = float(np.percentile(views[2], 1)), float(np.percentile(views[2], 99))
+    tiles = [np.clip((v - lo) / (hi - lo), 0, 1) for v in views]
+    tiles += [np.clip(0.5 + 10 * (v - views[2]) / (hi - lo), 0, 1) for v in views[:2]]
+    big = [cv2.resize((255 * t).astype(np.uint8), None, fx=12, fy=12, interpolation=cv2.INTER_NEAREST) for t in tiles]
+    labels = ("lattice (b)", "measured (c)", "error-free", "(b) - error-free x10", "(c) - error-free x10")
+    for b, text in zip(big, labels):
+        cv2.rectangle(b, (half * 12, half * 12), (half * 12 + 11, half * 12 + 11), 255, 1)
+        cv2.rectangle(b, (0, 0), (8 + 7 * len(text), 19), 0, -1)
+        cv2.putText(b, text, (4, 14), cv2.FONT_HERSHEY_SIMPLEX, 0.4, 255, 1, cv2.LINE_AA)
+    gap = np.full((big[0].shape[0], 6), 128, np.uint8)
+    row = np.hstack([x for b in big for x in (b, gap)][:-1])
+    cv2.imwrite(path, row)
+    print(f"  wrote {path}: view ({j - k:+d}, {i - k:+d}) px around U({m},{n}), the 10 µm decentered lens (framed)")
 
 
 def rect_mask(mask: np.ndarray, t_count: int) -> np.ndarray:
@@ -208,6 +239,45 @@ def timing(cfg, repeats: int = 5) -> None:
           f"{len(offs)}x{len(offs)} views), with its white's decode and the devignetting: {best:.3f} s (best of {repeats})")
 
 
+def geometry(defocus_mm: float, rpp: float = 300.0) -> None:
+    """The error-free small camera and one point source `defocus_mm` beyond focus: in every view inside 0.8 of
+    the pupil's image, the decoded spot's centroid (in lenses) against where the exact ray through that
+    view's pupil point meets the MLA (tests/lens_rays.py: Snell's law through the singlet)."""
+    sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "tests"))
+    from lens_rays import point_source_map
+
+    cfg = load_config(str(Path(__file__).resolve().parent.parent / "fixtures" / "small_camera.toml"))
+    scfg, obj = scene_config(cfg, defocus_mm), (0.25, -0.15)
+    em = ErrorMap.zeros(cfg.mla.count_h, cfg.mla.count_w)
+    white = rendered(cfg, WhiteScene(), em, "small_white", 60.0, False)
+    point = rendered(scfg, PointScene((obj,), photons=4e7), em, f"small_point_{defocus_mm:g}", rpp, False)
+    smp = lattice_sampling(calibrate_for(load_frame(str(white), cfg), cfg))
+    offs = view_offsets(smp.radius_px)
+    lf = devignetted(decode(load_decode_frame(str(point), cfg), smp, offs), decode(load_decode_frame(str(white), cfg), smp, offs))
+    lay, ml = scfg.layout, cfg.main_lens
+    rays = point_source_map(obj, -lay.object_distance_mm, radius_front_mm=ml.radius_front_mm, radius_back_mm=ml.radius_back_mm,
+                            thickness_mm=ml.thickness_mm, index=ml.refractive_index, diameter_mm=ml.diameter_mm,
+                            pupil_z_mm=lay.z_mla_mm - lay.pupil_to_mla_mm, target_z_mm=lay.z_mla_mm)
+    per_px = cfg.sensor.pixel_um * 1e-3 * lay.pupil_to_mla_mm / (lay.z_sensor_mm - lay.z_mla_mm)
+    t, s = np.mgrid[0:cfg.mla.count_h, 0:cfg.mla.count_w]
+    got, want = [], []
+    for j, v in enumerate(offs):
+        for i, u in enumerate(offs):
+            w = lf.values[j, i] * (lf.weights[j, i] > 0.3)
+            if np.hypot(u, v) > 0.8 * smp.radius_px or w.sum() <= 0:
+                continue
+            got.append(((w * s).sum() / w.sum(), (w * t).sum() / w.sum()))
+            want.append(rays(np.array([[-u * per_px, -v * per_px]]))[0] / (cfg.mla.pitch_um * 1e-3) + (cfg.mla.count_w - 1) / 2)
+    got, want = np.array(got), np.array(want)
+    err = got - want
+    slope = [np.polyfit(want[:, k], got[:, k], 1)[0] for k in (0, 1)]
+    print(f"point {defocus_mm:g} mm beyond focus, {len(got)} views: decoded - exact rays, s {err[:, 0].mean():+.3f} "
+          f"(RMS {np.sqrt(np.mean(err[:, 0] ** 2)):.3f}) lens, t {err[:, 1].mean():+.3f} (RMS "
+          f"{np.sqrt(np.mean(err[:, 1] ** 2)):.3f}) lens; slope decoded/exact {slope[0]:.3f}, {slope[1]:.3f}; the views "
+          f"span {np.ptp(want[:, 0]):.1f} lenses (paraxial: {2 * 0.8 * smp.radius_px * scene_slope(cfg, defocus_mm):.1f}); "
+          "a view sees the point in one lens: quantization alone gives 0.29 lens RMS")
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--config", "-c", default="fixtures/paper_table1.toml")
@@ -218,7 +288,13 @@ def main() -> int:
     ap.add_argument("--slope", type=float, help="refocus slope, lenses per view pixel (default: the scene's)")
     ap.add_argument("--noise", choices=("both", "off", "on"), default="both")
     ap.add_argument("--timing", action="store_true")
+    ap.add_argument("--geometry", action="store_true", help="decoded views of a point against exact rays")
+    ap.add_argument("--picture", metavar="PNG", help="write a before/after picture of one view (texture, noise-free)")
     args = ap.parse_args()
+    if args.geometry:
+        for d in (1.0, 2.0, 4.0):
+            geometry(d)
+        return 0
     cfg = load_config(args.config)
     if args.timing:
         timing(cfg)
@@ -230,29 +306,26 @@ def main() -> int:
         print(f"{args.config}: {'noisy' if noise else 'noise-free'} frames, {args.rays_per_pixel:g} rays/pixel, "
               f"object {args.defocus_mm:g} mm beyond focus")
         for name, scene in (("texture", texture()), ("points", points(cfg))):
-            compare(cfg, name, scene, flawed_em, flawed, clean_em, args.rays_per_pixel, noise, args.defocus_mm, slope)
+            compare(cfg, name, scene, flawed_em, flawed, clean_em, args.rays_per_pixel, noise, args.defocus_mm, slope,
+                    args.picture if name == "texture" and not noise else None)
     return 0
 
 
 def scene_slope(cfg, defocus_mm: float) -> float:
-    """The refocus slope that brings the defocused object plane into focus, from the optics: its image
-    lies dz behind/before the MLA; a view offset of one pixel is a pupil point 1/r of the pupil radius out,
-    whose ray crosses the MLA (dz / b) * pupil radius * (1/r) away from the chief ray, in lens pitches."""
-    scfg = scene_config(cfg, defocus_mm)
-    lay, slay = cfg.layout, scfg.layout
+    """The refocus slope that brings the defocused object plane into focus near the axis (paraxial): its
+    image lies dz before the MLA; the view u px out looks through the pupil point P = -(u / r) R (the
+    sub-image is the pupil's image, inverted), whose ray through the image point meets the MLA P dz / b'
+    from it, so a point moves R dz / (b' r) per view pixel, in lens pitches. The Table 1 singlet's
+    spherical aberration makes outer views move more (tests/lens_rays.py traces it exactly)."""
     from mlaqc.optics.paraxial import image_distance
 
-    main_efl = lay.main.efl if lay.main is not None else None
-    if main_efl is None:
+    lay, slay = cfg.layout, scene_config(cfg, defocus_mm).layout
+    if lay.main is None:
         return 0.0
-    a = slay.object_distance_mm + lay.main.front_principal
-    b_img = image_distance(main_efl, a)
-    dz = lay.pupil_to_mla_mm - b_img  # the object's image lies dz before the MLA
-    pupil_r = lay.exit_radius_mm
+    b_img = image_distance(lay.main.efl, slay.object_distance_mm + lay.main.front_principal)
+    dz = lay.pupil_to_mla_mm - b_img
     r_px = design_sampling(cfg, (cfg.sensor.height_px, cfg.sensor.width_px)).radius_px
-    # a view u px out looks through pupil point (u / r_px) * pupil_r; its ray meets the MLA plane
-    # shifted by that * dz / b_img relative to the chief ray; the sub-image inverts the pupil: sign -1
-    return -float(dz / b_img * pupil_r / r_px / (cfg.mla.pitch_um * 1e-3))
+    return float(dz / b_img * lay.exit_radius_mm / r_px / (cfg.mla.pitch_um * 1e-3))
 
 
 if __name__ == "__main__":

@@ -22,6 +22,7 @@ from PySide6.QtWidgets import (QAbstractItemView, QApplication, QDockWidget, QFi
                                QMainWindow, QTableView, QVBoxLayout, QWidget)
 
 from gui.history import HistoryPanel
+from gui.lightfield import LightFieldPanel
 from gui.panels import CameraPanel, InspectionPanel, ScanPanel, StagePanel
 from gui.widgets import (MONO, DefectSortProxy, DefectTableModel, ImagePanel, LensDetail, LogView, StatusDot,
                          VerdictBanner)
@@ -164,6 +165,7 @@ class MainWindow(QMainWindow):
         self.inspection_panel = InspectionPanel()
         self.scan_panel = ScanPanel()
         self.history_panel = HistoryPanel()
+        self.lightfield_panel = LightFieldPanel()
         self.lens_detail = LensDetail()
         self.log_view = LogView()
         self.table_model = DefectTableModel(self)
@@ -197,6 +199,7 @@ class MainWindow(QMainWindow):
                                          ("lens", "Lens detail", self.lens_detail, R),
                                          ("scan", "Scan", self.scan_panel, B),
                                          ("history", "Lot history", self.history_panel, B),
+                                         ("lightfield", "Light field", self.lightfield_panel, B),
                                          ("log", "Log", self.log_view, B)):
             dock = QDockWidget(title, self)
             dock.setObjectName(f"dock_{key}")
@@ -204,7 +207,8 @@ class MainWindow(QMainWindow):
             self.addDockWidget(area, dock)
             self.docks[key] = dock
         self.tabifyDockWidget(self.docks["scan"], self.docks["history"])
-        self.tabifyDockWidget(self.docks["history"], self.docks["log"])
+        self.tabifyDockWidget(self.docks["history"], self.docks["lightfield"])
+        self.tabifyDockWidget(self.docks["lightfield"], self.docks["log"])
         self.docks["scan"].raise_()
         self.resizeDocks([self.docks["camera"], self.docks["inspection"]], [330, 470], Qt.Orientation.Horizontal)
         self.resizeDocks([self.docks["scan"]], [250], Qt.Orientation.Vertical)
@@ -253,6 +257,7 @@ class MainWindow(QMainWindow):
         cp.captureRequested.connect(self.capture_frame)
         cp.saveRequested.connect(self.browse_save_frame)
         self.history_panel.refreshRequested.connect(self.read_history)
+        self.inspectionShown.connect(lambda view: self.lightfield_panel.set_inspection(view, self.cfg))
         sp.connection.connectRequested.connect(self.connect_stage)
         sp.connection.disconnectRequested.connect(self._stage_disconnect)
         sp.homeRequested.connect(self._stage_home)
@@ -1141,6 +1146,7 @@ class MainWindow(QMainWindow):
         ok &= th["inspection"].stop(120.0)
         ok &= th["io"].stop(300.0)  # a report being written is finished, never cut
         ok &= th["frames"].stop(30.0)
+        self.lightfield_panel.shutdown()
         self._cam_shutdown.emit()
         ok &= th["camera"].thread.wait(15_000)
         self._stage_shutdown.emit()

@@ -11,6 +11,8 @@ import pytest
 
 os.environ.setdefault("QT_QPA_PLATFORM", "offscreen")
 os.environ.pop("MLAQC_SCHEDULER", None)  # a developer's cluster must not take over the tests that inspect locally
+# the warm-up below compiles the tracer's variants; no test starts a background compile of its own
+os.environ["MLAQC_BACKGROUND_COMPILE"] = "0"
 # every inspection records into a results database (mlaqc.resultsdb): the tests' go into one of the run's own,
 # never the developer's (set before xdist starts its workers, which inherit it); a test that reads records
 # names its own with --db
@@ -20,12 +22,12 @@ if "MLAQC_TEST_DB_DIR" not in os.environ:
 
 # ------------------------------------------------------------------------------------ Numba warm-up
 # The tracer's kernel has twelve compiled variants (mlaqc.optics.tracer_variants: lens boundaries x lattice x
-# per-lens tilts). `pip install -e .` compiles them all into Numba's cache (setup.py), in the package's
-# __pycache__ (or $NUMBA_CACHE_DIR), where every process finds them: pytest, xdist workers, the `mlaqc`
-# subprocesses and the Dask workers of the cluster tests. Before the first test, one process per core loads
-# each variant (and compiles the inspection kernels' JIT rest): a second or two in all when the install
-# compiled them, as on CI's fresh clone; after a kernel source is edited, the variants compile here, both
-# cores at once, rather than in the first tests that need them. The warm-up runs for whole folders
+# per-lens tilts). `pip install -e .` compiles the default camera's into Numba's cache (setup.py), in the
+# package's __pycache__ (or $NUMBA_CACHE_DIR); the warm-up compiles the rest there, where every process
+# finds them: pytest, xdist workers, the `mlaqc` subprocesses and the Dask workers of the cluster tests.
+# Before the first test, one process per core compiles or loads each variant (and compiles the inspection
+# kernels' JIT rest): on CI's fresh clone the eleven the install left out compile here, both cores at once
+# (about four minutes); once they are in the cache, a second or two in all. No test compiles its own. The warm-up runs for whole folders
 # (`pytest`, `pytest tests`), not for a run of named files or tests, which compiles only what it uses;
 # MLAQC_TEST_WARMUP=1 or 0 turns it on or off whatever the run.
 
@@ -108,6 +110,10 @@ def _warm_numba(config) -> None:
     if spent > 10:  # a cold cache: say where the time went
         out.line(f"numba warm-up: {len(results)} jobs in {spent:.0f} s on {cores} cores "
                  f"({sum(s for s, _ in results):.0f} s of compilation)")
+    if not any(error for _, error in results):
+        from mlaqc.optics.tracer_background import mark_all_compiled
+
+        mark_all_compiled()  # a later `mlaqc` command in this checkout starts no background compile
 
 
 def pytest_sessionstart(session):

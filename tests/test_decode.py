@@ -252,3 +252,117 @@ def test_decode_refuses_bad_input_and_writes_nothing(small_frames, case, capsys)
     err = capsys.readouterr().err
     assert code == 2 and err.count("error:") == 1
     assert not out.exists() or not any(out.iterdir())
+
+
+def test_decoded_views_of_a_point_follow_the_main_lens_rays(tmp_path):
+    """The error-free small camera, a point source 2 mm beyond the in-focus plane: in every view inside
+    0.8 of the pupil's image, the lens that sees the point is the one the exact ray (tests/lens_rays.py,
+    Snell's law through the singlet, its spherical aberration included) from the point through that view's
+    pupil point reaches. A view sees the point in one lens, so the centroid is quantized to whole lenses:
+    uniform quantization alone gives 0.29 lens RMS."""
+    import dataclasses
+
+    from lens_rays import point_source_map
+    from mlaqc.decode.frames import load_decode_frame
+    from mlaqc.decode.sampling import lattice_sampling
+    from mlaqc.inspection.calibrate import calibrate_for
+    from mlaqc.inspection.pipeline import load_frame
+    from mlaqc.optics.config import load_config
+    from mlaqc.optics.scene import PointScene
+    from mlaqc.optics.simulate import simulate, write_simulation
+
+    cfg = load_config(FIXTURES / "small_camera.toml")
+    lay = cfg.layout
+    scfg = dataclasses.replace(cfg, geometry=dataclasses.replace(
+        cfg.geometry, mla_distance_mm=lay.mla_distance_mm, object_distance_mm=lay.object_distance_mm + 2.0))
+    obj = (0.25, -0.15)
+    write_simulation(tmp_path / "w.tiff", simulate(cfg, rays_per_pixel=40, seed=1, noise=False), cfg)
+    write_simulation(tmp_path / "p.tiff", simulate(scfg, PointScene((obj,), 4e7), rays_per_pixel=150, seed=2,
+                                                   noise=False), scfg)
+    smp = lattice_sampling(calibrate_for(load_frame(str(tmp_path / "w.tiff"), cfg), cfg))
+    offs = view_offsets(smp.radius_px)
+    lf = devignetted(decode(load_decode_frame(str(tmp_path / "p.tiff"), cfg), smp, offs),
+                     decode(load_decode_frame(str(tmp_path / "w.tiff"), cfg), smp, offs))
+    ml, slay = cfg.main_lens, scfg.layout
+    rays = point_source_map(obj, -slay.object_distance_mm, radius_front_mm=ml.radius_front_mm,
+                            radius_back_mm=ml.radius_back_mm, thickness_mm=ml.thickness_mm, index=ml.refractive_index,
+                            diameter_mm=ml.diameter_mm, pupil_z_mm=slay.z_mla_mm - slay.pupil_to_mla_mm,
+                            target_z_mm=slay.z_mla_mm)
+    pupil_per_px = cfg.sensor.pixel_um * 1e-3 * slay.pupil_to_mla_mm / (slay.z_sensor_mm - slay.z_mla_mm)
+    pitch_mm, centre = cfg.mla.pitch_um * 1e-3, (cfg.mla.count_w - 1) / 2
+    t, s = np.mgrid[0:cfg.mla.count_h, 0:cfg.mla.count_w]
+    got, want = [], []
+    for j, v in enumerate(offs):
+        for i, u in enumerate(offs):
+            w = lf.values[j, i] * (lf.weights[j, i] > 0.3)
+            if np.hypot(u, v) > 0.8 * smp.radius_px or w.sum() <= 0:
+                continue
+            hit = rays(np.array([[-u * pupil_per_px, -v * pupil_per_px]]))[0]  # the sub-image inverts the pupil
+            got.append(((w * s).sum() / w.sum(), (w * t).sum() / w.sum()))
+            want.append(hit / pitch_mm + centre)
+    got, want = np.array(got), np.array(want)
+    assert len(got) > 150 and np.all(np.isfinite(want))
+    err = got - want
+    assert np.all(np.abs(err.mean(axis=0)) < 0.1)  # no offset between the decoded and the real geometry
+    assert np.all(np.sqrt((err ** 2).mean(axis=0)) < 0.3)  # within the lens quantization
+    for k in (0, 1):  # the views span ~18 lenses (aberration): measured against exact, slope ~1
+        assert 0.93 < np.polyfit(want[:, k], got[:, k], 1)[0] < 1.05
+
+
+def test_decode_on_a_dask_cluster_equals_the_local_run(small_frames, tmp_path, monkeypatch):
+    """Two frames (one bad) on a local Dask cluster: the good one's light field bit for bit the local run's,
+    the bad one one sentence and exit 2."""
+    distributed = pytest.importorskip("distributed")
+    monkeypatch.delenv("MLAQC_SCHEDULER", raising=False)
+    d, cfg = small_frames
+    (tmp_path / "broken.tiff").write_bytes(b"II*\x00 not a tiff")
+    args = [str(d / "scene.tiff"), str(tmp_path / "broken.tiff"), "--white", str(d / "white.tiff"), "-c", cfg, "-q"]
+    assert main(["decode", *args, "--out", str(tmp_path / "here")]) == 2
+    with distributed.LocalCluster(n_workers=1, threads_per_worker=1, processes=True, dashboard_address=None) as lc:
+        assert main(["decode", *args, "--out", str(tmp_path / "there"), "--scheduler", lc.scheduler_address]) == 2
+    for name in ("lightfield.npy", "weights.npy", "refocus.npy"):
+        assert np.array_equal(np.load(tmp_path / "here" / "scene" / name), np.load(tmp_path / "there" / "scene" / name))
+    assert not (tmp_path / "there" / "broken").exists() or not any((tmp_path / "there" / "broken").iterdir())
+
+
+def test_a_colour_light_field_keeps_its_channels_through_every_step(tmp_path):
+    """An RGB frame (a demosaiced Bayer frame): each channel decoded, devignetted, refocused and written as
+    its own, the weights shared."""
+    from mlaqc.decode.output import write_lightfield
+
+    x, y = centres()
+    gains = np.array([0.5, 1.0, 0.25], np.float32)
+    mono = frame(x, y).astype(np.float32)
+    white = frame(x, y, lambda s, t, u, v: 0 * u + 0.8).astype(np.float32)
+    rgb, white_rgb = mono[..., None] * gains, white[..., None] * gains
+    smp, offs = sampling_at(x, y), view_offsets(RADIUS, 5)
+    lf = devignetted(decode(rgb, smp, offs), decode(white_rgb, smp, offs))
+    grey = devignetted(decode(mono, smp, offs), decode(white, smp, offs))
+    assert lf.values.shape == grey.values.shape + (3,) and lf.weights.shape == grey.weights.shape
+    np.testing.assert_allclose(lf.values, np.repeat(grey.values[..., None], 3, axis=-1), rtol=1e-5)
+    img, _ = refocus(lf, 0.3)
+    grey_img, _ = refocus(grey, 0.3)
+    np.testing.assert_allclose(img[..., 1], grey_img, rtol=1e-5)
+    paths = write_lightfield(tmp_path, lf, [(0.3, img)], {"source": "rgb"})
+    assert np.load(paths["values"]).shape == lf.values.shape
+    import cv2
+
+    assert cv2.imread(str(paths["mosaic"]), cv2.IMREAD_UNCHANGED).shape[2] == 3
+    assert json.loads(paths["json"].read_text())["axes"][-1].startswith("channel")
+
+
+def test_a_hex_array_decodes_onto_a_rectangular_grid(tmp_path):
+    cfg = str(FIXTURES / "hex_small_camera.toml")
+    yy, xx = np.mgrid[0:64, 0:64]
+    np.save(tmp_path / "texture.npy", (0.3 + 0.7 * (((xx // 8) + (yy // 8)) % 2)).astype(np.float64))
+    assert main(["simulate", "-c", cfg, "--out", str(tmp_path / "white.tiff"), "--rays-per-pixel", "40", "-q"]) == 0
+    assert main(["simulate", "-c", cfg, "--out", str(tmp_path / "scene.tiff"), "--scene", "texture", "--texture",
+                 str(tmp_path / "texture.npy"), "--rays-per-pixel", "40", "-q"]) == 0
+    out = tmp_path / "lf"
+    assert main(["decode", str(tmp_path / "scene.tiff"), "--white", str(tmp_path / "white.tiff"), "-c", cfg,
+                 "--out", str(out), "-q"]) == 0
+    doc = json.loads((out / "decode.json").read_text())
+    rows = int((28 - 1) * np.sqrt(3) / 2) + 1  # the hex rows, p sqrt(3)/2 apart, resampled one pitch apart
+    assert doc["lens_grid"] == "rect" and doc["lenses"]["packing"] == "hex" and doc["shape"][2:] == [rows, 24]
+    centre = np.load(out / "lightfield.npy")[doc["shape"][0] // 2, doc["shape"][1] // 2]
+    assert np.percentile(centre[2:-2, 2:-2], 90) > 1.8 * np.percentile(centre[2:-2, 2:-2], 10)  # the checkerboard

@@ -4,13 +4,19 @@ an inspection's report of the array is given (mlaqc.decode)."""
 from __future__ import annotations
 
 import argparse
+import contextlib
+import os
+import socket
 import sys
 import time
+import uuid
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from mlaqc import cluster
 from mlaqc.commands.levels import add_level_options, stated_levels
 from mlaqc.errors import InputError
 
@@ -46,6 +52,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--config", "-c", help="camera config TOML (default: the paper's Table 1 camera)")
     p.add_argument("--out", "-o", required=True, help="output folder")
     p.add_argument("--quiet", "-q", action="store_true", help="no summary")
+    cluster.add_scheduler_option(p)
     add_level_options(p)
     p.set_defaults(func=run)
 
@@ -63,49 +70,102 @@ def parse_slopes(text: str) -> list[float]:
     return slopes
 
 
+@dataclass(frozen=True)
+class DecodeSpec:
+    """What decoding a frame needs besides the frame: sent once to every Dask worker."""
+
+    cfg: Any
+    levels: Any
+    setup: dict[str, Any]
+    slopes: tuple[float, ...]
+    fill: bool
+
+
 def run(args: argparse.Namespace) -> int:
-    """Decode every raw; 0 when all were written, 2 on bad input (nothing written for the frame)."""
+    """Decode every raw; 0 when all were written, 2 on bad input (nothing written for that frame), 3 when
+    the Dask cluster failed."""
     from mlaqc.commands.inspect import check_out_dir
+    from mlaqc.decode.output import write_lightfield
     from mlaqc.optics.config import load_config
 
     out = check_out_dir(args.out)
     slopes = parse_slopes(args.refocus)
     cfg = load_config(args.config)
+    address = cluster.scheduler_address(args.scheduler)
+    if address is not None:
+        cluster.check_address(address)  # a malformed address is bad input, said before any work
     levels = stated_levels(args)
-    setup = _setup(args, cfg, levels)  # every shared input checked before any frame is read
+    spec = DecodeSpec(cfg, levels, _setup(args, cfg, levels), tuple(slopes), bool(args.fill))
     raws = list(args.raw)
     folders = [out] if len(raws) == 1 else _folders(out, raws)
     failed = 0
-    for raw, folder in zip(raws, folders):
-        t0 = time.perf_counter()
-        try:
-            lf, facts = decode_raw(raw, cfg, levels, setup, args)
-            refocused = [(s, _refocused(lf, s)) for s in slopes]
-            from mlaqc.decode.output import write_lightfield
-
-            facts["seconds"] = round(time.perf_counter() - t0, 3)
-            write_lightfield(folder, lf, refocused, facts)
-        except InputError as exc:
-            if len(raws) == 1:
-                raise
-            failed += 1
-            print(f"mlaqc decode: {raw}: {exc}", file=sys.stderr)
-            continue
-        if not args.quiet:
-            print(_summary(raw, folder, lf, facts))
+    with contextlib.ExitStack() as stack:
+        if address is None:
+            results = ((i, decoded_here(spec, raw)) for i, raw in enumerate(raws))
+        else:  # connected before anything is written: an unreachable cluster leaves no output
+            client = stack.enter_context(cluster.connect(address, quiet=args.quiet))
+            results = decoded_on_cluster(client, spec, raws, args.quiet)
+        for i, value in results:
+            if "error" in value:
+                if len(raws) == 1:
+                    raise InputError(value["error"])
+                failed += 1
+                print(f"mlaqc decode: {raws[i]}: {value['error']}", file=sys.stderr)
+                continue
+            write_lightfield(folders[i], value["lf"], value["refocused"], value["facts"])
+            if not args.quiet:
+                print(_summary(folders[i], value["lf"], value["facts"]))
     return 2 if failed else 0
+
+
+def decoded_here(spec: DecodeSpec, raw: str, path: str | None = None) -> dict[str, Any]:
+    """One frame decoded and refocused in memory: {"lf", "refocused", "facts"}, or {"error": sentence} for
+    a frame that is bad input (a value, not an exception: Dask must not retry it)."""
+    from mlaqc.decode.lightfield import refocus
+
+    t0 = time.perf_counter()
+    try:
+        lf, facts = decode_raw(path or raw, spec)
+        refocused = [(s, refocus(lf, s)[0]) for s in spec.slopes]
+    except InputError as exc:
+        return {"error": str(exc).replace(path, raw) if path else str(exc)}
+    facts["source"] = str(raw)
+    facts["seconds"] = round(time.perf_counter() - t0, 3)
+    return {"lf": lf, "refocused": refocused, "facts": facts}
+
+
+def decode_remote(spec: DecodeSpec, raw: str, path: str, client_sees_it: bool) -> dict[str, Any]:
+    """Run on a Dask worker: `decoded_here` of the raw at the absolute `path`, or {"unseen": host} when this
+    worker cannot see a file the client can."""
+    if client_sees_it and not os.path.exists(path):
+        return {"unseen": socket.gethostname()}
+    return decoded_here(spec, raw, path)
+
+
+def decoded_on_cluster(client: Any, spec: DecodeSpec, raws: list[str], quiet: bool):
+    """(index, result) of every frame decoded on the cluster of `client`, as they complete."""
+    from mlaqc.errors import DeviceError
+
+    shared = cluster.share(client, spec, "decode-spec")
+    run_id = uuid.uuid4().hex[:8]
+    futures = {}
+    for i, raw in enumerate(raws):
+        path = os.path.abspath(raw)  # workers have another working directory
+        fut = client.submit(decode_remote, shared, raw, path, os.path.exists(path), pure=False,
+                            retries=cluster.TASK_RETRIES, key=f"decode-{i + 1:05d}-{Path(raw).name}-{run_id}")
+        futures[fut] = i
+    for i, value in cluster.follow(futures, f"decoding {len(raws)} frames on Dask", progress=False if quiet else None):
+        if "unseen" in value:
+            raise DeviceError(f"the Dask worker on {value['unseen']} cannot see {os.path.abspath(raws[i])!r}: "
+                              "workers read raws by path, so they need the same files at the same paths "
+                              "(a shared filesystem)")
+        yield i, value
 
 
 def _folders(out: Path, raws: list[str]) -> list[Path]:
     from mlaqc.commands.inspect import report_folders
 
     return report_folders(out, raws)
-
-
-def _refocused(lf, slope: float) -> np.ndarray:
-    from mlaqc.decode.lightfield import refocus
-
-    return refocus(lf, slope)[0]
 
 
 def _setup(args: argparse.Namespace, cfg: Any, levels) -> dict[str, Any]:
@@ -140,7 +200,7 @@ def _setup(args: argparse.Namespace, cfg: Any, levels) -> dict[str, Any]:
     from mlaqc.decode.lightfield import view_offsets
 
     offsets = view_offsets(sampling.radius_px, args.views)
-    return {"sampling": sampling, "white": white, "offsets": offsets,
+    return {"sampling": sampling, "offsets": offsets,
             "white_lf": None if white is None else _decode(white, sampling, offsets)}
 
 
@@ -150,15 +210,15 @@ def _decode(img, sampling, offsets):
     return decode(img, sampling, offsets)
 
 
-def decode_raw(raw: str, cfg: Any, levels, setup: dict[str, Any], args: argparse.Namespace):
+def decode_raw(raw: str, spec: DecodeSpec):
     """One scene frame's light field (devignetted, hex resampled, filled as asked) and its facts."""
     from mlaqc.decode.frames import load_decode_frame
     from mlaqc.decode.lightfield import devignetted, filled, rectangular
 
-    img = load_decode_frame(raw, cfg, levels)
-    sampling = setup["sampling"]
-    lf = _decode(img, sampling, setup["offsets"])
-    white_lf = setup["white_lf"]
+    img = load_decode_frame(raw, spec.cfg, spec.levels)
+    sampling = spec.setup["sampling"]
+    lf = _decode(img, sampling, spec.setup["offsets"])
+    white_lf = spec.setup["white_lf"]
     if white_lf is not None:
         if (white_lf.values.ndim == 5) != (lf.values.ndim == 5):
             raise InputError(f"{raw} and the white frame differ in colour (one has a colour filter array, the "
@@ -166,7 +226,7 @@ def decode_raw(raw: str, cfg: Any, levels, setup: dict[str, Any], args: argparse
         lf = devignetted(lf, white_lf)
     check_scene(lf, raw)
     lens_weight = sampling.weight
-    if args.fill:
+    if spec.fill:
         lf = filled(lf)
     lf = rectangular(lf)
     facts = {"source": str(raw), "sampling": sampling.source, "devignetted": white_lf is not None,
@@ -175,7 +235,7 @@ def decode_raw(raw: str, cfg: Any, levels, setup: dict[str, Any], args: argparse
                         "subimage_radius_px": round(sampling.radius_px, 3),
                         "without_light_field": int(np.count_nonzero(lens_weight == 0)),
                         "reduced_weight": int(np.count_nonzero((lens_weight > 0) & (lens_weight < 1))),
-                        "filled": bool(args.fill)}}
+                        "filled": spec.fill}}
     return lf, facts
 
 
@@ -194,7 +254,7 @@ def check_scene(lf, raw: str) -> None:
                          "illumination): a white frame holds no scene to decode; give it as --white")
 
 
-def _summary(raw: str, folder: Path, lf, facts: dict[str, Any]) -> str:
+def _summary(folder: Path, lf, facts: dict[str, Any]) -> str:
     nv, nu, rows, cols = lf.weights.shape
     lenses = facts["lenses"]
     how = {"measured": "each flagged lens at its measured centre (report)", "lattice": "the calibrated lattice",

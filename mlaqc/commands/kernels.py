@@ -1,6 +1,9 @@
 """`mlaqc kernels`: compile the inspection kernels and the ray tracer for this machine, or say whether they are.
 
-`pip install -e .` does this already (setup.py); the command is for an install that could not (no C
+`pip install -e .` compiles the inspection kernels and the default camera's tracer variant (setup.py), and
+the first command that traces compiles the other tracer variants in the background
+(mlaqc.optics.tracer_background); this command compiles everything in the foreground: for an install that
+could not (no C
 compiler then, `--no-build-isolation` without Numba, a non-editable install, whose tracer cache the build
 cannot place), a kernel source edited in a development checkout, or a package folder moved to a machine
 with another CPU. Without it those runs still work: Numba compiles what they use on first use instead
@@ -30,6 +33,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    os.environ["MLAQC_BACKGROUND_COMPILE"] = "0"  # this command compiles (or checks) in the foreground
     inspection = _inspection_kernels(args)
     tracer = _tracer(args.check, args.rebuild)
     return max(inspection, tracer)
@@ -62,17 +66,21 @@ def _inspection_kernels(args: argparse.Namespace) -> int:
 
 def _tracer(check: bool, rebuild: bool) -> int:
     """The tracer's variants: which are in Numba's cache; compile the missing ones (all with `rebuild`)."""
-    from mlaqc.optics import raytrace_kernels
+    from mlaqc.optics import raytrace_kernels, tracer_background
     from mlaqc.optics.tracer_variants import VARIANTS, compile_all, is_ready
 
     if not raytrace_kernels.AVAILABLE:
         print("tracer: Numba is not installed (the NumPy engine traces instead)")
         return 0 if check else 1
     missing = [v for v in VARIANTS if not is_ready(v)]
+    if not missing:
+        tracer_background.mark_all_compiled()
     if check or not (missing or rebuild):
         names = "; ".join(v.name for v in missing)
+        busy = missing and tracer_background.running()
         print(f"tracer: {len(VARIANTS) - len(missing)} of {len(VARIANTS)} variants compiled"
-              + (f"; not: {names}" if missing else ""))
+              + (f"; not: {names}" if missing else "")
+              + (f" (a background compile is running: {tracer_background.log_path()})" if busy else ""))
         return 1 if missing else 0
     todo = VARIANTS if rebuild else tuple(missing)
     if rebuild:
@@ -82,13 +90,15 @@ def _tracer(check: bool, rebuild: bool) -> int:
     if failed:
         raise InputError(f"could not compile the tracer's {', '.join(v.name for v in failed)}; "
                          "Numba compiles them on first use instead.")
+    tracer_background.mark_all_compiled()
     return 0
 
 
 def _forget_tracer_cache() -> None:
     """Remove the tracer's entries from Numba's cache, so that --rebuild compiles rather than loads."""
-    from mlaqc.optics import raytrace_kernels
+    from mlaqc.optics import raytrace_kernels, tracer_background
 
+    tracer_background.forget()
     for kernel in (raytrace_kernels.kernel, raytrace_kernels.kernel_sag):
         try:
             cache_path = Path(kernel._cache._cache_path)

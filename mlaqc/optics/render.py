@@ -320,6 +320,10 @@ class Renderer:
         self.fast = (_kernels().FastCamera(self.camera, self.image_region, self.region, self.texture_half_mm,
                                                  self.cells if self.sampler == "sobol" else None)
                      if engine == "numba" else None)
+        if engine == "numba":  # the variants the install left out compile in the background, once
+            from mlaqc.optics.tracer_background import start_if_needed
+
+            start_if_needed()
 
     def render(self, scene: Scene, *, rays: int | None = None, rays_per_pixel: float | None = None,
                seed: int = 0, threads: int | None = None, progress: Progress | None = None) -> RenderResult:

@@ -1,0 +1,164 @@
+"""The ray tracer's variants compiled in the background of the first command that traces.
+
+`pip install -e .` compiles the default camera's variant (Table 1's, the demo's: square sag-intersection
+lenses) so that the install stays short; the first command that makes a Numba renderer afterwards starts
+one low-priority process (`python -m mlaqc.optics.tracer_background`) that compiles the other variants
+into Numba's cache, the ones the shipped fixtures use first, and says so on screen. A stamp records that
+every variant is compiled for these sources, this Numba and this Python, so later commands check a file,
+not the cache. A command that needs a variant before the background has reached it compiles it itself, as
+on first use before (said on screen). MLAQC_BACKGROUND_COMPILE=0 never starts one (the tests, the
+background job itself, `mlaqc kernels`, the install).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import os
+import platform
+import subprocess
+import sys
+import threading
+from pathlib import Path
+from typing import TextIO
+
+ENV_SWITCH = "MLAQC_BACKGROUND_COMPILE"
+HERE = Path(__file__).resolve().parent
+# the sources the kernel is compiled from (Numba's own cache key covers only raytrace_kernels.py)
+SOURCES = ("raytrace_kernels.py", "lowdisc.py", "unitcircle.py", "tracer_variants.py")
+_STARTED = threading.Event()
+
+
+def _cache_dir() -> Path:
+    """The user's mlaqc cache, $MLAQC_CACHE or ~/.cache/mlaqc (mlaqc.models.store's; optics sits below models)."""
+    return Path(os.environ.get("MLAQC_CACHE", Path.home() / ".cache" / "mlaqc"))
+
+
+def stamp_path() -> Path:
+    """Beside Numba's cache of the kernel (the package's __pycache__) when writable, else the user's cache."""
+    folder = HERE / "__pycache__"
+    if (folder.is_dir() and os.access(folder, os.W_OK)) or (not folder.exists() and os.access(HERE, os.W_OK)):
+        return folder / "tracer_variants.ready"
+    return _cache_dir() / "tracer_variants.ready"
+
+
+def log_path() -> Path:
+    return _cache_dir() / "tracer-compile.log"
+
+
+def _lock_path() -> Path:
+    return _cache_dir() / "tracer-compile.lock"
+
+
+def sources_key() -> str:
+    """What the compiled variants depend on: the kernel's sources, Numba's and Python's versions, the machine."""
+    from importlib.metadata import PackageNotFoundError, version
+
+    h = hashlib.sha1()
+    for name in SOURCES:
+        h.update((HERE / name).read_bytes())
+    try:
+        numba = version("numba")
+    except PackageNotFoundError:
+        numba = "none"
+    h.update(f"{numba} {sys.version} {platform.machine()}".encode())
+    return h.hexdigest()
+
+
+def all_compiled() -> bool:
+    """True when the stamp says every variant is compiled for the current sources."""
+    try:
+        return stamp_path().read_text().strip() == sources_key()
+    except OSError:
+        return False
+
+
+def mark_all_compiled() -> None:
+    """Write the stamp (atomically; a read-only place is left unstamped)."""
+    from mlaqc.atomic import write_bytes_atomic
+
+    path = stamp_path()
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        write_bytes_atomic(path, (sources_key() + "\n").encode())
+    except OSError:
+        pass
+
+
+def forget() -> None:
+    """Remove the stamp (the cache is being rebuilt)."""
+    stamp_path().unlink(missing_ok=True)
+
+
+def running() -> bool:
+    """Whether a background compile holds its lock now."""
+    import fcntl
+
+    path = _lock_path()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with open(path, "a") as fh:
+        try:
+            fcntl.flock(fh, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            return True
+        fcntl.flock(fh, fcntl.LOCK_UN)
+    return False
+
+
+def start_if_needed(stream: TextIO | None = None) -> bool:
+    """Once per process: start the background compile unless every variant is compiled, one is running, or
+    it is switched off; say so on `stream` (stderr). True when one was started."""
+    if _STARTED.is_set() or os.environ.get(ENV_SWITCH, "1") == "0":
+        return False
+    _STARTED.set()
+    try:
+        if all_compiled() or running():
+            return False
+        log = log_path()
+        with open(log, "ab") as out:
+            subprocess.Popen([sys.executable, "-m", "mlaqc.optics.tracer_background"], stdin=subprocess.DEVNULL,
+                             stdout=out, stderr=subprocess.STDOUT, start_new_session=True, close_fds=True,
+                             env={**os.environ, ENV_SWITCH: "0"})
+    except OSError:
+        return False  # no cache folder, no process: each variant compiles on its first use, as before
+    print(f"mlaqc: compiling the ray tracer's other variants in the background, at low priority (a few minutes; "
+          f"log {log}; `mlaqc kernels --check` says which are ready)", file=stream or sys.stderr, flush=True)
+    return True
+
+
+def _order(variant) -> tuple:
+    """The shipped fixtures' variants first (sag-intersection and circle apertures, untilted), then the rest."""
+    return (variant.lenses == "grid", variant.tilted and variant.packing == "hex", variant.tilted, variant.lenses)
+
+
+def main() -> int:
+    """The background job: compile every variant not in Numba's cache, one process per core at low
+    priority, then write the stamp; exits at once if another holds the lock."""
+    import fcntl
+    import time
+
+    os.environ[ENV_SWITCH] = "0"
+    path = _lock_path()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    lock = open(path, "a")  # held until this process ends
+    try:
+        fcntl.flock(lock, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except BlockingIOError:
+        return 0
+    try:
+        os.nice(10)
+    except OSError:
+        pass
+    from mlaqc.optics.tracer_variants import VARIANTS, compile_all, is_ready
+
+    start = time.strftime("%Y-%m-%d %H:%M:%S")
+    missing = tuple(v for v in sorted(VARIANTS, key=_order) if not is_ready(v))
+    print(f"{start} mlaqc {os.getpid()}: compiling {len(missing)} tracer variant(s)", flush=True)
+    failed = [v for v, _, error in compile_all(missing, log=lambda text: print(text, flush=True)) if error]
+    if not failed:
+        mark_all_compiled()
+    print(f"{time.strftime('%Y-%m-%d %H:%M:%S')} done" + (f"; failed: {len(failed)}" if failed else ""), flush=True)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
