@@ -14,6 +14,7 @@ so are refocused images (PSNR). Frames are cached in /tmp.
     python bench/decode.py --config fixtures/hex_camera.toml
     python bench/decode.py --timing                                # a 2048² frame decoded in-process
     python bench/decode.py --geometry                              # error-free views against exact rays
+    python bench/decode.py --plenopticam /tmp/plcvenv/bin/python   # against PlenoptiCam (see plenopticam_decode.py)
 """
 
 from __future__ import annotations
@@ -278,6 +279,58 @@ def geometry(defocus_mm: float, rpp: float = 300.0) -> None:
           "a view sees the point in one lens: quantization alone gives 0.29 lens RMS")
 
 
+def against_plenopticam(cfg, python: str, defocus_mm: float, rpp: float) -> None:
+    """The noise-free flawed and error-free texture frames decoded by PlenoptiCam (bench/plenopticam_decode.py,
+    run by `python`, a venv with PlenoptiCam: its docstring says how) and by mlaqc, each devignetted and each
+    against its own decode of the error-free frame: view RMS relative to the median view value, every view
+    inside the pupil's image, at the flawed lenses and elsewhere; and the time each takes (calibration and
+    decode of the flawed pair)."""
+    import subprocess
+
+    flawed_em, flawed = flawed_map(cfg, 20, 4)
+    clean_em = ErrorMap.zeros(cfg.mla.count_h, cfg.mla.count_w, cfg.mla.packing)
+    scfg, scene = scene_config(cfg, defocus_mm), texture()
+    raw = {k: rendered(c, s_, e, k if k.startswith("white") else f"{k}_texture", rpp, False)
+           for k, c, s_, e in (("white_flawed", cfg, WhiteScene(), flawed_em), ("white_clean", cfg, WhiteScene(), clean_em),
+                               ("scene_flawed", scfg, scene, flawed_em), ("scene_clean", scfg, scene, clean_em))}
+    mask = lens_mask((cfg.mla.count_h, cfg.mla.count_w), flawed)
+    theirs = {}
+    for k in ("flawed", "clean"):
+        out = CACHE / f"plenopticam_{k}.npz"
+        subprocess.run([python, str(Path(__file__).parent / "plenopticam_decode.py"), "--white", str(raw[f"white_{k}"]),
+                        "--scene", str(raw[f"scene_{k}"]), "--out", str(out), "--white-sigma", "2", "--devignette"],
+                       check=True, capture_output=True)
+        theirs[k] = np.load(out)
+    vf, vc = theirs["flawed"]["views"].astype(float), theirs["clean"]["views"].astype(float)
+    n = vf.shape[0] // 2
+    disc = (np.hypot(*np.meshgrid(np.arange(-n, n + 1), np.arange(-n, n + 1))) <= n + 0.4)[:, :, None, None]
+    ok = np.isfinite(vf) & np.isfinite(vc) & (vc > 0) & disc
+    inner = mask[1:-1, 1:-1]  # PlenoptiCam drops the outermost ring: its lens (r, c) is U(r + 2, c + 2)
+    rel = (vf - vc) / np.median(vc[ok])
+    print(f"PlenoptiCam {vf.shape[2]}x{vf.shape[3]} lenses, {vf.shape[0]}x{vf.shape[1]} views: view RMS / median at "
+          f"flawed lenses {np.sqrt(np.mean(rel[ok & inner] ** 2)):.4f}, elsewhere {np.sqrt(np.mean(rel[ok & ~inner] ** 2)):.4f}; "
+          f"{float(theirs['flawed']['t_total']):.2f} s (calibration {float(theirs['flawed']['t_calibrate']):.2f} s)")
+    t0 = time.perf_counter()
+    white = load_frame(str(raw["white_flawed"]), cfg)
+    grid_f = calibrate_for(white, cfg)
+    t_cal = time.perf_counter() - t0
+    report = build_report_dict(inspect_image(white, cfg, grid=grid_f), config_dict=cfg.to_dict())
+    grid_c = calibrate_for(load_frame(str(raw["white_clean"]), cfg), cfg)
+    img = {k: load_decode_frame(str(v), cfg) for k, v in raw.items()}
+    offs = view_offsets(0.5 * cfg.layout.subimage_pitch_px)
+    ref_s = lattice_sampling(grid_c)
+    ref = devignetted(decode(img["scene_clean"], ref_s, offs), decode(img["white_clean"], ref_s, offs))
+    for name, smp in (("calibrated lattice", lattice_sampling(grid_f)),
+                      ("measured", measured_sampling(report_grid(report, "(in memory)"), report))):
+        t0 = time.perf_counter()
+        lf = devignetted(decode(img["scene_flawed"], smp, offs), decode(img["white_flawed"], smp, offs))
+        t_dec = time.perf_counter() - t0
+        ok = (lf.weights > 0) & (ref.weights > 0)
+        rel = (lf.values - ref.values) / np.median(ref.values[ok])
+        print(f"mlaqc, {name}: view RMS / median at flawed lenses {np.sqrt(np.mean(rel[ok & mask] ** 2)):.4f}, elsewhere "
+              f"{np.sqrt(np.mean(rel[ok & ~mask] ** 2)):.4f}; calibration {t_cal:.2f} s + decode {t_dec:.2f} s (frames in memory)")
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--config", "-c", default="fixtures/paper_table1.toml")
@@ -290,12 +343,16 @@ def main() -> int:
     ap.add_argument("--timing", action="store_true")
     ap.add_argument("--geometry", action="store_true", help="decoded views of a point against exact rays")
     ap.add_argument("--picture", metavar="PNG", help="write a before/after picture of one view (texture, noise-free)")
+    ap.add_argument("--plenopticam", metavar="PYTHON", help="compare with PlenoptiCam run by this interpreter")
     args = ap.parse_args()
     if args.geometry:
         for d in (1.0, 2.0, 4.0):
             geometry(d)
         return 0
     cfg = load_config(args.config)
+    if args.plenopticam:
+        against_plenopticam(cfg, args.plenopticam, args.defocus_mm, args.rays_per_pixel)
+        return 0
     if args.timing:
         timing(cfg)
         return 0

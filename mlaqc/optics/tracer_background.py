@@ -2,7 +2,8 @@
 
 `pip install -e .` compiles the default camera's variant (Table 1's, the demo's: square sag-intersection
 lenses) so that the install stays short; the first command that makes a Numba renderer afterwards starts
-one low-priority process (`python -m mlaqc.optics.tracer_background`) that compiles the other variants
+one process at the idle priority (`python -m mlaqc.optics.tracer_background`) that waits for that command
+to end (a minute at most), then compiles the other variants
 into Numba's cache, the ones the shipped fixtures use first, and says so on screen. A stamp records that
 every variant is compiled for these sources, this Numba and this Python, so later commands check a file,
 not the cache. A command that needs a variant before the background has reached it compiles it itself, as
@@ -25,6 +26,9 @@ ENV_SWITCH = "MLAQC_BACKGROUND_COMPILE"
 HERE = Path(__file__).resolve().parent
 # the sources the kernel is compiled from (Numba's own cache key covers only raytrace_kernels.py)
 SOURCES = ("raytrace_kernels.py", "lowdisc.py", "unitcircle.py", "tracer_variants.py")
+# the job waits for the command that started it to end, this long at most (a hyperthread shared with a
+# compile slowed the demo 2.5x even at idle priority)
+WAIT_FOR_STARTER_S = 60.0
 _STARTED = threading.Event()
 
 
@@ -115,12 +119,13 @@ def start_if_needed(stream: TextIO | None = None) -> bool:
             return False
         log = log_path()
         with open(log, "ab") as out:
-            subprocess.Popen([sys.executable, "-m", "mlaqc.optics.tracer_background"], stdin=subprocess.DEVNULL,
+            subprocess.Popen([sys.executable, "-m", "mlaqc.optics.tracer_background", str(os.getpid())],
+                             stdin=subprocess.DEVNULL,
                              stdout=out, stderr=subprocess.STDOUT, start_new_session=True, close_fds=True,
                              env={**os.environ, ENV_SWITCH: "0"})
     except OSError:
         return False  # no cache folder, no process: each variant compiles on its first use, as before
-    print(f"mlaqc: compiling the ray tracer's other variants in the background, at low priority (a few minutes; "
+    print(f"mlaqc: compiling the ray tracer's other variants in the background, at idle priority (a few minutes; "
           f"log {log}; `mlaqc kernels --check` says which are ready)", file=stream or sys.stderr, flush=True)
     return True
 
@@ -130,11 +135,41 @@ def _order(variant) -> tuple:
     return (variant.lenses == "grid", variant.tilted and variant.packing == "hex", variant.tilted, variant.lenses)
 
 
-def main() -> int:
-    """The background job: compile every variant not in Numba's cache, one process per core at low
-    priority, then write the stamp; exits at once if another holds the lock."""
+def _lowest_priority() -> None:
+    """CPU only when nothing else wants it (Linux's idle class; else nice 19), for this process and the
+    compiling processes it starts (they inherit it): the command that started it runs at full speed."""
+    try:
+        os.sched_setscheduler(0, os.SCHED_IDLE, os.sched_param(0))
+    except (AttributeError, OSError):
+        try:
+            os.nice(19)
+        except OSError:
+            pass
+
+
+def _after(pid: int | None, limit_s: float = WAIT_FOR_STARTER_S) -> None:
+    """Wait until process `pid` (the command that started the job) has ended, at most `limit_s`: a short
+    command (the demo, a simulate) runs with the machine to itself; a long one (the app) not for ever."""
+    import time
+
+    end = time.monotonic() + limit_s
+    while pid and time.monotonic() < end:
+        try:
+            os.kill(pid, 0)
+        except ProcessLookupError:
+            return
+        except PermissionError:
+            pass
+        time.sleep(0.2)
+
+
+def main(argv: list[str] | None = None) -> int:
+    """The background job: after the command that started it, compile every variant not in Numba's cache,
+    one process per core at idle priority, then write the stamp; exits at once if another holds the lock."""
     import fcntl
     import time
+
+    args = sys.argv[1:] if argv is None else argv
 
     os.environ[ENV_SWITCH] = "0"
     path = _lock_path()
@@ -144,10 +179,8 @@ def main() -> int:
         fcntl.flock(lock, fcntl.LOCK_EX | fcntl.LOCK_NB)
     except BlockingIOError:
         return 0
-    try:
-        os.nice(10)
-    except OSError:
-        pass
+    _lowest_priority()
+    _after(int(args[0]) if args and args[0].isdigit() else None)
     from mlaqc.optics.tracer_variants import VARIANTS, compile_all, is_ready
 
     start = time.strftime("%Y-%m-%d %H:%M:%S")
