@@ -15,6 +15,7 @@ from __future__ import annotations
 import compileall
 import os
 import shutil
+import subprocess
 import sys
 from pathlib import Path
 
@@ -29,6 +30,9 @@ class BuildKernels(build_ext):
 
     def run(self) -> None:
         self._built: list[Path] = []
+        # an editable install also compiles the default camera's tracer variant: started now, in a process of
+        # its own, so that it runs beside the kernels' build on a second core
+        self._tracer = self._start_tracer() if getattr(self, "editable_mode", False) else None
         super().run()
 
     def build_extension(self, ext: Extension) -> None:
@@ -63,26 +67,37 @@ class BuildKernels(build_ext):
         if os.environ.get("MLAQC_AOT", "1") != "0":
             self._compile_tracer()
 
-    def _compile_tracer(self) -> None:
-        """The default camera's tracer variant into Numba's cache in the source tree (where the editable
-        install runs it): the demo and Table 1 never wait; the other variants compile in the background of
-        the first command that traces (mlaqc.optics.tracer_background), or with `mlaqc kernels`."""
-        sys.path.insert(0, str(HERE))
-        os.environ["MLAQC_BACKGROUND_COMPILE"] = "0"
+    def _start_tracer(self) -> subprocess.Popen | None:
+        """The default camera's tracer variant compiled into Numba's cache in the source tree (where the
+        editable install runs it): the demo and Table 1 never wait; the other variants compile in the
+        background of the first command that traces (mlaqc.optics.tracer_background), or with `mlaqc kernels`."""
+        if os.environ.get("MLAQC_AOT", "1") == "0":
+            return None
+        code = (f"import sys; sys.path.insert(0, {str(HERE)!r})\n"
+                "from mlaqc.optics.tracer_variants import INSTALL_VARIANTS, compile_variant\n"
+                "for v in INSTALL_VARIANTS:\n"
+                "    s, e = compile_variant(v)\n"
+                "    print(f'  {v.name}: ' + ('FAILED ' + e if e else f'{s:.0f} s'), flush=True)\n")
         try:
-            from mlaqc.optics.tracer_variants import INSTALL_VARIANTS, compile_all
+            return subprocess.Popen([sys.executable, "-c", code], cwd=str(HERE), stdout=subprocess.PIPE,
+                                    stderr=subprocess.STDOUT, text=True,
+                                    env={**os.environ, "MLAQC_BACKGROUND_COMPILE": "0"})
+        except OSError as exc:
+            print(f"mlaqc: WARNING: the ray tracer was not compiled at install ({exc}); `mlaqc kernels` compiles it",
+                  file=sys.stderr)
+            return None
 
-            print("mlaqc: compiling the ray tracer for the default camera into Numba's cache ...", file=sys.stderr)
-            failed = [v.name for v, _, error in compile_all(INSTALL_VARIANTS, log=lambda text: print(text, file=sys.stderr))
-                      if error]
-            if failed:
-                print(f"mlaqc: WARNING: not compiled: {', '.join(failed)} (compiled on first use instead)",
-                      file=sys.stderr)
-        except Exception as exc:  # noqa: BLE001 - the JIT compiles on first use instead
-            print(f"mlaqc: WARNING: the ray tracer was not compiled at install ({type(exc).__name__}: {exc}); "
-                  "`mlaqc kernels` compiles it", file=sys.stderr)
-        finally:
-            sys.path.remove(str(HERE))
+    def _compile_tracer(self) -> None:
+        """Wait for the tracer's compile (started with the build, or now) and say how it went."""
+        proc = getattr(self, "_tracer", None) or self._start_tracer()
+        if proc is None:
+            return
+        print("mlaqc: compiling the ray tracer for the default camera into Numba's cache ...", file=sys.stderr)
+        out, _ = proc.communicate()
+        print(out.rstrip(), file=sys.stderr)
+        if proc.returncode != 0 or "FAILED" in out:
+            print("mlaqc: WARNING: the ray tracer was not compiled at install (compiled on first use instead; "
+                  "`mlaqc kernels` compiles it)", file=sys.stderr)
 
     def get_outputs(self) -> list[str]:
         built = getattr(self, "_built", [])
