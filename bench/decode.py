@@ -245,7 +245,7 @@ def geometry(defocus_mm: float, rpp: float = 300.0) -> None:
     the pupil's image, the decoded spot's centroid (in lenses) against where the exact ray through that
     view's pupil point meets the MLA (tests/lens_rays.py: Snell's law through the singlet)."""
     sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "tests"))
-    from lens_rays import point_source_map
+    from lens_rays import views_against_rays
 
     cfg = load_config(str(Path(__file__).resolve().parent.parent / "fixtures" / "small_camera.toml"))
     scfg, obj = scene_config(cfg, defocus_mm), (0.25, -0.15)
@@ -255,21 +255,7 @@ def geometry(defocus_mm: float, rpp: float = 300.0) -> None:
     smp = lattice_sampling(calibrate_for(load_frame(str(white), cfg), cfg))
     offs = view_offsets(smp.radius_px)
     lf = devignetted(decode(load_decode_frame(str(point), cfg), smp, offs), decode(load_decode_frame(str(white), cfg), smp, offs))
-    lay, ml = scfg.layout, cfg.main_lens
-    rays = point_source_map(obj, -lay.object_distance_mm, radius_front_mm=ml.radius_front_mm, radius_back_mm=ml.radius_back_mm,
-                            thickness_mm=ml.thickness_mm, index=ml.refractive_index, diameter_mm=ml.diameter_mm,
-                            pupil_z_mm=lay.z_mla_mm - lay.pupil_to_mla_mm, target_z_mm=lay.z_mla_mm)
-    per_px = cfg.sensor.pixel_um * 1e-3 * lay.pupil_to_mla_mm / (lay.z_sensor_mm - lay.z_mla_mm)
-    t, s = np.mgrid[0:cfg.mla.count_h, 0:cfg.mla.count_w]
-    got, want = [], []
-    for j, v in enumerate(offs):
-        for i, u in enumerate(offs):
-            w = lf.values[j, i] * (lf.weights[j, i] > 0.3)
-            if np.hypot(u, v) > 0.8 * smp.radius_px or w.sum() <= 0:
-                continue
-            got.append(((w * s).sum() / w.sum(), (w * t).sum() / w.sum()))
-            want.append(rays(np.array([[-u * per_px, -v * per_px]]))[0] / (cfg.mla.pitch_um * 1e-3) + (cfg.mla.count_w - 1) / 2)
-    got, want = np.array(got), np.array(want)
+    got, want = views_against_rays(lf, smp.radius_px, cfg, scfg, obj)
     err = got - want
     slope = [np.polyfit(want[:, k], got[:, k], 1)[0] for k in (0, 1)]
     print(f"point {defocus_mm:g} mm beyond focus, {len(got)} views: decoded - exact rays, s {err[:, 0].mean():+.3f} "

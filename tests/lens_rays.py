@@ -54,3 +54,28 @@ def point_source_map(obj_xy_mm: tuple[float, float], obj_z_mm: float, *, radius_
     p2, d2 = p2[inside], d2[inside]
     at = lambda z: p2[:, :2] + ((z - p2[:, 2]) / d2[:, 2])[:, None] * d2[:, :2]  # noqa: E731
     return LinearNDInterpolator(at(pupil_z_mm), at(target_z_mm))
+
+
+def views_against_rays(lf, radius_px: float, cfg, scene_cfg, obj_xy_mm: tuple[float, float]):
+    """(decoded, exact): for every view inside 0.8 of the pupil's image radius `radius_px`, the centroid in
+    lenses (s, t) of a point source's light in that view of the light field `lf` (mlaqc.decode), and where the
+    exact ray from the point through that view's pupil point meets the MLA, in the same units. `scene_cfg` is
+    the camera as rendered (its object plane), `cfg` the one decoded."""
+    lay, ml = scene_cfg.layout, cfg.main_lens
+    rays = point_source_map(obj_xy_mm, -lay.object_distance_mm, radius_front_mm=ml.radius_front_mm,
+                            radius_back_mm=ml.radius_back_mm, thickness_mm=ml.thickness_mm, index=ml.refractive_index,
+                            diameter_mm=ml.diameter_mm, pupil_z_mm=lay.z_mla_mm - lay.pupil_to_mla_mm,
+                            target_z_mm=lay.z_mla_mm)
+    pupil_per_px = cfg.sensor.pixel_um * 1e-3 * lay.pupil_to_mla_mm / (lay.z_sensor_mm - lay.z_mla_mm)
+    pitch_mm, centre = cfg.mla.pitch_um * 1e-3, (cfg.mla.count_w - 1) / 2
+    t, s = np.mgrid[0:cfg.mla.count_h, 0:cfg.mla.count_w]
+    got, want = [], []
+    for j, v in enumerate(lf.view_offsets_px):
+        for i, u in enumerate(lf.view_offsets_px):
+            w = lf.values[j, i] * (lf.weights[j, i] > 0.3)
+            if np.hypot(u, v) > 0.8 * radius_px or w.sum() <= 0:
+                continue
+            got.append(((w * s).sum() / w.sum(), (w * t).sum() / w.sum()))
+            # the sub-image inverts the pupil: the view u px right looks through the pupil point u px left
+            want.append(rays(np.array([[-u * pupil_per_px, -v * pupil_per_px]]))[0] / pitch_mm + centre)
+    return np.array(got), np.array(want)

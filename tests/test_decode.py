@@ -262,7 +262,7 @@ def test_decoded_views_of_a_point_follow_the_main_lens_rays(tmp_path):
     uniform quantization alone gives 0.29 lens RMS."""
     import dataclasses
 
-    from lens_rays import point_source_map
+    from lens_rays import views_against_rays
     from mlaqc.decode.frames import load_decode_frame
     from mlaqc.decode.sampling import lattice_sampling
     from mlaqc.inspection.calibrate import calibrate_for
@@ -283,24 +283,7 @@ def test_decoded_views_of_a_point_follow_the_main_lens_rays(tmp_path):
     offs = view_offsets(smp.radius_px)
     lf = devignetted(decode(load_decode_frame(str(tmp_path / "p.tiff"), cfg), smp, offs),
                      decode(load_decode_frame(str(tmp_path / "w.tiff"), cfg), smp, offs))
-    ml, slay = cfg.main_lens, scfg.layout
-    rays = point_source_map(obj, -slay.object_distance_mm, radius_front_mm=ml.radius_front_mm,
-                            radius_back_mm=ml.radius_back_mm, thickness_mm=ml.thickness_mm, index=ml.refractive_index,
-                            diameter_mm=ml.diameter_mm, pupil_z_mm=slay.z_mla_mm - slay.pupil_to_mla_mm,
-                            target_z_mm=slay.z_mla_mm)
-    pupil_per_px = cfg.sensor.pixel_um * 1e-3 * slay.pupil_to_mla_mm / (slay.z_sensor_mm - slay.z_mla_mm)
-    pitch_mm, centre = cfg.mla.pitch_um * 1e-3, (cfg.mla.count_w - 1) / 2
-    t, s = np.mgrid[0:cfg.mla.count_h, 0:cfg.mla.count_w]
-    got, want = [], []
-    for j, v in enumerate(offs):
-        for i, u in enumerate(offs):
-            w = lf.values[j, i] * (lf.weights[j, i] > 0.3)
-            if np.hypot(u, v) > 0.8 * smp.radius_px or w.sum() <= 0:
-                continue
-            hit = rays(np.array([[-u * pupil_per_px, -v * pupil_per_px]]))[0]  # the sub-image inverts the pupil
-            got.append(((w * s).sum() / w.sum(), (w * t).sum() / w.sum()))
-            want.append(hit / pitch_mm + centre)
-    got, want = np.array(got), np.array(want)
+    got, want = views_against_rays(lf, smp.radius_px, cfg, scfg, obj)
     assert len(got) > 150 and np.all(np.isfinite(want))
     err = got - want
     assert np.all(np.abs(err.mean(axis=0)) < 0.1)  # no offset between the decoded and the real geometry
