@@ -17,8 +17,8 @@ _OPENCV_BAYER = {"RGGB": "COLOR_BayerBG2RGB", "BGGR": "COLOR_BayerRG2RGB", "GRBG
 
 
 def load_decode_frame(path: str, cfg: Any, levels: Levels | None = None) -> np.ndarray:
-    """The frame at `path` as float32 (H, W) (monochrome) or (H, W, 3) RGB, black 0 and white 1. InputError for an unreadable file, a frame of another size, or a frame with
-    no light or NaNs."""
+    """The frame at `path` as float32 (H, W) (monochrome) or (H, W, 3) RGB, black 0 and white 1. InputError
+    for an unreadable file, a frame of another size, or a frame with no light or NaNs."""
     s = cfg.sensor
     frame = resolve_levels(load_raw(path), levels, Levels(s.bit_depth, s.black_level_dn))
     want = (s.height_px, s.width_px)
@@ -36,7 +36,7 @@ def load_decode_frame(path: str, cfg: Any, levels: Levels | None = None) -> np.n
 
 def demosaiced(img: np.ndarray, cfa: str | None) -> np.ndarray:
     """Monochrome frames as they are; a Bayer frame (the four sites already on one scale, `normalized`)
-    interpolated to RGB, edge-aware (OpenCV's variable number of gradients where it applies)."""
+    interpolated to RGB bilinearly (OpenCV), each colour from its own sites only."""
     if cfa is None:
         return img
     import cv2
