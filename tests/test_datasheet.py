@@ -168,6 +168,17 @@ def test_an_ideal_main_lens_refuses_object_side_scenes_in_one_sentence():
         Renderer(LFM).plan(PointScene(((0.0, 0.0),), 1e6), rays=1000, rays_per_pixel=None, seed=0)
 
 
+def test_a_through_focus_frame_of_an_ideal_main_lens_is_one_sentence(tmp_path, capsys):
+    """The pinholes are imaged through the main lens' surfaces, which a datasheet lens does not have: exit 2,
+    one sentence naming the keys, no file (it was an AttributeError)."""
+    out = tmp_path / "tf.tiff"
+    assert main(["simulate", "-c", str(FIXTURES / "lfm_40x_relay.toml"), "--scene", "through-focus",
+                 "--focus-offset-mm", "0.5", "--out", str(out), "-q"]) == 2
+    err = capsys.readouterr().err
+    assert "ideal main lens" in err and "main_lens.radius_front_mm" in err and err.count("\n") == 1
+    assert not list(tmp_path.iterdir())
+
+
 def test_a_flat_sided_mla_has_no_decenter_kind():
     assert [k.name for k in physical_kinds(LFM)] == [k.name for k in KINDS if k.name != "decenter"]
     assert physical_kinds(default_config()) == KINDS

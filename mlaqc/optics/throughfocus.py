@@ -71,7 +71,7 @@ from typing import Any
 import numpy as np
 
 from mlaqc.errors import InputError
-from mlaqc.optics.config import CameraConfig
+from mlaqc.optics.config import CameraConfig, require_thick_main_lens
 from mlaqc.optics.lattice import SQRT3_2, Lattice, hex_cell
 from mlaqc.optics.paraxial import image_distance
 from mlaqc.optics.scene import PointScene, Scene, WhiteScene
@@ -162,7 +162,9 @@ def magnification(cfg: CameraConfig) -> float:
 
 
 def frame_config(cfg: CameraConfig, tf: ThroughFocus) -> CameraConfig:
-    """The camera of a through-focus frame: `cfg` stopped to f/N with the object moved to give offset u."""
+    """The camera of a through-focus frame: `cfg` stopped to f/N with the object moved to give offset u
+    (InputError for an ideal main lens: the pinholes are traced through its surfaces)."""
+    require_thick_main_lens(cfg, "a through-focus frame (pinholes imaged through the main lens)")
     return object_for_image_offset(stopped(cfg, tf.f_number), tf.focus_offset_mm)
 
 
