@@ -30,7 +30,7 @@ from pathlib import Path
 import numpy as np
 
 from mlaqc.decode.frames import load_decode_frame
-from mlaqc.decode.lightfield import decode, devignetted, rectangular, refocus, view_offsets
+from mlaqc.decode.lightfield import decode_scene, rectangular, refocus, view_offsets
 from mlaqc.decode.sampling import design_sampling, lattice_sampling, measured_sampling, report_grid
 from mlaqc.inspection.calibrate import calibrate_for
 from mlaqc.inspection.pipeline import inspect_image, load_frame
@@ -136,7 +136,7 @@ def compare(cfg, scene_name, scene, flawed_em, flawed_lenses, clean_em, rpp, noi
     wf, wc = load_decode_frame(str(raws["white_flawed"]), cfg), load_decode_frame(str(raws["white_clean"]), cfg)
     ref_s = lattice_sampling(grid_c)
     offs = view_offsets(min(s.radius_px for s in samplings.values()))
-    ref = rectangular(devignetted(decode(img_c, ref_s, offs), decode(wc, ref_s, offs)))
+    ref = rectangular(decode_scene(img_c, ref_s, offs, wc))
     ref_img, _ = refocus(ref, slope)
     rows, cols = ref.spatial_shape
     flawed_mask = lens_mask((cfg.mla.count_h, cfg.mla.count_w), flawed_lenses)
@@ -156,7 +156,7 @@ def compare(cfg, scene_name, scene, flawed_em, flawed_lenses, clean_em, rpp, noi
     out = {}
     decoded = {}
     for name, smp in samplings.items():
-        lf = rectangular(devignetted(decode(img_f, smp, offs), decode(wf, smp, offs)))
+        lf = rectangular(decode_scene(img_f, smp, offs, wf))
         decoded[name] = lf
         w = np.minimum(lf.weights, ref.weights) > 0.2  # reduced-weight lenses (0.5) are compared too
         wf_ = w.astype(np.float64)
@@ -174,7 +174,7 @@ def compare(cfg, scene_name, scene, flawed_em, flawed_lenses, clean_em, rpp, noi
         before_after(picture, decoded["b lattice"], decoded["c measured"], ref, flawed_em)
     # the render's own error: the error-free frame again with other rays, decoded the same way
     again = load_decode_frame(str(rendered(scfg, scene, clean_em, f"scene_clean_{scene_name}_seed2", rpp, noise, seed=12)), cfg)
-    lf = rectangular(devignetted(decode(again, ref_s, offs), decode(wc, ref_s, offs)))
+    lf = rectangular(decode_scene(again, ref_s, offs, wc))
     wf_ = (np.minimum(lf.weights, ref.weights) > 0.2).astype(np.float64)
     print(f"    floor      : the error-free frame rendered again with other rays: view RMS at the flawed lenses' "
           f"(s, t) {rms(lf.values, ref.values, wf_ * flawed_mask):.4f}, elsewhere {rms(lf.values, ref.values, wf_ * elsewhere):.4f}")
@@ -217,8 +217,7 @@ def rect_mask(mask: np.ndarray, t_count: int) -> np.ndarray:
     from mlaqc.decode.lightfield import LightField
 
     rows, cols = mask.shape
-    lf = LightField(mask[None, None].astype(np.float32), np.ones((1, 1, rows, cols), np.float32), np.zeros(1),
-                    "hex", (1.0, 1.0))
+    lf = LightField(mask[None, None].astype(np.float32), np.ones((1, 1, rows, cols), np.float32), np.zeros(1), "hex")
     return rectangular(lf).values[0, 0] > 0
 
 
@@ -233,8 +232,7 @@ def timing(cfg, repeats: int = 5) -> None:
     best = np.inf
     for _ in range(repeats):
         t0 = time.perf_counter()
-        white = decode(img, smp, offs)
-        rectangular(devignetted(decode(img, smp, offs), white))
+        rectangular(decode_scene(img, smp, offs, img))
         best = min(best, time.perf_counter() - t0)
     print(f"decode of a {img.shape[1]}x{img.shape[0]} frame ({cfg.mla.count_w}x{cfg.mla.count_h} lenses, "
           f"{len(offs)}x{len(offs)} views), with its white's decode and the devignetting: {best:.3f} s (best of {repeats})")
@@ -254,7 +252,7 @@ def geometry(defocus_mm: float, rpp: float = 300.0) -> None:
     point = rendered(scfg, PointScene((obj,), photons=4e7), em, f"small_point_{defocus_mm:g}", rpp, False)
     smp = lattice_sampling(calibrate_for(load_frame(str(white), cfg), cfg))
     offs = view_offsets(smp.radius_px)
-    lf = devignetted(decode(load_decode_frame(str(point), cfg), smp, offs), decode(load_decode_frame(str(white), cfg), smp, offs))
+    lf = decode_scene(load_decode_frame(str(point), cfg), smp, offs, load_decode_frame(str(white), cfg))
     got, want = views_against_rays(lf, smp.radius_px, cfg, scfg, obj)
     err = got - want
     slope = [np.polyfit(want[:, k], got[:, k], 1)[0] for k in (0, 1)]
@@ -305,11 +303,11 @@ def against_plenopticam(cfg, python: str, defocus_mm: float, rpp: float) -> None
     img = {k: load_decode_frame(str(v), cfg) for k, v in raw.items()}
     offs = view_offsets(0.5 * cfg.layout.subimage_pitch_px)
     ref_s = lattice_sampling(grid_c)
-    ref = devignetted(decode(img["scene_clean"], ref_s, offs), decode(img["white_clean"], ref_s, offs))
+    ref = decode_scene(img["scene_clean"], ref_s, offs, img["white_clean"])
     for name, smp in (("calibrated lattice", lattice_sampling(grid_f)),
                       ("measured", measured_sampling(report_grid(report, "(in memory)"), report))):
         t0 = time.perf_counter()
-        lf = devignetted(decode(img["scene_flawed"], smp, offs), decode(img["white_flawed"], smp, offs))
+        lf = decode_scene(img["scene_flawed"], smp, offs, img["white_flawed"])
         t_dec = time.perf_counter() - t0
         ok = (lf.weights > 0) & (ref.weights > 0)
         rel = (lf.values - ref.values) / np.median(ref.values[ok])

@@ -64,23 +64,20 @@ def decode_request(req: dict) -> Any:
     """The light field a request asks for: {'image', 'white' (or None), 'grid', 'defects', 'measured',
     'scene_path', 'cfg'}; a scene is loaded here and divided by the white."""
     from mlaqc.decode import sampling as smp
-    from mlaqc.decode.lightfield import decode, devignetted, rectangular, view_offsets
+    from mlaqc.decode.lightfield import decode_scene, rectangular, view_offsets
 
     grid = req["grid"]
     report = {"defects": [{"row": d.m, "col": d.n, "error_type": d.error_type} for d in req["defects"]]}
     sampling = smp.measured_sampling(grid, report) if req["measured"] else smp.lattice_sampling(grid)
     offsets = view_offsets(sampling.radius_px)
     white = np.asarray(req["image"], np.float32)
-    if req.get("scene_path"):
-        from mlaqc.decode.frames import load_decode_frame
+    if not req.get("scene_path"):
+        return rectangular(decode_scene(white, sampling, offsets))
+    from mlaqc.decode.frames import load_decode_frame
 
-        scene = load_decode_frame(req["scene_path"], req["cfg"])
-        if scene.ndim == 3:
-            scene = scene.mean(axis=2)
-        lf = devignetted(decode(scene, sampling, offsets), decode(white, sampling, offsets))
-    else:
-        lf = decode(white, sampling, offsets)
-    return rectangular(lf)
+    scene = load_decode_frame(req["scene_path"], req["cfg"])
+    scene = scene.mean(axis=2) if scene.ndim == 3 else scene  # the inspected frame is a luminance
+    return rectangular(decode_scene(scene, sampling, offsets, white, req["scene_path"]))
 
 
 class LightFieldPanel(QWidget):

@@ -236,6 +236,12 @@ def _say_where(client: Client, address: str, stream: TextIO) -> None:
     print(where, file=stream, flush=True)
 
 
+def unseen(host: str, path: str) -> DeviceError:
+    """The error when a worker on `host` cannot see a file the client reads at `path` (absolute)."""
+    return DeviceError(f"the Dask worker on {host} cannot see {path!r}: workers read raws by path, so they need "
+                       "the same files at the same paths (a shared filesystem)")
+
+
 def _killed(exc: BaseException) -> DeviceError:
     """One sentence for Dask's KilledWorker: every worker that ran a task died while running it."""
     task, tries = getattr(exc, "task", "?"), getattr(exc, "allowed_failures", None)

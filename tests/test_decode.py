@@ -142,7 +142,7 @@ def test_a_hex_array_resampled_onto_a_rectangular_grid():
     v = r * np.sqrt(3) / 2
     field = 3.0 + 0.2 * u - 0.1 * v
     lf = LightField(np.broadcast_to(field, (3, 3, rows, cols)).astype(np.float32), np.ones((3, 3, rows, cols), np.float32),
-                    np.array([-1.0, 0.0, 1.0]), "hex", (1.0, 1.0))
+                    np.array([-1.0, 0.0, 1.0]), "hex")
     rect = rectangular(lf)
     t, s = np.mgrid[0:rect.spatial_shape[0], 0:rect.spatial_shape[1]]
     assert rect.packing == "rect" and rect.spatial_shape == (int((rows - 1) * np.sqrt(3) / 2) + 1, cols)
@@ -158,7 +158,7 @@ def test_refocusing_brings_a_parallax_shifted_spot_into_focus():
     slope = 1.5
     t, s = np.mgrid[0:31, 0:31].astype(float)
     vals = np.array([[np.exp(-((s + slope * ui - 15) ** 2 + (t + slope * vj - 15) ** 2) / 8.0) for ui in o] for vj in o])
-    lf = LightField(vals.astype(np.float32), np.ones(vals.shape, np.float32), o, "square", (1.0, 1.0))
+    lf = LightField(vals.astype(np.float32), np.ones(vals.shape, np.float32), o, "square")
     sharp, _ = refocus(lf, -slope)
     flat, _ = refocus(lf, 0.0)
     assert sharp[15, 15] > 0.95 and flat[15, 15] < 0.5
@@ -349,3 +349,12 @@ def test_a_hex_array_decodes_onto_a_rectangular_grid(tmp_path):
     assert doc["lens_grid"] == "rect" and doc["lenses"]["packing"] == "hex" and doc["shape"][2:] == [rows, 24]
     centre = np.load(out / "lightfield.npy")[doc["shape"][0] // 2, doc["shape"][1] // 2]
     assert np.percentile(centre[2:-2, 2:-2], 90) > 1.8 * np.percentile(centre[2:-2, 2:-2], 10)  # the checkerboard
+
+
+def test_a_white_of_another_colour_kind_is_one_sentence():
+    from mlaqc.decode.lightfield import decode_scene
+
+    x, y = centres()
+    mono = frame(x, y).astype(np.float32)
+    with pytest.raises(InputError, match="differ in colour"):
+        decode_scene(np.repeat(mono[..., None], 3, axis=2), sampling_at(x, y), view_offsets(RADIUS, 3), mono, "scene.dng")

@@ -144,8 +144,6 @@ def decode_remote(spec: DecodeSpec, raw: str, path: str, client_sees_it: bool) -
 
 def decoded_on_cluster(client: Any, spec: DecodeSpec, raws: list[str], quiet: bool):
     """(index, result) of every frame decoded on the cluster of `client`, as they complete."""
-    from mlaqc.errors import DeviceError
-
     shared = cluster.share(client, spec, "decode-spec")
     run_id = uuid.uuid4().hex[:8]
     futures = {}
@@ -156,9 +154,7 @@ def decoded_on_cluster(client: Any, spec: DecodeSpec, raws: list[str], quiet: bo
         futures[fut] = i
     for i, value in cluster.follow(futures, f"decoding {len(raws)} frames on Dask", progress=False if quiet else None):
         if "unseen" in value:
-            raise DeviceError(f"the Dask worker on {value['unseen']} cannot see {os.path.abspath(raws[i])!r}: "
-                              "workers read raws by path, so they need the same files at the same paths "
-                              "(a shared filesystem)")
+            raise cluster.unseen(value["unseen"], os.path.abspath(raws[i]))
         yield i, value
 
 
@@ -169,23 +165,13 @@ def _folders(out: Path, raws: list[str]) -> list[Path]:
 
 
 def _setup(args: argparse.Namespace, cfg: Any, levels) -> dict[str, Any]:
-    """The sampling (from the grid, the white's calibration, or the report) and the white image."""
+    """The sampling (from the grid, the white's calibration, or the report) and the white's light field."""
+    from mlaqc.commands.inspect import shared_grid
     from mlaqc.decode import sampling as smp
     from mlaqc.decode.frames import averaged
-    from mlaqc.inspection.calibrate import calibrate_for, load_grid
-    from mlaqc.inspection.pipeline import load_frame
+    from mlaqc.decode.lightfield import decode, view_offsets
 
-    shape = (cfg.sensor.height_px, cfg.sensor.width_px)
-    white = None
-    if args.grid:
-        grid = load_grid(args.grid)
-        if tuple(grid.image_shape) != shape or grid.packing != cfg.mla.packing:
-            raise InputError(f"grid file {args.grid!r} is for a {grid.image_shape[1]}x{grid.image_shape[0]} px "
-                             f"{grid.packing} array, but the camera is {shape[1]}x{shape[0]} px, {cfg.mla.packing}")
-    else:
-        whites = list(args.white)
-        grid = calibrate_for(load_frame(whites[0] if len(whites) == 1 else whites, cfg, levels), cfg)
-        white = averaged(whites, cfg, levels)
+    grid = shared_grid(args, cfg)  # --grid checked against the camera, or calibrated on --white
     if args.report:
         from mlaqc.report.document import load_report
 
@@ -194,36 +180,21 @@ def _setup(args: argparse.Namespace, cfg: Any, levels) -> dict[str, Any]:
         smp.check_same_array(grid, rgrid, args.report)
         sampling = smp.measured_sampling(rgrid, report)
     elif args.lattice == "design":
-        sampling = smp.design_sampling(cfg, shape)
+        sampling = smp.design_sampling(cfg, (cfg.sensor.height_px, cfg.sensor.width_px))
     else:
         sampling = smp.lattice_sampling(grid)
-    from mlaqc.decode.lightfield import view_offsets
-
     offsets = view_offsets(sampling.radius_px, args.views)
-    return {"sampling": sampling, "offsets": offsets,
-            "white_lf": None if white is None else _decode(white, sampling, offsets)}
-
-
-def _decode(img, sampling, offsets):
-    from mlaqc.decode.lightfield import decode
-
-    return decode(img, sampling, offsets)
+    white_lf = decode(averaged(list(args.white), cfg, levels), sampling, offsets) if args.white else None
+    return {"sampling": sampling, "offsets": offsets, "white_lf": white_lf}
 
 
 def decode_raw(raw: str, spec: DecodeSpec):
     """One scene frame's light field (devignetted, hex resampled, filled as asked) and its facts."""
     from mlaqc.decode.frames import load_decode_frame
-    from mlaqc.decode.lightfield import devignetted, filled, rectangular
+    from mlaqc.decode.lightfield import decode_scene, filled, rectangular
 
-    img = load_decode_frame(raw, spec.cfg, spec.levels)
-    sampling = spec.setup["sampling"]
-    lf = _decode(img, sampling, spec.setup["offsets"])
-    white_lf = spec.setup["white_lf"]
-    if white_lf is not None:
-        if (white_lf.values.ndim == 5) != (lf.values.ndim == 5):
-            raise InputError(f"{raw} and the white frame differ in colour (one has a colour filter array, the "
-                             "other not): they are not of one camera")
-        lf = devignetted(lf, white_lf)
+    sampling, white_lf = spec.setup["sampling"], spec.setup["white_lf"]
+    lf = decode_scene(load_decode_frame(raw, spec.cfg, spec.levels), sampling, spec.setup["offsets"], white_lf, raw)
     check_scene(lf, raw)
     lens_weight = sampling.weight
     if spec.fill:

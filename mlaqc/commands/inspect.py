@@ -50,7 +50,7 @@ from mlaqc import cluster
 from mlaqc.atomic import write_bytes_atomic
 from mlaqc.commands.levels import add_level_options, stated_levels
 from mlaqc.commands.recording import Recorder, add_db_options, render_with_record
-from mlaqc.errors import DeviceError, InputError
+from mlaqc.errors import InputError
 from mlaqc.inspection.rawio import Levels
 from mlaqc.inspection.results import detection_limit_text
 from mlaqc.optics.config import CameraConfig, load_config
@@ -355,9 +355,7 @@ def rows_on_cluster(client: Any, raws: list[str], folders: list[Path], spec: Bat
     label = f"inspecting {len(raws)} frames on Dask"
     for i, value in cluster.follow(futures, label, progress=False if quiet else None):
         if "unseen" in value:
-            raise DeviceError(f"the Dask worker on {value['unseen']} cannot see {os.path.abspath(raws[i])!r}: "
-                              "workers read raws by path, so they need the same files at the same paths "
-                              "(a shared filesystem)")
+            raise cluster.unseen(value["unseen"], os.path.abspath(raws[i]))
         if "error" in value:
             # the worker read the absolute path; name the raw as the user gave it, as on this machine
             yield i, error_row(raws[i], value["error"].replace(os.path.abspath(raws[i]), raws[i]))

@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import warnings
 from dataclasses import dataclass, replace
+from typing import Any
 
 import numpy as np
 
@@ -34,12 +35,7 @@ class LightField:
     weights: np.ndarray  # (nv, nu, rows, cols) float32 in [0, 1]
     view_offsets_px: np.ndarray  # (n,) pixel offsets of the views from a sub-image centre (both axes)
     packing: str  # the (t, s) grid: 'square', 'hex' (U(m,n) order) or 'rect' (a hex array resampled)
-    lens_spacing: tuple[float, float]  # (s, t) spacing of the grid in lens pitches
     devignetted: bool = False
-
-    @property
-    def view_count(self) -> int:
-        return int(self.values.shape[0])
 
     @property
     def spatial_shape(self) -> tuple[int, int]:
@@ -75,7 +71,22 @@ def decode(img: np.ndarray, sampling: LensSampling, offsets_px: np.ndarray) -> L
     values, inside = bilinear(img, sx, sy)
     disc = np.hypot(o[:, None], o[None, :]) <= sampling.radius_px - 0.5
     weights = (inside & disc[:, :, None, None]) * sampling.weight[None, None]
-    return LightField(values, weights.astype(np.float32), o, sampling.packing, (1.0, 1.0))
+    return LightField(values, weights.astype(np.float32), o, sampling.packing)
+
+
+def decode_scene(img: np.ndarray, sampling: LensSampling, offsets_px: np.ndarray, white: Any = None,
+                 source: str = "the frame") -> LightField:
+    """`img`'s light field, divided by the white's (an image, or its LightField decoded at the same samples:
+    a batch decodes its white once) when one is given; InputError when the two differ in colour."""
+    lf = decode(img, sampling, offsets_px)
+    if white is None:
+        return lf
+    if not isinstance(white, LightField):
+        white = decode(white, sampling, offsets_px)
+    if (white.values.ndim == 5) != (lf.values.ndim == 5):
+        raise InputError(f"{source} and the white frame differ in colour (one has a colour filter array, the "
+                         "other not): they are not of one camera")
+    return devignetted(lf, white)
 
 
 def bilinear(img: np.ndarray, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -181,8 +192,7 @@ def rectangular(lf: LightField) -> LightField:
     fr = v_out - r0
     wv, ww = _lerp_rows(wv, ww, r0.astype(int), fr)
     values = np.where(_expand(ww > 0, wv), wv / np.where(_expand(ww, wv) > 0, _expand(ww, wv), 1.0), 0.0)
-    return replace(lf, values=values.astype(np.float32), weights=ww.astype(np.float32), packing="rect",
-                   lens_spacing=(1.0, 1.0))
+    return replace(lf, values=values.astype(np.float32), weights=ww.astype(np.float32), packing="rect")
 
 
 def _lerp_columns(wv: np.ndarray, w: np.ndarray, c0: np.ndarray, frac: np.ndarray):

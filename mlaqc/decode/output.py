@@ -43,7 +43,7 @@ def write_lightfield(out: Path, lf: LightField, refocused: list[tuple[float, np.
     doc = {"format": FORMAT, "version": VERSION, "mlaqc_version": __version__, **facts,
            "axes": list(AXES) + (["channel: R, G, B (demosaiced)"] if lf.values.ndim == 5 else []),
            "shape": list(lf.values.shape), "view_offsets_px": lf.view_offsets_px.tolist(),
-           "lens_grid": lf.packing, "lens_spacing_pitches": list(lf.lens_spacing), "devignetted": lf.devignetted,
+           "lens_grid": lf.packing, "lens_spacing_pitches": [1.0, 1.0], "devignetted": lf.devignetted,
            "refocus_slopes": slopes,
            "refocus_meaning": "shift-and-add: E(s,t) = sum w L(u,v,s+slope*u,t+slope*v) / sum w; slope in lenses "
                               "per pixel of view offset, 0 = the plane the MLA sees in focus",

@@ -80,11 +80,11 @@ def measured_sampling(grid: Any, report: dict[str, Any]) -> LensSampling:
     them (their offsets are within what the measurement resolves, so the lattice is their best estimate),
     weighted by what the inspection found (LENS_CONFIDENCE)."""
     base = lattice_sampling(grid)
-    flagged = _flagged(report, grid.shape)
+    flagged, confidence = _flags(report, grid.shape)
     mx, my = np.asarray(grid.measured_x_px, float), np.asarray(grid.measured_y_px, float)
     use = flagged & np.isfinite(mx) & np.isfinite(my)
     x, y = np.where(use, mx, base.x_px), np.where(use, my, base.y_px)
-    weight = base.weight * _lens_confidence(report, grid.shape)
+    weight = base.weight * confidence
     return LensSampling(x, y, base.scale, weight, grid.packing, base.pitch_px, base.radius_px, base.image_shape,
                         "measured")
 
@@ -138,18 +138,11 @@ def _grid_radius(grid: Any, pitch: float) -> float:
     return float(min(np.median(r), 0.5 * pitch)) if r.size else 0.5 * pitch
 
 
-def _flagged(report: dict[str, Any], shape: tuple[int, int]) -> np.ndarray:
-    """The lenses the report lists as defects."""
-    mask = np.zeros(shape, bool)
-    for d in report.get("defects", []):
-        mask[d["row"] - 1, d["col"] - 1] = True
-    return mask
-
-
-def _lens_confidence(report: dict[str, Any], shape: tuple[int, int]) -> np.ndarray:
-    """1 for every lens but those the report flagged with a type whose light field is lost or altered."""
-    conf = np.ones(shape)
+def _flags(report: dict[str, Any], shape: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
+    """The lenses the report lists as defects, and every lens' confidence (LENS_CONFIDENCE by type, else 1)."""
+    flagged, confidence = np.zeros(shape, bool), np.ones(shape)
     for d in report.get("defects", []):
         m, n = d["row"] - 1, d["col"] - 1
-        conf[m, n] = min(conf[m, n], LENS_CONFIDENCE.get(d["error_type"], 1.0))
-    return conf
+        flagged[m, n] = True
+        confidence[m, n] = min(confidence[m, n], LENS_CONFIDENCE.get(d["error_type"], 1.0))
+    return flagged, confidence
