@@ -4,15 +4,19 @@ that the views differ: parallax), rendered through the camera with the paper's n
 random ones, and through the same camera with an error-free array. The flawed frames are decoded with
 
   (a) the design lattice, (b) the lattice calibrated on the flawed array's white frame (what PlenoptiCam,
-  LFToolbox and plenpy do), (c) the measured per-lens model (an inspection's report of that white frame);
+  LFToolbox and plenpy do), (c) the measured per-lens model (an inspection's report of that white frame),
+  and (c) + fill: the lenses it gives a confidence under 0.5 (a focal error blurring their views by over
+  2 px) refilled along the scene's parallax (`fill.filled`, what `mlaqc decode --fill` does);
 
 the error-free frame with its own calibrated lattice. Every decode is devignetted by its array's white.
-Each view is compared with the error-free frame's, at the flawed lenses' (s, t) and everywhere else, and
-so are refocused images (PSNR). Frames are cached in /tmp.
+Each view is compared with the error-free frame's, at the flawed lenses' (s, t) and everywhere else, on
+every sample the decode gives any weight, and so are refocused images (PSNR). Frames are cached in /tmp.
 
     python bench/decode.py                                         # Table 1, noise-free and noisy
     python bench/decode.py --config fixtures/hex_camera.toml
+    python bench/decode.py --config fixtures/lfm_40x_relay.toml   # the light-field microscope (datasheet optics)
     python bench/decode.py --timing                                # a 2048² frame decoded in-process
+    python bench/decode.py --aliasing                              # the sampling's own limit (pixel phase)
     python bench/decode.py --geometry                              # error-free views against exact rays
     python bench/decode.py --plenopticam /tmp/plcvenv/bin/python   # against PlenoptiCam (see plenopticam_decode.py)
 """
@@ -30,12 +34,13 @@ from pathlib import Path
 import numpy as np
 
 from mlaqc.decode.frames import load_decode_frame
+from mlaqc.decode.fill import filled
 from mlaqc.decode.lightfield import decode_scene, rectangular, refocus, view_offsets
 from mlaqc.decode.sampling import design_sampling, lattice_sampling, measured_sampling, report_grid
 from mlaqc.inspection.calibrate import calibrate_for
 from mlaqc.inspection.pipeline import inspect_image, load_frame
 from mlaqc.optics.config import load_config
-from mlaqc.optics.errormap import ErrorMap, lens_error_fields, random_defects
+from mlaqc.optics.errormap import ErrorMap, lens_error_fields, physical_types, random_defects
 from mlaqc.optics.scene import PointScene, TextureScene, WhiteScene
 from mlaqc.optics.simulate import simulate, write_simulation
 from mlaqc.report.document import build_report_dict
@@ -47,19 +52,25 @@ CACHE = Path(tempfile.gettempdir()) / "mlaqc_bench_decode"
 
 
 def flawed_map(cfg, random_count: int, seed: int) -> tuple[ErrorMap, list[tuple[int, int, str]]]:
-    """The paper's nine examples plus `random_count` random pitch/decenter/radius errors elsewhere."""
+    """The paper's nine examples plus `random_count` random pitch/decenter/radius errors elsewhere. On a
+    plano-convex MLA a decenter changes nothing: its three examples become pitch errors of that size."""
     rows, cols, packing = cfg.mla.count_h, cfg.mla.count_w, cfg.mla.packing
-    em = random_defects(rows, cols, random_count, seed, types=("pitch", "decenter", "radius"), packing=packing)
+    types = physical_types(("pitch", "decenter", "radius"), cfg.mla)
+    em = random_defects(rows, cols, random_count, seed, types=types, packing=packing)
     for (m, n), (kind, mag, d) in zip(placements(rows, cols, packing), NINE):
+        kind = kind if kind in types else "pitch"
         em = em.with_lens(m, n, **lens_error_fields(kind, mag, d))
     flawed = [(int(m) + 1, int(n) + 1) for m, n in zip(*np.nonzero(em.defective()))]
     return em, flawed
 
 
 def scene_config(cfg, defocus_mm: float):
-    """The camera with its object plane moved `defocus_mm` further out, the MLA where it was: the scene is
-    out of the MLA's focus, so every view sees it from its own pupil point."""
+    """The camera with its object plane moved `defocus_mm` further out, the MLA where it was (an ideal main
+    lens: the scene's image `defocus_mm` before the MLA): the scene is out of the MLA's focus, so every view
+    sees it from its own pupil point."""
     lay = cfg.layout
+    if lay.main is None:
+        return dataclasses.replace(cfg, geometry=dataclasses.replace(cfg.geometry, image_defocus_mm=defocus_mm))
     geo = dataclasses.replace(cfg.geometry, mla_distance_mm=lay.mla_distance_mm,
                               object_distance_mm=lay.object_distance_mm + defocus_mm)
     return dataclasses.replace(cfg, geometry=geo)
@@ -79,9 +90,10 @@ def texture(size: int = 512, seed: int = 3) -> TextureScene:
 
 
 def points(cfg, spacing_lenses: float = 7.0) -> PointScene:
-    """Point sources on a square lattice over the object plane, `spacing_lenses` lens images apart."""
+    """Point sources on a square lattice over the object plane (an ideal lens: the scene's image plane),
+    `spacing_lenses` lens images apart."""
     lay = cfg.layout
-    mag = lay.object_distance_mm / lay.mla_distance_mm  # object mm per image mm (rough, for spacing only)
+    mag = 1.0 if lay.main is None else lay.object_distance_mm / lay.mla_distance_mm  # object mm per image mm
     step = spacing_lenses * cfg.mla.pitch_um * 1e-3 * mag
     half = 0.45 * cfg.mla.count_w * cfg.mla.pitch_um * 1e-3 * mag
     xs = np.arange(-half, half + 1e-9, step)
@@ -129,8 +141,9 @@ def compare(cfg, scene_name, scene, flawed_em, flawed_lenses, clean_em, rpp, noi
     grid_f, grid_c = calibrate_for(white_f, cfg), calibrate_for(white_c, cfg)
     report = build_report_dict(inspect_image(white_f, cfg, grid=grid_f), config_dict=cfg.to_dict())
     found = {(d["row"], d["col"]) for d in report["defects"]}
+    measured = measured_sampling(report_grid(report, "(in memory)"), report)
     samplings = {"a design": design_sampling(cfg, white_f.shape), "b lattice": lattice_sampling(grid_f),
-                 "c measured": measured_sampling(report_grid(report, "(in memory)"), report)}
+                 "c measured": measured, "c + fill": measured}
     img_f = load_decode_frame(str(raws["scene_flawed"]), cfg)
     img_c = load_decode_frame(str(raws["scene_clean"]), cfg)
     wf, wc = load_decode_frame(str(raws["white_flawed"]), cfg), load_decode_frame(str(raws["white_clean"]), cfg)
@@ -156,9 +169,12 @@ def compare(cfg, scene_name, scene, flawed_em, flawed_lenses, clean_em, rpp, noi
     out = {}
     decoded = {}
     for name, smp in samplings.items():
-        lf = rectangular(decode_scene(img_f, smp, offs, wf))
+        lf = decode_scene(img_f, smp, offs, wf)
+        if name.endswith("fill"):  # lenses of confidence under 0.5 refilled along the scene's parallax
+            lf = filled(lf, lenses=smp.inside)
+        lf = rectangular(lf)  # (as `mlaqc decode`: filled on the array's own lattice, then resampled)
         decoded[name] = lf
-        w = np.minimum(lf.weights, ref.weights) > 0.2  # reduced-weight lenses (0.5) are compared too
+        w = (lf.weights > 0) & (ref.weights > 0.2)  # every sample the decode gives any weight, however low
         wf_ = w.astype(np.float64)
         at = rms(lf.values, ref.values, wf_ * flawed_mask)
         rest = rms(lf.values, ref.values, wf_ * elsewhere)
@@ -178,9 +194,11 @@ def compare(cfg, scene_name, scene, flawed_em, flawed_lenses, clean_em, rpp, noi
     wf_ = (np.minimum(lf.weights, ref.weights) > 0.2).astype(np.float64)
     print(f"    floor      : the error-free frame rendered again with other rays: view RMS at the flawed lenses' "
           f"(s, t) {rms(lf.values, ref.values, wf_ * flawed_mask):.4f}, elsewhere {rms(lf.values, ref.values, wf_ * elsewhere):.4f}")
-    (ab, rb, pb, qb), (ac, rc, pc, qc) = out["b lattice"], out["c measured"]
-    print(f"    (c)/(b) at flawed lenses {ac / ab:.3f} (bar <= 0.333); elsewhere {rc / rb:.4f} (bar <= 1.02); "
-          f"refocused PSNR gain near flawed {pc - pb:+.2f} dB, elsewhere {qc - qb:+.2f} dB")
+    ab, rb, pb, qb = out["b lattice"]
+    for name in ("c measured", "c + fill"):
+        ac, rc, pc, qc = out[name]
+        print(f"    ({name})/(b) at flawed lenses {ac / ab:.3f} (bar <= 0.333); elsewhere {rc / rb:.4f} (bar <= 1.02); "
+              f"refocused PSNR gain near flawed {pc - pb:+.2f} dB, elsewhere {qc - qb:+.2f} dB")
     return out
 
 
@@ -219,6 +237,27 @@ def rect_mask(mask: np.ndarray, t_count: int) -> np.ndarray:
     rows, cols = mask.shape
     lf = LightField(mask[None, None].astype(np.float32), np.ones((1, 1, rows, cols), np.float32), np.zeros(1), "hex")
     return rectangular(lf).values[0, 0] > 0
+
+
+def aliasing(cfg, defocus_mm: float, rpp: float) -> None:
+    """The sampling's own limit: the error-free array moved by (1, -0.5) µm (about a fifth of a pixel),
+    decoded on its own calibrated lattice, against the unmoved one, every view, noise-free. A sharp image
+    in an undersampled sub-image changes with the pixels' phase, which no resampling undoes."""
+    clean = ErrorMap.zeros(cfg.mla.count_h, cfg.mla.count_w, cfg.mla.packing)
+    moved = clean.with_globals(mla_shift_x_um=1.0, mla_shift_y_um=-0.5)
+    scfg = scene_config(cfg, defocus_mm)
+    for name, scene in (("texture", texture()), ("points", points(cfg))):
+        lfs = []
+        for label, em in (("clean", clean), ("moved", moved)):
+            white = rendered(cfg, WhiteScene(), em, f"white_{label}_alias", rpp, False)
+            frame = rendered(scfg, scene, em, f"scene_{label}_{name}_alias", rpp, False)
+            smp = lattice_sampling(calibrate_for(load_frame(str(white), cfg), cfg))
+            lfs.append(decode_scene(load_decode_frame(str(frame), cfg), smp, view_offsets(smp.radius_px),
+                                    load_decode_frame(str(white), cfg)))
+        a, b = lfs
+        ok = (a.weights > 0.2) & (b.weights > 0.2)
+        print(f"  {name}: the error-free array moved (1, -0.5) µm, decoded where it moved, against unmoved: view "
+              f"RMS {np.sqrt(np.mean((a.values - b.values)[ok] ** 2)):.4f}")
 
 
 def timing(cfg, repeats: int = 5) -> None:
@@ -321,10 +360,12 @@ def main() -> int:
     ap.add_argument("--rays-per-pixel", type=float, default=200.0)
     ap.add_argument("--random", type=int, default=20, help="random defects besides the paper's nine")
     ap.add_argument("--seed", type=int, default=4)
-    ap.add_argument("--defocus-mm", type=float, default=2.0, help="object plane beyond the MLA's focus, mm")
+    ap.add_argument("--defocus-mm", type=float, help="object plane beyond the MLA's focus, mm (default 2); an "
+                    "ideal main lens: the scene's image before the MLA (default 15: 9.4 µm in a dry 40x sample)")
     ap.add_argument("--slope", type=float, help="refocus slope, lenses per view pixel (default: the scene's)")
     ap.add_argument("--noise", choices=("both", "off", "on"), default="both")
     ap.add_argument("--timing", action="store_true")
+    ap.add_argument("--aliasing", action="store_true", help="the sampling's own limit: the array moved a fifth of a pixel")
     ap.add_argument("--geometry", action="store_true", help="decoded views of a point against exact rays")
     ap.add_argument("--picture", metavar="PNG", help="write a before/after picture of one view (texture, noise-free)")
     ap.add_argument("--plenopticam", metavar="PYTHON", help="compare with PlenoptiCam run by this interpreter")
@@ -334,11 +375,16 @@ def main() -> int:
             geometry(d)
         return 0
     cfg = load_config(args.config)
+    if args.defocus_mm is None:
+        args.defocus_mm = 15.0 if cfg.main_lens.ideal else 2.0
     if args.plenopticam:
         against_plenopticam(cfg, args.plenopticam, args.defocus_mm, args.rays_per_pixel)
         return 0
     if args.timing:
         timing(cfg)
+        return 0
+    if args.aliasing:
+        aliasing(cfg, args.defocus_mm, args.rays_per_pixel)
         return 0
     flawed_em, flawed = flawed_map(cfg, args.random, args.seed)
     clean_em = ErrorMap.zeros(cfg.mla.count_h, cfg.mla.count_w, cfg.mla.packing)
@@ -361,9 +407,10 @@ def scene_slope(cfg, defocus_mm: float) -> float:
     from mlaqc.optics.paraxial import image_distance
 
     lay, slay = cfg.layout, scene_config(cfg, defocus_mm).layout
-    if lay.main is None:
-        return 0.0
-    b_img = image_distance(lay.main.efl, slay.object_distance_mm + lay.main.front_principal)
+    if lay.main is None:  # an ideal lens: the scene's image is given, b' from its exit pupil
+        b_img = lay.pupil_to_mla_mm - defocus_mm
+    else:
+        b_img = image_distance(lay.main.efl, slay.object_distance_mm + lay.main.front_principal)
     dz = lay.pupil_to_mla_mm - b_img
     r_px = design_sampling(cfg, (cfg.sensor.height_px, cfg.sensor.width_px)).radius_px
     return float(dz / b_img * lay.exit_radius_mm / r_px / (cfg.mla.pitch_um * 1e-3))

@@ -23,7 +23,7 @@ from mlaqc.optics.errormap import ErrorMap, physical_types
 from mlaqc.optics.paraxial import thick_lens
 from mlaqc.optics.raytrace import MainLens, Rays
 from mlaqc.optics.render import Renderer
-from mlaqc.optics.scene import PointScene, WhiteScene
+from mlaqc.optics.scene import WhiteScene
 
 FIXTURES = Path(__file__).resolve().parent.parent / "fixtures"
 LFM = load_config(FIXTURES / "lfm_40x_relay.toml")
@@ -163,9 +163,9 @@ def test_a_bad_datasheet_config_exits_2_and_writes_nothing(tmp_path, capsys):
     assert not out.exists() and not list(tmp_path.glob("x.tiff*"))
 
 
-def test_an_ideal_main_lens_refuses_object_side_scenes_in_one_sentence():
+def test_an_ideal_main_lens_refuses_object_side_sampling_in_one_sentence():
     with pytest.raises(InputError, match="ideal main lens"):
-        Renderer(LFM).plan(PointScene(((0.0, 0.0),), 1e6), rays=1000, rays_per_pixel=None, seed=0)
+        Renderer(LFM, sampling="object")
 
 
 def test_a_through_focus_frame_of_an_ideal_main_lens_is_one_sentence(tmp_path, capsys):

@@ -5,6 +5,7 @@ point and the lens), and the command's behaviour on good and bad input."""
 from __future__ import annotations
 
 import json
+from dataclasses import replace
 from pathlib import Path
 from types import SimpleNamespace
 
@@ -13,7 +14,8 @@ import pytest
 
 from mlaqc.cli import main
 from mlaqc.decode.frames import demosaiced
-from mlaqc.decode.lightfield import LightField, bilinear, decode, devignetted, filled, rectangular, refocus, view_offsets
+from mlaqc.decode.fill import filled
+from mlaqc.decode.lightfield import LightField, bilinear, decode, devignetted, rectangular, refocus, view_offsets
 from mlaqc.decode.sampling import LensSampling, measured_sampling
 from mlaqc.errors import InputError
 
@@ -174,6 +176,137 @@ def test_filling_a_lens_from_its_neighbours():
     out = filled(lf)
     np.testing.assert_allclose(out.values[:, :, 4, 5], 1.0 + 0.1 * 5, rtol=1e-5)  # linear: the neighbours' mean
     assert 0 < out.weights[1, 1, 4, 5] <= 0.5 and np.array_equal(out.values[:, :, 3, 3], lf.values[:, :, 3, 3])
+
+
+def parallax_field(slope: float, views: int = 21, size: int = 24, seed: int = 7, packing: str = "square") -> LightField:
+    """An analytic light field of a textured plane off the MLA's focus: the lens at (x, y) pitches sees in
+    view (u, v) I(x - slope u, y - slope v) (what `refocus` at -slope brings into focus), I a smooth random
+    texture known everywhere. Hex: 0-based odd rows half a pitch right, rows sqrt(3)/2 apart."""
+    rng = np.random.default_rng(seed)
+    k = rng.normal(size=(6, 4))
+
+    def texture(x, y):  # a sum of plane waves: detail down to about two lenses
+        return 1.0 + sum(0.1 * np.sin(a * x + b * y + c) * d for a, b, c, d in k * [[1.3, 1.3, 3, 1]])
+
+    o = np.arange(views, dtype=np.float64) - views // 2
+    t, s = np.mgrid[0:size, 0:size].astype(float)
+    x, y = (s + 0.5 * (t % 2), t * np.sqrt(3) / 2) if packing == "hex" else (s, t)
+    vals = texture(x[None, None] - slope * o[None, :, None, None], y[None, None] - slope * o[:, None, None, None])
+    return LightField(vals.astype(np.float32), np.ones(vals.shape, np.float32), o, packing)
+
+
+@pytest.mark.parametrize("slope, packing", [(0.12, "square"), (-0.2, "square"), (0.3, "square"), (0.2, "hex"),
+                                            (-0.12, "hex")])
+def test_a_lens_is_refilled_along_the_scenes_parallax(slope, packing):
+    """A lens without light field in a plane scene out of focus: its neighbours see what it would have seen
+    1/slope views further on per pitch of their offset; refilled along that, its views are the scene's (to
+    the views' linear interpolation), several times closer than the mean of its neighbours in each view."""
+    truth = parallax_field(slope, packing=packing)
+    w = truth.weights.copy()
+    vals = truth.values.copy()
+    w[:, :, 11, 12] = 0.1  # a lens of low confidence whose views are blurred (their mean kept)
+    vals[:, :, 11, 12] = vals[:, :, 11, 12].mean()
+    for t, s in ((5, 5), (17, 8)):  # two without light field, one next to another flawed lens' neighbour
+        w[:, :, t, s] = 0.0
+        vals[:, :, t, s] = 0.0
+    lf = replace(truth, values=vals, weights=w)
+    out = filled(lf)
+    inner = np.abs(truth.view_offsets_px) <= 10 - 1.0 / abs(slope) + 2  # views every neighbour reaches
+    for t, s in ((11, 12), (5, 5), (17, 8)):
+        got, want = out.values[:, :, t, s], truth.values[:, :, t, s]
+        plain = np.mean([truth.values[:, :, t + a, s + b] for a, b in neighbour_steps(packing, t)], axis=0)
+        err = np.sqrt(np.mean((got - want)[np.ix_(inner, inner)] ** 2))
+        err_plain = np.sqrt(np.mean((plain - want)[np.ix_(inner, inner)] ** 2))
+        assert err < 0.2 * err_plain and err < 0.01
+        assert 0 < out.weights[10, 10, t, s] <= 0.5
+    assert np.array_equal(out.values[:, :, 3, 3], lf.values[:, :, 3, 3])
+
+
+def neighbour_steps(packing: str, t: int) -> list[tuple[int, int]]:
+    """(dt, ds) to a lens' nearest neighbours: square the eight around it, hex the six (0-based odd rows
+    shifted half a pitch right: their neighbours above and below are at s and s + 1)."""
+    if packing != "hex":
+        return [(a, b) for a in (-1, 0, 1) for b in (-1, 0, 1) if a or b]
+    odd = t % 2
+    return [(0, 1), (0, -1)] + [(a, b + odd) for a in (-1, 1) for b in (-1, 0)]
+
+
+def test_a_dark_lens_of_low_confidence_is_not_refilled_with_its_neighbours_light():
+    """A point scene: a lens whose (blurred) views are dark while its neighbours see a point keeps its own
+    dark views: no refill may change the mean light a lens has of its own (a focal error keeps it)."""
+    truth = parallax_field(0.2)
+    vals = np.zeros_like(truth.values)
+    vals[:, :, 8:11, 8:10] = truth.values[:, :, 8:11, 8:10]  # light in the lenses left of U(10, 11) only
+    w = truth.weights.copy()
+    w[:, :, 9, 10] = 0.2
+    out = filled(replace(truth, values=vals, weights=w))
+    assert np.all(out.values[:, :, 9, 10] == 0) and np.all(out.weights[:, :, 9, 10] == 0.2)
+
+
+def test_a_lens_the_frame_does_not_hold_is_not_extrapolated():
+    """A border lens without light field because its sub-image is off the frame stays empty when the
+    sampling says so (`lenses`: its `inside`); a missing lens inside is refilled."""
+    truth = parallax_field(0.2)
+    w = truth.weights.copy()
+    w[:, :, 0, 7] = w[:, :, 9, 9] = 0.0
+    inside = np.ones(w.shape[2:], bool)
+    inside[0, :] = False
+    out = filled(replace(truth, weights=w), lenses=inside)
+    assert np.all(out.weights[:, :, 0, 7] == 0) and np.array_equal(out.values[:, :, 0, 7], truth.values[:, :, 0, 7])
+    assert out.weights[10, 10, 9, 9] > 0
+
+
+def test_a_scene_in_focus_is_refilled_from_the_neighbours_in_each_view():
+    """slope 0: every view sees the same texture; no shift makes the neighbours agree better than none."""
+    truth = parallax_field(0.0)
+    w = truth.weights.copy()
+    w[:, :, 9, 9] = 0.0
+    out = filled(replace(truth, weights=w))
+    plain = 0.125 * sum(truth.values[:, :, 9 + a, 9 + b] for a in (-1, 0, 1) for b in (-1, 0, 1) if a or b)
+    np.testing.assert_allclose(out.values[:, :, 9, 9], plain, rtol=1e-5)
+
+
+def focal_grid(cfg_path: Path):
+    """A calibrated-grid stand-in of `cfg_path`'s array (lattice centres, nothing measured off them)."""
+    from mlaqc.optics.config import load_config
+
+    cfg = load_config(cfg_path)
+    r, c = np.mgrid[0:8, 0:8].astype(float)
+    p = cfg.layout.subimage_pitch_px
+    x, y = 30 + c * p, 30 + r * p
+    grid = SimpleNamespace(grid_x_px=x, grid_y_px=y, measured_x_px=x, measured_y_px=y, missing=np.zeros(x.shape, bool),
+                           pitch_px=(p, p), radius_px=np.full(x.shape, 0.45 * p), image_shape=(int(9 * p + 60),) * 2,
+                           packing="square", shape=x.shape)
+    return cfg, grid
+
+
+def test_a_focal_error_lens_is_trusted_by_how_far_it_blurs_its_views():
+    """The microscope's plano-convex lens (f = R / (n - 1) = 3 mm, t = 1 mm, n 1.458; sensor at the design
+    back focal distance f - t/n): radius +5 % moves its focus to 1.05 f - t/n, which blurs the pupil's
+    image, one sub-image pitch (46.15 px) across at the lens, by pitch x |gap - bfd'| / bfd' = 2.81 px; its
+    confidence is the inverse. The report's config comes as strict JSON (the flat back written as null)."""
+    cfg, grid = focal_grid(FIXTURES / "lfm_40x_relay.toml")
+    f, t, n = 3000.0, 1000.0, 1.458
+    gap, bfd = f - t / n, 1.05 * f - t / n
+    blur = 150.0 / 3.25 * abs(gap - bfd) / bfd
+    config = json.loads(json.dumps(cfg.to_dict()).replace("Infinity", "null"))
+    report = {"config": config, "defects": [{"row": 3, "col": 4, "error_type": "radius", "magnitude": 0.05},
+                                            {"row": 5, "col": 5, "error_type": "pitch", "magnitude": 2.0}]}
+    smp = measured_sampling(grid, report)
+    assert blur == pytest.approx(2.81, abs=0.01)
+    assert smp.weight[2, 3] == pytest.approx(1.0 / blur, rel=2e-3)
+    assert smp.weight[4, 4] == 1.0 and smp.weight[0, 0] == 1.0
+
+
+def test_a_focal_error_blurring_its_views_under_a_pixel_keeps_full_weight():
+    """Table 1 (20 px sub-images): radius +5 % blurs by under a pixel, -10 % by 2.2 px."""
+    cfg, grid = focal_grid(FIXTURES / "paper_table1.toml")
+    report = {"config": json.loads(json.dumps(cfg.to_dict())),
+              "defects": [{"row": 2, "col": 2, "error_type": "radius", "magnitude": 0.05},
+                          {"row": 6, "col": 6, "error_type": "radius", "magnitude": -0.1}]}
+    smp = measured_sampling(grid, report)
+    assert smp.weight[1, 1] == 1.0 and 0.4 < smp.weight[5, 5] < 0.5
+    assert measured_sampling(grid, {"defects": report["defects"]}).weight[5, 5] == 1.0  # no config: not judged
 
 
 @pytest.mark.parametrize("cfa", ["RGGB", "BGGR", "GRBG", "GBRG"])

@@ -136,6 +136,19 @@ def test_square_spill_still_sees_eight_neighbours():
     assert echo.sum() == 8 and not echo[3, 3]
 
 
+def test_a_lens_moved_beyond_what_spilled_light_does_is_never_an_echo():
+    """Beside a neighbour scoring 10x, a lens whose centre moved 0.8 px is its own defect when echoes move
+    under 0.5 px; one that moved 0.2 px is still the echo."""
+    score = np.zeros((5, 5))
+    flagged = np.zeros((5, 5), bool)
+    score[2, 2], score[2, 3], score[3, 2] = 100.0, 10.0, 10.0
+    flagged[2, 2] = flagged[2, 3] = flagged[3, 2] = True
+    ox, oy = np.zeros((5, 5)), np.zeros((5, 5))
+    ox[2, 3], oy[3, 2] = 0.8, 0.2
+    echo = spill(score, flagged, offset=(ox, oy), moved_px=0.5)
+    assert not echo[2, 3] and echo[3, 2] and not echo[2, 2]
+
+
 # --- local baselines on the hex lattice ----------------------------------------------------------------
 
 def test_a_linear_trend_leaves_at_most_a_quarter_pitch_of_its_slope_inside():

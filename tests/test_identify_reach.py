@@ -116,3 +116,17 @@ def test_an_error_too_small_to_report_is_still_not_flagged():
     result = inspect_image(prepare(frame), cfg)
     assert result.below_reportable >= 1  # it was significant: the rule was asked
     assert not result.defects, [(d.m, d.n, d.error_type, d.magnitude) for d in result.defects]
+
+
+def test_a_shifted_lens_beside_a_much_stronger_defect_is_its_own_defect_not_an_echo():
+    """A 4 µm pitch error (a 0.8 px sub-image shift, away from its neighbour) beside a -20 % radius error
+    that scores many times higher: the shift is the lens' own, far beyond what spilled light moves a
+    sub-image by, so both are flagged and typed (the echo rule once suppressed it: a 7 µm pitch error on
+    the microscope fixture)."""
+    em = (ErrorMap.zeros(24, 24).with_lens(12, 12, **lens_error_fields("pitch", 4.0, 0.0))
+          .with_lens(12, 11, **lens_error_fields("radius", -0.2, None)))
+    ph = Renderer(SMALL, em).render(WhiteScene(), rays_per_pixel=200, seed=5).photons
+    s = SMALL.sensor
+    frame = RawFrame(sensor_expose(ph, s, seed=6), s.bit_depth, None, s.black_level_dn, white_level(s), {}, "test")
+    found = {(d.m, d.n): d.error_type for d in inspect_image(prepare(frame), SMALL).defects}
+    assert found.get((12, 12)) == "pitch" and found.get((12, 11)) == "radius", found

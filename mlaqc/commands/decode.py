@@ -48,7 +48,8 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="refocus slopes, lenses per pixel of view offset (default 0: the plane in focus "
                         "on the MLA); 'none' for no refocusing")
     p.add_argument("--fill", action="store_true",
-                   help="fill lenses of weight under 0.5 (missing, obscured, ...) from their neighbours in (s, t)")
+                   help="refill lenses of weight under 0.5 (missing, obscured, a focal error blurring its views by "
+                        "over 2 px) from their neighbours in (s, t), along the scene's parallax where they agree on it")
     p.add_argument("--config", "-c", help="camera config TOML (default: the paper's Table 1 camera)")
     p.add_argument("--out", "-o", required=True, help="output folder")
     p.add_argument("--quiet", "-q", action="store_true", help="no summary")
@@ -191,14 +192,15 @@ def _setup(args: argparse.Namespace, cfg: Any, levels) -> dict[str, Any]:
 def decode_raw(raw: str, spec: DecodeSpec):
     """One scene frame's light field (devignetted, hex resampled, filled as asked) and its facts."""
     from mlaqc.decode.frames import load_decode_frame
-    from mlaqc.decode.lightfield import decode_scene, filled, rectangular
+    from mlaqc.decode.fill import filled
+    from mlaqc.decode.lightfield import decode_scene, rectangular
 
     sampling, white_lf = spec.setup["sampling"], spec.setup["white_lf"]
     lf = decode_scene(load_decode_frame(raw, spec.cfg, spec.levels), sampling, spec.setup["offsets"], white_lf, raw)
     check_scene(lf, raw)
     lens_weight = sampling.weight
     if spec.fill:
-        lf = filled(lf)
+        lf = filled(lf, lenses=sampling.inside)
     lf = rectangular(lf)
     facts = {"source": str(raw), "sampling": sampling.source, "devignetted": white_lf is not None,
              "lenses": {"rows": int(sampling.shape[0]), "cols": int(sampling.shape[1]),

@@ -29,7 +29,8 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="white: uniform Lambertian plane (calibration image); points: point sources; texture: an image; "
                         "through-focus: the pinhole lattice of the second measurement (main lens stopped down, "
                         "pinholes imaged --focus-offset-mm behind the MLA)")
-    p.add_argument("--points", help="point sources on the object plane, 'x,y;x,y' in mm (scene 'points')")
+    p.add_argument("--points", help="point sources on the object plane, 'x,y;x,y' in mm (scene 'points'; an ideal main lens: in "
+                   "the plane it images them onto, geometry.image_defocus_mm before the MLA)")
     p.add_argument("--point-photons", type=float, default=1e6, help="photons each point sends into the pupil")
     p.add_argument("--texture", help="image file whose grey levels are the object radiance (scene 'texture')")
     tf = p.add_argument_group("through-focus scene")

@@ -1,6 +1,6 @@
 """The 4D light field of a plenoptic frame: decoding (`decode`), devignetting by a white frame
-(`devignetted`), a hex array's views on a rectangular grid (`rectangular`), filling lenses that carry no
-light field from their neighbours (`filled`) and shift-and-add refocusing (`refocus`).
+(`devignetted`), a hex array's views on a rectangular grid (`rectangular`) and shift-and-add refocusing
+(`refocus`); lenses without a usable light field are refilled by `mlaqc.decode.fill`.
 
 Axes of `LightField.values`: (v, u, t, s[, channel]): (v, u) the view, i.e. the pupil point, as a pixel
 offset (v down, u right) from each lens' sub-image centre, view_offsets_px[j], view_offsets_px[i]; (t, s)
@@ -142,35 +142,6 @@ def _expand(mask: np.ndarray, like: np.ndarray) -> np.ndarray:
     return mask[..., None] if like.ndim == mask.ndim + 1 else mask
 
 
-def filled(lf: LightField, below: float = 0.5) -> LightField:
-    """Samples of lenses whose weight is under `below` replaced by the weighted mean of their neighbours
-    (the eight around them in (s, t), each view on its own); their weight becomes half the neighbours'
-    mean. Samples no neighbour can supply are left as they were."""
-    w = lf.weights.astype(np.float64)
-    good = np.where(w >= below, w, 0.0)
-    vals = lf.values.astype(np.float64)
-    gv = vals * _expand(good, vals)
-    num, den = _neighbour_sum(gv), _neighbour_sum(good)
-    den_v = _expand(den, vals)
-    swap = (w < below) & (den > 0)
-    new_vals = np.where(_expand(swap, vals), num / np.where(den_v > 0, den_v, 1.0), vals)
-    new_w = np.where(swap, 0.5 * den / 8.0, w)
-    return replace(lf, values=new_vals.astype(np.float32), weights=new_w.astype(np.float32))
-
-
-def _neighbour_sum(a: np.ndarray) -> np.ndarray:
-    """Sum over the eight (s, t) neighbours of every sample (axes 2, 3), zero beyond the edge."""
-    pad = [(0, 0), (0, 0), (1, 1), (1, 1)] + [(0, 0)] * (a.ndim - 4)
-    p = np.pad(a, pad)
-    r, c = a.shape[2], a.shape[3]
-    total = np.zeros_like(a)
-    for dr in (0, 1, 2):
-        for dc in (0, 1, 2):
-            if dr != 1 or dc != 1:
-                total += p[:, :, dr:dr + r, dc:dc + c]
-    return total
-
-
 def rectangular(lf: LightField) -> LightField:
     """A hex array's light field on a rectangular (s, t) grid one lens pitch apart in both directions:
     the rows' half-pitch shift and their sqrt(3)/2 spacing interpolated out (linear, weight-aware: a sample
@@ -226,7 +197,10 @@ def _lerp_rows(wv: np.ndarray, w: np.ndarray, r0: np.ndarray, fr: np.ndarray):
 def refocus(lf: LightField, slope: float) -> tuple[np.ndarray, np.ndarray]:
     """Shift-and-add: the image focused where a point moves `slope` lenses (s, t) per pixel of view offset,
     E(s, t) = sum w L(u, v, s + slope u, t + slope v) / sum w; 0 the plane the MLA sees in focus. Returns
-    (image, summed weight)."""
+    (image, summed weight). A view's weight w is its typical weight over the lenses (a view near the pupil's
+    rim is noisier) on every sample that has a light field (weight > 0): a per-lens weight would pull each
+    interpolated point towards the better lenses, a bias that costs more than a doubted lens' reading
+    (measured, bench/decode.py; refill doubted lenses with `fill.filled`)."""
     nv, nu, rows, cols = lf.weights.shape
     o = lf.view_offsets_px
     s_grid, t_grid = np.meshgrid(np.arange(cols, dtype=np.float64), np.arange(rows, dtype=np.float64))
@@ -234,12 +208,14 @@ def refocus(lf: LightField, slope: float) -> tuple[np.ndarray, np.ndarray]:
     den = np.zeros((rows, cols), np.float64)
     for j in range(nv):  # one pass per view (a few hundred at most), each vectorized over every lens
         for i in range(nu):
-            if not lf.weights[j, i].any():
+            seen = lf.weights[j, i] > 0
+            if not seen.any():
                 continue
+            weight = np.where(seen, np.float32(np.median(lf.weights[j, i][seen])), np.float32(0.0))
             xs, ys = s_grid + slope * o[i], t_grid + slope * o[j]
-            wv = lf.values[j, i] * _expand(lf.weights[j, i], lf.values[j, i])
+            wv = lf.values[j, i] * _expand(weight, lf.values[j, i])
             v, _ = bilinear(wv, xs, ys)
-            w, _ = bilinear(lf.weights[j, i], xs, ys)
+            w, _ = bilinear(weight, xs, ys)
             num += v
             den += w
     image = np.where(_expand(den > 0, num), num / np.where(_expand(den, num) > 0, _expand(den, num), 1.0), 0.0)

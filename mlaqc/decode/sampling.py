@@ -25,9 +25,11 @@ from mlaqc.optics.lattice import Lattice
 
 # confidence of a lens the inspection flagged, by its type: a missing or opaque lens carries no light field;
 # one whose light the frame shows altered in a way no resampling undoes (a local spot, a scratch, a reading
-# outside every model) is kept at reduced weight. A dim lens is divided out by the white; a focal error
-# blurs the lens' pupil image a little and stays at full weight (down-weighting it biases refocusing more
-# than its blur does: measured, bench/decode.py)
+# outside every model) is kept at reduced weight. A dim lens is divided out by the white. A focal (radius)
+# error blurs the lens' pupil image, and so its views, by a disc `focal_blur_px` across: its confidence is
+# 1 / that blur in view pixels (capped at 1), so that a lens that has lost its angular detail (blur over 2
+# px: `fill.filled` refills it along the scene's parallax) is told from one that blurs a view pixel
+# or so, whose own views are better than any neighbour's (measured, bench/decode.py)
 LENS_CONFIDENCE = {"missing": 0.0, "obscuration": 0.25, "scratch": 0.25, "unknown": 0.25}
 
 
@@ -48,6 +50,7 @@ class LensSampling:
     radius_px: float  # radius of a sub-image (the pupil's image), the views stay inside it
     image_shape: tuple[int, int]
     source: str  # 'design', 'lattice' or 'measured'
+    inside: np.ndarray | None = None  # lenses whose sub-image the frame holds (None: all)
 
     @property
     def shape(self) -> tuple[int, int]:
@@ -63,16 +66,17 @@ def design_sampling(cfg: Any, image_shape: tuple[int, int]) -> LensSampling:
     x, y = x + (w - 1) / 2.0, y + (h - 1) / 2.0
     inside = _inside(x, y, image_shape, 0.5 * pitch)
     return LensSampling(x, y, np.ones_like(x), inside.astype(np.float64), cfg.mla.packing, pitch,
-                        _design_radius(cfg), tuple(image_shape), "design")
+                        _design_radius(cfg), tuple(image_shape), "design", inside)
 
 
 def lattice_sampling(grid: Any) -> LensSampling:
     """A calibrated grid's model centres (a perfect lens of the fitted lattice), found lenses weight 1."""
     pitch = float(np.mean(grid.pitch_px))
     x, y = np.asarray(grid.grid_x_px, float), np.asarray(grid.grid_y_px, float)
-    weight = (~np.asarray(grid.missing, bool) & _inside(x, y, grid.image_shape, 0.5 * pitch)).astype(np.float64)
+    inside = _inside(x, y, grid.image_shape, 0.5 * pitch)
+    weight = (~np.asarray(grid.missing, bool) & inside).astype(np.float64)
     return LensSampling(x, y, np.ones_like(x), weight, grid.packing, pitch, _grid_radius(grid, pitch),
-                        tuple(grid.image_shape), "lattice")
+                        tuple(grid.image_shape), "lattice", inside)
 
 
 def measured_sampling(grid: Any, report: dict[str, Any]) -> LensSampling:
@@ -80,13 +84,13 @@ def measured_sampling(grid: Any, report: dict[str, Any]) -> LensSampling:
     them (their offsets are within what the measurement resolves, so the lattice is their best estimate),
     weighted by what the inspection found (LENS_CONFIDENCE)."""
     base = lattice_sampling(grid)
-    flagged, confidence = _flags(report, grid.shape)
+    flagged, confidence = _flags(report, grid.shape, base.pitch_px)
     mx, my = np.asarray(grid.measured_x_px, float), np.asarray(grid.measured_y_px, float)
     use = flagged & np.isfinite(mx) & np.isfinite(my)
     x, y = np.where(use, mx, base.x_px), np.where(use, my, base.y_px)
     weight = base.weight * confidence
     return LensSampling(x, y, base.scale, weight, grid.packing, base.pitch_px, base.radius_px, base.image_shape,
-                        "measured")
+                        "measured", base.inside)
 
 
 def report_grid(report: dict[str, Any], source: str) -> Any:
@@ -138,11 +142,40 @@ def _grid_radius(grid: Any, pitch: float) -> float:
     return float(min(np.median(r), 0.5 * pitch)) if r.size else 0.5 * pitch
 
 
-def _flags(report: dict[str, Any], shape: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
-    """The lenses the report lists as defects, and every lens' confidence (LENS_CONFIDENCE by type, else 1)."""
+def _flags(report: dict[str, Any], shape: tuple[int, int], pitch_px: float) -> tuple[np.ndarray, np.ndarray]:
+    """The lenses the report lists as defects, and every lens' confidence (LENS_CONFIDENCE by type, a focal
+    error's by its blur, else 1)."""
     flagged, confidence = np.zeros(shape, bool), np.ones(shape)
+    micro = _report_microlens(report)
     for d in report.get("defects", []):
         m, n = d["row"] - 1, d["col"] - 1
         flagged[m, n] = True
-        confidence[m, n] = min(confidence[m, n], LENS_CONFIDENCE.get(d["error_type"], 1.0))
+        c = LENS_CONFIDENCE.get(d["error_type"], 1.0)
+        if d["error_type"] == "radius" and micro is not None and np.isfinite(d.get("magnitude", np.nan)):
+            c = min(1.0, 1.0 / max(focal_blur_px(micro, float(d["magnitude"]), pitch_px), 1e-9))
+        confidence[m, n] = min(confidence[m, n], c)
     return flagged, confidence
+
+
+def _report_microlens(report: dict[str, Any]) -> tuple[Any, float] | None:
+    """The design microlens (radii µm, thickness, index) and the sensor's gap (µm) of the config a report
+    was inspected with; None when it holds none or an unreadable one."""
+    from mlaqc.optics.config import config_from_strict_json
+
+    try:
+        cfg = config_from_strict_json(report["config"], source="the report's config")
+    except (KeyError, TypeError, AttributeError, InputError):
+        return None
+    return cfg.mla, cfg.layout.sensor_gap_mm * 1e3
+
+
+def focal_blur_px(micro: tuple[Any, float], radius_rel: float, pitch_px: float) -> float:
+    """Diameter (px, one view pixel apart) of the disc a lens with both radii scaled by 1 + `radius_rel`
+    blurs its pupil image by: its light, one lens aperture (a sub-image pitch) wide, converges at its own
+    back focal distance instead of at the sensor."""
+    from mlaqc.optics.paraxial import thick_lens
+
+    mla, gap_um = micro
+    k = 1.0 + radius_rel
+    bfd = thick_lens(mla.radius_front_um * k, mla.radius_back_um * k, mla.thickness_um, mla.refractive_index).bfd
+    return float(pitch_px * abs(gap_um - bfd) / abs(bfd))

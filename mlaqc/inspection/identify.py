@@ -374,20 +374,31 @@ def detection_score(dev: dict[str, np.ndarray], noise: Noise, focus=None) -> np.
     return np.nanmax(np.where(np.isfinite(z), z, 0.0), axis=-1)
 
 
+# a flagged lens whose centre moved this share of the sub-images' size (their second-moment radius) is its
+# own defect, never a neighbour's echo: spilled light moved the echoes' centres by at most 0.014-0.022 of
+# it on the Table 1, hex and microscope fixtures' frames (bench/decode.py's, noise-free and noisy), while a
+# 7 µm pitch error next to a radius error 8 times its score moved its lens' by 0.07 (and was suppressed)
+ECHO_MAX_OFFSET = 0.05
+
+
 def spill(score: np.ndarray, flagged: np.ndarray, ratio: float = 0.65, asym: tuple | None = None,
-          facing_ratio: float = 0.95, offset: tuple | None = None, packing: str = "square") -> np.ndarray:
+          facing_ratio: float = 0.95, offset: tuple | None = None, packing: str = "square",
+          moved_px: float = np.inf) -> np.ndarray:
     """Flagged lenses that are the echo of a stronger flagged neighbour: a defect disturbs its neighbours'
     windows (its light spills over). An echo scores under `ratio` times the neighbour; or, when the
     lenses' intensity tilts `asym` (x, y) are given, under `facing_ratio` times it with its tilt along
     the line to that neighbour (light that crossed into or out of its window), as where sub-images touch;
     or, with the lenses' `offset` (x, y), under `facing_ratio` times a neighbour that moved along that line.
-    The neighbours are the lattice's (`Lattice.neighbours`: square 8, hex 6), each along its own
-    direction from the lens."""
+    A lens whose own `offset` is `moved_px` or more is never an echo: spilled light does not move a
+    sub-image that far. The neighbours are the lattice's (`Lattice.neighbours`: square 8, hex 6), each
+    along its own direction from the lens."""
     rows, cols = score.shape
     lat = Lattice(packing, rows, cols)
     nbr = lattice_neighbours(packing, rows, cols)  # (K, k) flat indices, -1 off the array
     flag_score = np.where(flagged, score, 0.0)
     strongest = lattice_max_of_neighbours(flag_score, packing)
+    if offset is not None:
+        flagged = flagged & ~(np.hypot(*(np.nan_to_num(o) for o in offset)) >= moved_px)
     echo = flagged & (score < ratio * strongest)
     if asym is None and offset is None:
         return echo
@@ -912,8 +923,11 @@ def identify(metrics: LensMetrics, missing: np.ndarray, qc: QC, table: Signature
         judged = _judged(metrics, position, phase, table, qc, (outside, missing), packing, centred, flagged)
         flagged = ((judged[-1] > threshold) & ~outside & ~corners) | missing
     dev, sig, rings, detect_dev, trend, noise, score = judged
+    size = metrics.values.get("size_px")
+    moved = ECHO_MAX_OFFSET * float(np.nanmedian(size)) if size is not None and np.isfinite(size).any() else np.inf
     flagged &= ~spill(_strength(detect_dev, noise, score), flagged, asym=(dev["asym_x"], dev["asym_y"]),
-                      offset=(detect_dev["offset_x_px"], detect_dev["offset_y_px"]), packing=packing) | missing
+                      offset=(detect_dev["offset_x_px"], detect_dev["offset_y_px"]), packing=packing,
+                      moved_px=moved) | missing
     feat_dev, feat_sig = _isotropic(dev, sig, table)  # what the lens' features are read from
     sigmas = _feature_sigmas(feat_sig)
     error_type = np.full(flagged.shape, "", dtype=object)

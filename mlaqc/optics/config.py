@@ -150,12 +150,16 @@ class Geometry:
     object_distance_mm: object plane to the main lens' front vertex.
     mla_distance_mm: main lens' rear vertex to the MLA mid-plane.
     sensor_gap_um: MLA rear vertex to the sensor (None: the microlens back focal distance).
+    image_defocus_mm: an ideal main lens (datasheet numbers) only: it images the scene's plane this far before
+      the MLA's mid-plane (negative: behind it; None: on it, the scene in focus). Such a scene is given by its
+      image: point positions in mm in that plane, a texture over the MLA's extent there, upright.
     """
 
     object_distance_mm: float | None = None
     mla_distance_mm: float | None = None
     sensor_gap_um: float | None = None
     wavelength_nm: float = 632.8
+    image_defocus_mm: float | None = None
 
 
 @dataclass(frozen=True)
@@ -264,12 +268,13 @@ class Layout:
     z_exit_mm: float  # where image-side rays start: the thick lens' rear vertex, an ideal lens' exit pupil
     exit_radius_mm: float  # and the radius of that disc
     image_f_number: float  # the main lens' image-side working f-number at the MLA
+    z_scene_mm: float  # where a scene's radiance is looked up: the object plane, or an ideal lens' image of it
 
 
 # keys that exist only for datasheet-described optics (left out of to_dict while unset)
 DATASHEET_KEYS = {"main_lens": ("f_number", "magnification", "na", "tube_lens_mm", "design_tube_lens_mm",
                                 "exit_pupil_mm"),
-                  "mla": ("focal_length_um", "profile")}
+                  "mla": ("focal_length_um", "profile"), "geometry": ("image_defocus_mm",)}
 
 
 def compute_layout(cfg: CameraConfig) -> Layout:
@@ -307,12 +312,14 @@ def compute_layout(cfg: CameraConfig) -> Layout:
         z_exit_mm=ml.thickness_mm,
         exit_radius_mm=0.5 * ml.diameter_mm,
         image_f_number=b / ml.diameter_mm,
+        z_scene_mm=-(a - h_front),
     )
 
 
 def _ideal_layout(cfg: CameraConfig, micro: ThickLens) -> Layout:
     """An ideal main lens: its exit pupil at z = 0, the MLA `exit_pupil_mm` behind it (a telecentric one's
-    far away, datasheet.TELECENTRIC_PUPIL_MM), no object distance (white frames are traced image-side)."""
+    far away, datasheet.TELECENTRIC_PUPIL_MM), no object distance: every scene is traced from the image side
+    and given by its image, `geometry.image_defocus_mm` before the MLA."""
     ml, mla, geo = cfg.main_lens, cfg.mla, cfg.geometry
     b = datasheet.traced_pupil_mm(ml.exit_pupil_mm)
     gap_mm = micro.bfd if geo.sensor_gap_um is None else geo.sensor_gap_um * 1e-3
@@ -321,7 +328,7 @@ def _ideal_layout(cfg: CameraConfig, micro: ThickLens) -> Layout:
                   z_object_mm=-math.inf, z_mla_mm=b, z_sensor_mm=b + lens_to_sensor, pupil_to_mla_mm=b,
                   subimage_pitch_px=mla.pitch_um * (b + lens_to_sensor) / b / cfg.pixel_at_mla_um,
                   z_exit_mm=0.0, exit_radius_mm=datasheet.pupil_radius_mm(b, ml.f_number),
-                  image_f_number=ml.f_number)
+                  image_f_number=ml.f_number, z_scene_mm=b - (geo.image_defocus_mm or 0.0))
 
 
 def default_config() -> CameraConfig:
@@ -345,6 +352,18 @@ def load_config(path: str | Path | None) -> CameraConfig:
     except tomllib.TOMLDecodeError as exc:
         raise InputError(f"config file {str(p)!r} is not valid TOML: {exc}") from None
     return config_from_dict(data, source=str(p))
+
+
+# the keys that may be infinite (a telecentric exit pupil, a flat surface): strict JSON (report.json) has
+# no infinity and writes them as null
+INFINITE_KEYS = frozenset({"main_lens.exit_pupil_mm", "mla.radius_front_um", "mla.radius_back_um"})
+
+
+def config_from_strict_json(data: dict[str, Any], source: str = "config") -> CameraConfig:
+    """A config as a strict-JSON file (a report's) holds it: INFINITE_KEYS written as null read as inf."""
+    fixed = {sec: ({k: (math.inf if v is None and f"{sec}.{k}" in INFINITE_KEYS else v) for k, v in table.items()}
+                   if isinstance(table, dict) else table) for sec, table in data.items()}
+    return config_from_dict(fixed, source)
 
 
 def config_from_dict(data: dict[str, Any], source: str = "config") -> CameraConfig:
@@ -514,7 +533,7 @@ def _require(ok: bool, source: str, key: str, what: str, value: Any) -> None:
 def validate(cfg: CameraConfig, source: str = "config") -> None:
     """Check that the camera is physically possible; raise InputError naming the first bad key."""
     ml, mla, s, g, t = cfg.main_lens, cfg.mla, cfg.sensor, cfg.geometry, cfg.trace
-    flat_ok = {"main_lens.exit_pupil_mm", "mla.radius_front_um", "mla.radius_back_um"}  # inf: telecentric, flat
+    flat_ok = INFINITE_KEYS
     for sec, obj in (("main_lens", ml), ("mla", mla), ("sensor", s), ("geometry", g), ("qc", cfg.qc), ("relay", cfg.relay)):
         for f in fields(obj):
             v = getattr(obj, f.name)
@@ -595,6 +614,9 @@ def validate(cfg: CameraConfig, source: str = "config") -> None:
         _require(v is None or v > 0, source, f"geometry.{key}", "must be positive", v)
     _require(g.wavelength_nm > 0, source, "geometry.wavelength_nm", "must be positive", g.wavelength_nm)
     if not ml.ideal:
+        _require(g.image_defocus_mm is None, source, "geometry.image_defocus_mm", "applies to an ideal main lens "
+                 "(main_lens.f_number or na); a thick one's scene is placed by geometry.object_distance_mm",
+                 g.image_defocus_mm)
         _validate_thick_geometry(cfg, source)
 
 
@@ -633,6 +655,9 @@ def _validate_ideal(cfg: CameraConfig, source: str) -> None:
     for key in ("object_distance_mm", "mla_distance_mm"):
         _require(getattr(g, key) is None, source, f"geometry.{key}", "applies to a thick main lens; an ideal one "
                  "(main_lens.f_number or na) is placed by main_lens.exit_pupil_mm", getattr(g, key))
+    pupil_mm = datasheet.traced_pupil_mm(ml.exit_pupil_mm)
+    _require(g.image_defocus_mm is None or g.image_defocus_mm < pupil_mm, source, "geometry.image_defocus_mm",
+             f"must put the scene's image behind the exit pupil ({pupil_mm:g} mm before the MLA)", g.image_defocus_mm)
 
 
 def _validate_relay(cfg: CameraConfig, source: str) -> None:
@@ -685,9 +710,9 @@ def _toml_value(value: Any) -> str:
 
 def require_thick_main_lens(cfg: CameraConfig, what: str) -> None:
     """Refuse, in one sentence, work that traces the object side through the main lens' surfaces when the
-    main lens is an ideal one given by datasheet numbers (white frames are traced from its exit pupil)."""
+    main lens is an ideal one given by datasheet numbers (its scenes are traced from its exit pupil)."""
     if cfg.main_lens.ideal:
         raise InputError(f"{what} needs the object side traced through the main lens' surfaces; this config gives "
-                         "an ideal main lens (main_lens.f_number / na), which renders and inspects white frames only: "
-                         "describe the lens by main_lens.radius_front_mm, radius_back_mm, thickness_mm, diameter_mm "
-                         "and refractive_index for it")
+                         "an ideal main lens (main_lens.f_number / na), which is traced from its exit pupil only (white, "
+                         "point and texture scenes, placed by geometry.image_defocus_mm): describe the lens by "
+                         "main_lens.radius_front_mm, radius_back_mm, thickness_mm, diameter_mm and refractive_index for it")

@@ -92,6 +92,12 @@ def derived_numbers(cfg) -> list[tuple[str, str]]:
         rows.append(("main lens image-side f-number", f"f/{ml.f_number:.4g}"))
         rows.append(("exit pupil", "at infinity (image-side telecentric)" if telecentric(ml.exit_pupil_mm)
                      else f"{ml.exit_pupil_mm:g} mm before the MLA"))
+        d = cfg.geometry.image_defocus_mm or 0.0
+        sample = ""
+        if ml.na is not None:  # axial magnification M^2 n' / n, n' = 1 behind the tube lens
+            m = objective(ml.magnification, ml.na, ml.tube_lens_mm, ml.design_tube_lens_mm).magnification
+            sample = f"; the sample plane {d / m ** 2 * 1e3:.4g} µm × n (immersion index) from focus"
+        rows.append(("scene's image", f"{d:g} mm before the MLA's mid-plane (geometry.image_defocus_mm){sample}"))
     else:
         rows.append(("main lens (thick)", f"EFL {lay.main.efl:.4f} mm, f/{lay.main.efl / ml.diameter_mm:.4g} at infinity, "
                                           f"MLA {lay.mla_distance_mm:.3f} mm behind its rear vertex, object "

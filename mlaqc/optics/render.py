@@ -7,8 +7,9 @@ a job is a block of cells and a range of point indices, so a cell's points are t
 batching. 'random' is plain Monte-Carlo (the test oracle): tiles of the MLA's bounding box with uniform
 draws per batch.
 
-Plane scenes are sampled from the image side (see `mlaqc.optics.scene`); the MLA area is cut into tiles, one
-batch of rays per tile (stratified sampling: each batch lands on a compact patch of the sensor, so it is
+Plane scenes are sampled from the image side (see `mlaqc.optics.scene`), and so is every scene of an
+ideal main lens (datasheet numbers), given by its image (a point's rays drawn through its image). The
+MLA area is cut into tiles, one batch of rays per tile (stratified sampling: each batch lands on a compact patch of the sensor, so it is
 summed per pixel over that patch only: `np.bincount` in the NumPy engine, the same sums in ray order in
 compiled code in the Numba engine). Batches run on a thread pool (NumPy and the compiled kernel release
 the GIL) and are added into the image in batch order, so a seed gives a bit-identical image whatever the
@@ -18,6 +19,7 @@ plus one patch per batch in flight; there is no per-thread copy of the frame.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 import os
@@ -40,6 +42,13 @@ from mlaqc.optics.scene import (CellGrid, ImageRegion, PointScene, Scene, Source
 
 Progress = Callable[[int, int], None]
 MAX_RAYS = 10 ** 11
+
+
+def _fast_camera():
+    """The compiled tracer's camera class (imports the kernels, as `_kernels`)."""
+    from mlaqc.optics.fast_camera import FastCamera
+
+    return FastCamera
 
 
 def _kernels():
@@ -306,10 +315,14 @@ class Renderer:
         self.cfg = cfg
         self.camera = Camera(cfg, errors)
         self.sampling = sampling
-        if cfg.main_lens.ideal:  # no object side: white frames, traced from the exit pupil
+        if cfg.main_lens.ideal:  # no object side: every scene is traced from the exit pupil, given by its image
             if sampling == "object":
                 require_thick_main_lens(cfg, "object-side sampling")
-            self.region, self.texture_half_mm = None, (0.0, 0.0)
+            self.region = None
+            hx, hy = _mla_half_extent(self.camera)
+            lay = cfg.layout
+            cone = (lay.z_scene_mm - lay.z_exit_mm) / (lay.z_mla_mm - lay.z_exit_mm)
+            self.texture_half_mm = (hx * cone, hy * cone)  # a texture spans the MLA seen from the pupil's centre
         else:
             self.region = source_region(self.camera)
             hx, hy = _mla_half_extent(self.camera)
@@ -317,8 +330,8 @@ class Renderer:
             self.texture_half_mm = (hx / mag, hy / mag)  # a texture spans the object-side conjugate of the MLA
         self.image_region = image_region(self.camera)
         self.cells = cell_grid(self.camera, self.image_region)
-        self.fast = (_kernels().FastCamera(self.camera, self.image_region, self.region, self.texture_half_mm,
-                                                 self.cells if self.sampler == "sobol" else None)
+        self.fast = (_fast_camera()(self.camera, self.image_region, self.region, self.texture_half_mm,
+                                    self.cells if self.sampler == "sobol" else None)
                      if engine == "numba" else None)
         if engine == "numba":  # the variants the install left out compile in the background, once
             from mlaqc.optics.tracer_background import start_if_needed
@@ -363,8 +376,6 @@ class Renderer:
 
     def plan(self, scene: Scene, rays: int | None, rays_per_pixel: float | None, seed: int) -> RenderPlan:
         """The jobs, their keys and their chunks for a render; the same wherever the jobs then run."""
-        if not isinstance(scene, WhiteScene):
-            require_thick_main_lens(self.cfg, f"a {type(scene).__name__.removesuffix('Scene').lower()} scene")
         jobs = self.jobs(scene, ray_count(self.cfg, rays, rays_per_pixel))
         keys = np.random.SeedSequence(seed).generate_state(len(jobs), np.uint64)
         if jobs and jobs[0].cells is not None:  # one key: a cell's shift must not depend on how it was batched
@@ -411,11 +422,13 @@ class Renderer:
         sobol = self.sampler == "sobol"
         if cells is not None:
             r = self._sample_cells(key, n, cells)
-        elif sobol:
-            u = lowdisc.batch_uniforms(key, n, 2 if point is not None else 4)
-        else:
-            u = counter_uniforms(key, n, 2 if point is not None else 4)
-        if point is not None:
+        else:  # a point through a thick lens draws its pupil point only
+            dims = 2 if point is not None and self.region is not None else 4
+            u = (lowdisc.batch_uniforms if sobol else counter_uniforms)(key, n, dims)
+        if point is not None and self.region is None:  # an ideal main lens: every ray through the point's image
+            r = sample_image_side(self.scene_region, u, (point[0], point[0], point[1], point[1]))
+            self.camera.trace_behind_main(r)
+        elif point is not None:
             r = sample_points(self.region, u, *point, square=sobol)
             self.camera.trace(r)
         elif self.sampling == "image":
@@ -439,8 +452,15 @@ class Renderer:
         u = lowdisc.cell_uniforms(key, j0 + q, self.cells.cell_id(row, col))
         return sample_image_cells(self.image_region, self.cells, u, row.astype(np.float64), col.astype(np.float64))
 
+    @property
+    def scene_region(self) -> ImageRegion:
+        """The image-side region with its start plane moved to the scene's image (an ideal main lens' points)."""
+        return dataclasses.replace(self.image_region, z_mla_mm=self.cfg.layout.z_scene_mm)
+
     def _fast_mode(self, point) -> int:
-        return (_kernels().POINT if point is not None else
+        """The kernel's mode: an ideal main lens traces every scene from the image side (a point's rays
+        through its image)."""
+        return (_kernels().POINT if point is not None and self.region is not None else
                 _kernels().IMAGE_SIDE if self.sampling == "image" else _kernels().OBJECT_SIDE)
 
     def _weigh_by_main_lens(self, scene: Scene, r: Rays) -> None:
@@ -449,7 +469,7 @@ class Renderer:
         self.camera.main.trace_back(back)
         r.w = back.w
         if isinstance(scene, TextureScene):
-            t = (self.camera.layout.z_object_mm - back.z) / back.N
+            t = (self.camera.layout.z_scene_mm - back.z) / back.N
             r.w = r.w * texture_weight(scene, *self.texture_half_mm, back.x + t * back.L, back.y + t * back.M)
 
     def photons_per_weight(self, scene: Scene, total: int) -> float:
