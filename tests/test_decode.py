@@ -256,6 +256,19 @@ def test_a_lens_the_frame_does_not_hold_is_not_extrapolated():
     assert out.weights[10, 10, 9, 9] > 0
 
 
+def test_a_colour_light_field_is_refilled_channel_by_channel():
+    """A demosaiced frame's light field (a channel axis): the lens refilled along the parallax in each of
+    red, green and blue, which differ (0.3, 1, 0.6 of the texture plus an offset)."""
+    grey = parallax_field(0.2)
+    truth = np.stack([0.3 * grey.values + 0.1, grey.values, 0.6 * grey.values + 0.05], axis=-1)
+    w = grey.weights.copy()
+    w[:, :, 9, 9] = 0.0
+    out = filled(replace(grey, values=np.where(w[..., None] > 0, truth, 0.0).astype(np.float32), weights=w))
+    inner = np.abs(grey.view_offsets_px) <= 7
+    err = np.abs(out.values[:, :, 9, 9] - truth[:, :, 9, 9])[np.ix_(inner, inner)]
+    assert err.max() < 0.02 and out.weights[10, 10, 9, 9] > 0
+
+
 def test_a_scene_in_focus_is_refilled_from_the_neighbours_in_each_view():
     """slope 0: every view sees the same texture; no shift makes the neighbours agree better than none."""
     truth = parallax_field(0.0)

@@ -44,9 +44,9 @@ def filled(lf: LightField, below: float = 0.5, lenses: np.ndarray | None = None)
     if not len(doubted):
         return lf
     t, s = doubted[:, 0], doubted[:, 1]
-    around = _neighbours(hex_, t, s, *w.shape[2:], diagonal=True)
-    num = sum(_expand(g, v) * v for v, g in (_gather(vals, good, tn, sn) for tn, sn, _, _ in around))
-    den = sum(g for _, g in (_gather(vals, good, tn, sn) for tn, sn, _, _ in around))
+    around = [_gather(vals, good, tn, sn) for tn, sn, _, _ in _neighbours(hex_, t, s, *w.shape[2:], diagonal=True)]
+    num = sum(_expand(g, v) * v for v, g in around)
+    den = sum(g for _, g in around)
     own, own_w = vals[:, :, t, s], w[:, :, t, s]
     reach = den > 0
     plain = np.where(_expand(reach, own), num / np.where(_expand(den, own) > 0, _expand(den, own), 1.0), own)
@@ -54,7 +54,7 @@ def filled(lf: LightField, below: float = 0.5, lenses: np.ndarray | None = None)
     if len(lf.view_offsets_px) > 2:
         pred, ok = _along_parallax(vals, good, _neighbours(hex_, t, s, *w.shape[2:], diagonal=False))
         along = np.where(_expand(ok, plain), pred, plain)
-    level = float(np.mean(np.abs(vals[_expand(good > 0, vals)]))) if (good > 0).any() else 0.0
+    level = float(np.mean(np.abs(vals[np.broadcast_to(_expand(good > 0, vals), vals.shape)]))) if (good > 0).any() else 0.0
     use_along, use_plain = (_keeps_own_light(x, own, own_w, level) for x in (along, plain))
     keep_own = (~use_along & ~use_plain)[None, None] | ~reach
     refill = np.where(_expand(use_along[None, None], along), along, plain)
