@@ -191,7 +191,7 @@ def compare(cfg, scene_name, scene, flawed_em, flawed_lenses, clean_em, rpp, noi
     # the render's own error: the error-free frame again with other rays, decoded the same way
     again = load_decode_frame(str(rendered(scfg, scene, clean_em, f"scene_clean_{scene_name}_seed2", rpp, noise, seed=12)), cfg)
     lf = rectangular(decode_scene(again, ref_s, offs, wc))
-    wf_ = (np.minimum(lf.weights, ref.weights) > 0.2).astype(np.float64)
+    wf_ = ((lf.weights > 0) & (ref.weights > 0.2)).astype(np.float64)  # the samples the rows compare
     print(f"    floor      : the error-free frame rendered again with other rays: view RMS at the flawed lenses' "
           f"(s, t) {rms(lf.values, ref.values, wf_ * flawed_mask):.4f}, elsewhere {rms(lf.values, ref.values, wf_ * elsewhere):.4f}")
     ab, rb, pb, qb = out["b lattice"]

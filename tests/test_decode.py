@@ -206,13 +206,13 @@ def test_a_lens_is_refilled_along_the_scenes_parallax(slope, packing):
     vals = truth.values.copy()
     w[:, :, 11, 12] = 0.1  # a lens of low confidence whose views are blurred (their mean kept)
     vals[:, :, 11, 12] = vals[:, :, 11, 12].mean()
-    for t, s in ((5, 5), (17, 8)):  # two without light field, one next to another flawed lens' neighbour
-        w[:, :, t, s] = 0.0
+    for t, s in ((5, 5), (17, 8), (10, 16)):  # three without light field (rows odd and even: on hex their
+        w[:, :, t, s] = 0.0                    # neighbours above and below differ), one next to another's
         vals[:, :, t, s] = 0.0
     lf = replace(truth, values=vals, weights=w)
     out = filled(lf)
     inner = np.abs(truth.view_offsets_px) <= 10 - 1.0 / abs(slope) + 2  # views every neighbour reaches
-    for t, s in ((11, 12), (5, 5), (17, 8)):
+    for t, s in ((11, 12), (5, 5), (17, 8), (10, 16)):
         got, want = out.values[:, :, t, s], truth.values[:, :, t, s]
         plain = np.mean([truth.values[:, :, t + a, s + b] for a, b in neighbour_steps(packing, t)], axis=0)
         err = np.sqrt(np.mean((got - want)[np.ix_(inner, inner)] ** 2))
@@ -309,6 +309,25 @@ def test_a_focal_error_lens_is_trusted_by_how_far_it_blurs_its_views():
     assert blur == pytest.approx(2.81, abs=0.01)
     assert smp.weight[2, 3] == pytest.approx(1.0 / blur, rel=2e-3)
     assert smp.weight[4, 4] == 1.0 and smp.weight[0, 0] == 1.0
+
+
+def test_an_unreadable_magnitude_leaves_a_focal_error_lens_at_full_weight():
+    """A report writes a magnitude it could not read as null: the lens is not judged by its blur."""
+    cfg, grid = focal_grid(FIXTURES / "paper_table1.toml")
+    report = {"config": json.loads(json.dumps(cfg.to_dict())),
+              "defects": [{"row": 2, "col": 2, "error_type": "radius", "magnitude": None}]}
+    assert measured_sampling(grid, report).weight[1, 1] == 1.0
+
+
+def test_a_nan_sample_does_not_stop_a_refill():
+    """One NaN elsewhere in the light field: the lens' refill is still checked against its own light."""
+    truth = parallax_field(0.2)
+    vals, w = truth.values.copy(), truth.weights.copy()
+    w[:, :, 11, 12] = 0.1
+    vals[:, :, 11, 12] = vals[:, :, 11, 12].mean()
+    vals[0, 0, 0, 0] = np.nan
+    out = filled(replace(truth, values=vals, weights=w))
+    assert out.weights[10, 10, 11, 12] > 0.1  # refilled, not kept blurred
 
 
 def test_a_focal_error_blurring_its_views_under_a_pixel_keeps_full_weight():

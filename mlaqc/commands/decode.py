@@ -48,7 +48,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="refocus slopes, lenses per pixel of view offset (default 0: the plane in focus "
                         "on the MLA); 'none' for no refocusing")
     p.add_argument("--fill", action="store_true",
-                   help="refill lenses of weight under 0.5 (missing, obscured, a focal error blurring its views by "
+                   help="refill lenses of weight under 0.5 (missing, obscured, a radius error blurring its views by "
                         "over 2 px) from their neighbours in (s, t), along the scene's parallax where they agree on it")
     p.add_argument("--config", "-c", help="camera config TOML (default: the paper's Table 1 camera)")
     p.add_argument("--out", "-o", required=True, help="output folder")

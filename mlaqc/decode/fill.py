@@ -54,7 +54,9 @@ def filled(lf: LightField, below: float = 0.5, lenses: np.ndarray | None = None)
     if len(lf.view_offsets_px) > 2:
         pred, ok = _along_parallax(vals, good, _neighbours(hex_, t, s, *w.shape[2:], diagonal=False))
         along = np.where(_expand(ok, plain), pred, plain)
-    level = float(np.mean(np.abs(vals[np.broadcast_to(_expand(good > 0, vals), vals.shape)]))) if (good > 0).any() else 0.0
+    lit = np.abs(vals[np.broadcast_to(_expand(good > 0, vals), vals.shape)])
+    lit = lit[np.isfinite(lit)]
+    level = float(lit.mean()) if lit.size else 0.0  # the light field's mean level, what a dark lens is told by
     use_along, use_plain = (_keeps_own_light(x, own, own_w, level) for x in (along, plain))
     keep_own = (~use_along & ~use_plain)[None, None] | ~reach
     refill = np.where(_expand(use_along[None, None], along), along, plain)

@@ -151,8 +151,9 @@ def _flags(report: dict[str, Any], shape: tuple[int, int], pitch_px: float) -> t
         m, n = d["row"] - 1, d["col"] - 1
         flagged[m, n] = True
         c = LENS_CONFIDENCE.get(d["error_type"], 1.0)
-        if d["error_type"] == "radius" and micro is not None and np.isfinite(d.get("magnitude", np.nan)):
-            c = min(1.0, 1.0 / max(focal_blur_px(micro, float(d["magnitude"]), pitch_px), 1e-9))
+        mag = d.get("magnitude")  # null in a report where it could not be read
+        if d["error_type"] == "radius" and micro is not None and isinstance(mag, (int, float)) and np.isfinite(mag):
+            c = min(1.0, 1.0 / max(focal_blur_px(micro, float(mag), pitch_px), 1e-9))
         confidence[m, n] = min(confidence[m, n], c)
     return flagged, confidence
 

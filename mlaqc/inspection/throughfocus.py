@@ -406,11 +406,11 @@ def model_key(cfg: CameraConfig, u_mm: float, f_number: float, r_in: float) -> s
     import hashlib
     import json
 
-    from mlaqc.models.reference import mla_hash_view
+    from mlaqc.models.reference import geometry_hash_view, mla_hash_view
     from mlaqc.optics.formation import blur_key
 
     d = cfg.to_dict()
-    keep = {"main_lens": d["main_lens"], "mla": mla_hash_view(d["mla"], design=True), "geometry": d["geometry"],
+    keep = {"main_lens": d["main_lens"], "mla": mla_hash_view(d["mla"], design=True), "geometry": geometry_hash_view(d["geometry"]),
             "pixel_um": cfg.pixel_at_mla_um, "fresnel": d["trace"]["fresnel"],
             **blur_key(cfg),
             "protocol": [abs(float(u_mm)), float(f_number), round(max(float(r_in), 0.0), 4)],

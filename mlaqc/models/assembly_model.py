@@ -37,7 +37,7 @@ import numpy as np
 from mlaqc.errors import InputError
 
 from mlaqc.inspection.projection import FIELDS, raw_components
-from mlaqc.models.reference import mla_hash_view, sensor_hash_view
+from mlaqc.models.reference import geometry_hash_view, mla_hash_view, sensor_hash_view
 from mlaqc.models.store import stored_json
 from mlaqc.optics.config import CameraConfig
 
@@ -153,7 +153,7 @@ def assembly_key(cfg: CameraConfig) -> str:
     formation's blur, which leave the centres where they are, nor the lens-boundary model: with no lens
     error the sag-intersection boundaries lie on the grid, and a global error moves the array whole)."""
     d = cfg.to_dict()
-    keep = {"main_lens": d["main_lens"], "mla": mla_hash_view(d["mla"], design=True), "geometry": d["geometry"],
+    keep = {"main_lens": d["main_lens"], "mla": mla_hash_view(d["mla"], design=True), "geometry": geometry_hash_view(d["geometry"]),
             "sensor": sensor_hash_view(cfg),
             "fresnel": d["trace"]["fresnel"], "format": FORMAT_VERSION,
             "nodes": DISTANCE_NODES_UM, "single": SINGLE_NODES, "steps": STEPS, "pair_distance": DISTANCE_STEP_UM, "validation": VALIDATION,

@@ -66,6 +66,12 @@ def mla_hash_view(mla: dict, *, design: bool = False) -> dict:
     return out
 
 
+def geometry_hash_view(geometry: dict) -> dict:
+    """The geometry keys that shape white frames and sub-images, for a content hash: all but where an ideal
+    main lens images a scene (`image_defocus_mm`), which places scenes only."""
+    return {k: v for k, v in geometry.items() if k != "image_defocus_mm"}
+
+
 def sensor_hash_view(cfg: CameraConfig) -> dict:
     """The sensor keys that shape the images, for a content hash: its size, and its pixel as the MLA's focal
     plane sees it (a relay's magnification included; the sensor's own pixel when there is no relay)."""
@@ -76,8 +82,9 @@ def sensor_hash_view(cfg: CameraConfig) -> dict:
 def config_key(cfg: CameraConfig) -> str:
     """Hash of everything that shapes the ideal sub-images (optics, geometry, sensor geometry)."""
     d = cfg.to_dict()
-    keep = {"main_lens": d["main_lens"], "mla": mla_hash_view(d["mla"], design=True), "geometry": d["geometry"],
-            "sensor": sensor_hash_view(cfg), "fresnel": d["trace"]["fresnel"], "format": FORMAT_VERSION}
+    keep = {"main_lens": d["main_lens"], "mla": mla_hash_view(d["mla"], design=True),
+            "geometry": geometry_hash_view(d["geometry"]), "sensor": sensor_hash_view(cfg), "fresnel": d["trace"]["fresnel"],
+            "format": FORMAT_VERSION}
     return hashlib.sha256(json.dumps(keep, sort_keys=True).encode()).hexdigest()[:16]
 
 

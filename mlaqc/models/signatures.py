@@ -23,7 +23,7 @@ import numpy as np
 
 from mlaqc.inspection.metrics import compute_metrics
 from mlaqc.inspection.metrics_kernels import N_RING
-from mlaqc.models.reference import ReferenceModel, build_reference, mla_hash_view
+from mlaqc.models.reference import ReferenceModel, build_reference, geometry_hash_view, mla_hash_view
 from mlaqc.models.store import stored_json
 from mlaqc.optics.config import CameraConfig
 from mlaqc.optics.errormap import ErrorMap
@@ -184,7 +184,7 @@ def signature_key(cfg: CameraConfig) -> str:
     """Hash of what shapes a single lens' sub-image: optics, geometry, pixel size, Fresnel."""
     d = cfg.to_dict()
     mla = {k: v for k, v in mla_hash_view(d["mla"]).items() if k not in ("count_w", "count_h")}
-    keep = {"main_lens": d["main_lens"], "mla": mla, "geometry": d["geometry"], "pixel_um": cfg.pixel_at_mla_um,
+    keep = {"main_lens": d["main_lens"], "mla": mla, "geometry": geometry_hash_view(d["geometry"]), "pixel_um": cfg.pixel_at_mla_um,
             "fresnel": d["trace"]["fresnel"], "version": TABLE_VERSION, **blur_key(cfg)}
     if cfg.mla.packing == "hex":  # hex tables also hold the renders across the rows (ACROSS_DEG)
         keep["y_probe"] = Y_PROBE
