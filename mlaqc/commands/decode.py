@@ -198,11 +198,11 @@ def decode_raw(raw: str, spec: DecodeSpec):
     sampling, white_lf = spec.setup["sampling"], spec.setup["white_lf"]
     lf = decode_scene(load_decode_frame(raw, spec.cfg, spec.levels), sampling, spec.setup["offsets"], white_lf, raw)
     check_scene(lf, raw)
-    lens_weight = sampling.weight
     if spec.fill:
         lf = filled(lf, lenses=sampling.inside)
     lf = rectangular(lf)
-    facts = {"source": str(raw), "sampling": sampling.source, "devignetted": white_lf is not None,
+    lens_weight = sampling.weight
+    facts = {"sampling": sampling.source, "devignetted": white_lf is not None,  # (the source: decoded_here's)
              "lenses": {"rows": int(sampling.shape[0]), "cols": int(sampling.shape[1]),
                         "packing": sampling.packing, "pitch_px": round(sampling.pitch_px, 4),
                         "subimage_radius_px": round(sampling.radius_px, 3),

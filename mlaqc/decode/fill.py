@@ -110,8 +110,8 @@ def _along_parallax(vals: np.ndarray, good: np.ndarray, around: list):
     A coarse search over shifts of 1 to 2 x the view radius a pitch, then a fine one around each lens' best."""
     nv = good.shape[0]
     k = len(around[0][0])
-    centre = good[nv // 2, good.shape[1] // 2]
-    usable = sum(_gather(centre[None, None], centre[None, None], tn, sn)[1][0, 0] > 0 for tn, sn, _, _ in around)
+    centre = good[nv // 2, good.shape[1] // 2][None, None]  # the central view: whether a neighbour has light
+    usable = sum(_gather(centre, centre, tn, sn)[1][0, 0] > 0 for tn, sn, _, _ in around)
     plain_err, _, _ = _agreement(vals, good, around, np.zeros(k), usable)
     coarse = np.geomspace(1.0, nv - 1.0, 24)  # view px per pitch
     best = (np.full(k, np.inf), np.zeros(k), None, None)  # error, shift, values, where predicted
