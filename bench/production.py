@@ -7,7 +7,8 @@ then the lot's questions answered from the results database and checked against 
 - 2 random defects of random types on every array: none called repeating (bar: 0);
 - from one array on (production index `--drift-from`), the MLA–sensor distance 0.5 µm larger with every
   array: the control chart of the assembly's distance reading calls it (bar: within 5 arrays of its onset,
-  no call on the arrays before it), with every run rule and with rules 1 and 5 alone.
+  no call on the arrays before it), by the default self-starting CUSUM and by the I-MR chart with every run
+  rule and with rules 1 and 5 alone.
 
     python bench/production.py                    # 5 wafers x 25 arrays of the small camera (~10 min)
     python bench/production.py --wafers 2 --side 3 --drift-from 12
@@ -79,7 +80,9 @@ def main() -> int:
     seeded_share = sum(a["master"] for a in truth) / n_arrays
     with open_database(db, create=False) as store:
         repeats = views.repeating_defects(store, "LOT1")
-        charts = {rules: lot_chart(store, "distance_um", "LOT1", rules=rules) for rules in ((1, 2, 3, 4, 5), (1, 5))}
+        charts = {"self-starting CUSUM (the default)": lot_chart(store, "distance_um", "LOT1"),
+                  **{f"I-MR, rules {','.join(map(str, rules))}": lot_chart(store, "distance_um", "LOT1", rules=rules, kind="imr")
+                     for rules in ((1, 2, 3, 4, 5), (1, 5))}}
         yields = views.yield_table(store, "LOT1")
     print(f"{n_arrays} arrays scanned, {sum(y['arrays'] for y in yields)} inspected and recorded; yield "
           + ", ".join(f"{y['wafer']} {y['passed']}/{y['arrays']}" for y in yields))
@@ -96,14 +99,14 @@ def main() -> int:
     print(f"random defects called repeating: {len(others)} (bar: 0)")
     # the chart's arrays are in inspection order = production order: index i is production index i + 1
     onset = args.drift_from - 1
-    for rules, chart in charts.items():
+    for name, chart in charts.items():
         calls = sorted(chart.signals)
-        before = [f"{chart.labels[i]} (rule {','.join(map(str, chart.signals[i]))})" for i in calls if i < onset]
+        before = [f"{chart.labels[i]} ({','.join(map(str, chart.signals[i]))})" for i in calls if i < onset]
         after = [i for i in calls if i >= onset]
-        print(f"distance chart, rules {','.join(map(str, rules))}: centre {chart.centre:.2f} µm, sigma {chart.sigma:.2f} µm "
-              f"(from {chart.baseline} arrays); calls on the {onset - chart.baseline} arrays before the drift: {len(before)} "
+        print(f"distance chart, {name}: centre {chart.centre:.2f} µm, sigma {chart.sigma:.2f} µm "
+              f"(the first {chart.baseline} arrays not judged); calls on the {onset - chart.baseline} arrays before the drift: {len(before)} "
               f"{before[:4]} (bar: 0); the drift called "
-              + (f"at its {after[0] - onset + 1}th array (bar: within 5)" if after else "never"))
+              + (f"at array {after[0] - onset + 1} of it (bar: within 5)" if after else "never"))
     print(f"scans, database and reports in {root}")
     return 0
 

@@ -1,6 +1,7 @@
 """Test-wide settings: Qt offscreen, a parallel Numba warm-up, and (under pytest-xdist) the GUI tests
 run while no other test does."""
 
+import atexit
 import contextlib
 import os
 import shutil
@@ -19,6 +20,8 @@ os.environ["MLAQC_BACKGROUND_COMPILE"] = "0"
 if "MLAQC_TEST_DB_DIR" not in os.environ:
     os.environ["MLAQC_TEST_DB_DIR"] = tempfile.mkdtemp(prefix="mlaqc-test-db-")
     os.environ["MLAQC_DB"] = os.path.join(os.environ["MLAQC_TEST_DB_DIR"], "results.sqlite")
+    # removed when the process that made it ends (the workers inherit it and leave it be)
+    atexit.register(shutil.rmtree, os.environ["MLAQC_TEST_DB_DIR"], ignore_errors=True)
 
 # ------------------------------------------------------------------------------------ Numba warm-up
 # The tracer's kernel has twelve compiled variants (mlaqc.optics.tracer_variants: lens boundaries x lattice x

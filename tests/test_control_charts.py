@@ -1,11 +1,13 @@
 """Control charts of array-level readings (mlaqc.resultsdb.control) against series whose truth is known:
-in-control normal values (false calls at the rate the rules are known for), a seeded creeping drift (called
-within a few arrays of its onset), each rule on a series built to break it alone."""
+in-control normal values (false calls at the rate the rules or the CUSUM's design give), a seeded creeping
+drift (called within a few arrays of its onset), each rule on a series built to break it alone, and the
+self-starting scores against Student's t."""
 
 import numpy as np
 import pytest
+from scipy import stats
 
-from mlaqc.resultsdb.control import individuals_chart
+from mlaqc.resultsdb.control import cusum_chart, individuals_chart
 
 
 def test_limits_are_the_baselines_mean_and_moving_range():
@@ -58,3 +60,64 @@ def test_a_baseline_without_spread_calls_any_change_and_nothing_else():
     x = np.array([0.01] * 25 + [0.01000001] + [0.01] * 3)
     chart = individuals_chart(x, baseline=20)
     assert chart.sigma == 0 and chart.signals == {25: [1]}
+
+
+def test_self_starting_scores_are_standard_normal_from_the_third_array():
+    """An array judged against only two before it: (x - mean) / sd * sqrt(2/3) is Student's t with one
+    degree of freedom (Cauchy), and its score is that t's quantile mapped onto the normal: N(0, 1) exactly,
+    however short the history. Checked by a KS test of 4,000 series, and one score by hand."""
+    rng = np.random.default_rng(7)
+    scores = []
+    for _ in range(4000):
+        x = rng.normal(5.0, 3.0, 3)
+        chart = cusum_chart(x, baseline=2, h=1e9)
+        u = chart.cusum[0, 2] - chart.cusum[1, 2]  # one step: upper = max(0, u - k), lower = max(0, -u - k)
+        if abs(u) > 0:
+            scores.append(np.sign(u) * (abs(u) + 0.5))
+    scores = np.array(scores)  # the |u| <= k ones sum to 0 both ways: only |u| > 0.5 are read back
+    assert stats.kstest(np.abs(scores), lambda v: (stats.norm.cdf(v) - stats.norm.cdf(0.5)) / stats.norm.sf(0.5)).pvalue > 1e-3
+    x = np.array([1.0, 3.0, 10.0])  # mean 2, sd sqrt(2), t = 8 / sqrt(2) * sqrt(2/3) on 1 dof
+    t = 8 / np.sqrt(2) * np.sqrt(2 / 3)
+    chart = cusum_chart(x, baseline=2, h=1e9)
+    assert chart.cusum[0, 2] == pytest.approx(stats.norm.isf(stats.t.sf(t, 1)) - 0.5, rel=1e-9)
+    assert chart.centre_at[2] == pytest.approx(2.0) and chart.sigma_at[2] == pytest.approx(np.sqrt(2))
+
+
+@pytest.mark.parametrize("baseline", [3, 20])
+def test_cusum_false_calls_do_not_depend_on_the_baseline(baseline):
+    """In control, the design's rate whatever the baseline: a call within 49 judged arrays in about 4 % of
+    series (k 0.5, h 6: run length ~1,200 on average); an I-MR chart's limits from 3 arrays would call one in
+    most series."""
+    rng = np.random.default_rng(baseline)
+    calls = [cusum_chart(rng.normal(0, 1, baseline + 49), baseline=baseline).first_signal is not None
+             for _ in range(1200)]
+    assert np.mean(calls) <= 0.07
+    imr = [individuals_chart(rng.normal(0, 1, baseline + 49), baseline=baseline, rules=(1,)).first_signal is not None
+           for _ in range(300)]
+    assert baseline == 20 or np.mean(imr) > 0.3
+
+
+def test_cusum_calls_drifts_and_holds_them():
+    """A drift of a quarter sigma per array is called after a median of 9 arrays; one of a sigma per array
+    within its first 5 (almost always); a sustained step of 3 sigma at once and on every array after it
+    (the estimates stop learning at the first call: the new level is not taken for the process)."""
+    rng = np.random.default_rng(3)
+    for slope, median_max, share_in_5 in ((0.25, 10, None), (1.0, 4, 0.97)):
+        delay = []
+        for _ in range(300):
+            x = rng.normal(0, 1, 140)
+            x[60:] += slope * np.arange(1, 81)
+            after = [i for i in cusum_chart(x, baseline=20).signals if i >= 60]
+            delay.append(after[0] - 59 if after else 99)
+        assert np.median(delay) <= median_max
+        assert share_in_5 is None or np.mean(np.array(delay) <= 5) >= share_in_5
+    x = rng.normal(0, 1, 80)
+    x[50:] += 3.0
+    chart = cusum_chart(x, baseline=20)
+    assert set(range(52, 80)) <= set(chart.signals) and chart.centre == pytest.approx(x[: chart.first_signal].mean())
+
+
+def test_cusum_of_a_reading_without_spread_calls_any_change():
+    x = np.array([0.01] * 25 + [0.01000001] + [0.01] * 3)
+    chart = cusum_chart(x, baseline=20)
+    assert chart.sigma == 0 and chart.signals == {25: ["jump"]}

@@ -377,24 +377,37 @@ def test_a_scan_records_each_array_by_its_position(tmp_path):
 
 
 def test_lot_chart_names_the_arrays_of_a_drift(target, capsys):
-    """Pitch alternating ±1e-4 px about 20 px for 40 arrays (±0.56 sigma: in control by every rule), then
-    creeping up by a quarter of its sigma per array: the chart calls the drift within 8 arrays of its onset
-    (the alternation hides the trend rule; 2 of 3 beyond 2 sigma calls it), nothing before it."""
+    """Pitch alternating ±1e-4 px about 20 px for 40 arrays (±0.56 sigma of the moving range: in control by
+    every rule), then creeping up by a quarter of that sigma per array: both charts call the drift within 8
+    arrays of its onset (the I-MR chart: the alternation hides the trend rule; 2 of 3 beyond 2 sigma calls
+    it), nothing before it. The CUSUM's centre and sigma are those of the arrays before its first call."""
     sigma = 2e-4 / 1.128
+    pitches = []
     with open_database(target) as db:
         for a in range(60):
             pitch = 20.0 + (1e-4 if a % 2 else -1e-4) + (0.25 * sigma * (a - 39) if a >= 40 else 0.0)
+            pitches.append(pitch)
             report = _report("PASS", pitch=pitch)
             report["source"] = f"a{a:02d}.tif"
             report["created_utc"] = f"2026-12-01T10:{a:02d}:00+00:00"
             db.record(record_from_report(report), Identity(lot="L5", wafer="W1", array=f"A{a:02d}"), None)
-    assert main(["lot", "chart", "--db", target, "--lot", "L5", "--reading", "pitch_x_px", "--json"]) == 0
-    data = json.loads(capsys.readouterr().out)
-    called = sorted(int(label.split("/A")[1]) for label in data["out_of_control"])
-    assert called and 40 <= called[0] <= 48
-    assert data["centre"] == pytest.approx(20.0) and data["sigma"] == pytest.approx(sigma)
+    for chart in ("cusum", "imr"):
+        assert main(["lot", "chart", "--db", target, "--lot", "L5", "--reading", "pitch_x_px", "--chart", chart,
+                     "--json"]) == 0
+        data = json.loads(capsys.readouterr().out)
+        called = sorted(int(label.split("/A")[1]) for label in data["out_of_control"])
+        assert data["chart"] == chart and called and 40 <= called[0] <= 48, (chart, called)
+        if chart == "imr":
+            assert data["centre"] == pytest.approx(20.0) and data["sigma"] == pytest.approx(sigma)
+        else:
+            before = np.array(pitches[: called[0]])
+            assert data["centre"] == pytest.approx(before.mean(), abs=1e-12)
+            assert data["sigma"] == pytest.approx(before.std(ddof=1), rel=1e-6)
     assert main(["lot", "chart", "--db", target, "--reading", "nonsense"]) == 2
-    assert main(["lot", "chart", "--db", target, "--rules", "7"]) == 2
+    assert main(["lot", "chart", "--db", target, "--chart", "imr", "--rules", "7"]) == 2
+    assert main(["lot", "chart", "--db", target, "--rules", "1,5"]) == 2  # run rules belong to the I-MR chart
+    assert main(["lot", "chart", "--db", target, "--cusum-h", "0"]) == 2
+    assert "--rules chooses the run rules" in capsys.readouterr().err
 
 
 @pytest.mark.timeout(300)

@@ -8,6 +8,7 @@ import argparse
 import json
 import math
 
+from mlaqc.resultsdb.control import CHARTS, CUSUM_H
 from mlaqc.resultsdb.store import default_target
 
 VIEWS = ("yield", "pareto", "map", "repeats", "chart", "history", "report")
@@ -20,9 +21,10 @@ def register(sub: argparse._SubParsersAction) -> None:
                                    "once, by its latest inspection): `yield` per lot and wafer; `pareto`: the defect "
                                    "types that failed arrays, most costly first; `map`: how many arrays flagged each "
                                    "lens; `repeats`: lenses flagged in more arrays than chance explains, with one type "
-                                   "and direction (a defect of the master, in every replica); `chart`: an individuals "
-                                   "control chart of an array-level reading (--reading) with the Western Electric "
-                                   "run rules, the arrays out of control named; `history`: every inspection of one "
+                                   "and direction (a defect of the master, in every replica); `chart`: a control "
+                                   "chart of an array-level reading (--reading; a self-starting CUSUM, or with --chart "
+                                   "imr an individuals chart with the Western Electric run rules), the arrays out of "
+                                   "control named; `history`: every inspection of one "
                                    "array (--array), with its config and station; `report`: all of them on one "
                                    "HTML page with its plots (--out).")
     p.add_argument("view", choices=VIEWS, help="what to show")
@@ -33,9 +35,17 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--reading", default="pitch_x_px",
                    help="chart: the reading (pitch_x_px, pitch_y_px, rotation_deg, distance_um, mla_rotation_deg, "
                         "tilt_x_deg, tilt_y_deg, flagged, out_of_tolerance; default pitch_x_px)")
+    p.add_argument("--chart", choices=CHARTS, default="cusum",
+                   help="chart and report: 'cusum' (default), a self-starting CUSUM: each array against all before "
+                        "it, in-control false calls ~1 in 1,200 arrays; 'imr': an individuals / moving-range chart "
+                        "with limits from the baseline and the Western Electric run rules (--rules)")
     p.add_argument("--baseline", type=int, default=20, metavar="N",
-                   help="chart: its limits from the first N arrays (default 20)")
-    p.add_argument("--rules", default="1,2,3,4,5", help="chart: the run rules judged (default all: 1,2,3,4,5)")
+                   help="chart: the first N arrays are the process known good, not judged (imr: its limits come "
+                        "from them; default 20)")
+    p.add_argument("--cusum-h", type=float, default=CUSUM_H, metavar="H",
+                   help=f"chart cusum: the decision interval in sigmas (default {CUSUM_H:g}; 5: a false call in ~460 "
+                        "arrays, drifts called about one array sooner)")
+    p.add_argument("--rules", help="chart imr: the run rules judged (default all: 1,2,3,4,5)")
     p.add_argument("--out", "-o", metavar="FILE.html", help="report: the page to write")
     p.add_argument("--json", action="store_true", help="print JSON instead of a table")
     p.set_defaults(func=run)
@@ -50,9 +60,13 @@ def run(args: argparse.Namespace) -> int:
         raise InputError("`mlaqc lot history` needs --array (the array's serial or position)")
     if args.view == "report" and not args.out:
         raise InputError("`mlaqc lot report` needs --out FILE.html")
-    rules = _rules(args.rules)
+    if args.rules is not None and args.chart != "imr":
+        raise InputError("--rules chooses the run rules of `--chart imr`; the CUSUM chart has none")
+    rules = _rules(args.rules or "1,2,3,4,5")
     if args.baseline < 2:
         raise InputError(f"--baseline must be at least 2 arrays, got {args.baseline}")
+    if not (math.isfinite(args.cusum_h) and args.cusum_h > 0):
+        raise InputError(f"--cusum-h must be a positive number of sigmas, got {args.cusum_h}")
     with open_database(args.db, create=False) as db:
         if args.view == "yield":
             data = views.yield_table(db, args.lot, args.wafer)
@@ -74,14 +88,13 @@ def run(args: argparse.Namespace) -> int:
         elif args.view == "chart":
             from mlaqc.resultsdb.control import lot_chart
 
-            chart = lot_chart(db, args.reading, args.lot, args.wafer, args.baseline, rules)
-            data = {"reading": args.reading, "centre": chart.centre, "sigma": chart.sigma, "baseline": chart.baseline,
-                    "arrays": chart.labels, "values": chart.values.tolist(),
+            chart = lot_chart(db, args.reading, args.lot, args.wafer, args.baseline, rules, args.chart, args.cusum_h)
+            data = {"reading": args.reading, "chart": chart.kind, "centre": chart.centre, "sigma": chart.sigma,
+                    "baseline": chart.baseline, "arrays": chart.labels, "values": chart.values.tolist(),
                     "out_of_control": {chart.labels[i]: r for i, r in chart.signals.items()}}
-            lines = [f"{args.reading}: {len(chart.values)} arrays, centre {chart.centre:.6g}, sigma {chart.sigma:.3g} "
-                     f"(from the first {chart.baseline}{'; no spread: any change is out of control' if not chart.sigma else ''}); "
-                     f"{len(chart.signals)} out of control",
-                     *chart.sentences()]
+            if chart.kind == "cusum":
+                data["h"] = chart.h
+            lines = [chart.summary(args.reading), *chart.sentences()]
         elif args.view == "report":
             from pathlib import Path
 
@@ -91,7 +104,8 @@ def run(args: argparse.Namespace) -> int:
             out = Path(args.out)
             if not out.parent.is_dir():
                 raise InputError(f"cannot write the lot report: folder {out.parent} does not exist")
-            page = lot_report_html(db, args.lot, args.wafer, baseline=args.baseline).encode()
+            page = lot_report_html(db, args.lot, args.wafer, baseline=args.baseline, kind=args.chart,
+                                   rules=rules, h=args.cusum_h).encode()
             try:
                 write_bytes_atomic(out, page)
             except OSError as exc:

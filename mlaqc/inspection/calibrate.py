@@ -22,6 +22,9 @@ Pipeline (DESIGN.md §6), vectorized over all lenses at once (no per-lens Python
    U(1,1) (`Lattice.uv`: square (n-1, m-1), hex (n-1 + [m even]/2, (m-1) sqrt(3)/2)), so pitch, rotation
    and shear mean the same for both packings (a perfect hex array has shear 0).
    Lenses predicted by the model but dark or dim are reported in `missing`, never an error.
+5. Edge lenses: each edge group's common offset from the model (the outer two rings by side: a lens there
+   sees its neighbours' rims on one side only, which biases the disc fit alike along the side) is taken
+   off its lenses' measured centres and kept in `Grid.edge_offsets` (`_edge_offsets_removed`).
    The grid, its model map and its file grid.json: mlaqc.inspection.grid.
 
 Measured on the Table 1 camera (50 rays/pixel, noise on): per-lens centres 0.029 px RMS (0.021 px per
@@ -50,6 +53,8 @@ from mlaqc.optics.lattice import PACKINGS, SQRT3_2, Lattice
 MISSING_RELATIVE_FLUX = 0.3  # a lens under 30 % of its neighbourhood's amplitude is 'missing/dim'
 # light at the cell corners above this fraction of the sub-images' is a background: less pulls the centres by
 # under 0.01 px even with strong vignetting, and blurred or Airy rims alone reach 5 - 12 % there (measured)
+EDGE_GROUP_MIN = 5  # wholly seen lenses an edge group needs for its common offset to be read (a median)
+EDGE_REFIT_MIN = 36  # lenses off the edge lines the model needs to be fitted on them alone
 BACKGROUND_MIN = 0.15
 BACKGROUND_DEGREE = 4  # of the polynomial surface fitted to it
 
@@ -297,11 +302,23 @@ def _assemble(shape, lattice, lat_j, lat_i, discs: _Discs, active, expected_shap
         vv, uu = np.mgrid[0:rows, 0:cols].astype(float)
     span = design.span_uv
     centre = (0.5 * (w - 1), 0.5 * (h - 1))
-    hom, k, scale, used, rms = _fit_model(uu[found_w], vv[found_w], mx[found_w], my[found_w], centre,
-                                          lattice, (r0 + i0, c0 + j0), (rows, cols), span)
-    gx, gy = _model_xy(hom, k, centre, scale, uu, vv)
     # lenses whose predicted window leaves the frame entirely were never candidates: clipped + missing
     clipped = (vfrac < 1.0) | ~np.isfinite(vfrac)
+    hom, k, scale, used, rms = _fit_model(uu[found_w], vv[found_w], mx[found_w], my[found_w], centre,
+                                          lattice, (r0 + i0, c0 + j0), (rows, cols), span)
+    edges = _edge_lines(found_w & ~clipped, lattice.packing)
+    inner = found_w & ~edges
+    if edges.any() and np.count_nonzero(inner) >= EDGE_REFIT_MIN:
+        # the model again on the lenses with their whole neighbourhood: an edge line's lenses are read alike
+        # off their centres, and on a small array (a 12 x 12's two outer rings are half its lenses) the
+        # model's terms took up part of that
+        hom, k, scale, used_inner, rms = _fit_model(uu[inner], vv[inner], mx[inner], my[inner], centre, lattice,
+                                                    (r0 + i0, c0 + j0), (rows, cols), span)
+        used = np.zeros(found_w.shape, bool)
+        used[inner] = used_inner
+        used = used[found_w]
+    gx, gy = _model_xy(hom, k, centre, scale, uu, vv)
+    mx, my, edge_offsets = _edge_offsets_removed(mx, my, gx, gy, found_w & ~clipped, lattice.packing)
     jac = _local_jacobian(hom, k, centre, scale, 0.5 * span[0], 0.5 * span[1])
     pitch_x, pitch_y = float(np.hypot(*jac[:, 0])), float(np.hypot(*jac[:, 1]))
     rotation = math.degrees(math.atan2(-jac[1, 0], jac[0, 0]))
@@ -314,7 +331,44 @@ def _assemble(shape, lattice, lat_j, lat_i, discs: _Discs, active, expected_shap
         measured_x_px=mx, measured_y_px=my, grid_x_px=gx, grid_y_px=gy,
         residual_px=np.hypot(mx - gx, my - gy), flux=flux, radius_px=radius,
         missing=~found_w, clipped=clipped, rms_residual_px=float(rms), packing=lattice.packing,
+        edge_offsets=edge_offsets,
     )
+
+
+def _edge_lines(seen, packing):
+    """The lenses on the lines of the edge groups that have EDGE_GROUP_MIN wholly seen lenses: those
+    `_edge_offsets_removed` reads an offset for."""
+    from mlaqc.inspection.lens_classes import edge_group_lines, edge_groups
+
+    out = np.zeros(seen.shape, bool)
+    for (_, _, line), group in zip(edge_group_lines(seen.shape, packing), edge_groups(seen.shape, packing)):
+        if np.count_nonzero(group & seen) >= EDGE_GROUP_MIN:
+            out |= line
+    return out
+
+
+def _edge_offsets_removed(mx, my, gx, gy, seen, packing):
+    """The measured centres less each edge group's common offset from the lattice, along the normal to its
+    side (`edge_groups`: the outer two rings by side, hex row ends apart), taken off its whole line (a
+    corner lens lies on two), and the offsets removed: (name, lenses, dx, dy) per group of at least
+    EDGE_GROUP_MIN wholly seen lenses. A lens at the array's edge sees its neighbours' rims on one side
+    only, and the disc fit's rim is not the optics' (an Airy rim's tail): every lens of the microscope
+    fixture's outer ring read 0.106 px inward, alike to 0.001 px, while the robust lattice fit (which
+    rejects them) stayed true. A lens' own error stays: the median is the group's, not the lens'."""
+    from mlaqc.inspection.lens_classes import edge_group_lines, edge_groups
+
+    shape = mx.shape
+    shift = np.zeros((2,) + shape)
+    removed = []
+    for (name, axis, line), group in zip(edge_group_lines(shape, packing), edge_groups(shape, packing)):
+        use = group & seen & np.isfinite(mx) & np.isfinite(my)
+        n = int(np.count_nonzero(use))
+        if n < EDGE_GROUP_MIN:
+            continue
+        offset = float(np.median((mx - gx, my - gy)[axis][use]))
+        shift[axis][line] = offset
+        removed.append((name, n, round(offset, 6) if axis == 0 else 0.0, round(offset, 6) if axis == 1 else 0.0))
+    return mx - shift[0], my - shift[1], tuple(removed)
 
 
 def _scatter(values, rows, cols, shape, fill):

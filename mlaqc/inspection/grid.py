@@ -70,6 +70,9 @@ class Grid:
     clipped: np.ndarray  # bool: part of the sub-image lies outside the frame
     rms_residual_px: float  # over the lenses used in the fit
     packing: str = "square"  # the lattice U(m,n) indexes (mlaqc.optics.lattice)
+    # each edge group's common offset from the model, taken off its measured centres by the calibration:
+    # (group name, lenses it was read on, dx px, dy px)
+    edge_offsets: tuple[tuple[str, int, float, float], ...] = ()
 
     @property
     def shape(self) -> tuple[int, int]:
@@ -84,6 +87,19 @@ class Grid:
     def residual_y_px(self) -> np.ndarray:
         """measured - grid, y (NaN where missing)."""
         return self.measured_y_px - self.grid_y_px
+
+    def uncorrected_centres(self) -> tuple[np.ndarray, np.ndarray]:
+        """The measured centres as the disc fit read them, before each edge line's common offset was taken
+        off (`edge_offsets`): what the shipped assembly calibrations were built from."""
+        from mlaqc.inspection.lens_classes import edge_group_lines
+
+        x, y = np.array(self.measured_x_px, float), np.array(self.measured_y_px, float)
+        lines = {name: (axis, line) for name, axis, line in edge_group_lines(self.shape, self.packing)}
+        for name, _, dx, dy in self.edge_offsets:
+            if name in lines:
+                axis, line = lines[name]
+                (x if axis == 0 else y)[line] += dx if axis == 0 else dy
+        return x, y
 
     @property
     def lenses_found(self) -> int:
@@ -139,6 +155,8 @@ class Grid:
                 "radial_centre_px": {"x": self.radial_centre_px[0], "y": self.radial_centre_px[1]},
                 "radial_scale_px": self.radial_scale_px,
                 "edge_width_px": self.edge_width_px,
+                "edge_offsets_px": [{"group": name, "lenses": n, "x": dx, "y": dy}
+                                    for name, n, dx, dy in self.edge_offsets],
             },
             "summary": {"lenses_found": self.lenses_found, "lenses_missing": self.lenses_missing,
                         "lenses_clipped": int(np.count_nonzero(self.clipped)),
@@ -218,11 +236,20 @@ class Grid:
             m, n = (int(v) + 1 for v in np.argwhere(lost)[0])
             raise InputError(f"{source}: lens U({m},{n}) is not marked missing but has no measured centre")
         return cls(rows=rows, cols=cols, homography=hom, image_shape=(height, width), **head, **arrays, **flags,
-                   packing=packing)
+                   packing=packing, edge_offsets=_edge_offsets(model.get("edge_offsets_px", []), source))
 
     def save(self, path: str | Path) -> None:
         """Write grid.json atomically (a reader never sees half a file)."""
         write_json_atomic(path, self.to_json_dict())
+
+
+def _edge_offsets(entries: Any, source: str) -> tuple[tuple[str, int, float, float], ...]:
+    """The model's "edge_offsets_px" (absent in grids written before them: none)."""
+    try:
+        return tuple((str(e["group"]), _pos_int(e["lenses"]), _num(e["x"]), _num(e["y"])) for e in entries)
+    except (KeyError, TypeError, ValueError) as exc:
+        raise InputError(f"{source}: model.edge_offsets_px must list objects with group, lenses, x and y "
+                         f"({_describe(exc)})") from None
 
 
 _MODEL_LATTICE = {  # the design coordinates (u, v) of U(m,n) the model maps (mlaqc.optics.lattice.Lattice.uv)

@@ -109,6 +109,36 @@ def edge_groups(shape: tuple[int, int], packing: str = "square") -> tuple[np.nda
     return tuple(_frozen(g) for g in edges)
 
 
+SIDE_NAMES = ("top", "bottom", "left", "right")  # `_sides`' numbers
+
+
+@functools.lru_cache(maxsize=8)
+def edge_group_lines(shape: tuple[int, int], packing: str = "square") -> tuple[tuple[str, int, np.ndarray], ...]:
+    """For each of `edge_groups`' groups, in its order: its name ("ring 0 left", "ring 0 left, row ends
+    that stick out"), the axis its side is normal to (0: x, the left and right sides; 1: y), and its line:
+    every lens at its ring from its side, the corner lenses `edge_groups` gives to the other side included
+    (on hex, only the row ends of the group's kind)."""
+    rows, cols = shape
+    m, n = np.ogrid[:rows, :cols]
+    distance = np.broadcast_arrays(m, rows - 1 - m, n, cols - 1 - n)  # to the top, bottom, left, right side
+    ends = hex_row_ends(shape) if packing == "hex" else np.zeros(shape, bool)
+    ring, side = ring_distance(shape), _sides(shape)
+    out = []
+    for g in edge_groups(shape, packing):
+        if not g.any():
+            out.append(("empty", 0, g))
+            continue
+        first = tuple(np.argwhere(g)[0])
+        s, r = int(side[first]), int(ring[first])
+        of_ends = packing == "hex" and bool(np.all(ends[g]))
+        line = distance[s] == r
+        if packing == "hex" and (s >= 2 or of_ends):  # a top or bottom row's corner end: a group of its own
+            line = line & (ends == of_ends)
+        name = f"ring {r} {SIDE_NAMES[s]}" + (", row ends that stick out" if of_ends else "")
+        out.append((name, 0 if s >= 2 else 1, _frozen(line)))
+    return tuple(out)
+
+
 @functools.lru_cache(maxsize=8)
 def hex_row_ends(shape: tuple[int, int]) -> np.ndarray:
     """On a hex lattice, the row ends that stick out half a pitch past the rows above and below (the

@@ -69,7 +69,8 @@ def obscuration_readings(sub, cx, cy, flagged, candidates) -> dict[tuple[int, in
         return {}
     template = _typical(sub, cx, cy, keys[:: max(1, len(keys) // TEMPLATE_LENSES)])
     noise = _ratios(sub, cx, cy, template, keys[:: max(1, len(keys) // 100)])[0]
-    spread = float(np.nanmedian(np.nanstd(noise, axis=(1, 2)))) if np.isfinite(noise).any() else float("nan")
+    seen = np.isfinite(noise).any(axis=(1, 2))  # a lens whose window holds no ratio (its centre off) has no spread
+    spread = float(np.median(np.nanstd(noise[seen], axis=(1, 2)))) if seen.any() else float("nan")
     if not np.isfinite(spread):
         return {}
     threshold = max(MIN_DEPTH, NOISE_SIGMAS * spread)
@@ -167,7 +168,8 @@ def _ratios(sub, cx, cy, template, keys):
         warnings.simplefilter("ignore", RuntimeWarning)
         # the unobscured level: a high quantile, so that a spot over most of the interior is still the dark part
         level = np.nanpercentile(ratio.reshape(len(keys), -1), LEVEL_PERCENTILE, axis=1)[:, None, None]
-    return ratio / level - 1.0, dy, dx, whole / level - 1.0
+    with np.errstate(invalid="ignore", divide="ignore"):  # a lens without light: no level, NaN ratios
+        return ratio / level - 1.0, dy, dx, whole / level - 1.0
 
 
 def _smoothed(raw, zone):

@@ -100,7 +100,8 @@ def lens_centres(grid, cfg, pupil_mm: float) -> tuple[Lenses, np.ndarray, np.nda
         yl = (m + 0.5) * p - 0.5 * mla.count_h * p
     else:
         xl, yl = Lattice.of(cfg).centres()
-    mx, my = np.asarray(grid.measured_x_px, float), np.asarray(grid.measured_y_px, float)
+    # as the disc fit read them: the shipped calibrations take in each edge line's offset from the grid
+    mx, my = grid.uncorrected_centres()
     ok = np.isfinite(mx) & np.isfinite(my) & ~np.asarray(grid.missing, bool) & ~np.asarray(grid.clipped, bool)
     lenses = Lenses(xl[ok], yl[ok], pupil_mm, cfg.layout.z_sensor_mm - cfg.layout.z_mla_mm, cfg.pixel_at_mla_um * 1e-3,
                     sensor.width_px, sensor.height_px)

@@ -245,7 +245,8 @@ def build_assembly_model(cfg: CameraConfig, *, rays_per_pixel: float = RAYS_PER_
         design = np.stack([t, t ** 2, t ** 3], axis=1)
         poly[j] = np.linalg.lstsq(design, dev, rcond=None)[0].T
         resid = dev[:, j] - design @ poly[j, j]
-        misfit[j] = np.sqrt(resid @ resid / max(t.size - 3, 1)) / abs(poly[j, j, 0])
+        with np.errstate(invalid="ignore", divide="ignore"):  # an error the frame does not answer: NaN
+            misfit[j] = np.sqrt(resid @ resid / max(t.size - 3, 1)) / abs(poly[j, j, 0])
     model = AssemblyModel(float(b), tuple(map(float, zero_raw)), tuple(map(float, zero_sigma)), _nested(poly),
                           (0.0,) * 6, float(max(DISTANCE_NODES_UM)), assembly_key(cfg),
                           _nested(np.zeros((2, 6, 6, COMPONENTS))), tuple(map(float, misfit)))

@@ -1,22 +1,36 @@
 """Control charts of the array-level readings: is a process drifting (the array's pitch scale, rotation,
 MLA–sensor distance, defect count), array after array?
 
-An individuals and moving-range (I-MR) chart, the usual one for one measurement per unit: the centre line
-is the mean of a baseline (the first `baseline` arrays, the process as it was known good), sigma the
-baseline's mean moving range over d2 = 1.128 (robust to a slow drift, unlike the standard deviation), and
-every array after is judged by the Western Electric run rules:
+Two charts, each naming the arrays out of control:
 
-1. one point beyond 3 sigma;
-2. two of three in a row beyond 2 sigma on one side;
-3. four of five in a row beyond 1 sigma on one side;
-4. eight in a row on one side of the centre line;
-plus the trend rule: six in a row steadily rising or falling (a creeping drift shows here first).
+- `cusum_chart` (the default): a self-starting CUSUM (Hawkins 1987). Each array is standardised against the
+  mean and standard deviation of every array before it (Student's t with their degrees of freedom, turned
+  into a normal score), so that an in-control process gives exactly independent N(0, 1) scores however
+  short its history: the chart's false-call rate is its design's, not the luck of a short baseline. The
+  scores are summed both ways, S = max(0, S + U - k), k = 0.5 (tuned to a shift of one sigma); an array is
+  out of control while either sum is beyond h = 6 (a sustained rise or fall), or when its own score is
+  beyond 4 (a jump). In-control, the first false call comes after a mean of about 1,200 arrays (4 % of
+  series call one within 49 arrays); a drift of a quarter sigma per array is called after a median of 9
+  arrays, one of a sigma per array after 4 (tests/test_control_charts.py measures all three). After the
+  first call the estimates stop learning: the arrays after it are judged against the process as it was.
+- `individuals_chart` (`--chart imr`): an individuals and moving-range (I-MR) chart, the shop-floor classic.
+  Its centre line is the mean of a baseline (the first `baseline` arrays), sigma the baseline's mean moving
+  range over d2 = 1.128, and every array after is judged by the Western Electric run rules:
 
-A reading that did not vary over the baseline (a fixed value, a noise-free simulation) has no sigma: any
-change of it is out of control, and the run rules are not judged. Their price is false calls: with limits from 20 in-control arrays, the first comes after a median of 34
-arrays with every rule, 92 with rules 1 and 5 alone (`rules`), while a drift of a quarter sigma per array is
-called after a median of 6 arrays (every rule) or 8 (rules 1 and 5) (tests/test_control_charts.py measures
-both). A reading's own measured sigma (the assembly's) is not used: the chart's sigma is the arrays' spread.
+  1. one point beyond 3 sigma;
+  2. two of three in a row beyond 2 sigma on one side;
+  3. four of five in a row beyond 1 sigma on one side;
+  4. eight in a row on one side of the centre line;
+  plus the trend rule: six in a row steadily rising or falling (a creeping drift shows here first).
+
+  Their price is false calls: with limits from 20 in-control arrays, the first comes after a median of 34
+  arrays with every rule, 92 with rules 1 and 5 alone (`rules`), while a drift of a quarter sigma per array
+  is called after a median of 6 arrays (every rule) or 8 (rules 1 and 5). The baseline mean's own error,
+  ±sigma/√20, looks like a shift to every rule that integrates.
+
+In both, the first `baseline` arrays are taken as the process known good and are not judged. A reading that
+did not vary over them (a fixed value, a noise-free simulation) has no sigma: any change of it is out of
+control. A reading's own measured sigma (the assembly's) is not used: a chart's sigma is the arrays' spread.
 """
 
 from __future__ import annotations
@@ -27,6 +41,15 @@ from dataclasses import dataclass, field
 import numpy as np
 
 D2 = 1.128  # the mean moving range of two normal values, in sigmas
+CUSUM_K = 0.5  # the CUSUM's reference value, in sigmas: tuned to a shift of one sigma
+CUSUM_H = 6.0  # its decision interval: a two-sided in-control run of ~1,200 arrays on average
+JUMP_Z = 4.0  # one array's score beyond this is out of control at once (a false call in ~16,000 arrays)
+CHARTS = ("cusum", "imr")
+CUSUM_SIGNALS = {
+    "rise": "a sustained rise (the upper CUSUM beyond h)",
+    "fall": "a sustained fall (the lower CUSUM beyond h)",
+    "jump": f"beyond {JUMP_Z:g} sigma of the arrays before it",
+}
 RULES = {
     1: "beyond 3 sigma",
     2: "2 of 3 beyond 2 sigma on one side",
@@ -45,24 +68,132 @@ READINGS = {
 
 @dataclass
 class Chart:
-    """An I-MR chart: the values in order, its centre and sigma, and the points out of control."""
+    """A chart: the values in order, its centre and sigma, and the points out of control. A CUSUM chart
+    also holds what each array was judged against (`centre_at`, `sigma_at`: NaN for the baseline) and its
+    two sums (`cusum`: (2, n), upper and lower, in sigmas)."""
 
     values: np.ndarray
     labels: list[str]
     centre: float
     sigma: float
     baseline: int
-    signals: dict[int, list[int]] = field(default_factory=dict)  # index -> the rules it breaks
+    signals: dict[int, list] = field(default_factory=dict)  # index -> the rules it breaks
+    kind: str = "imr"
+    centre_at: np.ndarray | None = None
+    sigma_at: np.ndarray | None = None
+    cusum: np.ndarray | None = None
+    h: float = CUSUM_H
 
     @property
     def first_signal(self) -> int | None:
         return min(self.signals) if self.signals else None
 
+    def summary(self, reading: str) -> str:
+        """One line: what the chart is, its centre and sigma, how many arrays are out of control."""
+        n, base = len(self.values), self.baseline
+        if not self.sigma > 0:
+            how = f"no spread over the first {base}: any change is out of control"
+        elif self.kind == "cusum":
+            how = (f"self-starting CUSUM (k {CUSUM_K:g}, h {self.h:g} sigma), the first {base} not judged; centre and "
+                   "sigma of the arrays before the first call" if self.signals else
+                   f"self-starting CUSUM (k {CUSUM_K:g}, h {self.h:g} sigma), the first {base} not judged")
+        else:
+            how = f"I-MR, limits from the first {base}"
+        return (f"{reading}: {n} arrays, centre {self.centre:.6g}, sigma {self.sigma:.3g} ({how}); "
+                f"{len(self.signals)} out of control")
+
     def sentences(self) -> list[str]:
-        return [f"{self.labels[i]} out of control: value {self.values[i]:.6g} ("
-                + (f"{(self.values[i] - self.centre) / self.sigma:+.1f} sigma); " if self.sigma > 0
-                   else f"the baseline's was {self.centre:.6g} without spread); ")
-                + "; ".join(RULES[r] for r in rules) for i, rules in sorted(self.signals.items())]
+        words = CUSUM_SIGNALS if self.kind == "cusum" else RULES
+        return [f"{self.labels[i]} out of control: value {self.values[i]:.6g} (" + self._offset(i) + "; "
+                + "; ".join(words[r] for r in rules) for i, rules in sorted(self.signals.items())]
+
+    def _offset(self, i: int) -> str:
+        if not self.sigma > 0:
+            return f"the baseline's was {self.centre:.6g} without spread)"
+        if self.kind == "cusum":
+            z = (self.values[i] - self.centre_at[i]) / self.sigma_at[i]
+            return f"{z:+.1f} sigma from the arrays before it; CUSUM {max(self.cusum[:, i]):.1f}, h {self.h:g})"
+        return f"{(self.values[i] - self.centre) / self.sigma:+.1f} sigma)"
+
+
+def make_chart(values, labels=None, baseline: int = 20, kind: str = "cusum", rules=tuple(RULES),
+               h: float = CUSUM_H) -> Chart:
+    """The chart of `kind` ('cusum' or 'imr', CHARTS) of `values` in production order."""
+    if kind == "cusum":
+        return cusum_chart(values, labels, baseline, h=h)
+    return individuals_chart(values, labels, baseline, rules)
+
+
+def cusum_chart(values, labels=None, baseline: int = 20, k: float = CUSUM_K, h: float = CUSUM_H,
+                jump: float = JUMP_Z) -> Chart:
+    """The self-starting CUSUM chart of `values` (in production order; see the module note): the first
+    `baseline` of them not judged, every later one against all before it until the first call, and against
+    the arrays before that call after it."""
+    x = np.asarray(values, float)
+    labels = list(labels) if labels is not None else [f"#{i + 1}" for i in range(x.size)]
+    nb = max(2, min(baseline, x.size))
+    if x.size < 3 or not np.ptp(x[:nb]) > 0:
+        return _without_spread(x, labels, nb)
+    u, centre_at, sigma_at = _scores(x, np.arange(x.size))
+    sums, signals = _cusum(u, nb, k, h, jump)
+    if signals and min(signals) + 1 < x.size:  # the process moved: judge what follows against what it was
+        first = min(signals)
+        known = np.minimum(np.arange(x.size), first)  # the arrays each is judged against: those before `first`
+        u, centre_at, sigma_at = _scores(x, known)
+        sums, signals = _cusum(u, nb, k, h, jump)
+    before = x[: min(signals)] if signals else x
+    chart = Chart(x, labels, float(np.mean(before)), float(np.std(before, ddof=1)), nb, signals, "cusum",
+                  centre_at, sigma_at, sums, h)
+    return chart
+
+
+def _scores(x: np.ndarray, known: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Each value's normal score against the first known[i] values (their mean and standard deviation,
+    Student's t with known[i] - 1 degrees of freedom), with that mean and deviation; NaN where known[i] < 2."""
+    from scipy.special import ndtri, stdtr
+
+    ref = float(np.median(x[: max(int(known.max()), 1)]))  # centred first: pitches of 20 px vary by 1e-5
+    d = x - ref
+    s1 = np.concatenate([[0.0], np.cumsum(d)])[known]
+    s2 = np.concatenate([[0.0], np.cumsum(d * d)])[known]
+    n = known.astype(float)
+    with np.errstate(all="ignore"):
+        mean = s1 / n
+        sd = np.sqrt(np.maximum(s2 - s1 * mean, 0.0) / (n - 1))
+        t = (d - mean) / sd * np.sqrt(n / (n + 1))
+        ok = (known >= 2) & (sd > 0) & np.isfinite(t)
+        tail = stdtr(np.where(ok, n - 1, 1.0), -np.abs(np.where(ok, t, 0.0)))  # the far tail: exact in both
+        u = np.where(ok, -np.sign(t) * ndtri(tail), np.nan)
+    return u, np.where(ok, mean + ref, np.nan), np.where(ok, sd, np.nan)
+
+
+def _cusum(u: np.ndarray, start: int, k: float, h: float, jump: float) -> tuple[np.ndarray, dict[int, list]]:
+    """The upper and lower CUSUMs of the scores from `start` on ((2, n), 0 before), and the arrays beyond
+    h or beyond `jump` on their own."""
+    his, los = [0.0] * u.size, [0.0] * u.size
+    signals: dict[int, list] = {}
+    hi = lo = 0.0
+    scores = u.tolist()  # (Python floats: the recursion is sequential, 10^5 arrays in a tenth of a second)
+    for i in range(start, u.size):
+        ui = scores[i]
+        if ui != ui:  # NaN: no score
+            continue
+        hi, lo = max(0.0, hi + ui - k), max(0.0, lo - ui - k)
+        his[i], los[i] = hi, lo
+        if hi > h or lo > h or abs(ui) > jump:
+            signals[i] = [name for name, out in (("rise", hi > h), ("fall", lo > h), ("jump", abs(ui) > jump)) if out]
+    return np.array([his, los]), signals
+
+
+def _without_spread(x: np.ndarray, labels: list[str], nb: int, kind: str = "cusum") -> Chart:
+    """A baseline without spread (a fixed value, a noise-free simulation): no sigma, so any change at all
+    is out of control ('jump' / rule 1)."""
+    centre = float(x[0]) if x.size else math.nan
+    chart = Chart(x, labels, centre, 0.0, min(nb, x.size), kind=kind)
+    for i in range(chart.baseline, x.size):
+        if not math.isclose(x[i], centre, rel_tol=1e-12, abs_tol=1e-300):
+            chart.signals[i] = ["jump" if kind == "cusum" else 1]
+    return chart
 
 
 def individuals_chart(values, labels=None, baseline: int = 20, rules=tuple(RULES)) -> Chart:
@@ -74,14 +205,10 @@ def individuals_chart(values, labels=None, baseline: int = 20, rules=tuple(RULES
     centre = float(np.mean(base)) if base.size else math.nan
     mr = np.abs(np.diff(base))
     sigma = float(np.mean(mr)) / D2 if mr.size else math.nan
-    if not (math.isfinite(sigma) and sigma > 0):
-        # a baseline without spread (a fixed value, a noise-free simulation): no run rule can be judged;
-        # any change at all is out of control (rule 1)
-        centre = float(base[0]) if base.size else math.nan
-        chart = Chart(x, labels, centre, 0.0, base.size)
-        for i in range(base.size, x.size):
-            if 1 in rules and not math.isclose(x[i], centre, rel_tol=1e-12, abs_tol=1e-300):
-                chart.signals[i] = [1]
+    if not (math.isfinite(sigma) and sigma > 0):  # no run rule can be judged; any change is out of control
+        chart = _without_spread(x, labels, base.size, "imr")
+        if 1 not in rules:
+            chart.signals.clear()
         return chart
     chart = Chart(x, labels, centre, sigma, base.size)
     z = (x - centre) / sigma
@@ -111,7 +238,7 @@ def _rules(z: np.ndarray, i: int) -> list[int]:
 
 
 def lot_chart(db, reading: str, lot: str | None = None, wafer: str | None = None, baseline: int = 20,
-              rules=tuple(RULES)) -> Chart:
+              rules=tuple(RULES), kind: str = "cusum", h: float = CUSUM_H) -> Chart:
     """The chart of one array-level reading over the selection's arrays, in the order they were inspected
     (each array by its latest inspection)."""
     from mlaqc.resultsdb.lot import latest_selection
@@ -123,5 +250,5 @@ def lot_chart(db, reading: str, lot: str | None = None, wafer: str | None = None
     latest, params = latest_selection(lot, wafer)
     rows = db.query(f"SELECT {reading}, lot, wafer, COALESCE(array_id, position, source) FROM inspections "
                     f"WHERE id IN ({latest}) AND {reading} IS NOT NULL ORDER BY inspected_utc, recorded_utc, id", params)
-    return individuals_chart([float(r[0]) for r in rows], [f"{r[1] or '-'}/{r[2] or '-'}/{r[3]}" for r in rows],
-                             baseline, rules)
+    return make_chart([float(r[0]) for r in rows], [f"{r[1] or '-'}/{r[2] or '-'}/{r[3]}" for r in rows],
+                      baseline, kind, rules, h)

@@ -22,7 +22,7 @@ from mlaqc import __version__
 from mlaqc.report.maps import error_colour
 from mlaqc.report.png import encode_png
 from mlaqc.resultsdb import lot as views
-from mlaqc.resultsdb.control import READINGS, Chart, lot_chart
+from mlaqc.resultsdb.control import CUSUM_H, JUMP_Z, READINGS, RULES, Chart, lot_chart
 from mlaqc.resultsdb.store import ResultsDB
 
 CHART_READINGS = ("pitch_x_px", "rotation_deg", "flagged")  # the control charts the report draws
@@ -110,28 +110,38 @@ def _pareto_svg(pareto: list[dict]) -> str:
 
 
 def _chart_svg(chart: Chart, reading: str) -> str:
-    """An individuals chart: the values, centre line and 3-sigma limits, the baseline shaded, the points
-    out of control in red."""
-    w, h, pad = 560, 220, 30
+    """A control chart: the values with the centre line and 3-sigma limits they were judged against (the
+    baseline shaded, the points out of control in red); a CUSUM chart adds its two sums under them, with
+    the decision interval h."""
+    w, pad = 560, 30
+    cusum = chart.kind == "cusum" and chart.cusum is not None
+    h_top = 220
+    height = h_top + (130 if cusum else 0)
     v = chart.values
-    lo = min(float(v.min()), chart.centre - 3.5 * chart.sigma)
-    hi = max(float(v.max()), chart.centre + 3.5 * chart.sigma)
+    n = max(v.size - 1, 1)
+    centre = chart.centre_at if cusum else np.full(v.size, chart.centre)
+    sigma = chart.sigma_at if cusum else np.full(v.size, chart.sigma)
+    centre = np.where(np.isfinite(centre), centre, chart.centre)
+    sigma = np.where(np.isfinite(sigma), sigma, chart.sigma)
+    lo = min(float(v.min()), float(np.min(centre - 3.5 * sigma)))
+    hi = max(float(v.max()), float(np.max(centre + 3.5 * sigma)))
     span = hi - lo or max(abs(hi), 1.0)  # a reading without spread: drawn on a line at mid height
     lo -= 0.5 * span if hi == lo else 0.0
-    n = max(v.size - 1, 1)
 
     def x(i):
         return pad + (w - 2 * pad) * i / n
 
     def y(val):
-        return h - pad - (h - 2 * pad) * (val - lo) / span
+        return h_top - pad - (h_top - 2 * pad) * (val - lo) / span
 
-    parts = [f'<rect x="{pad}" y="{pad}" width="{x(chart.baseline - 1) - pad:.1f}" height="{h - 2 * pad}" '
-             'fill="#eaeef2"><title>baseline: the limits come from these arrays</title></rect>']
-    for level, colour, dash in ((0, "#24292f", ""), (3, "#cf222e", "4 3"), (-3, "#cf222e", "4 3")):
-        yy = y(chart.centre + level * chart.sigma)
-        parts.append(f'<line x1="{pad}" x2="{w - pad}" y1="{yy:.1f}" y2="{yy:.1f}" stroke="{colour}" '
-                     f'stroke-dasharray="{dash}"/>')
+    def line(values, colour, dash=""):  # from the first array judged on (a CUSUM's limits move with it)
+        first = min(chart.baseline, v.size - 1) if cusum else 0
+        return (f'<polyline points="{" ".join(f"{x(i):.1f},{y(values[i]):.1f}" for i in range(first, v.size))}" '
+                f'fill="none" stroke="{colour}" stroke-dasharray="{dash}"/>')
+
+    parts = [f'<rect x="{pad}" y="{pad}" width="{x(chart.baseline - 1) - pad:.1f}" height="{h_top - 2 * pad}" '
+             'fill="#eaeef2"><title>baseline: the process known good, not judged</title></rect>',
+             line(centre, "#24292f"), line(centre + 3 * sigma, "#cf222e", "4 3"), line(centre - 3 * sigma, "#cf222e", "4 3")]
     parts.append('<polyline points="' + " ".join(f"{x(i):.1f},{y(val):.1f}" for i, val in enumerate(v))
                  + '" fill="none" stroke="#0969da" stroke-width="1.2"/>')
     for i, val in enumerate(v):
@@ -141,7 +151,29 @@ def _chart_svg(chart: Chart, reading: str) -> str:
     spread = f"sigma {chart.sigma:.3g}" if chart.sigma > 0 else "no spread in the baseline"
     parts.append(f'<text x="{pad}" y="{pad - 10}" font-size="11">{_esc(READINGS[reading])}: centre '
                  f'{chart.centre:.6g}, {spread}</text>')
-    return f'<svg width="{w}" height="{h}" role="img">{"".join(parts)}</svg>'
+    if cusum:
+        parts.append(_cusum_panel(chart, x, h_top, pad))
+    return f'<svg width="{w}" height="{height}" role="img">{"".join(parts)}</svg>'
+
+
+def _cusum_panel(chart: Chart, x, top: float, pad: float) -> str:
+    """The upper (red) and lower (blue) CUSUMs under a chart, in sigmas, with the decision interval h."""
+    height = 100
+    peak = max(float(chart.cusum.max()), chart.h) * 1.1
+
+    def y(val):
+        return top + height - (height - 10) * val / peak
+
+    def line(values, colour):
+        return (f'<polyline points="{" ".join(f"{x(i):.1f},{y(val):.1f}" for i, val in enumerate(values))}" '
+                f'fill="none" stroke="{colour}" stroke-width="1.2"/>')
+
+    return (f'<line x1="{pad}" x2="{x(chart.values.size - 1):.1f}" y1="{y(chart.h):.1f}" y2="{y(chart.h):.1f}" '
+            f'stroke="#cf222e" stroke-dasharray="4 3"><title>h = {chart.h:g} sigma</title></line>'
+            f'<line x1="{pad}" x2="{x(chart.values.size - 1):.1f}" y1="{y(0):.1f}" y2="{y(0):.1f}" stroke="#8c959f"/>'
+            + line(chart.cusum[0], "#cf222e") + line(chart.cusum[1], "#0969da")
+            + f'<text x="{pad}" y="{top + 6:.0f}" font-size="11">CUSUM, sigmas: rise (red), fall (blue), h {chart.h:g} '
+            "(dashed)</text>")
 
 
 def _stacked_map_img(counts: dict, arrays: int, shape: tuple[int, int]) -> str:
@@ -160,7 +192,8 @@ def _stacked_map_img(counts: dict, arrays: int, shape: tuple[int, int]) -> str:
 
 
 def lot_report_html(db: ResultsDB, lot: str | None = None, wafer: str | None = None,
-                    readings=CHART_READINGS, baseline: int = 20) -> str:
+                    readings=CHART_READINGS, baseline: int = 20, kind: str = "cusum", rules=tuple(RULES),
+                    h: float = CUSUM_H) -> str:
     """The lot report page (see the module docstring) of the selection."""
     yields = views.yield_table(db, lot, wafer)
     if not yields:
@@ -196,9 +229,14 @@ def lot_report_html(db: ResultsDB, lot: str | None = None, wafer: str | None = N
     out.append("<h2>Repeating defects</h2>")
     out.append("<ul>" + "".join(f"<li>{_esc(d.sentence())}</li>" for d in repeats) + "</ul>" if repeats else
                "<p>No lens is flagged in more arrays than chance explains.</p>")
-    out.append('<h2>Control charts</h2><div class="plots">')
+    out.append("<h2>Control charts</h2><p>" + (
+        f"Self-starting CUSUM: each array judged against the mean and spread of every array before it (the first "
+        f"{baseline} not judged), out of control while a sum of its scores passes h = {h:g} sigma, or beyond "
+        f"{JUMP_Z:g} sigma on its own." if kind == "cusum" else
+        f"Individuals chart, limits from the first {baseline} arrays, run rules {', '.join(map(str, rules))}.")
+        + '</p><div class="plots">')
     for reading in readings:
-        chart = lot_chart(db, reading, lot, wafer, baseline)
+        chart = lot_chart(db, reading, lot, wafer, baseline, rules, kind, h)
         if chart.values.size < 3:
             continue
         named = "; ".join(chart.labels[i] for i in sorted(chart.signals)) or "none"

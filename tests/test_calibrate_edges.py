@@ -1,0 +1,102 @@
+"""The array's edge lenses in calibration (mlaqc.inspection.calibrate `_edge_offsets_removed`): a lens at the
+array's edge sees its neighbours' rims on one side only, so a disc fit whose rim is not the optics' reads
+every lens of an edge line alike off its centre. Checked against the true centres of analytic frames
+(tests/analytic_frames.py: Airy rims, no code shared with the fit): the microscope fixture's sub-images
+(46.15 px, an Airy radius of 4.75 px) on a 12 x 12 array, where the two outer rings are half the lenses."""
+
+import json
+
+import numpy as np
+import pytest
+
+import analytic_frames as am
+from mlaqc.errors import InputError
+from mlaqc.inspection.calibrate import calibrate
+from mlaqc.inspection.grid import Grid, load_grid
+
+LENSES = 12
+
+
+def _frame(anomalies=(), noise=0.0):
+    model = am.AnalyticModel(shape=(620, 600), lenses=(LENSES, LENSES), pitch_px=46.154, radius_px=23.0, rim="airy",
+                             airy_radius_px=4.75, exit_pupil_px=1e12, phase_px=(0.37, 0.21), rotation_deg=0.3,
+                             anomalies=tuple(anomalies))
+    img = model.render()
+    if noise:
+        img = am.expose(img, noise, np.random.default_rng(4))
+    return model, (0.8 * img / img.max()).astype(np.float32)
+
+
+def _errors(model, grid):
+    cx, cy = model.centres()
+    ok = model.inside() & ~grid.clipped & ~grid.missing
+    m, n = np.mgrid[:LENSES, :LENSES]
+    ring = np.minimum.reduce([m, n, LENSES - 1 - m, LENSES - 1 - n])
+    return np.hypot(grid.measured_x_px - cx, grid.measured_y_px - cy), np.hypot(grid.grid_x_px - cx, grid.grid_y_px - cy), ok, ring
+
+
+@pytest.fixture(scope="module")
+def healthy():
+    model, img = _frame()
+    return model, calibrate(img, expected_pitch_px=46.154, expected_shape=(LENSES, LENSES))
+
+
+def test_edge_lenses_are_measured_as_well_as_inner_ones(healthy):
+    """Measured centres 0.004 px RMS from the truth (0.054 before: the outer ring read 0.10 px inward), the
+    corners, on two edges, within 0.03 px; the model's prediction within 0.01 px everywhere (0.07 px off at
+    the edge before: its terms took up the edge's offset)."""
+    model, grid = healthy
+    err, grid_err, ok, ring = _errors(model, grid)
+    assert ok[ring == 0].sum() >= 40
+    assert np.sqrt(np.mean(err[ok] ** 2)) < 0.01 and err[ok & (ring == 0)].max() < 0.03
+    assert grid_err[ok].max() < 0.01
+
+
+def test_the_offsets_taken_off_are_named_and_point_inward(healthy):
+    _, grid = healthy
+    offsets = {name: (n, dx, dy) for name, n, dx, dy in grid.edge_offsets}
+    assert set(offsets) >= {"ring 0 top", "ring 0 bottom", "ring 0 left", "ring 0 right"}
+    assert 0.06 < offsets["ring 0 top"][2] < 0.15 and -0.15 < offsets["ring 0 bottom"][2] < -0.06
+    assert 0.06 < offsets["ring 0 left"][1] < 0.15 and -0.15 < offsets["ring 0 right"][1] < -0.06
+    assert all(abs(dx) + abs(dy) < 0.02 for name, (_, dx, dy) in offsets.items() if name.startswith("ring 1"))
+
+
+@pytest.mark.parametrize("row, col", [(0, 5), (6, 11), (1, 4)])
+def test_a_lens_own_shift_stays(row, col):
+    """An edge lens moved 0.4 px keeps its move: the offset taken off is its line's, not its own. Its own
+    read-off changes with its gap to its neighbours (moved 0.2 px outward, the outer ring's lens read 0.043 px
+    inward before, not 0.1), so it keeps an error of about half its line's offset; an inner lens none."""
+    model, img = _frame([am.Anomaly(row, col, "shift", 0.4, 30.0)], noise=0.01)
+    grid = calibrate(img, expected_pitch_px=46.154, expected_shape=(LENSES, LENSES))
+    err, _, ok, _ = _errors(model, grid)
+    assert err[row, col] < (0.07 if min(row, col, LENSES - 1 - row, LENSES - 1 - col) == 0 else 0.01)
+    assert np.hypot(grid.residual_x_px[row, col], grid.residual_y_px[row, col]) == pytest.approx(0.4, abs=0.07)
+
+
+def test_edge_offsets_in_grid_json(healthy, tmp_path):
+    _, grid = healthy
+    grid.save(tmp_path / "grid.json")
+    back = load_grid(tmp_path / "grid.json")
+    assert back.edge_offsets == grid.edge_offsets
+    data = json.loads((tmp_path / "grid.json").read_text())
+    assert data["model"]["edge_offsets_px"][0].keys() == {"group", "lenses", "x", "y"}
+    del data["model"]["edge_offsets_px"]  # a grid written before them
+    assert Grid.from_json_dict(data).edge_offsets == ()
+    data["model"]["edge_offsets_px"] = [{"group": "ring 0 top", "x": 0.1}]
+    with pytest.raises(InputError, match="edge_offsets_px"):
+        Grid.from_json_dict(data)
+
+
+def test_uncorrected_centres_are_the_disc_fits(healthy, monkeypatch):
+    """`Grid.uncorrected_centres` gives back what the fit read (the assembly reading's input, as its shipped
+    calibrations were built): the same frame calibrated with no edge group large enough to be corrected."""
+    from mlaqc.inspection import calibrate as cal
+
+    model, grid = healthy
+    _, img = _frame()
+    monkeypatch.setattr(cal, "EDGE_GROUP_MIN", 10**6)
+    raw = calibrate(img, expected_pitch_px=46.154, expected_shape=(LENSES, LENSES))
+    assert raw.edge_offsets == ()
+    x, y = grid.uncorrected_centres()
+    np.testing.assert_allclose(x, raw.measured_x_px, atol=1e-9)
+    np.testing.assert_allclose(y, raw.measured_y_px, atol=1e-9)
