@@ -6,7 +6,8 @@ answer on a large store.
    (each its own transaction, committed to disk), its median against the inspection's own time.
 2. Lot queries: a store of N inspections (default 100,000: 400 lots of 250 arrays of 102 x 102 lenses, a
    master defect at one lens in 80 % of one lot's arrays, 8 random flags per array) built in bulk, then
-   each view (`yield`, `pareto`, `map`, `repeats`, `history`) timed for one lot and `yield` for all.
+   each view (`yield`, `pareto`, `map`, `repeats`, `history`, a `chart` of the grid pitch) timed for one
+   lot, and `yield` and the charts for all.
 
     python bench/resultsdb.py               # 100,000 inspections (~2 min to build the store)
     python bench/resultsdb.py --store 10000 --quick
@@ -26,6 +27,7 @@ import numpy as np
 HERE = Path(__file__).resolve().parent
 sys.path[:0] = [str(HERE.parent), str(HERE.parent / "tests")]
 
+from mlaqc.resultsdb.control import Chart, lot_chart  # noqa: E402
 from mlaqc.resultsdb import lot as views  # noqa: E402
 from mlaqc.resultsdb.record import Identity, record_from_report  # noqa: E402
 from mlaqc.resultsdb.store import open_database  # noqa: E402
@@ -98,12 +100,17 @@ def time_views(path: str) -> list[tuple[str, float, str]]:
                          ("pareto, one lot", lambda: views.pareto(db, "L0003")),
                          ("map, one lot", lambda: views.stacked_map(db, "L0003")),
                          ("repeats, one lot", lambda: views.repeating_defects(db, "L0003")),
-                         ("history, one array", lambda: views.history(db, "A017", "L0003"))):
+                         ("history, one array", lambda: views.history(db, "A017", "L0003")),
+                         ("chart (CUSUM), one lot", lambda: lot_chart(db, "pitch_x_px", "L0003")),
+                         ("chart (CUSUM), all lots", lambda: lot_chart(db, "pitch_x_px")),
+                         ("chart (I-MR), all lots", lambda: lot_chart(db, "pitch_x_px", kind="imr"))):
             fn()  # warm: the file in the page cache, scipy imported
             t0 = time.perf_counter()
             result = fn()
             dt = time.perf_counter() - t0
-            what = (f"{len(result)} rows" if isinstance(result, list) else f"{len(result[0])} lenses")
+            what = (f"{len(result)} rows" if isinstance(result, list) else
+                    f"{result.values.size} arrays, {len(result.signals)} out of control" if isinstance(result, Chart) else
+                    f"{len(result[0])} lenses")
             if name.startswith("repeats"):
                 what = "; ".join(f"U({d.m},{d.n}) {d.error_type} {d.arrays}/{d.of_arrays}" for d in result) or "none"
             out.append((name, dt, what))

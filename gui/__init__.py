@@ -2,6 +2,7 @@
 
 Modules: `commands` (the CLI entry; no Qt import until the command runs), `app` (main window and the
 wiring), `workers` (one thread per device and per kind of long job; see its docstring for the threading
-model), `panels` and `widgets` (pure widgets), `qt` (Qt import point with a guard against a PySide6 6.12
+model), `inspection_worker` and `scan_worker` (the inspection's and the scan's), `panels` and `widgets` (pure
+widgets), `qt` (Qt import point with a guard against a PySide6 6.12
 reference-count bug on Python 3.11), `screenshot` (regenerates docs/screenshot.png offscreen).
 """

@@ -1,8 +1,8 @@
 """The mlaqc QC desktop app: main window, docks, and the wiring between widgets and workers.
 
-Everything slow runs in the workers of gui.workers (one thread per device, one for inspection, one for
-file writes, one for scans); this module only connects signals (queued across threads) and updates
-widgets. See gui.workers for the threading model.
+Everything slow runs in the workers of gui.workers, gui.inspection_worker and gui.scan_worker (one thread
+per device, one for inspection, one for file writes, one for scans); this module only connects signals
+(queued across threads) and updates widgets. See gui.workers for the threading model.
 """
 
 from __future__ import annotations
@@ -22,13 +22,14 @@ from PySide6.QtWidgets import (QAbstractItemView, QApplication, QDockWidget, QFi
                                QMainWindow, QTableView, QVBoxLayout, QWidget)
 
 from gui.history import HistoryPanel
+from gui.inspection_worker import (CancelToken, FrameWorker, InspectionRequest, InspectionWorker, through_focus_label,
+                                   through_focus_summary)
 from gui.lightfield import LightFieldPanel
 from gui.panels import CameraPanel, InspectionPanel, ScanPanel, StagePanel
+from gui.scan_worker import ScanControl, ScanRequest, ScanWorker
 from gui.widgets import (MONO, DefectSortProxy, DefectTableModel, ImagePanel, LensDetail, LogView, StatusDot,
                          VerdictBanner)
-from gui.workers import (CameraWorker, CancelToken, FrameMailbox, FrameWorker, InspectionRequest, InspectionWorker,
-                         IoWorker, ScanControl, ScanRequest, ScanWorker, StageControl, StageWorker, WorkerThread,
-                         through_focus_label, through_focus_summary)
+from gui.workers import CameraWorker, FrameMailbox, IoWorker, StageControl, StageWorker, WorkerThread
 from mlaqc.errors import InputError
 
 log = logging.getLogger(__name__)
@@ -98,7 +99,7 @@ class MainWindow(QMainWindow):
         self.input: tuple[str, Any] | None = None  # ('raw', path) or ('frame', Frame)
         self.white: str | None = None
         self.darks: tuple[str, ...] = ()  # dark frames: their master dark is subtracted before inspection
-        self.tf_frames: tuple[Any, ...] = ()  # through-focus frames in use (gui.workers.TfFrame), checked
+        self.tf_frames: tuple[Any, ...] = ()  # through-focus frames in use (gui.inspection_worker.TfFrame), checked
         self.tf_pending: tuple[str, ...] | None = None  # paths chosen, being checked by the frames worker
         self.tf_job = 0
         self.frame_job = 0  # the through-focus frame asked for display

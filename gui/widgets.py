@@ -1,10 +1,11 @@
 """Widgets of the QC app: image view with overlays, verdict banner, defect table, lens detail, wafer map, log.
 
-Nothing here blocks or computes much: every widget draws data a worker prepared (gui.workers).
+Nothing here blocks or computes much: every widget draws data a worker prepared (gui.workers,
+gui.inspection_worker).
 Pixel coordinates follow the core's convention: (0, 0) is the centre of the top-left pixel, x right,
 y down; lens U(m,n) is row m from the top, column n from the left (1-based). On a hex array (even rows
 half a pitch right, mlaqc.optics.lattice) the grid overlay, the defect rings and the selection are the
-lenses' hexagonal cells, laid on the image by the worker (gui.workers.hex_overlay); circular lens
+lenses' hexagonal cells, laid on the image by the worker (gui.inspection_worker.hex_overlay); circular lens
 apertures (mla.aperture = 'circle') are drawn in the grid overlay too, so the gaps between them show.
 """
 
@@ -246,7 +247,7 @@ class ImagePanel(QWidget):
         self.vb.addItem(self.select_hex)
         lay.addWidget(self.glw, 1)
 
-        self.view: Any = None  # gui.workers.InspectionView drawn now (None: a frame without result)
+        self.view: Any = None  # gui.inspection_worker.InspectionView drawn now (None: a frame without result)
         self._grid_drawn: Any = None
         self._rings_in_px: bool | None = None
         self._ring_d = 0.0
@@ -553,7 +554,7 @@ class DefectTableModel(QAbstractTableModel):
         self.sources: dict[tuple[int, int], str] = {}
 
     def set_defects(self, defects: Any, sources: dict[tuple[int, int], str] | None = None) -> None:
-        """`sources`: which measurement flagged each lens (gui.workers.defect_sources); 'white' by default."""
+        """`sources`: which measurement flagged each lens (gui.inspection_worker.defect_sources); 'white' by default."""
         self.beginResetModel()
         self.sources = dict(sources or {})
         # default order: out of tolerance first, then most certain
@@ -608,7 +609,8 @@ class DefectTableModel(QAbstractTableModel):
         return None
 
     def source_of(self, d: Any) -> str:
-        """'white', 'white + pinholes', 'pinholes' or 'white (not covered)' (see gui.workers.defect_sources)."""
+        """'white', 'white + pinholes', 'pinholes' or 'white (not covered)' (see
+        gui.inspection_worker.defect_sources)."""
         src = self.sources.get((d.m, d.n))
         if src is None:
             src = "pinholes" if TF_SOURCE_KEY in (d.indexes or {}) else "white"

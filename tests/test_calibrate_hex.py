@@ -328,7 +328,8 @@ def test_hex_grid_json_round_trip(hex_grid, tmp_path):
     path.write_text(json.dumps(data))
     with pytest.raises(InputError, match="packing"):
         load_grid(path)
-    del data["packing"]  # a file written before hex support: square
+    del data["packing"]  # a file written before hex support (and before edge offsets): square
+    del data["model"]["edge_offsets_px"]
     path.write_text(json.dumps(data))
     assert load_grid(path).packing == "square"
 

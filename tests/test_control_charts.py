@@ -121,3 +121,54 @@ def test_cusum_of_a_reading_without_spread_calls_any_change():
     x = np.array([0.01] * 25 + [0.01000001] + [0.01] * 3)
     chart = cusum_chart(x, baseline=20)
     assert chart.sigma == 0 and chart.signals == {25: ["jump"]}
+
+
+def _rules_one_point(z, i):
+    """The Western Electric and trend rules point i breaks, written out one point at a time (the reference
+    the chart's all-points-at-once reading is checked against)."""
+    out = []
+    if abs(z[i]) > 3:
+        out.append(1)
+    for rule, (n, k, level) in ((2, (3, 2, 2.0)), (3, (5, 4, 1.0))):
+        w = z[max(0, i - n + 1): i + 1]
+        if w.size == n and any(np.count_nonzero(s * w > level) >= k and s * z[i] > level for s in (1, -1)):
+            out.append(rule)
+    w = z[max(0, i - 7): i + 1]
+    if w.size == 8 and (np.all(w > 0) or np.all(w < 0)):
+        out.append(4)
+    w = z[max(0, i - 5): i + 1]
+    if w.size == 6 and (np.all(np.diff(w) > 0) or np.all(np.diff(w) < 0)):
+        out.append(5)
+    return out
+
+
+@pytest.mark.parametrize("rules", [(1, 2, 3, 4, 5), (1, 5), (3,)])
+def test_imr_rules_read_at_once_are_the_rules_point_by_point(rules):
+    rng = np.random.default_rng(len(rules))
+    for trial in range(40):
+        x = rng.normal(0, 1, 120) + np.where(np.arange(120) > 70, 0.1 * trial * np.arange(120) / 120, 0.0)
+        chart = individuals_chart(x, baseline=20, rules=rules)
+        z = (x - chart.centre) / chart.sigma
+        expected = {i: [r for r in _rules_one_point(z, i) if r in rules] for i in range(20, 120)}
+        assert chart.signals == {i: r for i, r in expected.items() if r}
+
+
+def test_one_wild_array_is_a_jump_not_a_lasting_rise():
+    """A reading misread by 10,000 sigma (its t tail underflows) is called at once as a jump; its score
+    enters the sums clipped to the jump limit, so the in-control arrays after it are not called a sustained
+    rise (unclipped, every later array was), and every sum stays finite."""
+    rng = np.random.default_rng(9)
+    x = rng.normal(0, 1, 300)
+    x[100] = 1e4
+    chart = cusum_chart(x, baseline=20)
+    assert "jump" in chart.signals[100] and np.isfinite(chart.cusum).all()
+    assert not [i for i, r in chart.signals.items() if "rise" in r and 100 < i < 130]
+
+
+@pytest.mark.parametrize("bad", [np.nan, np.inf])
+def test_a_value_that_is_not_a_number_is_refused_by_name(bad):
+    x = np.zeros(40) + np.random.default_rng(1).normal(0, 1, 40)
+    x[30] = bad
+    for chart in (cusum_chart, individuals_chart):
+        with pytest.raises(ValueError, match="value #31"):
+            chart(x)

@@ -34,7 +34,7 @@ from test_hex_report import (  # noqa: E402
 )
 
 from gui.app import MainWindow  # noqa: E402
-from gui.workers import build_view  # noqa: E402
+from gui.inspection_worker import build_view  # noqa: E402
 from mlaqc.inspection.results import Defect  # noqa: E402
 from mlaqc.optics.config import load_config  # noqa: E402
 

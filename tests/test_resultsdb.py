@@ -407,7 +407,11 @@ def test_lot_chart_names_the_arrays_of_a_drift(target, capsys):
     assert main(["lot", "chart", "--db", target, "--chart", "imr", "--rules", "7"]) == 2
     assert main(["lot", "chart", "--db", target, "--rules", "1,5"]) == 2  # run rules belong to the I-MR chart
     assert main(["lot", "chart", "--db", target, "--cusum-h", "0"]) == 2
-    assert "--rules chooses the run rules" in capsys.readouterr().err
+    assert main(["lot", "chart", "--db", target, "--chart", "imr", "--rules", ""]) == 2
+    assert main(["lot", "chart", "--db", target, "--chart", "imr", "--cusum-h", "5"]) == 2
+    err = capsys.readouterr().err
+    assert "--rules chooses the run rules" in err and "--cusum-h is the CUSUM chart's" in err
+    assert main(["lot", "yield", "--db", target, "--lot", "L5", "--rules", "1"]) == 0  # (not a chart: not read)
 
 
 @pytest.mark.timeout(300)

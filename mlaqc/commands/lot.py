@@ -42,7 +42,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--baseline", type=int, default=20, metavar="N",
                    help="chart: the first N arrays are the process known good, not judged (imr: its limits come "
                         "from them; default 20)")
-    p.add_argument("--cusum-h", type=float, default=CUSUM_H, metavar="H",
+    p.add_argument("--cusum-h", type=float, metavar="H",
                    help=f"chart cusum: the decision interval in sigmas (default {CUSUM_H:g}; 5: a false call in ~460 "
                         "arrays, drifts called about one array sooner)")
     p.add_argument("--rules", help="chart imr: the run rules judged (default all: 1,2,3,4,5)")
@@ -60,12 +60,16 @@ def run(args: argparse.Namespace) -> int:
         raise InputError("`mlaqc lot history` needs --array (the array's serial or position)")
     if args.view == "report" and not args.out:
         raise InputError("`mlaqc lot report` needs --out FILE.html")
-    if args.rules is not None and args.chart != "imr":
+    charted = args.view in ("chart", "report")
+    if charted and args.rules is not None and args.chart != "imr":
         raise InputError("--rules chooses the run rules of `--chart imr`; the CUSUM chart has none")
-    rules = _rules(args.rules or "1,2,3,4,5")
+    if charted and args.cusum_h is not None and args.chart != "cusum":
+        raise InputError("--cusum-h is the CUSUM chart's decision interval; `--chart imr` has none")
+    rules = _rules(args.rules if args.rules is not None else "1,2,3,4,5")
     if args.baseline < 2:
         raise InputError(f"--baseline must be at least 2 arrays, got {args.baseline}")
-    if not (math.isfinite(args.cusum_h) and args.cusum_h > 0):
+    h = CUSUM_H if args.cusum_h is None else args.cusum_h
+    if not (math.isfinite(h) and h > 0):
         raise InputError(f"--cusum-h must be a positive number of sigmas, got {args.cusum_h}")
     with open_database(args.db, create=False) as db:
         if args.view == "yield":
@@ -88,7 +92,7 @@ def run(args: argparse.Namespace) -> int:
         elif args.view == "chart":
             from mlaqc.resultsdb.control import lot_chart
 
-            chart = lot_chart(db, args.reading, args.lot, args.wafer, args.baseline, rules, args.chart, args.cusum_h)
+            chart = lot_chart(db, args.reading, args.lot, args.wafer, args.baseline, rules, args.chart, h)
             data = {"reading": args.reading, "chart": chart.kind, "centre": chart.centre, "sigma": chart.sigma,
                     "baseline": chart.baseline, "arrays": chart.labels, "values": chart.values.tolist(),
                     "out_of_control": {chart.labels[i]: r for i, r in chart.signals.items()}}
@@ -105,7 +109,7 @@ def run(args: argparse.Namespace) -> int:
             if not out.parent.is_dir():
                 raise InputError(f"cannot write the lot report: folder {out.parent} does not exist")
             page = lot_report_html(db, args.lot, args.wafer, baseline=args.baseline, kind=args.chart,
-                                   rules=rules, h=args.cusum_h).encode()
+                                   rules=rules, h=h).encode()
             try:
                 write_bytes_atomic(out, page)
             except OSError as exc:

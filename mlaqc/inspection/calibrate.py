@@ -24,7 +24,8 @@ Pipeline (DESIGN.md §6), vectorized over all lenses at once (no per-lens Python
    Lenses predicted by the model but dark or dim are reported in `missing`, never an error.
 5. Edge lenses: each edge group's common offset from the model (the outer two rings by side: a lens there
    sees its neighbours' rims on one side only, which biases the disc fit alike along the side) is taken
-   off its lenses' measured centres and kept in `Grid.edge_offsets` (`_edge_offsets_removed`).
+   off its line's measured centres and kept in `Grid.edge_offsets` (`_edge_offsets_removed`); the model
+   and the offsets are fitted in turn until the offsets settle.
    The grid, its model map and its file grid.json: mlaqc.inspection.grid.
 
 Measured on the Table 1 camera (50 rays/pixel, noise on): per-lens centres 0.029 px RMS (0.021 px per
@@ -54,7 +55,8 @@ MISSING_RELATIVE_FLUX = 0.3  # a lens under 30 % of its neighbourhood's amplitud
 # light at the cell corners above this fraction of the sub-images' is a background: less pulls the centres by
 # under 0.01 px even with strong vignetting, and blurred or Airy rims alone reach 5 - 12 % there (measured)
 EDGE_GROUP_MIN = 5  # wholly seen lenses an edge group needs for its common offset to be read (a median)
-EDGE_REFIT_MIN = 36  # lenses off the edge lines the model needs to be fitted on them alone
+EDGE_ROUNDS = 12  # model fits at most, each followed by the edge lines' offsets read against it
+EDGE_SETTLED_PX = 1e-4  # ... until no offset changes by more than this
 BACKGROUND_MIN = 0.15
 BACKGROUND_DEGREE = 4  # of the polynomial surface fitted to it
 
@@ -304,21 +306,20 @@ def _assemble(shape, lattice, lat_j, lat_i, discs: _Discs, active, expected_shap
     centre = (0.5 * (w - 1), 0.5 * (h - 1))
     # lenses whose predicted window leaves the frame entirely were never candidates: clipped + missing
     clipped = (vfrac < 1.0) | ~np.isfinite(vfrac)
-    hom, k, scale, used, rms = _fit_model(uu[found_w], vv[found_w], mx[found_w], my[found_w], centre,
-                                          lattice, (r0 + i0, c0 + j0), (rows, cols), span)
-    edges = _edge_lines(found_w & ~clipped, lattice.packing)
-    inner = found_w & ~edges
-    if edges.any() and np.count_nonzero(inner) >= EDGE_REFIT_MIN:
-        # the model again on the lenses with their whole neighbourhood: an edge line's lenses are read alike
-        # off their centres, and on a small array (a 12 x 12's two outer rings are half its lenses) the
-        # model's terms took up part of that
-        hom, k, scale, used_inner, rms = _fit_model(uu[inner], vv[inner], mx[inner], my[inner], centre, lattice,
-                                                    (r0 + i0, c0 + j0), (rows, cols), span)
-        used = np.zeros(found_w.shape, bool)
-        used[inner] = used_inner
-        used = used[found_w]
-    gx, gy = _model_xy(hom, k, centre, scale, uu, vv)
-    mx, my, edge_offsets = _edge_offsets_removed(mx, my, gx, gy, found_w & ~clipped, lattice.packing)
+    # the model and the edge lines' offsets (least squares together): the model fitted to the centres less
+    # the offsets, the offsets read against the model, in turn until they settle (on a 12 x 12 array, where
+    # the two outer rings are half the lenses, the model's terms otherwise took up part of the offsets)
+    raw_x, raw_y, seen = mx, my, found_w & ~clipped
+    edge_offsets, before = (), None
+    for _ in range(EDGE_ROUNDS):
+        hom, k, scale, _, rms = _fit_model(uu[found_w], vv[found_w], mx[found_w], my[found_w], centre, lattice,
+                                           (r0 + i0, c0 + j0), (rows, cols), span)
+        gx, gy = _model_xy(hom, k, centre, scale, uu, vv)
+        mx, my, edge_offsets = _edge_offsets_removed(raw_x, raw_y, gx, gy, seen, lattice.packing)
+        now = np.array([dx + dy for _, _, dx, dy in edge_offsets])
+        if before is not None and np.max(np.abs(now - before), initial=0.0) < EDGE_SETTLED_PX:
+            break
+        before = now
     jac = _local_jacobian(hom, k, centre, scale, 0.5 * span[0], 0.5 * span[1])
     pitch_x, pitch_y = float(np.hypot(*jac[:, 0])), float(np.hypot(*jac[:, 1]))
     rotation = math.degrees(math.atan2(-jac[1, 0], jac[0, 0]))
@@ -333,18 +334,6 @@ def _assemble(shape, lattice, lat_j, lat_i, discs: _Discs, active, expected_shap
         missing=~found_w, clipped=clipped, rms_residual_px=float(rms), packing=lattice.packing,
         edge_offsets=edge_offsets,
     )
-
-
-def _edge_lines(seen, packing):
-    """The lenses on the lines of the edge groups that have EDGE_GROUP_MIN wholly seen lenses: those
-    `_edge_offsets_removed` reads an offset for."""
-    from mlaqc.inspection.lens_classes import edge_group_lines, edge_groups
-
-    out = np.zeros(seen.shape, bool)
-    for (_, _, line), group in zip(edge_group_lines(seen.shape, packing), edge_groups(seen.shape, packing)):
-        if np.count_nonzero(group & seen) >= EDGE_GROUP_MIN:
-            out |= line
-    return out
 
 
 def _edge_offsets_removed(mx, my, gx, gy, seen, packing):
@@ -365,9 +354,9 @@ def _edge_offsets_removed(mx, my, gx, gy, seen, packing):
         n = int(np.count_nonzero(use))
         if n < EDGE_GROUP_MIN:
             continue
-        offset = float(np.median((mx - gx, my - gy)[axis][use]))
-        shift[axis][line] = offset
-        removed.append((name, n, round(offset, 6) if axis == 0 else 0.0, round(offset, 6) if axis == 1 else 0.0))
+        offset = round(float(np.median((mx - gx, my - gy)[axis][use])), 6)  # as grid.json keeps it
+        shift[axis][line] += offset
+        removed.append((name, n, offset if axis == 0 else 0.0, offset if axis == 1 else 0.0))
     return mx - shift[0], my - shift[1], tuple(removed)
 
 

@@ -95,10 +95,9 @@ class Grid:
 
         x, y = np.array(self.measured_x_px, float), np.array(self.measured_y_px, float)
         lines = {name: (axis, line) for name, axis, line in edge_group_lines(self.shape, self.packing)}
-        for name, _, dx, dy in self.edge_offsets:
-            if name in lines:
-                axis, line = lines[name]
-                (x if axis == 0 else y)[line] += dx if axis == 0 else dy
+        for name, _, dx, dy in self.edge_offsets:  # (names checked when the grid was built or read)
+            axis, line = lines[name]
+            (x if axis == 0 else y)[line] += dx if axis == 0 else dy
         return x, y
 
     @property
@@ -236,20 +235,35 @@ class Grid:
             m, n = (int(v) + 1 for v in np.argwhere(lost)[0])
             raise InputError(f"{source}: lens U({m},{n}) is not marked missing but has no measured centre")
         return cls(rows=rows, cols=cols, homography=hom, image_shape=(height, width), **head, **arrays, **flags,
-                   packing=packing, edge_offsets=_edge_offsets(model.get("edge_offsets_px", []), source))
+                   packing=packing,
+                   edge_offsets=_edge_offsets(model.get("edge_offsets_px", []), source, (rows, cols), packing))
 
     def save(self, path: str | Path) -> None:
         """Write grid.json atomically (a reader never sees half a file)."""
         write_json_atomic(path, self.to_json_dict())
 
 
-def _edge_offsets(entries: Any, source: str) -> tuple[tuple[str, int, float, float], ...]:
-    """The model's "edge_offsets_px" (absent in grids written before them: none)."""
+def _edge_offsets(entries: Any, source: str, shape: tuple[int, int], packing: str) -> tuple[tuple[str, int, float, float], ...]:
+    """The model's "edge_offsets_px" (absent in grids written before them: none): each an edge group of this
+    array's (`edge_group_lines`), once, its offset along the normal to its side only."""
+    from mlaqc.inspection.lens_classes import edge_group_lines
+
+    axes = {name: axis for name, axis, _ in edge_group_lines(shape, packing)}
     try:
-        return tuple((str(e["group"]), _pos_int(e["lenses"]), _num(e["x"]), _num(e["y"])) for e in entries)
+        out = tuple((e["group"], _pos_int(e["lenses"]), _num(e["x"]), _num(e["y"])) for e in entries)
     except (KeyError, TypeError, ValueError) as exc:
         raise InputError(f"{source}: model.edge_offsets_px must list objects with group, lenses, x and y "
                          f"({_describe(exc)})") from None
+    seen = set()
+    for name, _, dx, dy in out:
+        if not isinstance(name, str) or name not in axes or name in seen:
+            raise InputError(f"{source}: model.edge_offsets_px names {name!r}, which is not an edge group of a "
+                             f"{shape[0]}x{shape[1]} {packing} array or is listed twice")
+        if (dy if axes[name] == 0 else dx) != 0:
+            raise InputError(f"{source}: model.edge_offsets_px group {name!r} has an offset along its side; "
+                             "only the normal to the side is read")
+        seen.add(name)
+    return out
 
 
 _MODEL_LATTICE = {  # the design coordinates (u, v) of U(m,n) the model maps (mlaqc.optics.lattice.Lattice.uv)

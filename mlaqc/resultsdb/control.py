@@ -9,7 +9,8 @@ Two charts, each naming the arrays out of control:
   short its history: the chart's false-call rate is its design's, not the luck of a short baseline. The
   scores are summed both ways, S = max(0, S + U - k), k = 0.5 (tuned to a shift of one sigma); an array is
   out of control while either sum is beyond h = 6 (a sustained rise or fall), or when its own score is
-  beyond 4 (a jump). In-control, the first false call comes after a mean of about 1,200 arrays (4 % of
+  beyond 4 (a jump; a lone one stays out of the sums, Lucas and Crosier's robust CUSUM, so one misread
+  array does not call the ones after it). In-control, the first false call comes after a mean of about 1,200 arrays (4 % of
   series call one within 49 arrays); a drift of a quarter sigma per array is called after a median of 9
   arrays, one of a sigma per array after 4 (tests/test_control_charts.py measures all three). After the
   first call the estimates stop learning: the arrays after it are judged against the process as it was.
@@ -91,12 +92,13 @@ class Chart:
     def summary(self, reading: str) -> str:
         """One line: what the chart is, its centre and sigma, how many arrays are out of control."""
         n, base = len(self.values), self.baseline
-        if not self.sigma > 0:
+        if n <= base:
+            how = f"{n} arrays: none judged after the first {base}"
+        elif not self.sigma > 0:
             how = f"no spread over the first {base}: any change is out of control"
         elif self.kind == "cusum":
-            how = (f"self-starting CUSUM (k {CUSUM_K:g}, h {self.h:g} sigma), the first {base} not judged; centre and "
-                   "sigma of the arrays before the first call" if self.signals else
-                   f"self-starting CUSUM (k {CUSUM_K:g}, h {self.h:g} sigma), the first {base} not judged")
+            how = (f"self-starting CUSUM (k {CUSUM_K:g}, h {self.h:g} sigma), the first {base} not judged"
+                   + ("; centre and sigma of the arrays before the first call" if self.signals else ""))
         else:
             how = f"I-MR, limits from the first {base}"
         return (f"{reading}: {n} arrays, centre {self.centre:.6g}, sigma {self.sigma:.3g} ({how}); "
@@ -119,6 +121,8 @@ class Chart:
 def make_chart(values, labels=None, baseline: int = 20, kind: str = "cusum", rules=tuple(RULES),
                h: float = CUSUM_H) -> Chart:
     """The chart of `kind` ('cusum' or 'imr', CHARTS) of `values` in production order."""
+    if kind not in CHARTS:
+        raise ValueError(f"chart kind must be one of {CHARTS}, not {kind!r}")
     if kind == "cusum":
         return cusum_chart(values, labels, baseline, h=h)
     return individuals_chart(values, labels, baseline, rules)
@@ -128,32 +132,43 @@ def cusum_chart(values, labels=None, baseline: int = 20, k: float = CUSUM_K, h: 
                 jump: float = JUMP_Z) -> Chart:
     """The self-starting CUSUM chart of `values` (in production order; see the module note): the first
     `baseline` of them not judged, every later one against all before it until the first call, and against
-    the arrays before that call after it."""
-    x = np.asarray(values, float)
+    the arrays before that call after it. A score beyond ±`jump` is a jump; it enters the sums (clipped to
+    ±`jump`) only when the one before it went beyond on the same side too (Lucas and Crosier's robust
+    CUSUM): one wild array (a misread, a broken part) is not a sustained rise for the arrays after it."""
+    x = _finite(values)
     labels = list(labels) if labels is not None else [f"#{i + 1}" for i in range(x.size)]
     nb = max(2, min(baseline, x.size))
     if x.size < 3 or not np.ptp(x[:nb]) > 0:
         return _without_spread(x, labels, nb)
-    u, centre_at, sigma_at = _scores(x, np.arange(x.size))
+    ref = float(np.median(x[:nb]))  # centred first: pitches of 20 px vary by 1e-5
+    u, centre_at, sigma_at = _scores(x - ref, np.arange(x.size))
     sums, signals = _cusum(u, nb, k, h, jump)
     if signals and min(signals) + 1 < x.size:  # the process moved: judge what follows against what it was
         first = min(signals)
         known = np.minimum(np.arange(x.size), first)  # the arrays each is judged against: those before `first`
-        u, centre_at, sigma_at = _scores(x, known)
+        u, centre_at, sigma_at = _scores(x - ref, known)
         sums, signals = _cusum(u, nb, k, h, jump)
     before = x[: min(signals)] if signals else x
-    chart = Chart(x, labels, float(np.mean(before)), float(np.std(before, ddof=1)), nb, signals, "cusum",
-                  centre_at, sigma_at, sums, h)
-    return chart
+    return Chart(x, labels, float(np.mean(before)), float(np.std(before, ddof=1)), nb, signals, "cusum",
+                 centre_at + ref, sigma_at, sums, h)
 
 
-def _scores(x: np.ndarray, known: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def _finite(values) -> np.ndarray:
+    """`values` as floats; ValueError naming the first that is not a finite number (the charts' sums and
+    means would carry it to every array after it)."""
+    x = np.asarray(values, float)
+    bad = np.flatnonzero(~np.isfinite(x))
+    if bad.size:
+        raise ValueError(f"value #{bad[0] + 1} ({x[bad[0]]}) is not a finite number: a chart cannot judge it")
+    return x
+
+
+def _scores(d: np.ndarray, known: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Each value's normal score against the first known[i] values (their mean and standard deviation,
-    Student's t with known[i] - 1 degrees of freedom), with that mean and deviation; NaN where known[i] < 2."""
+    Student's t with known[i] - 1 degrees of freedom), with that mean and deviation; NaN where known[i] < 2.
+    `d`: the values less a typical one (the sums of squares keep their precision)."""
     from scipy.special import ndtri, stdtr
 
-    ref = float(np.median(x[: max(int(known.max()), 1)]))  # centred first: pitches of 20 px vary by 1e-5
-    d = x - ref
     s1 = np.concatenate([[0.0], np.cumsum(d)])[known]
     s2 = np.concatenate([[0.0], np.cumsum(d * d)])[known]
     n = known.astype(float)
@@ -163,8 +178,9 @@ def _scores(x: np.ndarray, known: np.ndarray) -> tuple[np.ndarray, np.ndarray, n
         t = (d - mean) / sd * np.sqrt(n / (n + 1))
         ok = (known >= 2) & (sd > 0) & np.isfinite(t)
         tail = stdtr(np.where(ok, n - 1, 1.0), -np.abs(np.where(ok, t, 0.0)))  # the far tail: exact in both
+        tail = np.maximum(tail, np.finfo(float).tiny)  # beyond it (~38 sigma) the score stays finite
         u = np.where(ok, -np.sign(t) * ndtri(tail), np.nan)
-    return u, np.where(ok, mean + ref, np.nan), np.where(ok, sd, np.nan)
+    return u, np.where(ok, mean, np.nan), np.where(ok, sd, np.nan)
 
 
 def _cusum(u: np.ndarray, start: int, k: float, h: float, jump: float) -> tuple[np.ndarray, dict[int, list]]:
@@ -174,11 +190,14 @@ def _cusum(u: np.ndarray, start: int, k: float, h: float, jump: float) -> tuple[
     signals: dict[int, list] = {}
     hi = lo = 0.0
     scores = u.tolist()  # (Python floats: the recursion is sequential, 10^5 arrays in a tenth of a second)
+    beyond = 0  # the side the previous score went beyond `jump` on (0: it did not)
     for i in range(start, u.size):
         ui = scores[i]
-        if ui != ui:  # NaN: no score
-            continue
-        hi, lo = max(0.0, hi + ui - k), max(0.0, lo - ui - k)
+        side = (ui > jump) - (ui < -jump)
+        if side == 0 or side == beyond:  # a lone wild score stays out of the sums; a second in a row is a shift
+            clipped = min(max(ui, -jump), jump)
+            hi, lo = max(0.0, hi + clipped - k), max(0.0, lo - clipped - k)
+        beyond = side
         his[i], los[i] = hi, lo
         if hi > h or lo > h or abs(ui) > jump:
             signals[i] = [name for name, out in (("rise", hi > h), ("fall", lo > h), ("jump", abs(ui) > jump)) if out]
@@ -199,7 +218,7 @@ def _without_spread(x: np.ndarray, labels: list[str], nb: int, kind: str = "cusu
 def individuals_chart(values, labels=None, baseline: int = 20, rules=tuple(RULES)) -> Chart:
     """The I-MR chart of `values` (in production order), its limits from the first `baseline` of them,
     judged by `rules` (keys of RULES)."""
-    x = np.asarray(values, float)
+    x = _finite(values)
     labels = list(labels) if labels is not None else [f"#{i + 1}" for i in range(x.size)]
     base = x[: max(2, min(baseline, x.size))]
     centre = float(np.mean(base)) if base.size else math.nan
@@ -211,29 +230,34 @@ def individuals_chart(values, labels=None, baseline: int = 20, rules=tuple(RULES
             chart.signals.clear()
         return chart
     chart = Chart(x, labels, centre, sigma, base.size)
-    z = (x - centre) / sigma
-    for i in range(base.size, x.size):
-        broken = [r for r in _rules(z, i) if r in rules]
-        if broken:
-            chart.signals[i] = broken
+    broken = _rules((x - centre) / sigma)  # (5, n): rule r broken at point i, reading points up to i
+    use = np.array([r in rules for r in RULES])
+    for i in np.flatnonzero(broken[use].any(axis=0)):
+        if i >= base.size:
+            chart.signals[int(i)] = [r for r, hit in zip(RULES, broken[:, i]) if hit and r in rules]
     return chart
 
 
-def _rules(z: np.ndarray, i: int) -> list[int]:
-    """The run rules point i breaks (only points up to i are read)."""
-    out = []
-    if abs(z[i]) > 3:
-        out.append(1)
-    for rule, (n, k, level) in ((2, (3, 2, 2.0)), (3, (5, 4, 1.0))):
-        w = z[max(0, i - n + 1): i + 1]
-        if w.size == n and any(np.count_nonzero(s * w > level) >= k and s * z[i] > level for s in (1, -1)):
-            out.append(rule)
-    w = z[max(0, i - 7): i + 1]
-    if w.size == 8 and (np.all(w > 0) or np.all(w < 0)):
-        out.append(4)
-    w = z[max(0, i - 5): i + 1]
-    if w.size == 6 and (np.all(np.diff(w) > 0) or np.all(np.diff(w) < 0)):
-        out.append(5)
+def _rules(z: np.ndarray) -> np.ndarray:
+    """(5, n) bool: the run rules (RULES' order) each point breaks, read on the points up to it (a window
+    that would reach before the first point breaks nothing), all points at once."""
+    n = z.size
+    out = np.zeros((5, n), bool)
+    out[0] = np.abs(z) > 3
+
+    def windows(size):  # (n, size): the `size` points ending at each point, NaN-padded before the first
+        padded = np.concatenate([np.full(size - 1, np.nan), z])
+        return np.lib.stride_tricks.sliding_window_view(padded, size)
+
+    for row, (size, k, level) in ((1, (3, 2, 2.0)), (2, (5, 4, 1.0))):
+        w = windows(size)
+        full = ~np.isnan(w).any(axis=1)
+        for sign in (1, -1):
+            out[row] |= full & (np.count_nonzero(sign * w > level, axis=1) >= k) & (sign * z > level)
+    w = windows(8)
+    out[3] = ~np.isnan(w).any(axis=1) & (np.all(w > 0, axis=1) | np.all(w < 0, axis=1))
+    d = np.diff(windows(6), axis=1)
+    out[4] = ~np.isnan(d).any(axis=1) & (np.all(d > 0, axis=1) | np.all(d < 0, axis=1))
     return out
 
 
@@ -250,5 +274,6 @@ def lot_chart(db, reading: str, lot: str | None = None, wafer: str | None = None
     latest, params = latest_selection(lot, wafer)
     rows = db.query(f"SELECT {reading}, lot, wafer, COALESCE(array_id, position, source) FROM inspections "
                     f"WHERE id IN ({latest}) AND {reading} IS NOT NULL ORDER BY inspected_utc, recorded_utc, id", params)
+    rows = [r for r in rows if math.isfinite(float(r[0]))]  # (a reading stored as infinity: not charted)
     return make_chart([float(r[0]) for r in rows], [f"{r[1] or '-'}/{r[2] or '-'}/{r[3]}" for r in rows],
                       baseline, kind, rules, h)

@@ -110,9 +110,9 @@ def _pareto_svg(pareto: list[dict]) -> str:
 
 
 def _chart_svg(chart: Chart, reading: str) -> str:
-    """A control chart: the values with the centre line and 3-sigma limits they were judged against (the
-    baseline shaded, the points out of control in red); a CUSUM chart adds its two sums under them, with
-    the decision interval h."""
+    """A control chart: the values with the centre line they were judged against and its limits (I-MR: 3
+    sigma; CUSUM: the jump rule's 4 sigma of the arrays before each), the baseline shaded, the points out of
+    control in red; a CUSUM chart adds its two sums under them, with the decision interval h."""
     w, pad = 560, 30
     cusum = chart.kind == "cusum" and chart.cusum is not None
     h_top = 220
@@ -123,8 +123,9 @@ def _chart_svg(chart: Chart, reading: str) -> str:
     sigma = chart.sigma_at if cusum else np.full(v.size, chart.sigma)
     centre = np.where(np.isfinite(centre), centre, chart.centre)
     sigma = np.where(np.isfinite(sigma), sigma, chart.sigma)
-    lo = min(float(v.min()), float(np.min(centre - 3.5 * sigma)))
-    hi = max(float(v.max()), float(np.max(centre + 3.5 * sigma)))
+    limit = JUMP_Z if cusum else 3.0
+    lo = min(float(v.min()), float(np.min(centre - (limit + 0.5) * sigma)))
+    hi = max(float(v.max()), float(np.max(centre + (limit + 0.5) * sigma)))
     span = hi - lo or max(abs(hi), 1.0)  # a reading without spread: drawn on a line at mid height
     lo -= 0.5 * span if hi == lo else 0.0
 
@@ -141,7 +142,8 @@ def _chart_svg(chart: Chart, reading: str) -> str:
 
     parts = [f'<rect x="{pad}" y="{pad}" width="{x(chart.baseline - 1) - pad:.1f}" height="{h_top - 2 * pad}" '
              'fill="#eaeef2"><title>baseline: the process known good, not judged</title></rect>',
-             line(centre, "#24292f"), line(centre + 3 * sigma, "#cf222e", "4 3"), line(centre - 3 * sigma, "#cf222e", "4 3")]
+             line(centre, "#24292f"), line(centre + limit * sigma, "#cf222e", "4 3"),
+             line(centre - limit * sigma, "#cf222e", "4 3")]
     parts.append('<polyline points="' + " ".join(f"{x(i):.1f},{y(val):.1f}" for i, val in enumerate(v))
                  + '" fill="none" stroke="#0969da" stroke-width="1.2"/>')
     for i, val in enumerate(v):
@@ -159,7 +161,7 @@ def _chart_svg(chart: Chart, reading: str) -> str:
 def _cusum_panel(chart: Chart, x, top: float, pad: float) -> str:
     """The upper (red) and lower (blue) CUSUMs under a chart, in sigmas, with the decision interval h."""
     height = 100
-    peak = max(float(chart.cusum.max()), chart.h) * 1.1
+    peak = max(float(chart.cusum.max()), chart.h, 1e-9) * 1.1
 
     def y(val):
         return top + height - (height - 10) * val / peak
