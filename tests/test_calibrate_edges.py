@@ -42,14 +42,14 @@ def healthy():
 
 
 def test_edge_lenses_are_measured_as_well_as_inner_ones(healthy):
-    """Measured centres 0.006 px RMS from the truth (0.054 before: the outer ring read 0.10 px inward), the
-    outer ring's within 0.04 px; the model's prediction within 0.025 px everywhere (0.13 px off at the edge
+    """Measured centres 0.005 px RMS from the truth (0.054 before: the outer ring read 0.10 px inward), the
+    outer ring's within 0.04 px; the model's prediction within 0.01 px everywhere (0.13 px off at the edge
     before: its terms took up part of the edge's offset)."""
     model, grid = healthy
     err, grid_err, ok, ring = _errors(model, grid)
     assert ok[ring == 0].sum() >= 40
     assert np.sqrt(np.mean(err[ok] ** 2)) < 0.01 and err[ok & (ring == 0)].max() < 0.04
-    assert grid_err[ok].max() < 0.025
+    assert grid_err[ok].max() < 0.015
 
 
 def test_the_offsets_taken_off_are_named_and_point_inward(healthy):
@@ -58,7 +58,7 @@ def test_the_offsets_taken_off_are_named_and_point_inward(healthy):
     assert set(offsets) >= {"ring 0 top", "ring 0 bottom", "ring 0 left", "ring 0 right"}
     assert 0.06 < offsets["ring 0 top"][2] < 0.15 and -0.15 < offsets["ring 0 bottom"][2] < -0.06
     assert 0.06 < offsets["ring 0 left"][1] < 0.15 and -0.15 < offsets["ring 0 right"][1] < -0.06
-    assert all(abs(dx) + abs(dy) < 0.02 for name, (_, dx, dy) in offsets.items() if name.startswith("ring 1"))
+    assert not [name for name in offsets if not name.startswith("ring 0")]  # the outer ring's lines only
 
 
 @pytest.mark.parametrize("row, col", [(0, 5), (6, 11), (1, 4)])
@@ -108,8 +108,9 @@ def test_uncorrected_centres_are_the_disc_fits(healthy, monkeypatch):
 
 def test_a_hex_arrays_edges_and_row_ends():
     """Hex (16 x 14, the row ends that stick out a group of their own, which read more of their neighbours'
-    rims): the centres' RMS under half what the fit read (0.011 against 0.029 px), each outer line's offset
-    pointing inward, the model within 0.03 px."""
+    rims): the centres' RMS down from what the fit read (0.021 against 0.029 px: the second ring's own
+    offset, 0.03 px outward here, is not taken off), each outer line's offset pointing inward, the model
+    within 0.06 px (0.03 before: its terms rest on the lines inside the outer ones)."""
     model = am.AnalyticModel(shape=(720, 720), lenses=(16, 14), pitch_px=46.154, radius_px=23.0, rim="airy",
                              airy_radius_px=4.75, exit_pupil_px=1e12, phase_px=(0.37, 0.21), rotation_deg=0.3,
                              packing="hex")
@@ -121,10 +122,27 @@ def test_a_hex_arrays_edges_and_row_ends():
     raw_x, raw_y = grid.uncorrected_centres()
     rms = np.sqrt(np.mean(((grid.measured_x_px - cx) ** 2 + (grid.measured_y_px - cy) ** 2)[ok]))
     raw = np.sqrt(np.mean(((raw_x - cx) ** 2 + (raw_y - cy) ** 2)[ok]))
-    assert rms < 0.5 * raw and rms < 0.015, (rms, raw)
-    assert np.hypot(grid.grid_x_px - cx, grid.grid_y_px - cy)[ok].max() < 0.03
+    assert rms < 0.8 * raw, (rms, raw)
+    assert np.hypot(grid.grid_x_px - cx, grid.grid_y_px - cy)[ok].max() < 0.06
     offsets = {name: (dx, dy) for name, _, dx, dy in grid.edge_offsets}
     assert {"ring 0 left, row ends that stick out", "ring 0 left"} <= set(offsets)
-    assert offsets["ring 0 top"][1] > 0.05 and offsets["ring 0 bottom"][1] < -0.05
-    assert offsets["ring 0 left, row ends that stick out"][0] > offsets["ring 0 left"][0] > 0  # (0.041, 0.012)
+    assert not [name for name in offsets if not name.startswith("ring 0")]
+    assert offsets["ring 0 top"][1] > 0.03 and offsets["ring 0 bottom"][1] < -0.03
+    assert offsets["ring 0 left, row ends that stick out"][0] > offsets["ring 0 left"][0] > 0
     assert offsets["ring 0 right, row ends that stick out"][0] < offsets["ring 0 right"][0] < 0
+
+
+@pytest.mark.parametrize("side", [7, 8])
+def test_the_smallest_arrays_settle(side, caplog):
+    """7 x 7 and 8 x 8: the model and the outer lines' offsets settle (in 15 and 13 fits), centres 0.008 px
+    RMS against 0.046 px as the fit read them; with the second ring's lines freed too they did not settle in
+    40 rounds, and where they did, the model rested on the 3 x 3 middle (0.029 px)."""
+    model = am.AnalyticModel(shape=(360 + 40 * (side - 7),) * 2, lenses=(side, side), pitch_px=46.154, radius_px=23.0,
+                             rim="airy", airy_radius_px=4.75, exit_pupil_px=1e12, phase_px=(0.37, 0.21), rotation_deg=0.3)
+    img = model.render()
+    grid = calibrate((0.8 * img / img.max()).astype(np.float32), expected_pitch_px=46.154, expected_shape=(side, side))
+    assert "did not settle" not in caplog.text and grid.edge_offsets
+    cx, cy = model.centres()
+    ok = model.inside() & ~grid.clipped & ~grid.missing
+    assert np.sqrt(np.mean(((grid.measured_x_px - cx) ** 2 + (grid.measured_y_px - cy) ** 2)[ok])) < 0.012
+    assert np.hypot(grid.grid_x_px - cx, grid.grid_y_px - cy)[ok].max() < 0.01

@@ -22,8 +22,8 @@ Pipeline (DESIGN.md §6), vectorized over all lenses at once (no per-lens Python
    U(1,1) (`Lattice.uv`: square (n-1, m-1), hex (n-1 + [m even]/2, (m-1) sqrt(3)/2)), so pitch, rotation
    and shear mean the same for both packings (a perfect hex array has shear 0).
    Lenses predicted by the model but dark or dim are reported in `missing`, never an error.
-5. Edge lenses: each edge group's common offset from the model (the outer two rings by side: a lens there
-   sees its neighbours' rims on one side only, which biases the disc fit alike along the side) is taken
+5. Edge lenses: each outer line's common offset from the model (the outer ring by side: a lens there sees
+   its neighbours' rims on one side only, which biases the disc fit alike along the side) is taken
    off its line's measured centres and kept in `Grid.edge_offsets` (`_edge_offsets_removed`); the model
    and the offsets are fitted in turn until the offsets settle.
    The grid, its model map and its file grid.json: mlaqc.inspection.grid.
@@ -38,6 +38,7 @@ the image is displayed (as `ErrorMap`'s mla_rotation_deg).
 
 from __future__ import annotations
 
+import logging
 import math
 from typing import Any
 
@@ -50,12 +51,16 @@ from mlaqc.inspection.fourier_lattice import MIN_PITCH_PX, _CORNERS, _bilinear, 
 from mlaqc.inspection.grid import FORMAT, VERSION, Grid, _model_xy, load_grid
 from mlaqc.optics.lattice import PACKINGS, SQRT3_2, Lattice
 
+log = logging.getLogger(__name__)
+
 # Thresholds (relative units unless stated).
 MISSING_RELATIVE_FLUX = 0.3  # a lens under 30 % of its neighbourhood's amplitude is 'missing/dim'
 # light at the cell corners above this fraction of the sub-images' is a background: less pulls the centres by
 # under 0.01 px even with strong vignetting, and blurred or Airy rims alone reach 5 - 12 % there (measured)
 EDGE_GROUP_MIN = 5  # wholly seen lenses an edge group needs for its common offset to be read (a median)
-EDGE_ROUNDS = 12  # model fits at most, each followed by the edge lines' offsets read against it
+EDGE_RINGS = (0,)  # the rings whose lines get an offset of their own: the outer one, which misses neighbours
+# (freeing the second ring's too left a 7 x 7 array's model resting on its 3 x 3 middle: 0.029 px, not 0.008)
+EDGE_ROUNDS = 40  # model fits at most, each followed by the outer lines' offsets read against it (7 x 7: 15)
 EDGE_SETTLED_PX = 1e-4  # ... until no offset changes by more than this
 BACKGROUND_MIN = 0.15
 BACKGROUND_DEGREE = 4  # of the polynomial surface fitted to it
@@ -306,20 +311,25 @@ def _assemble(shape, lattice, lat_j, lat_i, discs: _Discs, active, expected_shap
     centre = (0.5 * (w - 1), 0.5 * (h - 1))
     # lenses whose predicted window leaves the frame entirely were never candidates: clipped + missing
     clipped = (vfrac < 1.0) | ~np.isfinite(vfrac)
-    # the model and the edge lines' offsets (least squares together): the model fitted to the centres less
-    # the offsets, the offsets read against the model, in turn until they settle (on a 12 x 12 array, where
-    # the two outer rings are half the lenses, the model's terms otherwise took up part of the offsets)
+    # the model and the outer lines' offsets (least squares together): the model fitted to the centres less
+    # the offsets, the offsets read against the model, in turn until they settle (on a 12 x 12 array the
+    # model's terms otherwise took up part of the offsets); should they not, the centres as the fit read them
     raw_x, raw_y, seen = mx, my, found_w & ~clipped
-    edge_offsets, before = (), None
+    before, first = None, None
     for _ in range(EDGE_ROUNDS):
-        hom, k, scale, _, rms = _fit_model(uu[found_w], vv[found_w], mx[found_w], my[found_w], centre, lattice,
-                                           (r0 + i0, c0 + j0), (rows, cols), span)
-        gx, gy = _model_xy(hom, k, centre, scale, uu, vv)
+        fit = _fit_model(uu[found_w], vv[found_w], mx[found_w], my[found_w], centre, lattice, (r0 + i0, c0 + j0),
+                         (rows, cols), span)
+        gx, gy = _model_xy(fit[0], fit[1], centre, fit[2], uu, vv)
         mx, my, edge_offsets = _edge_offsets_removed(raw_x, raw_y, gx, gy, seen, lattice.packing)
+        first = first or (fit, gx, gy)
         now = np.array([dx + dy for _, _, dx, dy in edge_offsets])
-        if before is not None and np.max(np.abs(now - before), initial=0.0) < EDGE_SETTLED_PX:
+        if not edge_offsets or (before is not None and np.max(np.abs(now - before)) < EDGE_SETTLED_PX):
             break
         before = now
+    else:
+        log.warning("the outer lenses' offsets did not settle in %d rounds: their centres are kept as fitted", EDGE_ROUNDS)
+        (fit, gx, gy), (mx, my, edge_offsets) = first, (raw_x, raw_y, ())
+    hom, k, scale, _, rms = fit
     jac = _local_jacobian(hom, k, centre, scale, 0.5 * span[0], 0.5 * span[1])
     pitch_x, pitch_y = float(np.hypot(*jac[:, 0])), float(np.hypot(*jac[:, 1]))
     rotation = math.degrees(math.atan2(-jac[1, 0], jac[0, 0]))
@@ -338,8 +348,8 @@ def _assemble(shape, lattice, lat_j, lat_i, discs: _Discs, active, expected_shap
 
 def _edge_offsets_removed(mx, my, gx, gy, seen, packing):
     """The measured centres less each edge group's common offset from the lattice, along the normal to its
-    side (`edge_groups`: the outer two rings by side, hex row ends apart), taken off its whole line (a
-    corner lens lies on two), and the offsets removed: (name, lenses, dx, dy) per group of at least
+    side (`edge_groups` of the EDGE_RINGS: the outer ring by side, hex row ends apart), taken off its whole
+    line (a corner lens lies on two), and the offsets removed: (name, lenses, dx, dy) per group of at least
     EDGE_GROUP_MIN wholly seen lenses. A lens at the array's edge sees its neighbours' rims on one side
     only, and the disc fit's rim is not the optics' (an Airy rim's tail): every lens of the microscope
     fixture's outer ring read 0.106 px inward, alike to 0.001 px, while the robust lattice fit (which
@@ -350,6 +360,8 @@ def _edge_offsets_removed(mx, my, gx, gy, seen, packing):
     shift = np.zeros((2,) + shape)
     removed = []
     for (name, axis, line), group in zip(edge_group_lines(shape, packing), edge_groups(shape, packing)):
+        if not name or int(name.split()[1]) not in EDGE_RINGS:  # ('': a group the array is too small for)
+            continue
         use = group & seen & np.isfinite(mx) & np.isfinite(my)
         n = int(np.count_nonzero(use))
         if n < EDGE_GROUP_MIN:

@@ -248,7 +248,7 @@ def _edge_offsets(entries: Any, source: str, shape: tuple[int, int], packing: st
     array's (`edge_group_lines`), once, its offset along the normal to its side only."""
     from mlaqc.inspection.lens_classes import edge_group_lines
 
-    axes = {name: axis for name, axis, _ in edge_group_lines(shape, packing)}
+    axes = {name: axis for name, axis, _ in edge_group_lines(shape, packing) if name}
     try:
         out = tuple((e["group"], _pos_int(e["lenses"]), _num(e["x"]), _num(e["y"])) for e in entries)
     except (KeyError, TypeError, ValueError) as exc:

@@ -125,8 +125,8 @@ def edge_group_lines(shape: tuple[int, int], packing: str = "square") -> tuple[t
     ring, side = ring_distance(shape), _sides(shape)
     out = []
     for g in edge_groups(shape, packing):
-        if not g.any():
-            out.append(("empty", 0, g))
+        if not g.any():  # (an array too small for it)
+            out.append(("", 0, g))
             continue
         first = tuple(np.argwhere(g)[0])
         s, r = int(side[first]), int(ring[first])
