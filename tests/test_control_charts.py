@@ -172,3 +172,18 @@ def test_a_value_that_is_not_a_number_is_refused_by_name(bad):
     for chart in (cusum_chart, individuals_chart):
         with pytest.raises(ValueError, match="value #31"):
             chart(x)
+
+
+def test_the_jump_limits_are_where_jumps_are_called():
+    """`Chart.jump_limits` (what the lot report draws): a value just inside an array's limit is not a jump,
+    just outside it is; at 20 arrays judged against, the limit is 5.2 sigma of them, not 4."""
+    rng = np.random.default_rng(2)
+    x = rng.normal(0, 1, 40)
+    low, high = cusum_chart(x, baseline=20).jump_limits()
+    for i, side in ((25, high), (30, low)):
+        for factor, called in ((0.999, False), (1.001, True)):
+            y = x.copy()
+            y[i] = side[i] + (factor - 1) * (side[i] - x[:i].mean())
+            assert ("jump" in cusum_chart(y, baseline=20).signals.get(i, [])) == called, (i, factor)
+    chart = cusum_chart(x, baseline=20)
+    assert (high[20] - chart.centre_at[20]) / chart.sigma_at[20] == pytest.approx(5.23, abs=0.02)

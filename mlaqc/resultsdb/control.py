@@ -84,6 +84,19 @@ class Chart:
     sigma_at: np.ndarray | None = None
     cusum: np.ndarray | None = None
     h: float = CUSUM_H
+    known: np.ndarray | None = None  # CUSUM: how many arrays each was judged against
+    jump: float = JUMP_Z
+
+    def jump_limits(self) -> tuple[np.ndarray, np.ndarray]:
+        """CUSUM: the values beyond which each array is a jump (its score beyond ±`jump`): the mean of the
+        arrays before it ± their deviation × sqrt((n + 1) / n) × Student's t at the normal's tail of `jump`
+        (n - 1 degrees of freedom; far wider than `jump` sigmas while n is small); NaN where not judged."""
+        from scipy.special import ndtr, stdtrit
+
+        n = self.known.astype(float)
+        with np.errstate(all="ignore"):
+            half = self.sigma_at * np.sqrt((n + 1) / n) * stdtrit(np.maximum(n - 1, 1), ndtr(self.jump))
+        return self.centre_at - half, self.centre_at + half
 
     @property
     def first_signal(self) -> int | None:
@@ -148,9 +161,11 @@ def cusum_chart(values, labels=None, baseline: int = 20, k: float = CUSUM_K, h: 
         known = np.minimum(np.arange(x.size), first)  # the arrays each is judged against: those before `first`
         u, centre_at, sigma_at = _scores(x - ref, known)
         sums, signals = _cusum(u, nb, k, h, jump)
+    else:
+        known = np.arange(x.size)
     before = x[: min(signals)] if signals else x
     return Chart(x, labels, float(np.mean(before)), float(np.std(before, ddof=1)), nb, signals, "cusum",
-                 centre_at + ref, sigma_at, sums, h)
+                 centre_at + ref, sigma_at, sums, h, known, jump)
 
 
 def _finite(values) -> np.ndarray:

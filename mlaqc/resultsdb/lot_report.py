@@ -111,23 +111,28 @@ def _pareto_svg(pareto: list[dict]) -> str:
 
 def _chart_svg(chart: Chart, reading: str) -> str:
     """A control chart: the values with the centre line they were judged against and its limits (I-MR: 3
-    sigma; CUSUM: the jump rule's 4 sigma of the arrays before each), the baseline shaded, the points out of
+    sigma; CUSUM: each array's jump limits, `Chart.jump_limits`), the baseline shaded, the points out of
     control in red; a CUSUM chart adds its two sums under them, with the decision interval h."""
     w, pad = 560, 30
     cusum = chart.kind == "cusum" and chart.cusum is not None
     h_top = 220
     height = h_top + (130 if cusum else 0)
     v = chart.values
-    n = max(v.size - 1, 1)
-    centre = chart.centre_at if cusum else np.full(v.size, chart.centre)
-    sigma = chart.sigma_at if cusum else np.full(v.size, chart.sigma)
-    centre = np.where(np.isfinite(centre), centre, chart.centre)
-    sigma = np.where(np.isfinite(sigma), sigma, chart.sigma)
-    limit = JUMP_Z if cusum else 3.0
-    lo = min(float(v.min()), float(np.min(centre - (limit + 0.5) * sigma)))
-    hi = max(float(v.max()), float(np.max(centre + (limit + 0.5) * sigma)))
+    if not cusum:
+        centre = np.full(v.size, chart.centre)
+        low, high = centre - 3 * chart.sigma, centre + 3 * chart.sigma
+    else:  # each array's jump limits, from the arrays before it (wide while they are few)
+        centre = np.where(np.isfinite(chart.centre_at), chart.centre_at, chart.centre)
+        low, high = chart.jump_limits()
+        # the axis holds the values and the limits, these no farther out than the values' own span again
+        span_v = float(v.max() - v.min()) or max(chart.sigma, abs(float(v.max())), 1.0)
+        low = np.clip(np.where(np.isfinite(low), low, centre), v.min() - span_v, None)
+        high = np.clip(np.where(np.isfinite(high), high, centre), None, v.max() + span_v)
+    lo = min(float(v.min()), float(np.min(low)))
+    hi = max(float(v.max()), float(np.max(high)))
     span = hi - lo or max(abs(hi), 1.0)  # a reading without spread: drawn on a line at mid height
     lo -= 0.5 * span if hi == lo else 0.0
+    n = max(v.size - 1, 1)
 
     def x(i):
         return pad + (w - 2 * pad) * i / n
@@ -142,8 +147,7 @@ def _chart_svg(chart: Chart, reading: str) -> str:
 
     parts = [f'<rect x="{pad}" y="{pad}" width="{x(chart.baseline - 1) - pad:.1f}" height="{h_top - 2 * pad}" '
              'fill="#eaeef2"><title>baseline: the process known good, not judged</title></rect>',
-             line(centre, "#24292f"), line(centre + limit * sigma, "#cf222e", "4 3"),
-             line(centre - limit * sigma, "#cf222e", "4 3")]
+             line(centre, "#24292f"), line(high, "#cf222e", "4 3"), line(low, "#cf222e", "4 3")]
     parts.append('<polyline points="' + " ".join(f"{x(i):.1f},{y(val):.1f}" for i, val in enumerate(v))
                  + '" fill="none" stroke="#0969da" stroke-width="1.2"/>')
     for i, val in enumerate(v):
