@@ -60,17 +60,7 @@ def run(args: argparse.Namespace) -> int:
         raise InputError("`mlaqc lot history` needs --array (the array's serial or position)")
     if args.view == "report" and not args.out:
         raise InputError("`mlaqc lot report` needs --out FILE.html")
-    charted = args.view in ("chart", "report")
-    if charted and args.rules is not None and args.chart != "imr":
-        raise InputError("--rules chooses the run rules of `--chart imr`; the CUSUM chart has none")
-    if charted and args.cusum_h is not None and args.chart != "cusum":
-        raise InputError("--cusum-h is the CUSUM chart's decision interval; `--chart imr` has none")
-    rules = _rules(args.rules if args.rules is not None else "1,2,3,4,5")
-    if args.baseline < 2:
-        raise InputError(f"--baseline must be at least 2 arrays, got {args.baseline}")
-    h = CUSUM_H if args.cusum_h is None else args.cusum_h
-    if not (math.isfinite(h) and h > 0):
-        raise InputError(f"--cusum-h must be a positive number of sigmas, got {args.cusum_h}")
+    rules, h = _chart_options(args) if args.view in ("chart", "report") else (None, None)
     with open_database(args.db, create=False) as db:
         if args.view == "yield":
             data = views.yield_table(db, args.lot, args.wafer)
@@ -122,6 +112,23 @@ def run(args: argparse.Namespace) -> int:
                                   "operator", "software_version", "config_hash", "report_dir"))
     print(json.dumps(data, indent=1, default=str) if args.json else "\n".join(lines))
     return 0
+
+
+def _chart_options(args: argparse.Namespace) -> tuple[tuple[int, ...], float]:
+    """The run rules and the CUSUM's h the chart and report views use; InputError for an option of the
+    other chart or a value out of range."""
+    from mlaqc.errors import InputError
+
+    if args.rules is not None and args.chart != "imr":
+        raise InputError("--rules chooses the run rules of `--chart imr`; the CUSUM chart has none")
+    if args.cusum_h is not None and args.chart != "cusum":
+        raise InputError("--cusum-h is the CUSUM chart's decision interval; `--chart imr` has none")
+    if args.baseline < 2:
+        raise InputError(f"--baseline must be at least 2 arrays, got {args.baseline}")
+    h = CUSUM_H if args.cusum_h is None else args.cusum_h
+    if not (math.isfinite(h) and h > 0):
+        raise InputError(f"--cusum-h must be a positive number of sigmas, got {args.cusum_h}")
+    return _rules(args.rules if args.rules is not None else "1,2,3,4,5"), h
 
 
 def _rules(text: str) -> tuple[int, ...]:

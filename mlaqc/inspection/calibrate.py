@@ -348,27 +348,24 @@ def _assemble(shape, lattice, lat_j, lat_i, discs: _Discs, active, expected_shap
 
 def _edge_offsets_removed(mx, my, gx, gy, seen, packing):
     """The measured centres less each edge group's common offset from the lattice, along the normal to its
-    side (`edge_groups` of the EDGE_RINGS: the outer ring by side, hex row ends apart), taken off its whole
+    side (`edge_lines` of the EDGE_RINGS: the outer ring by side, hex row ends apart), taken off its whole
     line (a corner lens lies on two), and the offsets removed: (name, lenses, dx, dy) per group of at least
     EDGE_GROUP_MIN wholly seen lenses. A lens at the array's edge sees its neighbours' rims on one side
     only, and the disc fit's rim is not the optics' (an Airy rim's tail): every lens of the microscope
     fixture's outer ring read 0.106 px inward, alike to 0.001 px, while the robust lattice fit (which
     rejects them) stayed true. A lens' own error stays: the median is the group's, not the lens'."""
-    from mlaqc.inspection.lens_classes import edge_group_lines, edge_groups
+    from mlaqc.inspection.lens_classes import edge_lines
 
-    shape = mx.shape
-    shift = np.zeros((2,) + shape)
+    shift = np.zeros((2,) + mx.shape)
     removed = []
-    for (name, axis, line), group in zip(edge_group_lines(shape, packing), edge_groups(shape, packing)):
-        if not name or int(name.split()[1]) not in EDGE_RINGS:  # ('': a group the array is too small for)
-            continue
-        use = group & seen & np.isfinite(mx) & np.isfinite(my)
+    for e in edge_lines(mx.shape, packing):
+        use = e.group & seen & np.isfinite(mx) & np.isfinite(my)
         n = int(np.count_nonzero(use))
-        if n < EDGE_GROUP_MIN:
+        if e.ring not in EDGE_RINGS or n < EDGE_GROUP_MIN:
             continue
-        offset = round(float(np.median((mx - gx, my - gy)[axis][use])), 6)  # as grid.json keeps it
-        shift[axis][line] += offset
-        removed.append((name, n, offset if axis == 0 else 0.0, offset if axis == 1 else 0.0))
+        offset = round(float(np.median((mx - gx, my - gy)[e.axis][use])), 6)  # as grid.json keeps it
+        shift[e.axis][e.line] += offset
+        removed.append((e.name, n, offset if e.axis == 0 else 0.0, offset if e.axis == 1 else 0.0))
     return mx - shift[0], my - shift[1], tuple(removed)
 
 

@@ -91,13 +91,13 @@ class Grid:
     def uncorrected_centres(self) -> tuple[np.ndarray, np.ndarray]:
         """The measured centres as the disc fit read them, before each edge line's common offset was taken
         off (`edge_offsets`): what the shipped assembly calibrations were built from."""
-        from mlaqc.inspection.lens_classes import edge_group_lines
+        from mlaqc.inspection.lens_classes import edge_lines
 
         x, y = np.array(self.measured_x_px, float), np.array(self.measured_y_px, float)
-        lines = {name: (axis, line) for name, axis, line in edge_group_lines(self.shape, self.packing)}
+        lines = {e.name: e.line for e in edge_lines(self.shape, self.packing)}
         for name, _, dx, dy in self.edge_offsets:  # (names checked when the grid was built or read)
-            axis, line = lines[name]
-            (x if axis == 0 else y)[line] += dx if axis == 0 else dy
+            x[lines[name]] += dx  # (the offset along the side is 0)
+            y[lines[name]] += dy
         return x, y
 
     @property
@@ -245,10 +245,10 @@ class Grid:
 
 def _edge_offsets(entries: Any, source: str, shape: tuple[int, int], packing: str) -> tuple[tuple[str, int, float, float], ...]:
     """The model's "edge_offsets_px" (absent in grids written before them: none): each an edge group of this
-    array's (`edge_group_lines`), once, its offset along the normal to its side only."""
-    from mlaqc.inspection.lens_classes import edge_group_lines
+    array's (`edge_lines`), once, its offset along the normal to its side only."""
+    from mlaqc.inspection.lens_classes import edge_lines
 
-    axes = {name: axis for name, axis, _ in edge_group_lines(shape, packing) if name}
+    axes = {e.name: e.axis for e in edge_lines(shape, packing) if e.name}
     try:
         out = tuple((e["group"], _pos_int(e["lenses"]), _num(e["x"]), _num(e["y"])) for e in entries)
     except (KeyError, TypeError, ValueError) as exc:

@@ -13,6 +13,7 @@ per shape, read-only (`_frozen`) and shared by every frame.
 from __future__ import annotations
 
 import functools
+from typing import NamedTuple
 
 import numpy as np
 
@@ -112,12 +113,21 @@ def edge_groups(shape: tuple[int, int], packing: str = "square") -> tuple[np.nda
 SIDE_NAMES = ("top", "bottom", "left", "right")  # `_sides`' numbers
 
 
+class EdgeLine(NamedTuple):
+    """One of `edge_groups`' groups and the line of lenses its side's offset applies to."""
+
+    name: str  # "ring 0 left", "ring 0 left, row ends that stick out"; '' for a group the array is too small for
+    ring: int
+    axis: int  # the axis its side is normal to: 0 x (the left and right sides), 1 y
+    group: np.ndarray  # (rows, cols) bool: the group's lenses (`edge_groups`)
+    line: np.ndarray  # every lens at its ring from its side, corners included (hex: the row ends of its kind)
+
+
 @functools.lru_cache(maxsize=8)
-def edge_group_lines(shape: tuple[int, int], packing: str = "square") -> tuple[tuple[str, int, np.ndarray], ...]:
-    """For each of `edge_groups`' groups, in its order: its name ("ring 0 left", "ring 0 left, row ends
-    that stick out"), the axis its side is normal to (0: x, the left and right sides; 1: y), and its line:
-    every lens at its ring from its side, the corner lenses `edge_groups` gives to the other side included
-    (on hex, only the row ends of the group's kind)."""
+def edge_lines(shape: tuple[int, int], packing: str = "square") -> tuple[EdgeLine, ...]:
+    """`edge_groups`' groups, in their order, each with its name, ring, axis and line: every lens at its
+    ring from its side, the corner lenses `edge_groups` gives to the other side included (on hex, only the
+    row ends of the group's kind; a top or bottom row's end that sticks out is a group of its own)."""
     rows, cols = shape
     m, n = np.ogrid[:rows, :cols]
     distance = np.broadcast_arrays(m, rows - 1 - m, n, cols - 1 - n)  # to the top, bottom, left, right side
@@ -125,17 +135,17 @@ def edge_group_lines(shape: tuple[int, int], packing: str = "square") -> tuple[t
     ring, side = ring_distance(shape), _sides(shape)
     out = []
     for g in edge_groups(shape, packing):
-        if not g.any():  # (an array too small for it)
-            out.append(("", 0, g))
+        if not g.any():
+            out.append(EdgeLine("", -1, 0, g, g))
             continue
         first = tuple(np.argwhere(g)[0])
         s, r = int(side[first]), int(ring[first])
         of_ends = packing == "hex" and bool(np.all(ends[g]))
         line = distance[s] == r
-        if packing == "hex" and (s >= 2 or of_ends):  # a top or bottom row's corner end: a group of its own
+        if packing == "hex" and (s >= 2 or of_ends):
             line = line & (ends == of_ends)
         name = f"ring {r} {SIDE_NAMES[s]}" + (", row ends that stick out" if of_ends else "")
-        out.append((name, 0 if s >= 2 else 1, _frozen(line)))
+        out.append(EdgeLine(name, r, 0 if s >= 2 else 1, g, _frozen(line)))
     return tuple(out)
 
 
