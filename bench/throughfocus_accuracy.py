@@ -44,15 +44,18 @@ sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 from mlaqc.inspection.calibrate import calibrate_for  # noqa: E402
 from mlaqc.inspection.pipeline import prepare  # noqa: E402
 from mlaqc.inspection.rawio import RawFrame  # noqa: E402
-from mlaqc.inspection.throughfocus import (coverage, focal_rel_of_radius, measure_through_focus,  # noqa: E402
-                                          SpotFrame, pair_radius_lenses, prepare_spots, trace_model)
+from mlaqc.inspection.throughfocus import measure_through_focus  # noqa: E402
+from mlaqc.inspection.throughfocus_geometry import coverage  # noqa: E402
+from mlaqc.inspection.throughfocus_model import trace_model  # noqa: E402
+from mlaqc.inspection.throughfocus_optics import focal_rel_of_radius  # noqa: E402
+from mlaqc.inspection.throughfocus_spots import SpotFrame, prepare_spots  # noqa: E402
 from mlaqc.optics.config import default_config, load_config  # noqa: E402
 from mlaqc.optics.errormap import ErrorMap  # noqa: E402
 from mlaqc.optics.formation import apply_formation, formation_kernels  # noqa: E402
 from mlaqc.optics.render import Renderer  # noqa: E402
 from mlaqc.optics.sensor import expose, white_level  # noqa: E402
 from mlaqc.optics.simulate import simulate  # noqa: E402
-from mlaqc.optics.throughfocus import F_NUMBER, FILL_FRACTION, FOCUS_OFFSET_MM, SPACING_LENSES, ThroughFocus, blur_radius_mm, coverage_offsets, frame_config, inner_radius_lenses, scene  # noqa: E402
+from mlaqc.optics.throughfocus import F_NUMBER, FILL_FRACTION, FOCUS_OFFSET_MM, SPACING_LENSES, ThroughFocus, blur_radius_mm, coverage_offsets, frame_config, inner_radius_lenses, pair_radius_lenses, scene  # noqa: E402
 
 SIZES = (-0.10, -0.05, -0.03, 0.03, 0.05, 0.10)
 

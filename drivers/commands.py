@@ -104,7 +104,8 @@ def run_capture(args: argparse.Namespace) -> int:
 
 def run_scan_command(args: argparse.Namespace) -> int:
     """Run or resume a scan; 0 when every position is recorded (and passed, with --inspect), else 1."""
-    from drivers.scan import ScanRunner, default_inspect_hook, load_plan
+    from drivers.scan import ScanRunner, default_inspect_hook
+    from drivers.scan_plan import load_plan
 
     plan = load_plan(args.plan)
     inspect = None

@@ -972,7 +972,7 @@ class MainWindow(QMainWindow):
         return True
 
     def load_plan(self, path: str) -> bool:
-        from drivers.scan import load_plan
+        from drivers.scan_plan import load_plan
 
         try:
             plan = load_plan(path)

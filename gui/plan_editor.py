@@ -18,7 +18,7 @@ TEMPLATE = Path(__file__).resolve().parent.parent / "fixtures" / "scan_plan_rast
 
 def parse_plan_text(text: str, source: str = "edited plan"):
     """A validated ScanPlan from TOML text; InputError with one sentence otherwise."""
-    from drivers.scan import plan_from_dict
+    from drivers.scan_plan import plan_from_dict
 
     try:
         data = tomllib.loads(text)

@@ -114,7 +114,7 @@ class _AbortableCamera:
 
 @dataclass
 class ScanRequest:
-    plan: Any  # drivers.scan.ScanPlan
+    plan: Any  # drivers.scan_plan.ScanPlan
     out_dir: str
     camera: Any
     stage: Any

@@ -672,7 +672,7 @@ def measured_text(measured: Any, m: int, n: int) -> str:
 
 
 def throughfocus_text(tf: Any, m: int, n: int) -> str:
-    """One line of lens U(m,n)'s through-focus reading (mlaqc.inspection.throughfocus.ThroughFocusResult):
+    """One line of lens U(m,n)'s through-focus reading (mlaqc.inspection.throughfocus_results.ThroughFocusResult):
     focal error with its sign and 1-sigma, the radius error it equals, covered or not, the optical-centre
     shift from the spot positions."""
     i, j = m - 1, n - 1

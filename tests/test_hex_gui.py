@@ -186,7 +186,8 @@ def test_the_mock_wafer_holds_hex_arrays_of_the_hex_config():
 def test_a_scan_over_a_hex_wafer_records_each_arrays_hex_truth(tmp_path):
     import json
 
-    from drivers.scan import load_plan, run_scan
+    from drivers.scan import run_scan
+    from drivers.scan_plan import load_plan
 
     plan = tmp_path / "plan.toml"
     plan.write_text('[scan]\nsettle_s = 0.0\n[[positions]]\nx_mm = 10.0\ny_mm = 10.0\nlabel = "W(1,1)"\n'
@@ -222,7 +223,8 @@ def test_circular_apertures_are_drawn_in_the_grid_overlay(qtbot):
 def test_a_scan_with_inspection_finds_the_seeded_defects_of_each_hex_array(tmp_path):
     import json
 
-    from drivers.scan import default_inspect_hook, load_plan, run_scan
+    from drivers.scan import default_inspect_hook, run_scan
+    from drivers.scan_plan import load_plan
     plan = tmp_path / "plan.toml"
     plan.write_text('[scan]\nsettle_s = 0.0\n[[positions]]\nx_mm = 10.0\ny_mm = 10.0\nlabel = "W(1,1)"\n'
                     '[[positions]]\nx_mm = 15.0\ny_mm = 10.0\nlabel = "W(1,2)"\n')

@@ -20,7 +20,7 @@ from mlaqc.errors import InputError
 from mlaqc.inspection.calibrate import Grid
 from mlaqc.inspection.measure import MEASUREMENTS
 from mlaqc.inspection.results import METRICS, Defect, InspectionResult, LensMetrics
-from mlaqc.inspection.throughfocus import TF_MEASUREMENTS
+from mlaqc.inspection.throughfocus_results import TF_MEASUREMENTS
 from mlaqc.optics.lattice import Lattice
 from mlaqc.report import ERROR_COLOURS
 from mlaqc.report.document import CSV_COLUMNS, HEX_CSV_COLUMNS

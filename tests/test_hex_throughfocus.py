@@ -18,8 +18,11 @@ from mlaqc.cli import main
 from mlaqc.errors import InputError
 from mlaqc.inspection.calibrate import calibrate
 from mlaqc.inspection.rawio import RawFrame
-from mlaqc.inspection.throughfocus import (aperture_moment_mm2, coverage, focal_rel_of_radius, measure_through_focus,
-                                          model_key, prepare_spots)
+from mlaqc.inspection.throughfocus import measure_through_focus
+from mlaqc.inspection.throughfocus_geometry import coverage
+from mlaqc.inspection.throughfocus_model import model_key
+from mlaqc.inspection.throughfocus_optics import aperture_moment_mm2, focal_rel_of_radius
+from mlaqc.inspection.throughfocus_spots import prepare_spots
 from mlaqc.models.store import PACKAGE_DATA
 from mlaqc.optics import throughfocus as tfm
 from mlaqc.optics.config import load_config

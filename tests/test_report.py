@@ -21,7 +21,7 @@ from mlaqc import __version__
 from mlaqc.errors import InputError
 from mlaqc.inspection.results import METRICS, Defect, InspectionResult, LensMetrics
 from mlaqc.inspection.measure import MEASUREMENTS
-from mlaqc.inspection.throughfocus import TF_MEASUREMENTS
+from mlaqc.inspection.throughfocus_results import TF_MEASUREMENTS
 from mlaqc.report import ERROR_COLOURS, REPORT_FILES
 from mlaqc.report import html as report_html
 from mlaqc.report import load_report

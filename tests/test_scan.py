@@ -16,8 +16,9 @@ import pytest
 
 from drivers.camera import open_camera
 from drivers.capture import load_sidecar
-from drivers.scan import (MANIFEST_NAME, ScanFailed, ScanInterrupted, default_inspect_hook, load_plan, plan_from_dict,
-                          read_manifest, run_scan, verify_scan)
+from drivers.scan import ScanFailed, ScanInterrupted, default_inspect_hook, run_scan
+from drivers.scan_manifest import MANIFEST_NAME, read_manifest, verify_scan
+from drivers.scan_plan import load_plan, plan_from_dict
 from drivers.stage import open_stage
 from mlaqc.cli import main
 from mlaqc.errors import InputError

@@ -5,7 +5,8 @@ import json
 
 import pytest
 
-from drivers.scan import default_inspect_hook, load_plan, run_scan
+from drivers.scan import default_inspect_hook, run_scan
+from drivers.scan_plan import load_plan
 
 PLAN = """
 [scan]

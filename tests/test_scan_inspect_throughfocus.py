@@ -15,8 +15,9 @@ from pathlib import Path
 import pytest
 
 from drivers.capture import load_sidecar
-from drivers.scan import (EVENTS_NAME, MANIFEST_NAME, ScanInterrupted, plan_from_dict, read_manifest, run_scan,
-                          verify_scan)
+from drivers.scan import EVENTS_NAME, ScanInterrupted, run_scan
+from drivers.scan_manifest import MANIFEST_NAME, read_manifest, verify_scan
+from drivers.scan_plan import plan_from_dict
 from mlaqc.cli import main
 from mlaqc.inspection.pipeline import inspect_file
 from mlaqc.optics.config import load_config

@@ -10,7 +10,9 @@ import pytest
 from drivers.camera.fake_v4l2 import FakeV4L2Bus, FakeV4L2Device, default_controls, uvc_iris_control
 from drivers.camera.v4l2 import CID_IRIS_ABSOLUTE, V4L2Camera
 from drivers.capture import load_sidecar
-from drivers.scan import MANIFEST_NAME, plan_from_dict, read_manifest, run_scan
+from drivers.scan import run_scan
+from drivers.scan_manifest import MANIFEST_NAME, read_manifest
+from drivers.scan_plan import plan_from_dict
 from mlaqc.errors import InputError
 
 pytestmark = pytest.mark.timeout(60)

@@ -17,8 +17,9 @@ import pytest
 
 from drivers.camera.mock import MockCamera
 from drivers.capture import load_sidecar
-from drivers.scan import (MANIFEST_NAME, ScanInterrupted, ThroughFocusPlan, load_plan, plan_from_dict, read_manifest,
-                          run_scan, verify_scan)
+from drivers.scan import ScanInterrupted, run_scan
+from drivers.scan_manifest import MANIFEST_NAME, read_manifest, verify_scan
+from drivers.scan_plan import ThroughFocusPlan, load_plan, plan_from_dict
 from drivers.sim import GrblSim
 from drivers.stage import GrblStage, NotHomedError, StageStopped, open_stage
 from mlaqc.cli import main

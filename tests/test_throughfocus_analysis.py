@@ -31,7 +31,8 @@ from analytic_frames import AnalyticModel
 from mlaqc.errors import InputError
 from mlaqc.inspection.calibrate import calibrate
 from mlaqc.inspection.rawio import RawFrame
-from mlaqc.inspection.throughfocus import measure_through_focus, prepare_spots
+from mlaqc.inspection.throughfocus import measure_through_focus
+from mlaqc.inspection.throughfocus_spots import prepare_spots
 from mlaqc.optics.config import load_config
 from mlaqc.optics.errormap import ErrorMap
 from mlaqc.optics.formation import apply_formation
@@ -350,7 +351,7 @@ def test_pixelated_model_spots_obey_sheppard_and_add_the_psf_moment(side):
     0.5 px^2 apart (x + y; the spread swings with the spot's size). A discrete convolution (the
     formation's PSF on the binned image, as `apply_formation`) then adds its kernel's own moment,
     exactly, at every position. Every binned spot keeps its flux."""
-    from mlaqc.inspection.throughfocus import MODEL_PHASES, _pixelated
+    from mlaqc.inspection.throughfocus_model import MODEL_PHASES, _pixelated
     from mlaqc.optics.formation import formation_kernels
 
     r = _square_rays(side)
@@ -374,7 +375,8 @@ def test_a_sub_pixel_spots_centroid_locks_to_its_pixel_and_a_larger_ones_does_no
     """Why each lens' spot centres come from its larger spot (`true_phases`): binned, a spot much
     smaller than a pixel has its centroid at the pixel's centre wherever it sits inside it; one of three
     pixels is centroided to a few hundredths of a pixel at every sub-pixel position."""
-    from mlaqc.inspection.throughfocus import MODEL_PHASES, Spots, _pixelated, moments
+    from mlaqc.inspection.throughfocus_model import MODEL_PHASES, _pixelated
+    from mlaqc.inspection.throughfocus_spots import Spots, moments
 
     P = MODEL_PHASES
     t = np.arange(P) / P  # phase i puts the spot's centre i / P px right of the centre pixel's
@@ -396,7 +398,7 @@ def test_true_phases_put_both_spots_where_the_larger_one_says():
     """Synthetic lenses: the +u spot is centroided exactly, the -u spot (smaller) locks to its pixel's
     centre; the -u spot sits at the +u one's position less a constant per pair and a smooth field.
     `true_phases` recovers both spots' sub-pixel positions, also for lenses whose -u spot is the larger."""
-    from mlaqc.inspection.throughfocus import true_phases
+    from mlaqc.inspection.throughfocus_reading import true_phases
 
     rng = np.random.default_rng(4)
     n, pairs = 10_000, 16  # a Table 1 array's lenses at one |u|, the shipped protocol's 16 pairs
@@ -422,8 +424,9 @@ def test_true_phases_put_both_spots_where_the_larger_one_says():
 @pytest.fixture(scope="module")
 def table1_model():
     """The Table 1 camera's model for the shipped protocol (±5 mm, f/11, 4 lenses: in the package)."""
-    from mlaqc.inspection.throughfocus import model_curves, pair_radius_lenses
+    from mlaqc.inspection.throughfocus_model import model_curves
     from mlaqc.optics.config import default_config
+    from mlaqc.optics.throughfocus import pair_radius_lenses
 
     cfg = default_config()
     return model_curves(cfg, 5.0, 11.0, pair_radius_lenses(cfg, ThroughFocus(5.0, 11.0, 4)))
@@ -463,7 +466,8 @@ def test_a_lens_mirrored_on_the_field_reads_the_mirrored_model(table1_model):
     """`_lens_model_index` maps each lens onto the traced one (field along +x): a lens at -x with its
     spots at sub-pixel x phase 1 - p reads what one at +x with phase p does, and one at +y with (x, y)
     phases swapped too (the optics' mirror and x / y symmetry)."""
-    from mlaqc.inspection.throughfocus import MODEL_EPS, _lens_model, _lens_model_index
+    from mlaqc.inspection.throughfocus_model import MODEL_EPS
+    from mlaqc.inspection.throughfocus_reading import _lens_model, _lens_model_index
 
     c = table1_model
     P = c.spot_m2.shape[-1]

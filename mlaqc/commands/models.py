@@ -81,7 +81,7 @@ def print_derived_numbers(cfg, source: str | None) -> None:
 
 def _through_focus_model(cfg, rebuild: bool) -> str:
     """Build (if missing, or again with `rebuild`) the shipped through-focus protocol's model; its key."""
-    from mlaqc.inspection.throughfocus import model_curves
+    from mlaqc.inspection.throughfocus_model import model_curves
     from mlaqc.optics.throughfocus import F_NUMBER, FOCUS_OFFSET_MM, SPACING_LENSES, ThroughFocus, pair_radius_lenses
 
     r_in = pair_radius_lenses(cfg, ThroughFocus(FOCUS_OFFSET_MM, F_NUMBER, SPACING_LENSES))

@@ -21,7 +21,7 @@ from mlaqc.optics.throughfocus import ThroughFocus
 from mlaqc.parallel import thread_map
 
 if TYPE_CHECKING:
-    from mlaqc.inspection.throughfocus import SpotFrame
+    from mlaqc.inspection.throughfocus_spots import SpotFrame
 
 # sidecar suffix -> where the record sits in it: the simulator's; a scan's, or another program's
 SIDECARS = {".sim.json": (("protocol",),), ".meta.json": (("context", "through_focus", "record"), ("through_focus",))}
@@ -52,11 +52,11 @@ def frame_record(raw: str | Path) -> ThroughFocus:
 
 def load_pinhole_frames(paths: Sequence[str | Path], cfg: CameraConfig,
                         levels: Levels | None = None) -> list[tuple[SpotFrame, ThroughFocus]]:
-    """Each frame prepared (`throughfocus.prepare_spots`) with its record, levels settled as for the white
+    """Each frame prepared (`throughfocus_spots.prepare_spots`) with its record, levels settled as for the white
     frame (`pipeline.load_frame`); the analysis checks exposure itself (a pinhole frame is mostly dark).
     Frames load on a thread per core (file reads and NumPy release the GIL); uncompressed TIFFs are mapped
     (`load_raw(mapped=True)`): the analysis reads only its windows' rows, and reads them once."""
-    from mlaqc.inspection.throughfocus import prepare_spots
+    from mlaqc.inspection.throughfocus_spots import prepare_spots
 
     s = cfg.sensor
     records = [frame_record(path) for path in paths]  # every sidecar checked before any raw is read

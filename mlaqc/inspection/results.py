@@ -160,7 +160,7 @@ class InspectionResult:
     below_reportable: int = 0  # significant deviations smaller than the minimum reportable error
     not_inspected: int = 0  # lenses whose sub-image leaves the sensor
     measurements: Any = None  # mlaqc.inspection.measure.LensMeasurements: every lens' centre and focal error
-    through_focus: Any = None  # mlaqc.inspection.throughfocus.ThroughFocusResult when pinhole frames were given
+    through_focus: Any = None  # mlaqc.inspection.throughfocus_results.ThroughFocusResult when pinhole frames were given
     assembly: Any = None  # mlaqc.inspection.assembly.Assembly: the array's placement in the camera
     lens_boundaries: str = ""  # the config's mla.boundaries the frame was inspected with ('' if not known)
 

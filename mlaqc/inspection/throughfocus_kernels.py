@@ -1,5 +1,5 @@
 """Compiled (Numba) kernels of the through-focus analysis: every spot's first guess, and its windowed
-centroid, second moment and the moment's variance (mlaqc.inspection.throughfocus.moments).
+centroid, second moment and the moment's variance (mlaqc.inspection.throughfocus_spots.moments).
 
 Why: the NumPy formulation (separable weights, batched matrix products) made a dozen (L, n) temporaries per
 pass and five passes per frame: 0.12 s of the 0.25 s a 32-frame series took on one core. Here each lens
@@ -41,7 +41,7 @@ def moments_kernel(cells, background, cx0, cy0, w0, refine, e_per_unit, bg_sigma
     """For every window of `cells` (L, n, n), background-subtracted, with its `background` (L,): the
     centroid (window coordinates), the second moment x + y (px^2), its variance (NaN unless `variance`),
     the flux and the window half-width used, in a square window of half-width w around (cx, cy) that
-    follows the centroid `refine` times and shrinks to stay inside the ring (as throughfocus.moments
+    follows the centroid `refine` times and shrinks to stay inside the ring (as throughfocus_spots.moments
     documents). out: (L, 6), columns MX, MY, M2, M2_VAR, FLUX, WIDTH."""
     n = cells.shape[1]
     half = n // 2

@@ -26,7 +26,7 @@ import numpy as np
 from mlaqc import __version__
 from mlaqc.errors import InputError
 from mlaqc.inspection.measure import MEASUREMENTS
-from mlaqc.inspection.throughfocus import TF_MEASUREMENTS
+from mlaqc.inspection.throughfocus_results import TF_MEASUREMENTS
 from mlaqc.inspection.results import METRICS, InspectionResult
 from mlaqc.optics.lattice import CONVENTIONS
 from mlaqc.report.maps import _type_order
