@@ -20,7 +20,8 @@ from drivers.camera import (
 )
 from drivers.camera.base import SequenceTracker
 from drivers.camera.fake_v4l2 import FakeV4L2Bus, FakeV4L2Device
-from drivers.camera.v4l2 import URL_PARAMS, V4L2Camera
+from drivers.camera.v4l2 import V4L2Camera
+from drivers.camera.v4l2_params import URL_PARAMS
 from mlaqc.errors import InputError
 
 pytestmark = pytest.mark.timeout(10)

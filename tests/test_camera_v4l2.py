@@ -22,7 +22,8 @@ from drivers.camera.fake_v4l2 import (
     uvc_iris_control,
 )
 from drivers.camera.formats import FORMATS, lookup_format
-from drivers.camera.v4l2 import (
+from drivers.camera.v4l2 import V4L2Camera
+from drivers.camera.v4l2_adapter import (
     BUF_FLAG_ERROR,
     CID_AUTOGAIN,
     CID_EXPOSURE,
@@ -32,9 +33,8 @@ from drivers.camera.v4l2 import (
     CID_IRIS_ABSOLUTE,
     CID_IRIS_RELATIVE,
     ControlInfo,
-    IrisMap,
-    V4L2Camera,
 )
+from drivers.camera.v4l2_iris import IrisMap
 from mlaqc.errors import DeviceError, InputError
 
 pytestmark = pytest.mark.timeout(10)

@@ -8,7 +8,8 @@ import numpy as np
 import pytest
 
 from drivers.camera.fake_v4l2 import FakeV4L2Bus, FakeV4L2Device, default_controls, uvc_iris_control
-from drivers.camera.v4l2 import CID_IRIS_ABSOLUTE, V4L2Camera
+from drivers.camera.v4l2 import V4L2Camera
+from drivers.camera.v4l2_adapter import CID_IRIS_ABSOLUTE
 from drivers.capture import load_sidecar
 from drivers.scan import run_scan
 from drivers.scan_manifest import MANIFEST_NAME, read_manifest

@@ -28,7 +28,7 @@ from pathlib import Path
 import numpy as np
 
 from drivers.camera.formats import format_by_code, lookup_format
-from drivers.camera.v4l2 import (
+from drivers.camera.v4l2_adapter import (
     BUF_FLAG_ERROR,
     CID_AUTOGAIN,
     CID_EXPOSURE_ABSOLUTE,

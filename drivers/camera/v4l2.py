@@ -1,14 +1,15 @@
 """Real V4L2 cameras through linuxpy, for full-bit-depth monochrome and raw Bayer capture.
 
-Three layers (DESIGN §7): the pure codec in `formats.py`; `LinuxpyAdapter`, the only code that calls
-linuxpy (one small method per ioctl, so tests replace it with a fake); and `V4L2Camera`, which owns the
-state machine: format and controls read back, a select() deadline on every frame wait, error-flagged and
-short buffers discarded, sequence gaps counted, disconnects turned into DeviceError, and `reopen()`
-that finds a re-plugged camera again through its stable /dev/v4l/by-id link.
+Three layers (DESIGN §7): the pure codec in `formats.py`; `LinuxpyAdapter` in `v4l2_adapter.py`, the only
+code that calls linuxpy (one small method per ioctl, so tests replace it with a fake), beside the kernel
+constants; and `V4L2Camera`, here, which owns the state machine: format and controls read back, a select()
+deadline on every frame wait, error-flagged and short buffers discarded, sequence gaps counted, disconnects
+turned into DeviceError, and `reopen()` that finds a re-plugged camera again through its stable
+/dev/v4l/by-id link.
 
-URL: ``v4l2:///dev/video0?format=Y16&width=2048&height=2048&exposure_us=5000&gain=1``; see `URL_PARAMS`
-(format, width, height, exposure_us, gain, roi=x,y,w,h, buffers, settle_frames, exposure_unit_us, and the
-iris: f_number, iris_unit, iris_table, iris_timeout_s).
+URL: ``v4l2:///dev/video0?format=Y16&width=2048&height=2048&exposure_us=5000&gain=1``; see `URL_PARAMS` in
+`v4l2_params.py` (format, width, height, exposure_us, gain, roi=x,y,w,h, buffers, settle_frames,
+exposure_unit_us, and the iris: f_number, iris_unit, iris_table, iris_timeout_s).
 
 Frame stamps: `device_timestamp_s` is the driver's buffer timestamp (CLOCK_MONOTONIC on most drivers,
 comparable with time.monotonic()); `host_timestamp_s` is time.time() at dequeue; exposure (µs) and gain
@@ -32,27 +33,24 @@ with ``[through_focus] iris = "camera"`` need it). What was relied on:
   has only SET_CUR, so V4L2 reports it write-only with the range 0..0, and `uvc_ctrl_set` clamps every
   step written to it to 0 ("default"): a UVC iris can be driven only through the absolute control.
 
-The mapping is therefore explicit (`IrisMap`): by default the UVC unit (N = value × 0.01); ``iris_unit=U``
-in the URL for another linear unit (N = value × U, e.g. 0.1 for f-number × 10); or ``iris_table=V:N,V:N,...``
-for any other driver: measured (value, f-number) points, interpolated in stops (log N) between them, no
-request outside the table. A request is checked against the control's min/max and snapped to its step;
-one that lands more than 1 % from the f-number asked for is refused naming the nearest settings. The
-value is then read back (polled up to ``iris_timeout_s``, default 2 s, for a motorized iris) and the
-f-number it maps to returned; auto exposure (Auto or Shutter Priority, where UVC refuses iris writes) is
-switched to manual first. A camera with only V4L2_CID_IRIS_RELATIVE needs ``iris_table`` with values that
-count steps closed from fully open: the driver first opens fully (+1 written as many times as the table's
-largest count plus two, assuming steps past the stop do nothing), then closes step by step and counts;
-the control cannot be read, so the f-number returned is the counted one (`settings()["iris"]` says so).
+The mapping is therefore explicit (`IrisMap`, in `v4l2_iris.py`): by default the UVC unit (N = value × 0.01);
+``iris_unit=U`` in the URL for another linear unit (N = value × U, e.g. 0.1 for f-number × 10); or
+``iris_table=V:N,V:N,...`` for any other driver: measured (value, f-number) points, interpolated in stops
+(log N) between them, no request outside the table. A request is checked against the control's min/max and
+snapped to its step; one that lands more than 1 % from the f-number asked for is refused naming the nearest
+settings. The value is then read back (polled up to ``iris_timeout_s``, default 2 s, for a motorized iris) and
+the f-number it maps to returned; auto exposure (Auto or Shutter Priority, where UVC refuses iris writes) is
+switched to manual first. A camera with only V4L2_CID_IRIS_RELATIVE needs ``iris_table`` with values that count
+steps closed from fully open: the driver first opens fully (+1 written as many times as the table's largest
+count plus two, assuming steps past the stop do nothing), then closes step by step and counts; the control
+cannot be read, so the f-number returned is the counted one (`settings()["iris"]` says so).
 """
 
 from __future__ import annotations
 
 import errno
-import itertools
 import logging
 import math
-import numbers
-import operator
 import os
 import select
 import threading
@@ -61,272 +59,58 @@ from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Protocol
+from typing import Any
 
 from drivers.camera import register_camera_scheme
 from drivers.camera.base import DEFAULT_TIMEOUT_S, Camera, Frame, SequenceTracker, check_timeout_s
 from drivers.camera.formats import FORMATS, PixelFormat, format_by_code, fourcc_text, lookup_format
+from drivers.camera.v4l2_adapter import (
+    BUF_FLAG_ERROR,
+    CID_ANALOGUE_GAIN,
+    CID_AUTOGAIN,
+    CID_EXPOSURE,
+    CID_EXPOSURE_ABSOLUTE,
+    CID_EXPOSURE_AUTO,
+    CID_GAIN,
+    CID_IRIS_ABSOLUTE,
+    CID_IRIS_RELATIVE,
+    EXPOSURE_ABSOLUTE_UNIT_US,
+    EXPOSURE_AUTO,
+    EXPOSURE_MANUAL,
+    EXPOSURE_SHUTTER_PRIORITY,
+    ControlInfo,
+    LinuxpyAdapter,
+    RawBuffer,
+    RawFormat,
+    V4L2Adapter,
+)
+from drivers.camera.v4l2_iris import (
+    IRIS_HOME_EXTRA_STEPS,
+    IRIS_POLL_S,
+    IRIS_TIMEOUT_S,
+    IRIS_TOLERANCE_REL,
+    UVC_IRIS_UNIT,
+    IrisMap,
+)
+from drivers.camera.v4l2_params import (
+    URL_PARAMS,
+    _check_number,
+    _check_roi,
+    _float_param,
+    _int_param,
+    _iris_table_param,
+    _roi_param,
+)
 from drivers.url import DeviceURL, parse_device_url
 from mlaqc.errors import DeviceError, InputError, MlaqcError
 
 log = logging.getLogger(__name__)
 
-# Kernel UAPI constants (stable ABI), spelled out so everything but LinuxpyAdapter runs without linuxpy.
-BUF_FLAG_ERROR = 0x00000040
-CID_EXPOSURE = 0x00980911  # user class, driver units
-CID_AUTOGAIN = 0x00980912
-CID_GAIN = 0x00980913  # user class, driver units
-CID_EXPOSURE_AUTO = 0x009A0901  # menu: 0 auto, 1 manual, 2 shutter priority, 3 aperture priority
-CID_EXPOSURE_ABSOLUTE = 0x009A0902  # units of 100 µs
-CID_ANALOGUE_GAIN = 0x009E0903  # image-source class, driver units
-CID_IRIS_ABSOLUTE = 0x009A0911  # camera class, driver units (uvcvideo: f-number x 100)
-CID_IRIS_RELATIVE = 0x009A0912  # camera class, write-only: +1 opens, -1 closes one step
-EXPOSURE_AUTO = 0
-EXPOSURE_MANUAL = 1
-EXPOSURE_SHUTTER_PRIORITY = 2
-EXPOSURE_ABSOLUTE_UNIT_US = 100.0
-UVC_IRIS_UNIT = 0.01  # f-number per unit of UVC's CT_IRIS_ABSOLUTE_CONTROL ("fstop * 100")
-IRIS_TOLERANCE_REL = 0.01  # a setting further than this from the f-number asked for is refused
-IRIS_TIMEOUT_S = 2.0  # default wait for the iris to read back what was written
-IRIS_POLL_S = 0.02
-IRIS_HOME_EXTRA_STEPS = 2  # opening steps beyond the table's largest count when finding the open stop
-
 BY_ID_DIR = Path("/dev/v4l/by-id")
 DISCONNECT_ERRNOS = frozenset({errno.ENODEV, errno.EIO, errno.ENXIO, errno.ESHUTDOWN})
 UNSUPPORTED_ERRNOS = frozenset({errno.EINVAL, errno.ENOTTY, errno.ENODATA, errno.EOPNOTSUPP})
-URL_PARAMS = ("format", "width", "height", "exposure_us", "gain", "roi", "buffers", "settle_frames", "exposure_unit_us",
-              "f_number", "iris_unit", "iris_table", "iris_timeout_s")
 REOPEN_POLL_S = 0.05
 SPURIOUS_WAKE_S = 0.001
-
-
-@dataclass(frozen=True)
-class RawFormat:
-    """The capture format as the driver reports it (VIDIOC_G_FMT)."""
-
-    width: int
-    height: int
-    code: int
-    bytes_per_line: int
-    size_bytes: int
-
-
-@dataclass(frozen=True)
-class RawBuffer:
-    """One dequeued buffer, already copied out of the driver's memory and requeued."""
-
-    data: bytes
-    sequence: int
-    timestamp_s: float
-    flags: int
-    bytes_used: int
-
-
-@dataclass(frozen=True)
-class IrisMap:
-    """How an iris control's value maps to the main lens' f-number N (module docstring: why UVC is the default).
-
-    `unit`: N = value x unit. `table`: measured (value, N) points, N strictly monotonic in the value,
-    interpolated linearly in stops (log N) between them; nothing outside the table is mapped. For a
-    relative iris control the value counts the steps closed from fully open. InputError if malformed."""
-
-    unit: float = UVC_IRIS_UNIT
-    table: tuple[tuple[int, float], ...] = ()
-
-    def __post_init__(self) -> None:
-        if isinstance(self.unit, bool) or not isinstance(self.unit, numbers.Real) or not math.isfinite(self.unit) \
-                or self.unit <= 0:
-            raise InputError(f"iris_unit must be a positive number (f-number per control unit), got {self.unit!r}")
-        if not self.table:
-            return
-        try:
-            points = tuple(sorted((operator.index(v), float(n)) for v, n in self.table))
-        except (TypeError, ValueError):
-            points = ()
-        values = [v for v, _ in points]
-        stops = [n for _, n in points]
-        steps = [b - a for a, b in itertools.pairwise(stops)]
-        if (len(points) < 2 or len(set(values)) != len(values) or not all(math.isfinite(n) and n > 0 for n in stops)
-                or not (all(d > 0 for d in steps) or all(d < 0 for d in steps))):
-            raise InputError(f"iris_table must be at least two value:f-number points with distinct whole values and "
-                             f"positive f-numbers that all rise or all fall with the value, got {self.table!r}")
-        object.__setattr__(self, "table", points)
-
-    def f_number(self, value: float) -> float:
-        """The f-number at a control value; NaN outside the table."""
-        if not self.table:
-            return float(value) * self.unit
-        for (v0, n0), (v1, n1) in itertools.pairwise(self.table):
-            if v0 <= value <= v1:
-                return n0 * (n1 / n0) ** ((value - v0) / (v1 - v0))
-        return math.nan
-
-    def value(self, f_number: float) -> float | None:
-        """The (fractional) control value giving f/N; None outside the table."""
-        if not self.table:
-            return f_number / self.unit
-        for (v0, n0), (v1, n1) in itertools.pairwise(self.table):
-            if min(n0, n1) <= f_number <= max(n0, n1):
-                return v0 + (v1 - v0) * math.log(f_number / n0) / math.log(n1 / n0)
-        return None
-
-    def f_range(self, lo: int, hi: int) -> tuple[float, float] | None:
-        """The smallest and largest f-number among control values lo..hi (within the table); None if none."""
-        if self.table:
-            lo, hi = max(lo, self.table[0][0]), min(hi, self.table[-1][0])
-        if lo > hi:
-            return None
-        ends = (self.f_number(lo), self.f_number(hi))
-        return min(ends), max(ends)
-
-    def describe(self) -> str:
-        if self.table:
-            return "iris_table " + ",".join(f"{v}:{n:g}" for v, n in self.table)
-        if self.unit == UVC_IRIS_UNIT:
-            return "f-number x 100, UVC's unit"
-        return f"f-number = value x {self.unit:g}, iris_unit"
-
-
-@dataclass(frozen=True)
-class ControlInfo:
-    """One V4L2 control's id, name and integer range."""
-
-    cid: int
-    name: str
-    minimum: int
-    maximum: int
-    step: int
-    default: int
-
-
-class V4L2Adapter(Protocol):
-    """The ioctl-level operations V4L2Camera needs; raise OSError exactly as the kernel reports it."""
-
-    path: str
-
-    def open(self) -> None: ...
-    def close(self) -> None: ...
-    def fileno(self) -> int: ...
-    def identify(self) -> dict[str, str]: ...
-    def pixel_format_codes(self) -> list[int]: ...
-    def get_format(self) -> RawFormat: ...
-    def set_format(self, width: int, height: int, code: int) -> RawFormat: ...
-    def controls(self) -> dict[int, ControlInfo]: ...
-    def get_control(self, cid: int) -> int: ...
-    def set_control(self, cid: int, value: int) -> None: ...
-    def set_crop(self, left: int, top: int, width: int, height: int) -> None: ...
-    def get_crop(self) -> tuple[int, int, int, int]: ...
-    def start(self, buffer_count: int) -> int: ...
-    def stop(self) -> None: ...
-    def dequeue(self) -> RawBuffer | None: ...
-
-
-class LinuxpyAdapter:
-    """V4L2Adapter over linuxpy: non-blocking fd, MMAP buffers, plain G/S_CTRL; nothing else touches linuxpy."""
-
-    def __init__(self, path: str) -> None:
-        self.path = path
-        self._dev: Any = None
-        self._maps: list[Any] = []
-
-    def open(self) -> None:
-        """Open the node non-blocking (DQBUF then returns EAGAIN instead of hanging)."""
-        from linuxpy.video import device as lv
-
-        self._lv = lv
-        self._capture = lv.BufferType.VIDEO_CAPTURE
-        self._mmap = lv.Memory.MMAP
-        dev = lv.Device(self.path, blocking=False)
-        dev.open()
-        self._dev = dev
-
-    def close(self) -> None:
-        """Release buffers and the fd, ignoring errors from a device that is already gone."""
-        if self._dev is None:
-            return
-        try:
-            self.stop()
-        except OSError:
-            pass
-        self._dev.close()
-        self._dev = None
-
-    def fileno(self) -> int:
-        return self._dev.fileno()
-
-    def identify(self) -> dict[str, str]:
-        caps = self._lv.read_capabilities(self._dev)
-        return {"driver": caps.driver.decode(), "card": caps.card.decode(), "bus_info": caps.bus_info.decode()}
-
-    def pixel_format_codes(self) -> list[int]:
-        desc = self._lv.raw.v4l2_fmtdesc()
-        desc.type = self._capture
-        return [int(d.pixelformat) for d in self._lv.iter_read(self._dev, self._lv.IOC.ENUM_FMT, desc)]
-
-    def get_format(self) -> RawFormat:
-        pix = self._lv.get_raw_format(self._dev, self._capture).fmt.pix
-        return RawFormat(pix.width, pix.height, pix.pixelformat, pix.bytesperline, pix.sizeimage)
-
-    def set_format(self, width: int, height: int, code: int) -> RawFormat:
-        self._lv.set_format(self._dev, self._capture, width, height, pixel_format=code)
-        return self.get_format()
-
-    def controls(self) -> dict[int, ControlInfo]:
-        found = {}
-        for c in self._lv.iter_read_controls(self._dev):
-            disabled = c.flags & self._lv.ControlFlag.DISABLED
-            if c.type != self._lv.ControlType.CTRL_CLASS and not disabled:
-                found[c.id] = ControlInfo(c.id, c.name.decode(), c.minimum, c.maximum, c.step, c.default_value)
-        return found
-
-    def get_control(self, cid: int) -> int:
-        return int(self._lv.get_control(self._dev, cid))
-
-    def set_control(self, cid: int, value: int) -> None:
-        self._lv.set_control(self._dev, cid, int(value))
-
-    def set_crop(self, left: int, top: int, width: int, height: int) -> None:
-        rect = self._lv.Rect(left, top, width, height)
-        self._lv.set_selection(self._dev, self._capture, self._lv.SelectionTarget.CROP, rect)
-
-    def get_crop(self) -> tuple[int, int, int, int]:
-        r = self._lv.get_selection(self._dev, self._capture, self._lv.SelectionTarget.CROP)
-        return (r.left, r.top, r.width, r.height)
-
-    def start(self, buffer_count: int) -> int:
-        """Request, map and queue MMAP buffers, then STREAMON; return the count the driver granted."""
-        lv, dev = self._lv, self._dev
-        granted = lv.request_buffers(dev, self._capture, self._mmap, buffer_count).count
-        for index in range(granted):
-            buff = lv.query_buffer(dev, self._capture, self._mmap, index)
-            self._maps.append(lv.mmap_from_buffer(dev, buff))
-            lv.enqueue_buffer(dev, self._capture, self._mmap, 0, index)
-        lv.stream_on(dev, self._capture)
-        return granted
-
-    def stop(self) -> None:
-        """STREAMOFF, unmap and free the buffers."""
-        if not self._maps:
-            return
-        maps, self._maps = self._maps, []
-        try:
-            self._lv.stream_off(self._dev, self._capture)
-        finally:
-            for m in maps:
-                m.close()
-            self._lv.free_buffers(self._dev, self._capture, self._mmap)
-
-    def dequeue(self) -> RawBuffer | None:
-        """DQBUF one filled buffer, copy it out and QBUF it back; None if none is ready (EAGAIN)."""
-        try:
-            buff = self._lv.dequeue_buffer(self._dev, self._capture, self._mmap)
-        except BlockingIOError:
-            return None
-        data = self._maps[buff.index][: buff.bytesused]
-        stamp = buff.timestamp.secs + buff.timestamp.usecs * 1e-6
-        raw = RawBuffer(data, int(buff.sequence), stamp, int(buff.flags), int(buff.bytesused))
-        self._lv.enqueue_buffer_raw(self._dev, buff)
-        return raw
 
 
 @dataclass
@@ -1051,78 +835,6 @@ def _best_format(offered: list[int]) -> PixelFormat | None:
     """The deepest raw format on offer, preferring unpacked and monochrome ones."""
     usable = [f for f in FORMATS if f.code in offered]
     return max(usable, key=lambda f: (f.bits, not f.packed, f.cfa is None), default=None)
-
-
-def _check_number(name: str, value: float, positive: bool = False) -> float:
-    """A finite number (positive if asked); InputError otherwise."""
-    if isinstance(value, bool) or not isinstance(value, numbers.Real) or not math.isfinite(value) \
-            or (positive and value <= 0):
-        raise InputError(f"{name} must be a {'positive ' if positive else ''}finite number, got {value!r}")
-    return float(value)
-
-
-def _check_roi(what: str, roi: tuple[Any, ...]) -> tuple[int, int, int, int]:
-    """(x, y, w, h) with x, y >= 0 and w, h > 0, all integers; InputError otherwise."""
-    try:
-        values = tuple(operator.index(v) for v in roi)
-    except TypeError:
-        values = ()
-    if len(values) != 4 or min(values[:2]) < 0 or min(values[2:]) <= 0:
-        raise InputError(f"{what} must be four integers x, y >= 0 and width, height > 0, got {tuple(roi)!r}")
-    return values  # type: ignore[return-value]
-
-
-def _int_param(url: str, name: str, text: str | None, lo: int, hi: int | None = None) -> int | None:
-    """An integer URL parameter within [lo, hi], or None if absent."""
-    if text is None:
-        return None
-    try:
-        value = int(text)
-    except ValueError:
-        raise InputError(f"parameter {name}={text!r} in camera URL {url!r} is not an integer") from None
-    if value < lo or (hi is not None and value > hi):
-        bound = f"between {lo} and {hi}" if hi is not None else f"at least {lo}"
-        raise InputError(f"parameter {name}={value} in camera URL {url!r} must be {bound}")
-    return value
-
-
-def _float_param(url: str, name: str, text: str | None, positive: bool = False) -> float | None:
-    """A finite (optionally positive) float URL parameter, or None if absent."""
-    if text is None:
-        return None
-    try:
-        value = float(text)
-    except ValueError:
-        raise InputError(f"parameter {name}={text!r} in camera URL {url!r} is not a number") from None
-    if not math.isfinite(value) or (positive and value <= 0):
-        kind = "a positive number" if positive else "a finite number"
-        raise InputError(f"parameter {name}={text!r} in camera URL {url!r} must be {kind}")
-    return value
-
-
-def _iris_table_param(url: str, text: str | None) -> tuple[tuple[int, float], ...] | None:
-    """The iris_table=V:N,V:N,... URL parameter (control value: f-number), or None if absent."""
-    if text is None:
-        return None
-    try:
-        points = tuple((int(v), float(n)) for v, n in (item.split(":") for item in text.split(",")))
-        IrisMap(table=points)
-    except (ValueError, InputError):
-        raise InputError(f"parameter iris_table={text!r} in camera URL {url!r} must be value:f-number points, e.g. "
-                         "280:2.8,400:4,560:5.6, at least two, with f-numbers that all rise or all fall with the "
-                         "value") from None
-    return points
-
-
-def _roi_param(url: str, text: str | None) -> tuple[int, int, int, int] | None:
-    """The roi=x,y,w,h URL parameter, or None if absent."""
-    if text is None:
-        return None
-    try:
-        values = tuple(int(v) for v in text.split(","))
-    except ValueError:
-        raise InputError(f"parameter roi={text!r} in camera URL {url!r} must be x,y,width,height") from None
-    return _check_roi(f"parameter roi in camera URL {url!r}", values)
 
 
 register_camera_scheme("v4l2", V4L2Camera.from_url, replace=True)
