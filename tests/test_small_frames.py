@@ -65,3 +65,46 @@ def test_every_shift_at_the_stated_limit_is_flagged(tmp_path, lenses, noise):
         if a.magnitude / UM_TO_PX >= stated - 1e-9:  # at or above what this frame's report states
             assert (m, n) in flagged, ((m, n), a.magnitude / UM_TO_PX, stated)
     assert flagged <= set(seeded), sorted(flagged - set(seeded))
+
+
+# --- a small hex array's edge columns ---------------------------------------------------------------------
+
+def hex_camera(lenses: int):
+    """hex_small_camera.toml's optics with `lenses` columns and the rows filling a square sensor."""
+    cfg = load_config(FIXTURES / "hex_small_camera.toml")
+    p = cfg.layout.subimage_pitch_px
+    rows = 2 * round(lenses / math.sqrt(3.0))
+    side = 16 * math.ceil((max(lenses * p, ((rows - 1) * math.sqrt(3.0) / 2 + 1) * p) + 8) / 16)
+    return dataclasses.replace(cfg, mla=dataclasses.replace(cfg.mla, count_w=lenses, count_h=rows),
+                               sensor=dataclasses.replace(cfg.sensor, width_px=side, height_px=side))
+
+
+@pytest.mark.parametrize("noise,rotation_deg,phase_px", [  # bench/small_frames.py's draws that flagged lenses
+    (0.0, -0.040, (0.273, -0.329)), (0.0, -0.043, (-0.186, -0.482)), (0.0, -0.323, (-0.278, 0.123)),
+    (0.0, -0.100, (0.421, -0.353)), (0.01, -0.173, (-0.153, -0.150)), (0.01, 0.282, (-0.421, 0.426))])
+def test_a_healthy_small_hex_frame_flags_nothing(tmp_path, noise, rotation_deg, phase_px):
+    """12 x 14 hex: each side's edge column holds 6 row ends of each kind (sticking out, sitting in), under
+    EDGE_GROUP_MIN. Their sub-pixel pattern was read against the inner lenses' spread (measured: 26 false
+    flags in 30 of bench/small_frames.py's frames, all on the edge columns); now against the two sides'
+    pooled spread of their kind, raised to a side's own (HEX_EDGE_GROUP_MIN): 0 in 90."""
+    cfg = hex_camera(12)
+    model = am.AnalyticModel(shape=(cfg.sensor.height_px, cfg.sensor.width_px),
+                             lenses=(cfg.mla.count_h, cfg.mla.count_w), packing="hex",
+                             rotation_deg=rotation_deg, phase_px=phase_px)
+    result = inspect(cfg, model, noise, tmp_path, 5)
+    assert result.defects == (), [(d.m, d.n, d.error_type) for d in result.defects]
+
+
+def test_the_end_lenses_of_a_hex_edge_column_are_judged():
+    """A hex edge column's running median is taken over the lenses of one row parity, corners left out;
+    its end lenses' windows slide inward instead of repeating the end lens, whose median was then always
+    its own value: a defect there read 0 and was never flagged."""
+    from mlaqc.inspection.baselines import local_deviation
+
+    rows, cols = 14, 12
+    values = np.random.default_rng(0).normal(0.0, 0.01, (rows, cols))
+    for r, c in ((12, 0), (1, 0), (12, cols - 1), (1, cols - 1)):  # each row parity's end lens, both sides
+        bumped = values.copy()
+        bumped[r, c] += 1.0
+        dev = local_deviation(bumped, packing="hex")
+        assert dev[r, c] > 0.9, (r, c, dev[r, c])

@@ -91,8 +91,8 @@ _THREADED_FROM = 4096  # lenses per map from which the compiled median pass runs
 
 def _hex_edge_columns(stack: np.ndarray, finite: np.ndarray, base: np.ndarray, size: int,
                       x_axis: list[bool], only: np.ndarray | None = None) -> None:
-    """Hex lattice: the baselines of the first and last columns, in place, as the running median (size
-    lenses, clipped) of the finite lenses of the same column and row parity: a shifted row's end lens
+    """Hex lattice: the baselines of the first and last columns, in place, as the running median (the size
+    nearest lenses, `_line_windows`) of the finite lenses of the same column and row parity: a shifted row's end lens
     misses other neighbours than an unshifted row's, and the two carry different biases. Corners are
     left to the rows for planes not along x (as `median_baselines` leaves them), and out of the other
     lenses' medians: outermost along their row too, they are another population (measured: a corner's
@@ -102,21 +102,41 @@ def _hex_edge_columns(stack: np.ndarray, finite: np.ndarray, base: np.ndarray, s
     _, rows, cols = stack.shape
     if rows < 2 * size or cols < size:
         return
-    half = size // 2
     x_planes = np.asarray(x_axis, bool)
     for col in (0, cols - 1):
         if only is not None and not only[:, col].any():
             continue
         for parity in (0, 1):
             r = np.arange(parity, rows, 2)
-            idx = np.clip(np.arange(len(r))[:, None] + np.arange(-half, half + 1)[None, :], 0, len(r) - 1)
-            vals = stack[:, r, col][:, idx]
             corner = (r == 0) | (r == rows - 1)
+            idx, inside = _line_windows(len(r), size, corner)
+            vals = stack[:, r, col][:, idx]
             # a corner lens (outermost along its row too) is no sample of the column's population
-            use = finite[:, r, col][:, idx] & ~(corner[idx] & ~corner[:, None])[None]
+            use = finite[:, r, col][:, idx] & inside[None] & ~(corner[idx] & ~corner[:, None])[None]
             med, ok = last_axis_medians(np.where(use, vals, np.nan))
             write = ok & (~corner[None, :] | x_planes[:, None])
             base[:, r, col] = np.where(write, med, base[:, r, col])
+
+
+def _line_windows(n: int, size: int, corner: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Running-median windows along a line of n lenses whose `corner` ones (at its ends) are no sample:
+    (idx (n, size), inside (n, size) bool). Each window is centred on its lens and clipped to the line
+    (mode 'nearest'), but the first and last lenses between the corners take the `size` lenses nearest
+    them: clipped, their window repeats them, and without the corner its median is always their own
+    value, so that they were never judged. Windows elsewhere stay centred: one slid off its lens reads
+    the lenses beyond it, whose systematics near a corner are not its own (measured: 2 false flags on a
+    102 x 116 hex frame of round lenses)."""
+    off = np.arange(size) - size // 2
+    j = np.arange(n)
+    idx = np.clip(j[:, None] + off[None, :], 0, n - 1)
+    inside = np.ones((n, size), bool)
+    lo = 1 if n and corner[0] else 0
+    hi = n - 2 if n and corner[-1] else n - 1
+    for end in {lo, hi} if 0 <= lo <= hi else ():
+        start = min(max(end - size // 2, lo), max(hi - size + 1, lo))
+        idx[end] = np.minimum(start + np.arange(size), n - 1)
+        inside[end] = start + np.arange(size) <= hi
+    return idx, inside
 
 
 def _outer_share(rows: int, cols: int, size: int) -> np.ndarray:

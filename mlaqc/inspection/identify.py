@@ -64,8 +64,8 @@ from mlaqc.inspection.filters import (
     max_filter_nearest,
     with_neighbours,
 )
-from mlaqc.inspection.lens_classes import (SECOND_RING_MIN, corner_lenses, edge_classes, edge_groups, hex_row_ends,
-                                           noise_classes, second_ring)
+from mlaqc.inspection.lens_classes import (SECOND_RING_MIN, corner_lenses, edge_classes, edge_groups, hex_column_ends,
+                                           hex_row_ends, noise_classes, second_ring)
 from mlaqc.inspection.medians import column_medians, finite_median, nanmedian_columns
 from mlaqc.inspection.phase_pattern import (PhaseModel, _phase_skips, phase_model,
                                             remove_phase_pattern, remove_phase_trend)
@@ -122,13 +122,33 @@ def class_sigmas(dev: np.ndarray, floor: float | np.ndarray = 0.0, exclude: np.n
     quiet = second if exclude is None else second & ~exclude  # (its spread without the defects' light)
     _raise_to_own(out, second, stack[quiet], lambda v: _column_tail_sigmas(v, floor))
     corners = corner_lenses(stack.shape[:2])
+    least = EDGE_GROUP_MIN if packing != "hex" else HEX_EDGE_GROUP_MIN
     groups = list(edge_groups(stack.shape[:2], packing))
-    if packing == "hex":  # the row ends that stick out, both sides together: a side alone may hold too few
-        groups.append(hex_row_ends(stack.shape[:2]) & (edge_classes(stack.shape[:2]) == 0))
+    if packing == "hex":  # the row ends of each kind, both sides together: a side alone may hold too few
+        groups += hex_column_ends(stack.shape[:2])
     for group in groups:
-        quiet = (group if exclude is None else group & ~exclude) & ~corners
-        _raise_to_own(out, group, stack[quiet], _column_robust_sigmas, EDGE_GROUP_MIN)
+        own = _edge_spread(stack, group & ~corners, exclude, least)
+        out[group] = np.maximum(out[group], np.nan_to_num(own, nan=0.0))
     return out[..., 0] if dev.ndim == 2 else out
+
+
+def _edge_spread(stack: np.ndarray, group: np.ndarray, exclude: np.ndarray | None, least: int) -> np.ndarray:
+    """Per map the robust spread of an edge group's lenses (`group`, (rows, cols) bool) less `exclude`
+    (the defects' neighbourhoods), from all of them where fewer than `least` are left (a small array's
+    edge line is mostly neighbourhoods: its few quiet lenses are those its pattern left near 0, and read
+    alone they flagged the others); NaN where the group has fewer than that."""
+    def spread(sel: np.ndarray) -> np.ndarray:
+        values = stack[sel]
+        enough = np.isfinite(values).sum(axis=0) >= least
+        if not enough.any():
+            return np.full(enough.shape, np.nan)
+        return np.where(enough, _column_robust_sigmas(values), np.nan)
+
+    every = spread(group)
+    if exclude is None:
+        return every
+    quiet = spread(group & ~exclude)
+    return np.where(np.isfinite(quiet), quiet, every)
 
 
 def _raise_to_own(out: np.ndarray, group: np.ndarray, values: np.ndarray, spread_of,
@@ -176,6 +196,12 @@ def _column_tail_sigmas(a: np.ndarray, floor: float | np.ndarray = 0.0) -> np.nd
 # follows the sub-pixel phase across a side, which no phase fit can take off ten lenses), and pooled in one
 # class spread a quiet side's hid a busy one's (12 x 12 analytic frames at 1 % noise: 17 false flags in 3).
 EDGE_GROUP_MIN = 8
+# Hex: a side's edge column holds half its rows of each kind of row end (6 on a 12 x 14 array), and the
+# sides' sub-pixel patterns differ: the right column's sharpness spread 6 times the left's on one such
+# noise-free frame, which both sides pooled (`hex_column_ends`) hid. A side's own spread is read from this
+# many of its lenses; only ever raising the pooled one, its scatter on few lenses costs sensitivity there,
+# never a false flag.
+HEX_EDGE_GROUP_MIN = 5
 TAIL_OUTLIER = 10.0  # tail spreads leave out deviations beyond this many robust sigma: defects, not noise nor systematics
 
 _NAMES = ("offset_x_px", "offset_y_px", "asym_x", "asym_y", "blur", "flux", "ssim", "sharpness")

@@ -162,6 +162,16 @@ def hex_row_ends(shape: tuple[int, int]) -> np.ndarray:
     return _frozen(ends)
 
 
+@functools.lru_cache(maxsize=8)
+def hex_column_ends(shape: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
+    """On a hex lattice, the outer ring's row ends on the left and right sides pooled over both sides:
+    (those that stick out, those that sit in; `hex_row_ends`). A side holds only half its rows of each
+    kind (6 on a 12 x 14 array, under EDGE_GROUP_MIN), and each kind answers to the sub-pixel phase alike
+    on both sides."""
+    ends, columns = hex_row_ends(shape), (edge_classes(shape) == 0) & (_sides(shape) >= 2)
+    return _frozen(columns & ends), _frozen(columns & ~ends)
+
+
 # Hex: the second ring's baselines leave the outermost lenses out (`_refine_baselines`), so their windows
 # span 4 rows or columns, not 5, and take up another share of the sub-pixel phase pattern (which drifts
 # 0.15 px per row on an array rotated 0.5°): measured on the analytic model, the second rows' x offset and
