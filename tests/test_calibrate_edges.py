@@ -85,7 +85,8 @@ def test_edge_offsets_in_grid_json(healthy, tmp_path):
     assert Grid.from_json_dict(data).edge_offsets == ()
     for bad in ([{"group": "ring 0 top", "x": 0.1}], [{"group": "ring 9 top", "lenses": 5, "x": 0.0, "y": 0.1}],
                 [{"group": "ring 0 top", "lenses": 5, "x": 0.0, "y": 0.1}] * 2,
-                [{"group": "ring 0 top", "lenses": 5, "x": 0.1, "y": 0.1}]):
+                [{"group": "ring 0 top", "lenses": 5, "x": 0.1, "y": 0.1}],
+                [{"group": "ring 0 top", "lenses": LENSES + 1, "x": 0.0, "y": 0.1}]):  # more than the side has
         data["model"]["edge_offsets_px"] = bad
         with pytest.raises(InputError, match="edge_offsets_px"):
             Grid.from_json_dict(data)

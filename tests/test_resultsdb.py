@@ -414,6 +414,23 @@ def test_lot_chart_names_the_arrays_of_a_drift(target, capsys):
     assert main(["lot", "yield", "--db", target, "--lot", "L5", "--rules", "1"]) == 0  # (not a chart: not read)
 
 
+def test_an_infinite_reading_is_named_not_charted(target, capsys):
+    """A reading stored as infinity (a grid fit that did not converge) has no place on a chart: it is left
+    out, and the chart says which array it was, in its summary line and its JSON."""
+    with open_database(target) as db:
+        for a in range(25):
+            report = _report("PASS", pitch=float("inf") if a == 7 else 20.0 + 1e-4 * (a % 3))
+            report["source"] = f"a{a:02d}.tif"
+            report["created_utc"] = f"2026-12-01T10:{a:02d}:00+00:00"
+            db.record(record_from_report(report), Identity(lot="L6", wafer="W1", array=f"A{a:02d}"), None)
+    assert main(["lot", "chart", "--db", target, "--lot", "L6", "--reading", "pitch_x_px", "--json"]) == 0
+    data = json.loads(capsys.readouterr().out)
+    assert data["not_charted"] == ["L6/W1/A07"] and len(data["values"]) == 24
+    assert "L6/W1/A07" not in data["arrays"] and all(math.isfinite(v) for v in data["values"])
+    assert main(["lot", "chart", "--db", target, "--lot", "L6", "--reading", "pitch_x_px"]) == 0
+    assert "1 not charted, their reading infinite: L6/W1/A07" in capsys.readouterr().out
+
+
 @pytest.mark.timeout(300)
 def test_a_batch_killed_then_run_again_records_every_frame_once(frames, tmp_path):
     """`mlaqc inspect` on 8 frames killed (SIGKILL) once some are recorded, then run again: each frame

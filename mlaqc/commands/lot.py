@@ -85,7 +85,8 @@ def run(args: argparse.Namespace) -> int:
             chart = lot_chart(db, args.reading, args.lot, args.wafer, args.baseline, rules, args.chart, h)
             data = {"reading": args.reading, "chart": chart.kind, "centre": chart.centre, "sigma": chart.sigma,
                     "baseline": chart.baseline, "arrays": chart.labels, "values": chart.values.tolist(),
-                    "out_of_control": {chart.labels[i]: r for i, r in chart.signals.items()}}
+                    "out_of_control": {chart.labels[i]: r for i, r in chart.signals.items()},
+                    "not_charted": chart.not_charted}
             if chart.kind == "cusum":
                 data["h"] = chart.h
             lines = [chart.summary(args.reading), *chart.sentences()]

@@ -245,20 +245,24 @@ class Grid:
 
 def _edge_offsets(entries: Any, source: str, shape: tuple[int, int], packing: str) -> tuple[tuple[str, int, float, float], ...]:
     """The model's "edge_offsets_px" (absent in grids written before them: none): each an edge group of this
-    array's (`edge_lines`), once, its offset along the normal to its side only."""
+    array's (`edge_lines`), once, measured on at most its lenses, its offset along the normal to its side only."""
     from mlaqc.inspection.lens_classes import edge_lines
 
     axes = {e.name: e.axis for e in edge_lines(shape, packing) if e.name}
+    sizes = {e.name: int(e.group.sum()) for e in edge_lines(shape, packing) if e.name}
     try:
         out = tuple((e["group"], _pos_int(e["lenses"]), _num(e["x"]), _num(e["y"])) for e in entries)
     except (KeyError, TypeError, ValueError) as exc:
         raise InputError(f"{source}: model.edge_offsets_px must list objects with group, lenses, x and y "
                          f"({_describe(exc)})") from None
     seen = set()
-    for name, _, dx, dy in out:
+    for name, lenses, dx, dy in out:
         if not isinstance(name, str) or name not in axes or name in seen:
             raise InputError(f"{source}: model.edge_offsets_px names {name!r}, which is not an edge group of a "
                              f"{shape[0]}x{shape[1]} {packing} array or is listed twice")
+        if lenses > sizes[name]:
+            raise InputError(f"{source}: model.edge_offsets_px group {name!r} counts {lenses} lenses; it has "
+                             f"{sizes[name]} in a {shape[0]}x{shape[1]} {packing} array")
         if (dy if axes[name] == 0 else dx) != 0:
             raise InputError(f"{source}: model.edge_offsets_px group {name!r} has an offset along its side; "
                              "only the normal to the side is read")

@@ -86,6 +86,7 @@ class Chart:
     h: float = CUSUM_H
     known: np.ndarray | None = None  # CUSUM: how many arrays each was judged against
     jump: float = JUMP_Z
+    not_charted: list[str] = field(default_factory=list)  # arrays whose reading is stored as infinite
 
     def jump_limits(self) -> tuple[np.ndarray, np.ndarray]:
         """CUSUM: the values beyond which each array is a jump (its score beyond ±`jump`): the mean of the
@@ -114,8 +115,10 @@ class Chart:
                    + ("; centre and sigma of the arrays before the first call" if self.signals else ""))
         else:
             how = f"I-MR, limits from the first {base}"
+        left = (f"; {len(self.not_charted)} not charted, their reading infinite: {', '.join(self.not_charted)}"
+                if self.not_charted else "")
         return (f"{reading}: {n} arrays, centre {self.centre:.6g}, sigma {self.sigma:.3g} ({how}); "
-                f"{len(self.signals)} out of control")
+                f"{len(self.signals)} out of control{left}")
 
     def sentences(self) -> list[str]:
         words = CUSUM_SIGNALS if self.kind == "cusum" else RULES
@@ -289,6 +292,9 @@ def lot_chart(db, reading: str, lot: str | None = None, wafer: str | None = None
     latest, params = latest_selection(lot, wafer)
     rows = db.query(f"SELECT {reading}, lot, wafer, COALESCE(array_id, position, source) FROM inspections "
                     f"WHERE id IN ({latest}) AND {reading} IS NOT NULL ORDER BY inspected_utc, recorded_utc, id", params)
-    rows = [r for r in rows if math.isfinite(float(r[0]))]  # (a reading stored as infinity: not charted)
-    return make_chart([float(r[0]) for r in rows], [f"{r[1] or '-'}/{r[2] or '-'}/{r[3]}" for r in rows],
-                      baseline, kind, rules, h)
+    labels = [f"{r[1] or '-'}/{r[2] or '-'}/{r[3]}" for r in rows]
+    finite = [math.isfinite(float(r[0])) for r in rows]  # (a reading stored as infinity: not charted, named)
+    chart = make_chart([float(r[0]) for r, ok in zip(rows, finite) if ok], [n for n, ok in zip(labels, finite) if ok],
+                       baseline, kind, rules, h)
+    chart.not_charted = [n for n, ok in zip(labels, finite) if not ok]
+    return chart

@@ -246,7 +246,8 @@ def lot_report_html(db: ResultsDB, lot: str | None = None, wafer: str | None = N
         if chart.values.size < 3:
             continue
         named = "; ".join(chart.labels[i] for i in sorted(chart.signals)) or "none"
-        out.append(_figure(_chart_svg(chart, reading), f"{READINGS[reading]}: out of control: {named}"))
+        left = f"; not charted (reading infinite): {'; '.join(chart.not_charted)}" if chart.not_charted else ""
+        out.append(_figure(_chart_svg(chart, reading), f"{READINGS[reading]}: out of control: {named}{left}"))
     out.append("</div>")
     if arrays and shape[0] and shape[1]:
         out += ['<h2>Stacked defect map</h2><div class="plots">',
