@@ -11,7 +11,7 @@ import pytest
 from analytic_frames import AnalyticModel, Anomaly
 
 from mlaqc.inspection.filters import lattice_max_of_neighbours, with_neighbours
-from mlaqc.inspection.identify import class_sigmas
+from mlaqc.inspection.spreads import class_sigmas
 from mlaqc.inspection.lens_classes import noise_classes
 from mlaqc.inspection.phase_pattern import phase_model, remove_phase_pattern
 from mlaqc.inspection.pipeline import inspect_image, prepare

@@ -1,4 +1,4 @@
-"""The frame's own noise per lens class (mlaqc.inspection.identify.class_sigmas): a small array's few
+"""The frame's own noise per lens class (mlaqc.inspection.spreads.class_sigmas): a small array's few
 defects must not set it (issue #22: 9 defects among a 24 x 24 array's 384 inner lenses read its spreads
 10-20 times the noise), while a wide systematic tail still widens it."""
 
@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from mlaqc.inspection.identify import class_sigmas
+from mlaqc.inspection.spreads import class_sigmas
 from mlaqc.inspection.lens_classes import noise_classes, second_ring
 
 

@@ -29,7 +29,7 @@ KINDS = (("pitch", "µm"), ("decenter", "µm"), ("radius", "rel"), ("thickness",
 
 def edge_zone(shape: tuple[int, int]) -> np.ndarray:
     """(rows, cols) bool: the lenses whose spreads are not the inner lenses' (their own edge classes, sides,
-    second ring or corner zone, `identify.class_sigmas`): the three outer rings and the 4 x 4 corner zones."""
+    second ring or corner zone, `spreads.class_sigmas`): the three outer rings and the 4 x 4 corner zones."""
     return (ring_distance(shape) <= 2) | (noise_classes(shape) == 3)
 
 

@@ -28,8 +28,8 @@ from itertools import pairwise
 import numpy as np
 
 from mlaqc.inspection.measure_kernels import coarse_chi2, focal_scan
-from mlaqc.inspection.identify import (RINGS, Identification, _kind_curve, _unit_noise, class_centred, response,
-                                       robust_sigma)
+from mlaqc.inspection.identify import RINGS, Identification, _kind_curve, _unit_noise, class_centred, response
+from mlaqc.inspection.spreads import robust_sigma
 from mlaqc.parallel import run_parts
 from mlaqc.models.signatures import FEATURES, SignatureTable, to_along_xy
 from mlaqc.optics.config import CameraConfig
