@@ -428,7 +428,27 @@ def test_an_infinite_reading_is_named_not_charted(target, capsys):
     assert data["not_charted"] == ["L6/W1/A07"] and len(data["values"]) == 24
     assert "L6/W1/A07" not in data["arrays"] and all(math.isfinite(v) for v in data["values"])
     assert main(["lot", "chart", "--db", target, "--lot", "L6", "--reading", "pitch_x_px"]) == 0
-    assert "1 not charted, their reading infinite: L6/W1/A07" in capsys.readouterr().out
+    assert "1 not charted, their reading not finite: L6/W1/A07" in capsys.readouterr().out
+
+
+def test_a_lot_with_no_finite_reading_charts_nothing_and_says_so(target, capsys, tmp_path):
+    """Every array's reading infinite: the chart's centre is JSON null (not NaN, which is not
+    JSON), and the lot report, which charts nothing under 3 arrays, still names them."""
+    with open_database(target) as db:
+        for a in range(2):
+            report = _report("PASS", pitch=float("inf"))
+            report["source"] = f"b{a}.tif"
+            db.record(record_from_report(report), Identity(lot="L7", wafer="W1", array=f"B{a}"), None)
+    assert main(["lot", "chart", "--db", target, "--lot", "L7", "--reading", "pitch_x_px", "--json"]) == 0
+
+    def refuse(name):
+        raise ValueError(f"{name} is not JSON")
+
+    data = json.loads(capsys.readouterr().out, parse_constant=refuse)
+    assert data["centre"] is None and data["values"] == [] and data["not_charted"] == ["L7/W1/B0", "L7/W1/B1"]
+    out = tmp_path / "lot.html"
+    assert main(["lot", "report", "--db", target, "--lot", "L7", "--out", str(out)]) == 0
+    assert "not charted (reading not finite): L7/W1/B0; L7/W1/B1" in out.read_text()
 
 
 @pytest.mark.timeout(300)

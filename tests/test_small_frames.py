@@ -101,10 +101,13 @@ def test_the_end_lenses_of_a_hex_edge_column_are_judged():
     its own value: a defect there read 0 and was never flagged."""
     from mlaqc.inspection.baselines import local_deviation
 
-    rows, cols = 14, 12
-    values = np.random.default_rng(0).normal(0.0, 0.01, (rows, cols))
-    for r, c in ((12, 0), (1, 0), (12, cols - 1), (1, cols - 1)):  # each row parity's end lens, both sides
-        bumped = values.copy()
-        bumped[r, c] += 1.0
-        dev = local_deviation(bumped, packing="hex")
-        assert dev[r, c] > 0.9, (r, c, dev[r, c])
+    for rows, cols in ((14, 12), (15, 12)):  # 15: one parity with no corner, the other with two
+        values = np.random.default_rng(0).normal(0.0, 0.01, (rows, cols))
+        lines = [[r for r in range(parity, rows, 2) if r not in (0, rows - 1)] for parity in (0, 1)]
+        ends = {(line[i], c) for line in lines for i in (0, -1) for c in (0, cols - 1)}
+        for r, c in sorted(ends):  # each row parity's first and last lenses between the corners, both sides
+            for axis in ("", "x"):
+                bumped = values.copy()
+                bumped[r, c] += 1.0
+                dev = local_deviation(bumped, axis=axis, packing="hex")
+                assert dev[r, c] > 0.9, (rows, r, c, axis, dev[r, c])

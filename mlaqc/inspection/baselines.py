@@ -9,7 +9,8 @@ them are recomputed without them (`_refine_baselines`): lenses not measured, and
 lenses, which miss neighbours and carry their own bias. On hex the outer lenses, whose windows miss the
 strip of the rows beyond, are left out of every other lens' baseline, and the row ends that stick out are
 compared with each other (`_hex_edge_columns`). With circular apertures, and on hex, the windows stay
-centred on their lens near the edges and beside lenses left out (`centred`).
+centred on their lens near the edges and beside lenses left out (`centred`), but for the end lenses of a
+hex edge column's row parity, whose clipped window would be their own value (`_line_windows`).
 """
 
 from __future__ import annotations
@@ -91,8 +92,9 @@ _THREADED_FROM = 4096  # lenses per map from which the compiled median pass runs
 
 def _hex_edge_columns(stack: np.ndarray, finite: np.ndarray, base: np.ndarray, size: int,
                       x_axis: list[bool], only: np.ndarray | None = None) -> None:
-    """Hex lattice: the baselines of the first and last columns, in place, as the running median (the size
-    nearest lenses, `_line_windows`) of the finite lenses of the same column and row parity: a shifted row's end lens
+    """Hex lattice: the baselines of the first and last columns, in place, as the running median (size lenses,
+    centred and clipped; the end lenses' slid inward, `_line_windows`) of the finite lenses of the same
+    column and row parity: a shifted row's end lens
     misses other neighbours than an unshifted row's, and the two carry different biases. Corners are
     left to the rows for planes not along x (as `median_baselines` leaves them), and out of the other
     lenses' medians: outermost along their row too, they are another population (measured: a corner's

@@ -27,8 +27,9 @@ def class_sigmas(dev: np.ndarray, floor: float | np.ndarray = 0.0, exclude: np.n
     lenses' nor `floor`: edge lenses are noisier than inner ones, and one spread for all would flag them.
     The second ring's lenses (`second_ring`) are judged against their own spread too where it is wider,
     and so is each group of edge lenses (`edge_groups`, by its robust spread, which one defect among
-    them does not move) where it has EDGE_GROUP_MIN measured lenses (the corners, whose deviation is
-    always 0, left out). `dev` (rows, cols) or a stack
+    them does not move) where it has EDGE_GROUP_MIN measured lenses (hex: HEX_EDGE_GROUP_MIN; and the
+    two sides' row ends of each kind together, `hex_column_ends`), the corners, whose deviation is
+    always 0, left out. `dev` (rows, cols) or a stack
     (rows, cols, J) of maps, each with its own floor; `exclude`: lenses left out of the inner,
     second-ring and edge-group spreads (`_quiet_inner`)."""
     stack = dev[..., None] if dev.ndim == 2 else dev
@@ -55,28 +56,9 @@ def class_sigmas(dev: np.ndarray, floor: float | np.ndarray = 0.0, exclude: np.n
     if packing == "hex":  # the row ends of each kind, both sides together: a side alone may hold too few
         groups += hex_column_ends(stack.shape[:2])
     for group in groups:
-        own = _edge_spread(stack, group & ~corners, exclude, least)
-        out[group] = np.maximum(out[group], np.nan_to_num(own, nan=0.0))
+        quiet = (group if exclude is None else group & ~exclude) & ~corners
+        _raise_to_own(out, group, stack[quiet], _column_robust_sigmas, least)
     return out[..., 0] if dev.ndim == 2 else out
-
-
-def _edge_spread(stack: np.ndarray, group: np.ndarray, exclude: np.ndarray | None, least: int) -> np.ndarray:
-    """Per map the robust spread of an edge group's lenses (`group`, (rows, cols) bool) less `exclude`
-    (the defects' neighbourhoods), from all of them where fewer than `least` are left (a small array's
-    edge line is mostly neighbourhoods: its few quiet lenses are those its pattern left near 0, and read
-    alone they flagged the others); NaN where the group has fewer than that."""
-    def spread(sel: np.ndarray) -> np.ndarray:
-        values = stack[sel]
-        enough = np.isfinite(values).sum(axis=0) >= least
-        if not enough.any():
-            return np.full(enough.shape, np.nan)
-        return np.where(enough, _column_robust_sigmas(values), np.nan)
-
-    every = spread(group)
-    if exclude is None:
-        return every
-    quiet = spread(group & ~exclude)
-    return np.where(np.isfinite(quiet), quiet, every)
 
 
 def _raise_to_own(out: np.ndarray, group: np.ndarray, values: np.ndarray, spread_of,
@@ -126,9 +108,9 @@ def _column_tail_sigmas(a: np.ndarray, floor: float | np.ndarray = 0.0) -> np.nd
 EDGE_GROUP_MIN = 8
 # Hex: a side's edge column holds half its rows of each kind of row end (6 on a 12 x 14 array), and the
 # sides' sub-pixel patterns differ: the right column's sharpness spread 6 times the left's on one such
-# noise-free frame, which both sides pooled (`hex_column_ends`) hid. A side's own spread is read from this
-# many of its lenses; only ever raising the pooled one, its scatter on few lenses costs sensitivity there,
-# never a false flag.
+# noise-free frame, which both sides pooled (`hex_column_ends`) hid. A hex edge group's own spread is read
+# from this many of its lenses; it only ever raises a lens' spread (its class' or the pooled group's),
+# so its scatter on few lenses costs sensitivity there, never a false flag.
 HEX_EDGE_GROUP_MIN = 5
 TAIL_OUTLIER = 10.0  # tail spreads leave out deviations beyond this many robust sigma: defects, not noise nor systematics
 

@@ -86,7 +86,7 @@ class Chart:
     h: float = CUSUM_H
     known: np.ndarray | None = None  # CUSUM: how many arrays each was judged against
     jump: float = JUMP_Z
-    not_charted: list[str] = field(default_factory=list)  # arrays whose reading is stored as infinite
+    not_charted: list[str] = field(default_factory=list)  # arrays whose reading is stored not finite (inf, NaN)
 
     def jump_limits(self) -> tuple[np.ndarray, np.ndarray]:
         """CUSUM: the values beyond which each array is a jump (its score beyond ±`jump`): the mean of the
@@ -115,7 +115,7 @@ class Chart:
                    + ("; centre and sigma of the arrays before the first call" if self.signals else ""))
         else:
             how = f"I-MR, limits from the first {base}"
-        left = (f"; {len(self.not_charted)} not charted, their reading infinite: {', '.join(self.not_charted)}"
+        left = (f"; {len(self.not_charted)} not charted, their reading not finite: {', '.join(self.not_charted)}"
                 if self.not_charted else "")
         return (f"{reading}: {n} arrays, centre {self.centre:.6g}, sigma {self.sigma:.3g} ({how}); "
                 f"{len(self.signals)} out of control{left}")
@@ -293,7 +293,7 @@ def lot_chart(db, reading: str, lot: str | None = None, wafer: str | None = None
     rows = db.query(f"SELECT {reading}, lot, wafer, COALESCE(array_id, position, source) FROM inspections "
                     f"WHERE id IN ({latest}) AND {reading} IS NOT NULL ORDER BY inspected_utc, recorded_utc, id", params)
     labels = [f"{r[1] or '-'}/{r[2] or '-'}/{r[3]}" for r in rows]
-    finite = [math.isfinite(float(r[0])) for r in rows]  # (a reading stored as infinity: not charted, named)
+    finite = [math.isfinite(float(r[0])) for r in rows]  # (a reading stored as inf or NaN: not charted, named)
     chart = make_chart([float(r[0]) for r, ok in zip(rows, finite) if ok], [n for n, ok in zip(labels, finite) if ok],
                        baseline, kind, rules, h)
     chart.not_charted = [n for n, ok in zip(labels, finite) if not ok]

@@ -243,11 +243,14 @@ def lot_report_html(db: ResultsDB, lot: str | None = None, wafer: str | None = N
         + '</p><div class="plots">')
     for reading in readings:
         chart = lot_chart(db, reading, lot, wafer, baseline, rules, kind, h)
+        left = f"not charted (reading not finite): {'; '.join(chart.not_charted)}" if chart.not_charted else ""
         if chart.values.size < 3:
+            if left:
+                out.append(f"<p>{_esc(READINGS[reading])}: fewer than 3 arrays to chart; {_esc(left)}</p>")
             continue
         named = "; ".join(chart.labels[i] for i in sorted(chart.signals)) or "none"
-        left = f"; not charted (reading infinite): {'; '.join(chart.not_charted)}" if chart.not_charted else ""
-        out.append(_figure(_chart_svg(chart, reading), f"{READINGS[reading]}: out of control: {named}{left}"))
+        out.append(_figure(_chart_svg(chart, reading),
+                           f"{READINGS[reading]}: out of control: {named}" + (f"; {left}" if left else "")))
     out.append("</div>")
     if arrays and shape[0] and shape[1]:
         out += ['<h2>Stacked defect map</h2><div class="plots">',
