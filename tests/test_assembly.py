@@ -199,3 +199,32 @@ def test_a_calibration_frame_that_cannot_be_calibrated_is_named(monkeypatch):
     cfg = load_config(Path(__file__).resolve().parent.parent / "fixtures" / "small_camera.toml")
     with pytest.raises(InputError, match=r"frame at mla_tilt_y_deg = -0\.6 could not be calibrated: only 5"):
         am.build_assembly_model(cfg)
+
+
+def test_a_reading_the_frame_cannot_determine_is_not_given_a_number():
+    """A telecentric main lens keeps the sub-image pitch at the lens pitch at any MLA-sensor distance: the
+    projection fit's distance then carries a 1-sigma wider than the whole calibrated range, and its value
+    is whatever the other terms left over (the analytic microscope frame: -903 +- 262 µm on a healthy
+    array). Such a reading is left unread and said so, in the console, the JSON and the bounds check."""
+    from mlaqc.inspection.assembly import Assembly, _undetermined
+    from mlaqc.optics.config import QC
+
+    micro = load_config(FIXTURE.parent / "lfm_40x_relay.toml")
+    extent = np.array([40.0, 0.6, 0.6, 0.6, 40.0, 40.0])
+    values = dict(zip(FIELDS, (-903.0, 0.0, 0.08, 0.1, 1.2, 0.7)))
+    sigma = dict(zip(FIELDS, (262.0, 0.0015, 0.55, 1.3, 3.2, 1.8)))  # tilt y: wider than -0.6 to 0.6
+    a = _undetermined(Assembly(values, sigma, lenses_used=1936), extent, micro)
+    assert np.isnan(a.value("mla_sensor_distance_um")) and np.isnan(a.value("mla_tilt_y_deg"))
+    assert a.value("mla_tilt_x_deg") == 0.08 and a.value("mla_shift_x_um") == 1.2  # 1-sigma inside the range: kept
+    line = a.summary_line()
+    assert "distance not determined" in line and "/ not determined" in line and "nan" not in line
+    assert "telecentric" in a.note and "mla_sensor_distance_um (1σ 262 µm against -40 to 40)" in a.note
+    js = json.loads(json.dumps(a.to_json_dict()))
+    assert js["mla_sensor_distance_um"] == {"value": None, "sigma": None}
+    assert a.out_of_bounds(dataclasses.replace(QC(), assembly_distance_um=5.0)) == []  # nothing to check it by
+    assert "?" in a.short_text()
+    # a non-telecentric camera's loose reading is named without the telecentric reason; a tight one is untouched
+    loose = _undetermined(Assembly(values, sigma), extent, TABLE1)
+    assert "telecentric" not in loose.note and "not determined" in loose.note
+    tight = Assembly(values, dict(sigma, mla_sensor_distance_um=79.0, mla_tilt_y_deg=0.1))  # within the range's width
+    assert _undetermined(tight, extent, micro) is tight

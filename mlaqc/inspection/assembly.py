@@ -99,25 +99,33 @@ class Assembly:
         """The readings in a line of about 90 characters (the app's status), sigmas left out."""
         if self.reason:
             return "Assembly: not read"
-        v = self.values
-        return (f"Assembly: distance {v['mla_sensor_distance_um']:+.2f} µm, rotation {v['mla_rotation_deg']:+.4f}°, "
-                f"tilt {v['mla_tilt_x_deg']:+.3f} / {v['mla_tilt_y_deg']:+.3f}°, shift "
-                f"{v['mla_shift_x_um']:+.2f} / {v['mla_shift_y_um']:+.2f} µm" + (" (out of bounds)" if self.exceeded else ""))
+        def v(name: str, digits: int) -> str:
+            x = self.values[name]
+            return f"{x:+.{digits}f}" if math.isfinite(x) else "?"
+
+        return (f"Assembly: distance {v('mla_sensor_distance_um', 2)} µm, rotation {v('mla_rotation_deg', 4)}°, "
+                f"tilt {v('mla_tilt_x_deg', 3)} / {v('mla_tilt_y_deg', 3)}°, shift "
+                f"{v('mla_shift_x_um', 2)} / {v('mla_shift_y_um', 2)} µm" + (" (out of bounds)" if self.exceeded else ""))
 
     def summary_line(self) -> str:
         """The console's `assembly:` line: every reading with its 1-sigma, and the note."""
         if self.reason:
             return f"  assembly: not read ({self.reason})" + (f"; {self.note}" if self.note else "")
-        v, s = self.values, self.sigma
         focus = (f" (focus {self.distance_from_focus_um:+.2f} ± {self.distance_from_focus_sigma_um:.2f})"
                  if math.isfinite(self.distance_from_focus_um) else "")
-        return (f"  assembly: distance {v['mla_sensor_distance_um']:+.2f} ± {s['mla_sensor_distance_um']:.2f} µm"
-                f"{focus}, "
-                f"rotation {v['mla_rotation_deg']:+.4f} ± {s['mla_rotation_deg']:.4f} deg, "
-                f"tilt x/y {v['mla_tilt_x_deg']:+.3f} ± {s['mla_tilt_x_deg']:.3f} / "
-                f"{v['mla_tilt_y_deg']:+.3f} ± {s['mla_tilt_y_deg']:.3f} deg, "
-                f"shift x/y {v['mla_shift_x_um']:+.2f} ± {s['mla_shift_x_um']:.2f} / "
-                f"{v['mla_shift_y_um']:+.2f} ± {s['mla_shift_y_um']:.2f} µm" + (f"; {self.note}" if self.note else ""))
+        pm = self._pm
+        if all(math.isfinite(self.values[k]) for k in FIELDS):  # the usual line: one unit per pair
+            pm = (lambda name, digits, unit="": self._pm(name, digits))
+        return (f"  assembly: distance {self._pm('mla_sensor_distance_um', 2, ' µm')}{focus}, "
+                f"rotation {self._pm('mla_rotation_deg', 4, ' deg')}, "
+                f"tilt x/y {pm('mla_tilt_x_deg', 3, ' deg')} / {self._pm('mla_tilt_y_deg', 3, ' deg')}, "
+                f"shift x/y {pm('mla_shift_x_um', 2, ' µm')} / {self._pm('mla_shift_y_um', 2, ' µm')}"
+                + (f"; {self.note}" if self.note else ""))
+
+    def _pm(self, name: str, digits: int, unit: str = "") -> str:
+        """One reading as 'value ± sigma unit', or 'not determined' (`_undetermined`)."""
+        v, s = self.values[name], self.sigma[name]
+        return f"{v:+.{digits}f} ± {s:.{digits}f}{unit}" if math.isfinite(v) else "not determined"
 
 
 def not_read(reason: str) -> Assembly:
@@ -178,10 +186,10 @@ def measure_assembly(grid, cfg, model=None) -> Assembly:
         true, slopes = model.solve(raw)
         inv = np.linalg.inv(slopes)
     except np.linalg.LinAlgError:
-        return _uncalibrated(model, raw, cov, used, rms)
+        return _undetermined(_uncalibrated(model, raw, cov, used, rms), model.extent(), cfg)
     matched = np.all(np.abs(model.raw(true)[:6] - raw[:6]) <= 1e-6 * (1.0 + np.abs(raw[:6])))
     if not (matched and np.all(np.abs(true) <= RANGE_MARGIN * model.extent())):
-        return _uncalibrated(model, raw, cov, used, rms)
+        return _undetermined(_uncalibrated(model, raw, cov, used, rms), model.extent(), cfg)
     cov_true = inv @ (cov[:6, :6] + np.diag(np.square(model.zero_sigma[:6]))) @ inv.T
     sig = np.hypot(np.sqrt(np.clip(np.diag(cov_true), 0, None)), model.systematic_at(true))
     focus, r_slope = _focus_distance(model, true, float(raw[6]))
@@ -190,8 +198,32 @@ def measure_assembly(grid, cfg, model=None) -> Assembly:
     ppm_um = 1e-3 * (model.pupil_mm + gap_mm) / slopes[0, 0]
     over = [f"{k} {v:+.3g}" for k, v, lim in zip(FIELDS, true, model.extent()) if abs(v) > lim]
     note = f"beyond the rendered range, extrapolated: {', '.join(over)}" if over else ""
-    return Assembly(dict(zip(FIELDS, (float(v) for v in true))), dict(zip(FIELDS, (float(v) for v in sig))),
-                    focus, float(focus_sigma), used, rms, float(ppm_um), note=note)
+    return _undetermined(Assembly(dict(zip(FIELDS, (float(v) for v in true))),
+                                  dict(zip(FIELDS, (float(v) for v in sig))),
+                                  focus, float(focus_sigma), used, rms, float(ppm_um), note=note), model.extent(), cfg)
+
+
+def _undetermined(a: Assembly, extent: np.ndarray, cfg) -> Assembly:
+    """`a` with each reading whose 1-sigma is wider than the whole range its calibration spans (-`extent`
+    to +`extent`) left unread (NaN) and named in the note: the frame cannot tell it from any value of that
+    range, and its number would only echo what the fit's other terms left over (an image-side telecentric
+    main lens keeps the sub-image pitch the lens pitch at any MLA-sensor distance: the analytic microscope
+    frame read a healthy array's distance as -903 +- 262 µm, against +-40 calibrated)."""
+    loose = [k for k, lim in zip(FIELDS, extent) if not a.sigma[k] <= 2.0 * lim]
+    if not loose:
+        return a
+    from mlaqc.optics.datasheet import telecentric
+
+    words = ", ".join(f"{k} (1σ {a.sigma[k]:.3g} {UNITS[k]} against {-lim:g} to {lim:g})"
+                      for k, lim in zip(FIELDS, extent) if k in loose)
+    why = (": an image-side telecentric main lens keeps the sub-image pitch at the lens pitch whatever the gap"
+           if cfg.main_lens.ideal and telecentric(cfg.main_lens.exit_pupil_mm)
+           and "mla_sensor_distance_um" in loose else "")
+    nan = float("nan")
+    note = "; ".join(p for p in (a.note, f"not determined by this frame, its 1σ wider than the whole calibrated "
+                                          f"range: {words}{why}") if p)
+    return dataclasses.replace(a, values={k: nan if k in loose else v for k, v in a.values.items()},
+                               sigma={k: nan if k in loose else v for k, v in a.sigma.items()}, note=note)
 
 
 def _uncalibrated(model, raw: np.ndarray, cov: np.ndarray, used: int, rms: float) -> Assembly:
