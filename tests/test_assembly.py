@@ -71,11 +71,14 @@ def test_table1_reads_all_six_errors_at_once_within_the_issues_bars():
         assert abs(err) <= TOL[k] and abs(err) <= 3 * a.sigma[k], (k, a.value(k), ALL[k], a.sigma[k])
 
 
-def test_a_tilt_beyond_the_calibration_is_read_uncalibrated_and_still_fails_its_bound():
-    a = measure_assembly(_grid(9, cfg=TABLE1, mla_tilt_x_deg=1.5), TABLE1)
-    assert "beyond the calibrated range" in a.note
+@pytest.mark.parametrize("cfg", [TABLE1, load_config(FIXTURE.parent / "hex_small_camera.toml")], ids=["table1", "hex"])
+def test_a_tilt_beyond_the_calibration_is_read_uncalibrated_and_still_fails_its_bound(cfg):
+    """(hex small: its calibration's tilt systematic is 5 deg, wider than the calibrated range, yet the frame
+    reads the tilt to 0.03 deg: the reading stays, and so does its bound.)"""
+    a = measure_assembly(_grid(9, cfg=cfg, mla_tilt_x_deg=1.5), cfg)
+    assert "beyond the calibrated range" in a.note and "not determined" not in a.note
     assert a.value("mla_tilt_x_deg") == pytest.approx(1.5, rel=0.1) and a.sigma["mla_tilt_x_deg"] > 0.1
-    qc = dataclasses.replace(TABLE1.qc, assembly_tilt_deg=1.0)
+    qc = dataclasses.replace(cfg.qc, assembly_tilt_deg=1.0)
     assert any("mla_tilt_x_deg" in line for line in a.checked(qc).exceeded)
 
 
@@ -212,19 +215,22 @@ def test_a_reading_the_frame_cannot_determine_is_not_given_a_number():
     micro = load_config(FIXTURE.parent / "lfm_40x_relay.toml")
     extent = np.array([40.0, 0.6, 0.6, 0.6, 40.0, 40.0])
     values = dict(zip(FIELDS, (-903.0, 0.0, 0.08, 0.1, 1.2, 0.7)))
-    sigma = dict(zip(FIELDS, (262.0, 0.0015, 0.55, 1.3, 3.2, 1.8)))  # tilt y: wider than -0.6 to 0.6
-    a = _undetermined(Assembly(values, sigma, lenses_used=1936), extent, micro)
+    sigma = dict(zip(FIELDS, (262.0, 0.0015, 5.0, 1.3, 3.2, 1.8)))  # with the calibration's systematic error
+    frame = np.array([302.0, 0.0015, 0.5, 1.3, 3.0, 1.7])  # the fit's own 1-sigma: tilt y wider than -0.6 to 0.6
+    a = _undetermined(Assembly(values, sigma, lenses_used=1936), frame, extent, micro)
     assert np.isnan(a.value("mla_sensor_distance_um")) and np.isnan(a.value("mla_tilt_y_deg"))
     assert a.value("mla_tilt_x_deg") == 0.08 and a.value("mla_shift_x_um") == 1.2  # 1-sigma inside the range: kept
     line = a.summary_line()
     assert "distance not determined" in line and "/ not determined" in line and "nan" not in line
-    assert "telecentric" in a.note and "mla_sensor_distance_um (1σ 262 µm against -40 to 40)" in a.note
+    assert a.value("mla_tilt_x_deg") == 0.08  # a wide systematic error alone does not unread it
+    assert "telecentric" in a.note and "mla_sensor_distance_um (the frame's 1σ 302 µm against -40 to 40)" in a.note
     js = json.loads(json.dumps(a.to_json_dict()))
     assert js["mla_sensor_distance_um"] == {"value": None, "sigma": None}
-    assert a.out_of_bounds(dataclasses.replace(QC(), assembly_distance_um=5.0)) == []  # nothing to check it by
+    checked = a.checked(dataclasses.replace(QC(), assembly_distance_um=5.0))
+    assert checked.exceeded == () and "qc.assembly_distance_um not checked on mla_sensor_distance_um" in checked.note
     assert "?" in a.short_text()
     # a non-telecentric camera's loose reading is named without the telecentric reason; a tight one is untouched
-    loose = _undetermined(Assembly(values, sigma), extent, TABLE1)
+    loose = _undetermined(Assembly(values, sigma), frame, extent, TABLE1)
     assert "telecentric" not in loose.note and "not determined" in loose.note
-    tight = Assembly(values, dict(sigma, mla_sensor_distance_um=79.0, mla_tilt_y_deg=0.1))  # within the range's width
-    assert _undetermined(tight, extent, micro) is tight
+    tight = Assembly(values, sigma)
+    assert _undetermined(tight, np.array([79.0, 0.001, 0.5, 1.1, 3.0, 1.7]), extent, micro) is tight  # within width

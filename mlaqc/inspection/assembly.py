@@ -43,7 +43,8 @@ QC_KEYS = {"mla_sensor_distance_um": "assembly_distance_um", "mla_rotation_deg":
 
 @dataclass(frozen=True)
 class Assembly:
-    """The six global readings (error-map units) with 1-sigma uncertainties; NaN with `reason` when unread."""
+    """The six global readings (error-map units) with 1-sigma uncertainties; NaN with `reason` when unread,
+    and NaN for a reading this frame does not determine (`_undetermined`, said in `note`)."""
 
     values: dict  # field -> reading
     sigma: dict  # field -> 1-sigma
@@ -93,7 +94,10 @@ class Assembly:
         bounds set, it says they were not checked."""
         if self.reason and any(getattr(qc, key, None) is not None for key in set(QC_KEYS.values())):
             return dataclasses.replace(self, note="its [qc] assembly bounds were not checked")
-        return dataclasses.replace(self, exceeded=tuple(self.out_of_bounds(qc)))
+        unchecked = [f"qc.{QC_KEYS[k]} not checked on {k}, not determined" for k in FIELDS
+                     if getattr(qc, QC_KEYS[k], None) is not None and not math.isfinite(self.value(k))]
+        note = "; ".join(p for p in (self.note, *unchecked) if p)
+        return dataclasses.replace(self, exceeded=tuple(self.out_of_bounds(qc)), note=note)
 
     def short_text(self) -> str:
         """The readings in a line of about 90 characters (the app's status), sigmas left out."""
@@ -186,10 +190,10 @@ def measure_assembly(grid, cfg, model=None) -> Assembly:
         true, slopes = model.solve(raw)
         inv = np.linalg.inv(slopes)
     except np.linalg.LinAlgError:
-        return _undetermined(_uncalibrated(model, raw, cov, used, rms), model.extent(), cfg)
+        return _undetermined(_uncalibrated(model, raw, cov, used, rms), _spread(cov), model.extent(), cfg)
     matched = np.all(np.abs(model.raw(true)[:6] - raw[:6]) <= 1e-6 * (1.0 + np.abs(raw[:6])))
     if not (matched and np.all(np.abs(true) <= RANGE_MARGIN * model.extent())):
-        return _undetermined(_uncalibrated(model, raw, cov, used, rms), model.extent(), cfg)
+        return _undetermined(_uncalibrated(model, raw, cov, used, rms), _spread(cov), model.extent(), cfg)
     cov_true = inv @ (cov[:6, :6] + np.diag(np.square(model.zero_sigma[:6]))) @ inv.T
     sig = np.hypot(np.sqrt(np.clip(np.diag(cov_true), 0, None)), model.systematic_at(true))
     focus, r_slope = _focus_distance(model, true, float(raw[6]))
@@ -200,21 +204,31 @@ def measure_assembly(grid, cfg, model=None) -> Assembly:
     note = f"beyond the rendered range, extrapolated: {', '.join(over)}" if over else ""
     return _undetermined(Assembly(dict(zip(FIELDS, (float(v) for v in true))),
                                   dict(zip(FIELDS, (float(v) for v in sig))),
-                                  focus, float(focus_sigma), used, rms, float(ppm_um), note=note), model.extent(), cfg)
+                                  focus, float(focus_sigma), used, rms, float(ppm_um), note=note),
+                         _spread(cov_true), model.extent(), cfg)
 
 
-def _undetermined(a: Assembly, extent: np.ndarray, cfg) -> Assembly:
-    """`a` with each reading whose 1-sigma is wider than the whole range its calibration spans (-`extent`
-    to +`extent`) left unread (NaN) and named in the note: the frame cannot tell it from any value of that
-    range, and its number would only echo what the fit's other terms left over (an image-side telecentric
-    main lens keeps the sub-image pitch the lens pitch at any MLA-sensor distance: the analytic microscope
-    frame read a healthy array's distance as -903 +- 262 µm, against +-40 calibrated)."""
-    loose = [k for k, lim in zip(FIELDS, extent) if not a.sigma[k] <= 2.0 * lim]
+def _spread(cov: np.ndarray) -> np.ndarray:
+    """The six readings' 1-sigma from this frame's own fit (`cov`'s first 6 x 6), without the
+    calibration's systematic error."""
+    return np.sqrt(np.clip(np.diag(np.asarray(cov, float)[:6, :6]), 0, None))
+
+
+def _undetermined(a: Assembly, frame_sigma: np.ndarray, extent: np.ndarray, cfg) -> Assembly:
+    """`a` with each reading whose own 1-sigma from this frame (`frame_sigma`: the fit's, not the
+    calibration's systematic error, which bounds how far a reading may be off, not whether the frame sees
+    it) is wider than the whole range its calibration spans (-`extent` to +`extent`) left unread (NaN) and
+    named in the note: the frame cannot tell it from any value of that range, and its number would only
+    echo what the fit's other terms left over (an image-side telecentric main lens keeps the sub-image
+    pitch the lens pitch at any MLA-sensor distance: the analytic microscope frame read a healthy array's
+    distance as -903 µm, its fit's 1-sigma 139 µm, against +-40 calibrated)."""
+    own = dict(zip(FIELDS, (float(v) for v in frame_sigma)))
+    loose = [k for k, lim in zip(FIELDS, extent) if not own[k] <= 2.0 * lim]
     if not loose:
         return a
     from mlaqc.optics.datasheet import telecentric
 
-    words = ", ".join(f"{k} (1σ {a.sigma[k]:.3g} {UNITS[k]} against {-lim:g} to {lim:g})"
+    words = ", ".join(f"{k} (the frame's 1σ {own[k]:.3g} {UNITS[k]} against {-lim:g} to {lim:g})"
                       for k, lim in zip(FIELDS, extent) if k in loose)
     why = (": an image-side telecentric main lens keeps the sub-image pitch at the lens pitch whatever the gap"
            if cfg.main_lens.ideal and telecentric(cfg.main_lens.exit_pupil_mm)

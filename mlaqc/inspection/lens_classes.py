@@ -166,7 +166,7 @@ def hex_row_ends(shape: tuple[int, int]) -> np.ndarray:
 def hex_column_ends(shape: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
     """On a hex lattice, the outer ring's row ends on the left and right sides pooled over both sides:
     (those that stick out, those that sit in; `hex_row_ends`). A side holds only half its rows of each
-    kind (6 on a 12 x 14 array, under EDGE_GROUP_MIN): together they give a spread where a side alone
+    kind (6 on a 12 x 14 array, under spreads.EDGE_GROUP_MIN): together they give a spread where a side alone
     gives none (a side's own, where it has one, may still be wider: `spreads.HEX_EDGE_GROUP_MIN`)."""
     ends, columns = hex_row_ends(shape), (edge_classes(shape) == 0) & (_sides(shape) >= 2)
     return _frozen(columns & ends), _frozen(columns & ~ends)

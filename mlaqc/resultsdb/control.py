@@ -117,7 +117,8 @@ class Chart:
             how = f"I-MR, limits from the first {base}"
         left = (f"; {len(self.not_charted)} not charted, their reading not finite: {', '.join(self.not_charted)}"
                 if self.not_charted else "")
-        return (f"{reading}: {n} arrays, centre {self.centre:.6g}, sigma {self.sigma:.3g} ({how}); "
+        centre = f"{self.centre:.6g}" if math.isfinite(self.centre) else "–"
+        return (f"{reading}: {n} arrays, centre {centre}, sigma {self.sigma:.3g} ({how}); "
                 f"{len(self.signals)} out of control{left}")
 
     def sentences(self) -> list[str]:
