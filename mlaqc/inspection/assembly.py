@@ -109,7 +109,8 @@ class Assembly:
 
         return (f"Assembly: distance {v('mla_sensor_distance_um', 2)} µm, rotation {v('mla_rotation_deg', 4)}°, "
                 f"tilt {v('mla_tilt_x_deg', 3)} / {v('mla_tilt_y_deg', 3)}°, shift "
-                f"{v('mla_shift_x_um', 2)} / {v('mla_shift_y_um', 2)} µm" + (" (out of bounds)" if self.exceeded else ""))
+                f"{v('mla_shift_x_um', 2)} / {v('mla_shift_y_um', 2)} µm"
+                + (" (out of bounds)" if self.exceeded else ""))
 
     def summary_line(self) -> str:
         """The console's `assembly:` line: every reading with its 1-sigma, and the note."""

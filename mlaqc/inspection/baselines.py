@@ -92,15 +92,15 @@ _THREADED_FROM = 4096  # lenses per map from which the compiled median pass runs
 
 def _hex_edge_columns(stack: np.ndarray, finite: np.ndarray, base: np.ndarray, size: int,
                       x_axis: list[bool], only: np.ndarray | None = None) -> None:
-    """Hex lattice: the baselines of the first and last columns, in place, as the running median (size lenses,
-    centred and clipped; the end lenses' slid inward, `_line_windows`) of the finite lenses of the same
-    column and row parity: a shifted row's end lens
-    misses other neighbours than an unshifted row's, and the two carry different biases. Corners are
-    left to the rows for planes not along x (as `median_baselines` leaves them), and out of the other
-    lenses' medians: outermost along their row too, they are another population (measured: a corner's
-    tilt 0.2 against 0.003 along the column), which the window's clipping at the column's end counts
-    twice, so that one lens not measured beside it made it half the median). `only`: as
-    `_refine_baselines` takes it (a column with none of those lenses is left as it is)."""
+    """Hex lattice: the baselines of the first and last columns, in place, as the running median (size
+    lenses, centred and clipped; the end lenses' slid inward, `_line_windows`) of the finite lenses of the
+    same column and row parity: a shifted row's end lens misses other neighbours than an unshifted row's,
+    and the two carry different biases. Corners are left to the rows for planes not along x (as
+    `median_baselines` leaves them), and out of the other lenses' medians: outermost along their row too,
+    they are another population (measured: a corner's tilt 0.2 against 0.003 along the column), which the
+    window's clipping at the column's end counts twice, so that one lens not measured beside it made it
+    half the median). `only`: as `_refine_baselines` takes it (a column with none of those lenses is left
+    as it is)."""
     _, rows, cols = stack.shape
     if rows < 2 * size or cols < size:
         return
