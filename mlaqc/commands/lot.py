@@ -80,11 +80,12 @@ def run(args: argparse.Namespace) -> int:
             data = [{**d.__dict__, "share": d.share} for d in found]
             lines = [d.sentence() for d in found] or ["no lens is flagged in more arrays than chance explains"]
         elif args.view == "chart":
+            from mlaqc.inspection.results import finite_or_none
             from mlaqc.resultsdb.control import lot_chart
 
             chart = lot_chart(db, args.reading, args.lot, args.wafer, args.baseline, rules, args.chart, h)
-            data = {"reading": args.reading, "chart": chart.kind, "centre": _finite_or_none(chart.centre),
-                    "sigma": _finite_or_none(chart.sigma),
+            data = {"reading": args.reading, "chart": chart.kind, "centre": finite_or_none(chart.centre),
+                    "sigma": finite_or_none(chart.sigma),
                     "baseline": chart.baseline, "arrays": chart.labels, "values": chart.values.tolist(),
                     "out_of_control": {chart.labels[i]: r for i, r in chart.signals.items()},
                     "not_charted": chart.not_charted}
@@ -114,11 +115,6 @@ def run(args: argparse.Namespace) -> int:
                                   "operator", "software_version", "config_hash", "report_dir"))
     print(json.dumps(data, indent=1, default=str) if args.json else "\n".join(lines))
     return 0
-
-
-def _finite_or_none(value: float) -> float | None:
-    """value, or None (JSON null) where it is not a finite number: json.dumps would write NaN, not JSON."""
-    return float(value) if math.isfinite(value) else None
 
 
 def _chart_options(args: argparse.Namespace) -> tuple[tuple[int, ...], float]:

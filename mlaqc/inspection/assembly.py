@@ -20,6 +20,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from mlaqc.inspection.projection import FIELDS, raw_components
+from mlaqc.inspection.results import finite_or_none
 
 UNITS = {"mla_sensor_distance_um": "µm", "mla_rotation_deg": "deg", "mla_tilt_x_deg": "deg",
          "mla_tilt_y_deg": "deg", "mla_shift_x_um": "µm", "mla_shift_y_um": "µm"}
@@ -65,13 +66,13 @@ class Assembly:
         return not self.reason
 
     def to_json_dict(self) -> dict:
-        out = {k: {"value": _num(self.value(k)), "sigma": _num(self.sigma[k])} for k in FIELDS}
-        out["distance_from_focus_um"] = {"value": _num(self.distance_from_focus_um),
-                                         "sigma": _num(self.distance_from_focus_sigma_um)}
+        out = {k: {"value": finite_or_none(self.value(k)), "sigma": finite_or_none(self.sigma[k])} for k in FIELDS}
+        out["distance_from_focus_um"] = {"value": finite_or_none(self.distance_from_focus_um),
+                                         "sigma": finite_or_none(self.distance_from_focus_sigma_um)}
         out["assumptions"] = ASSUMPTIONS.format(ppm_um=self.ppm_um) if math.isfinite(self.ppm_um) else \
             ASSUMPTIONS.replace(" (a pitch scale error of 1 ppm reads as {ppm_um:.2f} µm of distance)", "")
         out["lenses_used"] = int(self.lenses_used)
-        out["rms_residual_px"] = _num(self.rms_residual_px)
+        out["rms_residual_px"] = finite_or_none(self.rms_residual_px)
         out["out_of_bounds"] = list(self.exceeded)
         if self.note:
             out["note"] = self.note
@@ -118,13 +119,10 @@ class Assembly:
             return f"  assembly: not read ({self.reason})" + (f"; {self.note}" if self.note else "")
         focus = (f" (focus {self.distance_from_focus_um:+.2f} ± {self.distance_from_focus_sigma_um:.2f})"
                  if math.isfinite(self.distance_from_focus_um) else "")
-        pm = self._pm
-        if all(math.isfinite(self.values[k]) for k in FIELDS):  # the usual line: one unit per pair
-            pm = (lambda name, digits, unit="": self._pm(name, digits))
         return (f"  assembly: distance {self._pm('mla_sensor_distance_um', 2, ' µm')}{focus}, "
                 f"rotation {self._pm('mla_rotation_deg', 4, ' deg')}, "
-                f"tilt x/y {pm('mla_tilt_x_deg', 3, ' deg')} / {self._pm('mla_tilt_y_deg', 3, ' deg')}, "
-                f"shift x/y {pm('mla_shift_x_um', 2, ' µm')} / {self._pm('mla_shift_y_um', 2, ' µm')}"
+                f"tilt x/y {self._pm_pair('mla_tilt_x_deg', 'mla_tilt_y_deg', 3, ' deg')}, "
+                f"shift x/y {self._pm_pair('mla_shift_x_um', 'mla_shift_y_um', 2, ' µm')}"
                 + (f"; {self.note}" if self.note else ""))
 
     def _pm(self, name: str, digits: int, unit: str = "") -> str:
@@ -132,15 +130,16 @@ class Assembly:
         v, s = self.values[name], self.sigma[name]
         return f"{v:+.{digits}f} ± {s:.{digits}f}{unit}" if math.isfinite(v) else "not determined"
 
+    def _pm_pair(self, x: str, y: str, digits: int, unit: str) -> str:
+        """'x ± s / y ± s unit', each with its unit where one of them is not determined."""
+        first = self._pm(x, digits, "" if math.isfinite(self.values[y]) else unit)
+        return f"{first} / {self._pm(y, digits, unit)}"
+
 
 def not_read(reason: str) -> Assembly:
     """An Assembly with no readings, saying why."""
     nan = float("nan")
     return Assembly({k: nan for k in FIELDS}, {k: nan for k in FIELDS}, reason=reason)
-
-
-def _num(v: float):
-    return float(v) if math.isfinite(v) else None
 
 
 def _focus_distance(model, true: np.ndarray, radius_px: float) -> tuple[float, float]:

@@ -248,8 +248,7 @@ def _edge_offsets(entries: Any, source: str, shape: tuple[int, int], packing: st
     array's (`edge_lines`), once, measured on at most its lenses, its offset along the normal to its side only."""
     from mlaqc.inspection.lens_classes import edge_lines
 
-    axes = {e.name: e.axis for e in edge_lines(shape, packing) if e.name}
-    sizes = {e.name: int(e.group.sum()) for e in edge_lines(shape, packing) if e.name}
+    lines = {e.name: e for e in edge_lines(shape, packing) if e.name}
     try:
         out = tuple((e["group"], _pos_int(e["lenses"]), _num(e["x"]), _num(e["y"])) for e in entries)
     except (KeyError, TypeError, ValueError) as exc:
@@ -257,13 +256,14 @@ def _edge_offsets(entries: Any, source: str, shape: tuple[int, int], packing: st
                          f"({_describe(exc)})") from None
     seen = set()
     for name, lenses, dx, dy in out:
-        if not isinstance(name, str) or name not in axes or name in seen:
+        if not isinstance(name, str) or name not in lines or name in seen:
             raise InputError(f"{source}: model.edge_offsets_px names {name!r}, which is not an edge group of a "
                              f"{shape[0]}x{shape[1]} {packing} array or is listed twice")
-        if lenses > sizes[name]:
+        size = int(lines[name].group.sum())
+        if lenses > size:
             raise InputError(f"{source}: model.edge_offsets_px group {name!r} counts {lenses} lenses; it has "
-                             f"{sizes[name]} in a {shape[0]}x{shape[1]} {packing} array")
-        if (dy if axes[name] == 0 else dx) != 0:
+                             f"{size} in a {shape[0]}x{shape[1]} {packing} array")
+        if (dy if lines[name].axis == 0 else dx) != 0:
             raise InputError(f"{source}: model.edge_offsets_px group {name!r} has an offset along its side; "
                              "only the normal to the side is read")
         seen.add(name)

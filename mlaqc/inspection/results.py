@@ -73,16 +73,16 @@ class Defect:
 
     def to_json_dict(self) -> dict[str, Any]:
         d = {"row": self.m, "col": self.n, "error_type": self.error_type,
-             "magnitude": _finite(self.magnitude), "unit": self.unit,
-             "direction_deg": None if self.direction_deg is None else _finite(self.direction_deg),
-             "score": _finite(self.score), "within_tolerance": self.within_tolerance,
-             "indexes": {k: _finite(v) for k, v in self.indexes.items()},
-             "alternatives": [{"error_type": t, "magnitude": _finite(v), "unit": u,
-                               "direction_deg": None if a is None else _finite(a)} for t, v, u, a in self.alternatives]}
+             "magnitude": finite_or_none(self.magnitude), "unit": self.unit,
+             "direction_deg": None if self.direction_deg is None else finite_or_none(self.direction_deg),
+             "score": finite_or_none(self.score), "within_tolerance": self.within_tolerance,
+             "indexes": {k: finite_or_none(v) for k, v in self.indexes.items()},
+             "alternatives": [{"error_type": t, "magnitude": finite_or_none(v), "unit": u,
+                               "direction_deg": None if a is None else finite_or_none(a)} for t, v, u, a in self.alternatives]}
         return d
 
 
-def _finite(v: float) -> float | None:
+def finite_or_none(v: float) -> float | None:
     """JSON has no NaN: write null instead."""
     return float(v) if np.isfinite(v) else None
 

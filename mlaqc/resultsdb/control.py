@@ -293,9 +293,14 @@ def lot_chart(db, reading: str, lot: str | None = None, wafer: str | None = None
     latest, params = latest_selection(lot, wafer)
     rows = db.query(f"SELECT {reading}, lot, wafer, COALESCE(array_id, position, source) FROM inspections "
                     f"WHERE id IN ({latest}) AND {reading} IS NOT NULL ORDER BY inspected_utc, recorded_utc, id", params)
-    labels = [f"{r[1] or '-'}/{r[2] or '-'}/{r[3]}" for r in rows]
-    finite = [math.isfinite(float(r[0])) for r in rows]  # (a reading stored as inf or NaN: not charted, named)
-    chart = make_chart([float(r[0]) for r, ok in zip(rows, finite) if ok],
-                       [n for n, ok in zip(labels, finite) if ok], baseline, kind, rules, h)
-    chart.not_charted = [n for n, ok in zip(labels, finite) if not ok]
+    values, labels, left = [], [], []
+    for value, *who in rows:
+        label = f"{who[0] or '-'}/{who[1] or '-'}/{who[2]}"
+        if math.isfinite(float(value)):
+            values.append(float(value))
+            labels.append(label)
+        else:  # a reading stored as inf or NaN: not charted, named
+            left.append(label)
+    chart = make_chart(values, labels, baseline, kind, rules, h)
+    chart.not_charted = left
     return chart

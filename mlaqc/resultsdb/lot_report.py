@@ -142,14 +142,12 @@ def _chart_svg(chart: Chart, reading: str) -> str:
 
     def line(values, colour, dash=""):  # from the first array judged on (a CUSUM's limits move with it)
         first = min(chart.baseline, v.size - 1) if cusum else 0
-        return (f'<polyline points="{" ".join(f"{x(i):.1f},{y(values[i]):.1f}" for i in range(first, v.size))}" '
-                f'fill="none" stroke="{colour}" stroke-dasharray="{dash}"/>')
+        return _polyline([(x(i), y(values[i])) for i in range(first, v.size)], colour, f'stroke-dasharray="{dash}"')
 
     parts = [f'<rect x="{pad}" y="{pad}" width="{x(chart.baseline - 1) - pad:.1f}" height="{h_top - 2 * pad}" '
              'fill="#eaeef2"><title>baseline: the process known good, not judged</title></rect>',
              line(centre, "#24292f"), line(high, "#cf222e", "4 3"), line(low, "#cf222e", "4 3")]
-    parts.append('<polyline points="' + " ".join(f"{x(i):.1f},{y(val):.1f}" for i, val in enumerate(v))
-                 + '" fill="none" stroke="#0969da" stroke-width="1.2"/>')
+    parts.append(_polyline([(x(i), y(val)) for i, val in enumerate(v)], "#0969da", 'stroke-width="1.2"'))
     for i, val in enumerate(v):
         bad = i in chart.signals
         parts.append(f'<circle cx="{x(i):.1f}" cy="{y(val):.1f}" r="{3 if bad else 2}" '
@@ -171,8 +169,7 @@ def _cusum_panel(chart: Chart, x, top: float, pad: float) -> str:
         return top + height - (height - 10) * val / peak
 
     def line(values, colour):
-        return (f'<polyline points="{" ".join(f"{x(i):.1f},{y(val):.1f}" for i, val in enumerate(values))}" '
-                f'fill="none" stroke="{colour}" stroke-width="1.2"/>')
+        return _polyline([(x(i), y(val)) for i, val in enumerate(values)], colour, 'stroke-width="1.2"')
 
     return (f'<line x1="{pad}" x2="{x(chart.values.size - 1):.1f}" y1="{y(chart.h):.1f}" y2="{y(chart.h):.1f}" '
             f'stroke="#cf222e" stroke-dasharray="4 3"><title>h = {chart.h:g} sigma</title></line>'
@@ -180,6 +177,12 @@ def _cusum_panel(chart: Chart, x, top: float, pad: float) -> str:
             + line(chart.cusum[0], "#cf222e") + line(chart.cusum[1], "#0969da")
             + f'<text x="{pad}" y="{top + 6:.0f}" font-size="11">CUSUM, sigmas: rise (red), fall (blue), h {chart.h:g} '
             "(dashed)</text>")
+
+
+def _polyline(points: list[tuple[float, float]], colour: str, style: str = "") -> str:
+    """An SVG polyline through `points` (x, y in px), unfilled, in `colour`, with extra attributes `style`."""
+    return (f'<polyline points="{" ".join(f"{px:.1f},{py:.1f}" for px, py in points)}" fill="none" '
+            f'stroke="{colour}" {style}/>')
 
 
 def _stacked_map_img(counts: dict, arrays: int, shape: tuple[int, int]) -> str:
