@@ -4,7 +4,8 @@ resident memory (ru_maxrss) is its own.
 - rays: one white render of 10^6 ... 10^8 rays (10^9 with --huge) on the Table 1 camera — cost linear,
   memory flat;
 - lens count: the Table 1 camera (102 x 102 lenses, 2048^2 px) against a 408 x 408-lens MLA on an
-  8192^2 sensor (same optics): tracer ns/ray, inspection time per lens, peak memory;
+  8192^2 sensor (same optics): tracer ns/ray, inspection time per lens, peak memory, and the report set's
+  rendering and writing (report.json, lenses.csv, the maps) per lens;
 - frames in a batch: 1, 4, 16 frames of 2048^2 px inspected with one reused calibration — seconds per
   frame constant, memory bounded.
 
@@ -141,7 +142,27 @@ def case_inspect(lenses: int, frames: int) -> dict:
             "flagged": flagged, "base_mib": base, "peak_mib": peak_mib()}
 
 
-CASES = {"rays": case_rays, "prepare": case_prepare, "calibrate": case_calibrate, "inspect": case_inspect}
+def case_report(lenses: int) -> dict:
+    """Render and write one frame's report set (inspected on the saved grid first, untimed)."""
+    from mlaqc.inspection.calibrate import load_grid
+    from mlaqc.inspection.pipeline import inspect_image, load_frame
+    from mlaqc.report import render_report, write_report_files
+
+    cfg = config(lenses)
+    grid = load_grid(CACHE / f"grid_{lenses}.json")
+    res = inspect_image(load_frame(frame_paths(lenses, 1)[0], cfg), cfg, grid=grid)
+    base = peak_mib()
+    with tempfile.TemporaryDirectory() as tmp:
+        t = time.perf_counter()
+        paths = write_report_files(render_report(res, cfg.to_dict()), Path(tmp) / "report")
+        dt = time.perf_counter() - t
+        written = sum(p.stat().st_size for p in paths.values())
+    return {"seconds": dt, "us_per_lens": dt / lenses ** 2 * 1e6, "mb": written / 1e6, "base_mib": base,
+            "peak_mib": peak_mib()}
+
+
+CASES = {"rays": case_rays, "prepare": case_prepare, "calibrate": case_calibrate, "inspect": case_inspect,
+         "report": case_report}
 
 
 def child(name: str, *args: int) -> dict:
@@ -170,16 +191,18 @@ def main() -> int:
               f"({r['image_mib']:.0f})")
     print("\nlens count (same optics; 20 px per lens):")
     print(f"  {'MLA':>9s} {'sensor':>11s} {'tracer ns/ray':>13s} {'tracer peak':>11s} {'calibrate s':>11s} "
-          f"{'calib. peak':>11s} {'inspect s':>9s} {'µs/lens':>7s} {'inspect peak':>12s}")
+          f"{'calib. peak':>11s} {'inspect s':>9s} {'µs/lens':>7s} {'inspect peak':>12s} {'report s':>8s} "
+          f"{'µs/lens':>7s} {'MB':>5s} {'report peak':>11s}")
     for lenses in (102, 408):
         side = 2048 * lenses // 102
         r = child("rays", 10 ** 8, lenses)
         child("prepare", lenses, 1)
         c = child("calibrate", lenses)
         q = child("inspect", lenses, 1)
+        w = child("report", lenses)
         print(f"  {lenses:>4d}x{lenses:<4d} {side:>5d}x{side:<5d} {r['ns_per_ray']:13.1f} {r['peak_mib']:11.0f} "
               f"{c['seconds']:11.3f} {c['peak_mib']:11.0f} {q['per_frame_s']:9.3f} {q['us_per_lens']:7.1f} "
-              f"{q['peak_mib']:12.0f}")
+              f"{q['peak_mib']:12.0f} {w['seconds']:8.3f} {w['us_per_lens']:7.1f} {w['mb']:5.0f} {w['peak_mib']:11.0f}")
     print("\nframes in a batch (2048^2, 10,404 lenses, grid reused; load + divide + indexes + identify):")
     print(f"  {'frames':>6s} {'seconds':>8s} {'s/frame':>8s} {'peak MiB':>9s}")
     child("prepare", 102, 16)

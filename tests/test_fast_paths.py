@@ -21,7 +21,7 @@ from mlaqc.inspection.metrics import reference_images
 from mlaqc.inspection.results import LazyReferences
 from mlaqc.models.reference import reference_model
 from mlaqc.optics.config import default_config
-from mlaqc.report.document import _ENCODER, _dumps, _jsonable, lenses_csv
+from mlaqc.report.document import _ENCODER, _dumps, _jsonable, dumps_utf8, lenses_csv
 from mlaqc.report.view import View
 from test_report import make_result
 
@@ -159,6 +159,7 @@ def test_report_json_encoding_is_the_record_at_a_time_one():
     plain = _jsonable(doc)
     assert _jsonable(json.loads(json.dumps(doc))) == plain
     assert _dumps(plain) == _dumps_oracle(plain)
+    assert dumps_utf8(plain) == _dumps_oracle(plain).encode("utf-8")  # (the report's bytes, piece by piece)
     nan_rows = {"rows": [[1.0, math.nan]]}
     with pytest.raises(ValueError):
         _dumps(nan_rows)

@@ -23,7 +23,13 @@ _EMPTY_U8, _EMPTY_I8 = np.zeros(0, np.uint8), np.zeros(0, np.int64)
 
 def format_rows(values: np.ndarray, formats: Sequence[str], texts: Sequence[str] = (), *, col_sep: str = ",",
                 row_sep: str = "\n", parallel: bool = True) -> str:
-    """`values` (rows, columns) as text: column k in printf format formats[k] ("%d", "%.3f", "%.6g"; NaN and
+    """`format_rows_utf8`'s text as a string."""
+    return format_rows_utf8(values, formats, texts, col_sep=col_sep, row_sep=row_sep, parallel=parallel).decode("utf-8")
+
+
+def format_rows_utf8(values: np.ndarray, formats: Sequence[str], texts: Sequence[str] = (), *, col_sep: str = ",",
+                     row_sep: str = "\n", parallel: bool = True) -> bytes:
+    """`values` (rows, columns) as UTF-8 text: column k in printf format formats[k] ("%d", "%.3f", "%.6g"; NaN and
     infinities empty) or "%s" (the value indexes `texts`; negative: empty); cells joined by col_sep, every
     row ended by row_sep (one ASCII character each). With `parallel`, large tables are cut into row blocks
     written on the process' pool at once (the kernel releases the GIL); without, here (when the pool is
@@ -40,12 +46,12 @@ def format_rows(values: np.ndarray, formats: Sequence[str], texts: Sequence[str]
     blocks = max(1, min(cores(), values.size // BLOCK_CELLS)) if parallel else 1
     edges = np.linspace(0, values.shape[0], blocks + 1).astype(int)
     parts = [values[a:b] for a, b in zip(edges[:-1], edges[1:])]
-    return "".join(thread_map(lambda part: _format_block(part, formats, texts, col_sep, row_sep), parts))
+    return b"".join(thread_map(lambda part: _format_block(part, formats, texts, col_sep, row_sep), parts))
 
 
 def _format_block(values: np.ndarray, formats: Sequence[str], texts: Sequence[str], col_sep: str,
-                  row_sep: str) -> str:
-    """format_rows of one block of rows, in this thread."""
+                  row_sep: str) -> bytes:
+    """format_rows_utf8 of one block of rows, in this thread."""
     values = np.ascontiguousarray(values)
     rows, cols = values.shape
     codes, precs = _parse(formats, cols)
@@ -63,9 +69,9 @@ def _format_block(values: np.ndarray, formats: Sequence[str], texts: Sequence[st
         n = format_table(values, codes, precs, table_bytes, table_ends, given, given_bytes, given_ends,
                          ord(col_sep) if col_sep else -1, ord(row_sep), out, undecided)
         if n >= 0:
-            return out[:n].tobytes().decode("utf-8")
+            return out[:n].tobytes()
         if -1 - n > _MAX_UNDECIDED or given.size:
-            return _python_rows(values, formats, texts, col_sep, row_sep)
+            return _python_rows(values, formats, texts, col_sep, row_sep).encode("utf-8")
         given = np.sort(undecided[: -1 - n])
         given_text = [_python_cell(values.flat[c], formats[c % cols], texts).encode("ascii") for c in given.tolist()]
 

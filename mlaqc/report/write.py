@@ -22,7 +22,7 @@ from mlaqc.atomic import atomic_path
 from mlaqc.errors import InputError
 from mlaqc.inspection.results import InspectionResult
 from mlaqc.parallel import cores, in_pool, pool
-from mlaqc.report.document import REPORT_FILES, _dumps, build_report_dict, lenses_csv
+from mlaqc.report.document import REPORT_FILES, build_report_dict, dumps_utf8, lenses_csv_utf8
 from mlaqc.report.html import _html
 from mlaqc.report.lensmaps import render_lens_maps
 from mlaqc.report.maps import _PNG_LEVEL, render_defect_map
@@ -115,7 +115,7 @@ def _render_all(view: View, config_dict: dict | None) -> dict:
     """Every file's bytes, keyed like REPORT_FILES, and report.json's dict ("document"): lenses.csv (compiled formatting) and the PNGs' bands
     (deflate) run on the pool's threads, both releasing the GIL, while this thread draws the maps and
     builds the JSON and then the HTML."""
-    csv_text = _in_background(lenses_csv, view, _pitch_um(config_dict))  # first: queued before the PNGs' bands
+    csv_bytes = _in_background(lenses_csv_utf8, view, _pitch_um(config_dict))  # first: queued before the PNGs' bands
     base = view.tone_mapped()
     full = render_defect_map(view, base=base)
     small = render_defect_map(view, base=base, max_side=SMALL_MAP_MAX_PX)
@@ -125,10 +125,10 @@ def _render_all(view: View, config_dict: dict | None) -> dict:
     small_png = encode_png_async(small, level=3) if small.shape != full.shape else full_png
     lens_png = encode_png_async(lens_maps, level=6)
     report = build_report_dict(view.result, config_dict=config_dict, _view=view)
-    text = {"json": _dumps(report), "csv": csv_text.result()}
+    files = {"json": dumps_utf8(report), "csv": csv_bytes.result()}
     pngs = {"defect_map": full_png.result(), "defect_map_small": small_png.result(), "lens_maps": lens_png.result()}
-    text["html"] = _html(view, report, pngs["defect_map_small"], pngs["lens_maps"])
-    return {**{k: t.encode("utf-8") for k, t in text.items()}, **pngs, "document": report}
+    files["html"] = _html(view, report, pngs["defect_map_small"], pngs["lens_maps"]).encode("utf-8")
+    return {**files, **pngs, "document": report}
 
 
 def _pitch_um(config_dict: dict | None) -> float | None:
