@@ -431,6 +431,33 @@ def test_an_infinite_reading_is_named_not_charted(target, capsys):
     assert "1 not charted, their reading not finite: L6/W1/A07" in capsys.readouterr().out
 
 
+def test_arrays_without_a_reading_are_named_not_read(target, capsys, tmp_path):
+    """An assembly reading the frame did not read or could not determine is stored as NULL: the chart
+    leaves those arrays off and names them (JSON: all; summary: the first 10, then how many more)."""
+    unread = {3, 5, 8, 9, 10, 11, 12, 13, 14, 15, 16, 17}
+    with open_database(target) as db:
+        for a in range(25):
+            report = _report("PASS")
+            if a not in unread:
+                report["assembly"] = {"mla_sensor_distance_um": {"value": 1.0 + 0.01 * (a % 3), "sigma": 0.1}}
+            report["source"] = f"c{a:02d}.tif"
+            report["created_utc"] = f"2026-12-01T11:{a:02d}:00+00:00"
+            db.record(record_from_report(report), Identity(lot="L8", wafer="W1", array=f"C{a:02d}"), None)
+    assert main(["lot", "chart", "--db", target, "--lot", "L8", "--reading", "distance_um", "--json"]) == 0
+    data = json.loads(capsys.readouterr().out)
+    assert data["not_read"] == [f"L8/W1/C{a:02d}" for a in sorted(unread)] and len(data["values"]) == 13
+    assert data["not_charted"] == [] and not set(data["not_read"]) & set(data["arrays"])
+    assert main(["lot", "chart", "--db", target, "--lot", "L8", "--reading", "distance_um"]) == 0
+    line = capsys.readouterr().out.splitlines()[0]
+    assert line.endswith("12 without this reading (not read or not determined): L8/W1/C03, L8/W1/C05, L8/W1/C08, "
+                         "L8/W1/C09, L8/W1/C10, L8/W1/C11, L8/W1/C12, L8/W1/C13, L8/W1/C14, L8/W1/C15 and 2 more")
+    assert main(["lot", "chart", "--db", target, "--lot", "L8", "--reading", "pitch_x_px", "--json"]) == 0
+    assert json.loads(capsys.readouterr().out)["not_read"] == []  # every frame read its grid
+    out = tmp_path / "lot.html"
+    assert main(["lot", "report", "--db", target, "--lot", "L8", "--out", str(out)]) == 0
+    assert "12 without this reading (not read or not determined): L8/W1/C03" in out.read_text()
+
+
 def test_a_lot_with_no_finite_reading_charts_nothing_and_says_so(target, capsys, tmp_path):
     """Every array's reading infinite: the chart's centre is JSON null (not NaN, which is not
     JSON), and the lot report, which charts nothing under 3 arrays, still names them."""

@@ -88,7 +88,7 @@ def run(args: argparse.Namespace) -> int:
                     "sigma": finite_or_none(chart.sigma),
                     "baseline": chart.baseline, "arrays": chart.labels, "values": chart.values.tolist(),
                     "out_of_control": {chart.labels[i]: r for i, r in chart.signals.items()},
-                    "not_charted": chart.not_charted}
+                    "not_charted": chart.not_charted, "not_read": chart.not_read}
             if chart.kind == "cusum":
                 data["h"] = chart.h
             lines = [chart.summary(args.reading), *chart.sentences()]

@@ -46,6 +46,7 @@ CUSUM_K = 0.5  # the CUSUM's reference value, in sigmas: tuned to a shift of one
 CUSUM_H = 6.0  # its decision interval: a two-sided in-control run of ~1,200 arrays on average
 JUMP_Z = 4.0  # one array's score beyond this is out of control at once (a false call in ~16,000 arrays)
 CHARTS = ("cusum", "imr")
+NAMED_UNREAD = 10  # a chart's summary names this many arrays without a reading (the JSON names them all)
 CUSUM_SIGNALS = {
     "rise": "a sustained rise (the upper CUSUM beyond h)",
     "fall": "a sustained fall (the lower CUSUM beyond h)",
@@ -87,6 +88,7 @@ class Chart:
     known: np.ndarray | None = None  # CUSUM: how many arrays each was judged against
     jump: float = JUMP_Z
     not_charted: list[str] = field(default_factory=list)  # arrays whose reading is stored not finite (inf, NaN)
+    not_read: list[str] = field(default_factory=list)  # arrays with no reading stored (not read, not determined)
 
     def jump_limits(self) -> tuple[np.ndarray, np.ndarray]:
         """CUSUM: the values beyond which each array is a jump (its score beyond ±`jump`): the mean of the
@@ -116,10 +118,17 @@ class Chart:
         else:
             how = f"I-MR, limits from the first {base}"
         left = (f"; {len(self.not_charted)} not charted, their reading not finite: {', '.join(self.not_charted)}"
-                if self.not_charted else "")
+                if self.not_charted else "") + (f"; {self.unread_words()}" if self.not_read else "")
         centre = f"{self.centre:.6g}" if math.isfinite(self.centre) else "–"
         return (f"{reading}: {n} arrays, centre {centre}, sigma {self.sigma:.3g} ({how}); "
                 f"{len(self.signals)} out of control{left}")
+
+    def unread_words(self, most: int = NAMED_UNREAD) -> str:
+        """How many arrays have no reading (the frame did not read it, or could not determine it), the
+        first `most` named: a lot of cropped frames has no assembly reading at all."""
+        more = len(self.not_read) - most
+        names = ", ".join(self.not_read[:most]) + (f" and {more} more" if more > 0 else "")
+        return f"{len(self.not_read)} without this reading (not read or not determined): {names}"
 
     def sentences(self) -> list[str]:
         words = CUSUM_SIGNALS if self.kind == "cusum" else RULES
@@ -292,15 +301,17 @@ def lot_chart(db, reading: str, lot: str | None = None, wafer: str | None = None
         raise InputError(f"no chart of {reading!r}: the readings are {', '.join(READINGS)}")
     latest, params = latest_selection(lot, wafer)
     rows = db.query(f"SELECT {reading}, lot, wafer, COALESCE(array_id, position, source) FROM inspections "
-                    f"WHERE id IN ({latest}) AND {reading} IS NOT NULL ORDER BY inspected_utc, recorded_utc, id", params)
-    values, labels, left = [], [], []
+                    f"WHERE id IN ({latest}) ORDER BY inspected_utc, recorded_utc, id", params)
+    values, labels, left, unread = [], [], [], []
     for value, *who in rows:
         label = f"{who[0] or '-'}/{who[1] or '-'}/{who[2]}"
-        if math.isfinite(float(value)):
+        if value is None:  # not read (a crop, too few lenses whole) or not determined: named, not charted
+            unread.append(label)
+        elif math.isfinite(float(value)):
             values.append(float(value))
             labels.append(label)
         else:  # a reading stored as inf or NaN: not charted, named
             left.append(label)
     chart = make_chart(values, labels, baseline, kind, rules, h)
-    chart.not_charted = left
+    chart.not_charted, chart.not_read = left, unread
     return chart

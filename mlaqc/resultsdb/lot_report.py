@@ -25,7 +25,9 @@ from mlaqc.resultsdb import lot as views
 from mlaqc.resultsdb.control import CUSUM_H, JUMP_Z, READINGS, RULES, Chart, lot_chart
 from mlaqc.resultsdb.store import ResultsDB
 
-CHART_READINGS = ("pitch_x_px", "rotation_deg", "flagged")  # the control charts the report draws
+# the control charts the report draws: the grid's, the assembly's (the mock production's drift is its distance)
+CHART_READINGS = ("pitch_x_px", "rotation_deg", "distance_um", "mla_rotation_deg", "tilt_x_deg", "tilt_y_deg",
+                  "flagged")
 MAP_BLOCK_PX = 24  # each lens of the stacked map drawn at most this many pixels wide (at most 600 px in all)
 _POSITION = re.compile(r"\((\d+)\s*,\s*(\d+)\)")  # a wafer position label "W(row,col)"
 
@@ -246,7 +248,8 @@ def lot_report_html(db: ResultsDB, lot: str | None = None, wafer: str | None = N
         + '</p><div class="plots">')
     for reading in readings:
         chart = lot_chart(db, reading, lot, wafer, baseline, rules, kind, h)
-        left = f"not charted (reading not finite): {'; '.join(chart.not_charted)}" if chart.not_charted else ""
+        left = "; ".join(([f"not charted (reading not finite): {'; '.join(chart.not_charted)}"] if chart.not_charted
+                          else []) + ([chart.unread_words()] if chart.not_read else []))
         if chart.values.size < 3:
             if left:
                 out.append(f"<p>{_esc(READINGS[reading])}: fewer than 3 arrays to chart; {_esc(left)}</p>")
