@@ -11,7 +11,7 @@ import numpy as np
 
 from mlaqc.commands.levels import add_level_options, stated_levels
 from mlaqc.errors import InputError
-from mlaqc.inspection.calibrate import calibrate
+from mlaqc.inspection.array_extent import calibrate_whole
 from mlaqc.inspection.flatfield import check_flat_field
 from mlaqc.inspection.optics_check import pitch_notes
 from mlaqc.inspection.rawio import Levels, check_exposure, load_raw, normalized, resolve_levels, suppress_hot_pixels
@@ -62,8 +62,7 @@ def run(args: argparse.Namespace) -> int:
         frame = resolve_levels(load_raw(whites[0]), stated_levels(args), Levels(s.bit_depth, s.black_level_dn))
         check_exposure(frame)
         img, _ = suppress_hot_pixels(normalized(frame), frame.cfa)
-    grid = calibrate(img, expected_pitch_px=cfg.layout.subimage_pitch_px,
-                     expected_shape=(cfg.mla.count_h, cfg.mla.count_w), packing=cfg.mla.packing)
+    grid = calibrate_whole(img, cfg)
     check_flat_field(np.where(grid.missing | grid.clipped, np.nan, grid.flux), "the white frame")
     grid.save(out)
     if not args.quiet:

@@ -148,14 +148,15 @@ def through_focus_text(tf) -> str:
 def shared_grid(args: argparse.Namespace, cfg: CameraConfig, dark=None):
     """The calibration every raw reuses: loaded from --grid, fitted on --white (its frames averaged, the
     master dark `dark` subtracted), or None (self-calibrate)."""
+    from mlaqc.inspection.array_extent import calibrate_whole
     from mlaqc.inspection.calibrate import load_grid
-    from mlaqc.inspection.calibrate import calibrate_for
     from mlaqc.inspection.pipeline import load_frame
 
     if args.grid:
         grid = load_grid(args.grid)
         want = (cfg.sensor.height_px, cfg.sensor.width_px)
-        if (grid.rows, grid.cols) != (cfg.mla.count_h, cfg.mla.count_w) or tuple(grid.image_shape) != want:
+        counted = cfg.mla.counts_auto and grid.rows <= cfg.mla.count_h and grid.cols <= cfg.mla.count_w  # whole array
+        if ((grid.rows, grid.cols) != (cfg.mla.count_h, cfg.mla.count_w) and not counted) or tuple(grid.image_shape) != want:
             raise InputError(f"grid file {args.grid!r} is for {grid.cols}x{grid.rows} lenses on a "
                              f"{grid.image_shape[1]}x{grid.image_shape[0]} px frame, but the camera has "
                              f"{cfg.mla.count_w}x{cfg.mla.count_h} lenses on {want[1]}x{want[0]} px")
@@ -166,7 +167,7 @@ def shared_grid(args: argparse.Namespace, cfg: CameraConfig, dark=None):
     if args.white:
         white = [args.white] if isinstance(args.white, str) else list(args.white)
         img = load_frame(white[0] if len(white) == 1 else white, cfg, stated_levels(args), dark=dark)
-        return calibrate_for(img, cfg)
+        return calibrate_whole(img, cfg)
     return None
 
 

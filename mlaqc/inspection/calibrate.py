@@ -55,6 +55,7 @@ log = logging.getLogger(__name__)
 
 # Thresholds (relative units unless stated).
 MISSING_RELATIVE_FLUX = 0.3  # a lens under 30 % of its neighbourhood's amplitude is 'missing/dim'
+MIN_FOUND_SHARE = 0.5  # with the counts given, at least this share of the array must be found (else: wrong config)
 # light at the cell corners above this fraction of the sub-images' is a background: less pulls the centres by
 # under 0.01 px even with strong vignetting, and blurred or Airy rims alone reach 5 - 12 % there (measured)
 EDGE_GROUP_MIN = 5  # wholly seen lenses an edge group needs for its common offset to be read (a median)
@@ -106,15 +107,17 @@ def _check_levels(img: np.ndarray) -> None:
 
 
 def calibrate(img: np.ndarray, *, expected_pitch_px: float | None = None,
-              expected_shape: tuple[int, int] | None = None, packing: str = "square") -> Grid:
+              expected_shape: tuple[int, int] | None = None, packing: str = "square",
+              min_found_share: float = MIN_FOUND_SHARE) -> Grid:
     """Find, measure and index every microlens of a white image; fit the global grid.
 
     `img`: float, black-subtracted, normalized (1 = full scale) white image. `expected_pitch_px`: the
     config's sub-image pitch (the found pitch must lie within 10 %). `expected_shape`: (N_H, N_W) of the
     MLA; the grid then has exactly that many rows and columns, U(1,1) being the array's top-left lens even
     if border lenses are dim or cut by the frame. `packing`: the MLA's ("square" or "hex", the config's
-    mla.packing; mlaqc.optics.lattice's U(m,n) convention). Raises InputError for an image that cannot be
-    calibrated, or whose lattice is not of `packing`.
+    mla.packing; mlaqc.optics.lattice's U(m,n) convention). `min_found_share`: the share of the expected
+    lenses that must be found (0 for "auto" counts, an upper bound: the array may be smaller than the frame).
+    Raises InputError for an image that cannot be calibrated, or whose lattice is not of `packing`.
     """
     if packing not in PACKINGS:
         raise InputError(f"packing must be one of {list(PACKINGS)}, got {packing!r}")
@@ -136,7 +139,7 @@ def calibrate(img: np.ndarray, *, expected_pitch_px: float | None = None,
     clean = _without_background(img, lattice, discs, active)
     if clean is not img:  # a background the discs do not explain: measured again without it
         discs, active = _measure(clean, px, py, lat_j, lat_i, lattice.basis, radius0, packing)
-    return _assemble(img.shape, lattice, lat_j, lat_i, discs, active, expected_shape)
+    return _assemble(img.shape, lattice, lat_j, lat_i, discs, active, expected_shape, min_found_share)
 
 
 # the corners must lie this far outside the fitted rims to measure a background there: 1.5 px and two edge
@@ -198,7 +201,8 @@ def _without_background(img: np.ndarray, lattice: _Lattice, discs: _Discs, activ
 def calibrate_for(img: np.ndarray, cfg: Any) -> Grid:
     """The grid of a white frame of a CameraConfig's camera: its sub-image pitch, lens count and packing."""
     return calibrate(img, expected_pitch_px=cfg.layout.subimage_pitch_px,
-                     expected_shape=(cfg.mla.count_h, cfg.mla.count_w), packing=cfg.mla.packing)
+                     expected_shape=(cfg.mla.count_h, cfg.mla.count_w), packing=cfg.mla.packing,
+                     min_found_share=0.0 if getattr(cfg.mla, "counts_auto", False) else MIN_FOUND_SHARE)
 
 
 def _candidates(shape: tuple[int, int], lattice: _Lattice):
@@ -237,7 +241,8 @@ def _neighbourhood_median(values: np.ndarray, size: int = 5) -> np.ndarray:
     return np.where(count > 0, 0.5 * (lo + hi), np.nan)
 
 
-def _assemble(shape, lattice, lat_j, lat_i, discs: _Discs, active, expected_shape) -> Grid:
+def _assemble(shape, lattice, lat_j, lat_i, discs: _Discs, active, expected_shape,
+              min_found_share: float = MIN_FOUND_SHARE) -> Grid:
     h, w = shape
     pitch = float(np.sqrt(abs(np.linalg.det(lattice.basis))))
     j0, i0 = int(lat_j.min()), int(lat_i.min())
@@ -294,7 +299,7 @@ def _assemble(shape, lattice, lat_j, lat_i, discs: _Discs, active, expected_shap
     if n_found < MIN_LENSES:
         raise InputError(f"only {n_found} microlens sub-images lie inside the expected {rows}x{cols} array "
                          f"(at least {MIN_LENSES} are needed)")
-    if expected_shape is not None and n_found < 0.5 * rows * cols:
+    if expected_shape is not None and n_found < min_found_share * rows * cols:
         raise InputError(f"only {n_found} of the expected {rows}x{cols} microlenses were found in the "
                          f"{h}x{w} px image; check the camera config (MLA shape) and the image")
     mx = np.where(found_w, window(table(discs.cx, np.nan), np.nan), np.nan)

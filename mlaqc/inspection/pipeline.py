@@ -11,6 +11,7 @@ from pathlib import Path
 import numpy as np
 
 from mlaqc.compiled import net_clock
+from mlaqc.inspection.array_extent import whole_array_counts, whole_array_note, with_counts
 from mlaqc.errors import InputError
 from mlaqc.inspection.assembly import measure_assembly
 from mlaqc.inspection.calibrate import Grid, calibrate_for
@@ -107,6 +108,19 @@ def _inspect_image(img: np.ndarray, cfg: CameraConfig, *, grid: Grid | None = No
     if img.shape != (cfg.sensor.height_px, cfg.sensor.width_px):
         raise InputError(f"image is {img.shape[1]}x{img.shape[0]} px but the camera's sensor is "
                          f"{cfg.sensor.width_px}x{cfg.sensor.height_px}")
+    auto_grid = None
+    if grid is not None and cfg.mla.counts_auto and grid.shape != (cfg.mla.count_h, cfg.mla.count_w):
+        # a white frame's grid that counted the whole array ("auto": see shared_grid): its counts are the array's
+        cfg, notes = with_counts(cfg, *grid.shape), tuple(notes) + (whole_array_note(*grid.shape),)
+    if grid is None and cfg.mla.counts_auto:
+        auto_grid = calibrate_for(img, cfg)
+        lap("calibrate")
+        counts = whole_array_counts(auto_grid)
+        if counts is not None:  # "auto" on a frame that holds the whole array: inspected as that array
+            whole = _inspect_image(img, with_counts(cfg, *counts), source=source,
+                                   notes=tuple(notes) + (whole_array_note(*counts),))
+            whole.timings_s["calibrate"] = round(whole.timings_s.get("calibrate", 0.0) + t["calibrate"], 4)
+            return whole
     if model is None or table is None:
         cached_model, cached_table = _models(cfg)
         model, table = model or cached_model, table or cached_table
@@ -115,9 +129,11 @@ def _inspect_image(img: np.ndarray, cfg: CameraConfig, *, grid: Grid | None = No
     if not own_grid and grid.packing != cfg.mla.packing:
         raise InputError(f"the grid is for a {grid.packing} lattice but the camera's MLA is "
                          f"{cfg.mla.packing} (mla.packing)")
-    if own_grid:
+    if own_grid and auto_grid is None:
         grid = calibrate_for(img, cfg)
         lap("calibrate")
+    elif own_grid:
+        grid = auto_grid
     notes = tuple(notes) + pitch_notes(float(np.mean(grid.pitch_px)), cfg) + anchoring_notes(cfg)
     half = window_half_px(cfg)
     subs = divide(img, grid, 2 * half + 1)
@@ -264,6 +280,8 @@ def with_through_focus(result: InspectionResult, paths: Sequence[str | Path], cf
     from mlaqc.inspection.pinhole_frames import load_pinhole_frames
     from mlaqc.inspection.throughfocus import measure_through_focus
 
+    if cfg.mla.counts_auto and result.grid.shape != (cfg.mla.count_h, cfg.mla.count_w):
+        cfg = with_counts(cfg, *result.grid.shape)  # the frame held the whole array: inspected with its counts
     t0 = net_clock()
     frames = load_pinhole_frames(paths, cfg, levels)
     t1 = net_clock()

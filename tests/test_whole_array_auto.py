@@ -1,0 +1,118 @@
+"""count_w = count_h = "auto" on a frame that holds the whole array, dark margins on every side (an array
+smaller than the sensor, a user who did not count its lenses): the lenses are counted from the frame and the
+array is inspected as with those counts given — U(1,1) its corner, its edge lenses judged as edges, the same
+flags — on frames of the independent analytic model (tests/analytic_frames.py), square and hex."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+from pathlib import Path
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+
+import analytic_frames as am
+from mlaqc.inspection.array_extent import whole_array_counts
+from mlaqc.inspection.pipeline import inspect_file
+from mlaqc.optics.config import config_from_dict, load_config
+
+FIXTURES = Path(__file__).resolve().parent.parent / "fixtures"
+UM_TO_PX = (am.TABLE1_B_MM + am.TABLE1_F_MM) / am.TABLE1_B_MM / am.TABLE1_PIXEL_UM  # a pitch error's shift
+
+
+def cameras(fixture: str, rows: int, cols: int, margin_lenses: float = 3.0):
+    """(counts given, counts "auto") of a fixture's optics: `rows` x `cols` lenses in a sensor that leaves
+    `margin_lenses` pitches dark on every side."""
+    cfg = load_config(FIXTURES / fixture)
+    p = cfg.layout.subimage_pitch_px
+    w = (cols + 0.5 + 2 * margin_lenses) * p
+    h = ((rows - 1) * (math.sqrt(3.0) / 2 if cfg.mla.packing == "hex" else 1.0) + 1 + 2 * margin_lenses) * p
+    given = dataclasses.replace(cfg, mla=dataclasses.replace(cfg.mla, count_w=cols, count_h=rows),
+                                sensor=dataclasses.replace(cfg.sensor, width_px=16 * math.ceil(w / 16),
+                                                           height_px=16 * math.ceil(h / 16)))
+    d = json.loads(json.dumps(given.to_dict()))
+    d["mla"]["count_w"] = d["mla"]["count_h"] = "auto"
+    return given, config_from_dict(d)
+
+
+def inspect(cfg, model, tmp: Path, name: str, noise: float = 0.01):
+    counts = am.to_counts(am.expose(model.render(), noise, np.random.default_rng(3)), 12)
+    return inspect_file(am.write_container(tmp / f"{name}.tif", counts, 12, 0), cfg)
+
+
+@pytest.mark.parametrize("fixture,rows,cols", [("small_camera.toml", 12, 14), ("hex_small_camera.toml", 14, 12)])
+def test_auto_counts_on_a_whole_array_inspect_it_as_that_array(tmp_path, fixture, rows, cols):
+    given, auto = cameras(fixture, rows, cols)
+    assert (auto.mla.count_h, auto.mla.count_w) != (rows, cols)  # "auto" alone lays a larger lattice
+    model = am.AnalyticModel(shape=(given.sensor.height_px, given.sensor.width_px), lenses=(rows, cols),
+                             pitch_px=given.layout.subimage_pitch_px, packing=given.mla.packing, phase_px=(0.3, -0.2))
+    healthy = inspect(auto, model, tmp_path, "healthy")
+    assert healthy.grid.shape == (rows, cols) and healthy.defects == ()
+    assert any(f"{cols} x {rows} lenses found" in n and "U(1,1) is the array's top-left lens" in n for n in healthy.notes)
+    assert not any("relative to the frame" in n for n in healthy.notes)
+    # shifts of 3 µm (clear of every limit these frames state) on an inner lens, an edge lens and the
+    # second ring: reported at the array's own indexes, as with the counts given
+    seeded = {(5, 6): 30.0, (0, 4): 120.0, (rows - 2, cols - 2): 250.0, (6, 0): 300.0}
+    flawed = model.with_anomalies(am.Anomaly(m, n, "shift", 3.0 * UM_TO_PX, a) for (m, n), a in seeded.items())
+    by_auto, by_given = inspect(auto, flawed, tmp_path, "auto"), inspect(given, flawed, tmp_path, "given")
+    flags = {(d.m - 1, d.n - 1): d.error_type for d in by_auto.defects}
+    assert flags == {(d.m - 1, d.n - 1): d.error_type for d in by_given.defects}
+    assert set(flags) == set(seeded), sorted(flags)
+
+
+def _grid(missing: np.ndarray, pitch: float = 20.0, margin_px: float = 20.0, packing: str = "square"):
+    """A grid-like record of a lattice `pitch` px apart whose lit (not missing) lenses' box starts
+    `margin_px` inside a frame that ends `margin_px` past it."""
+    rows, cols = missing.shape
+    lit_r, lit_c = np.flatnonzero((~missing).any(axis=1)), np.flatnonzero((~missing).any(axis=0))
+    step_y = pitch * (math.sqrt(3.0) / 2 if packing == "hex" else 1.0)
+    m, n = np.mgrid[0:rows, 0:cols]
+    x, y = margin_px + (n - lit_c[0]) * pitch, margin_px + (m - lit_r[0]) * step_y
+    shape = (int(np.ceil(y[lit_r[-1], 0] + margin_px)) + 1, int(np.ceil(x[0, lit_c[-1]] + margin_px)) + 1)
+    return SimpleNamespace(missing=missing, grid_x_px=x, grid_y_px=y, pitch_px=(pitch, pitch), packing=packing,
+                           image_shape=shape)
+
+
+def test_only_an_array_wholly_in_view_is_counted():
+    lit = np.ones((10, 12), bool)
+    lit[2:8, 1:11] = False  # 6 x 10 lenses
+    assert whole_array_counts(_grid(lit)) == (6, 10)
+    hexed = lit.copy()
+    hexed[3:8:2, 1] = True  # hex: alternate rows one column on (offset columns)
+    hexed[3:8:2, 11] = False
+    assert whole_array_counts(_grid(hexed, packing="hex")) == (6, 10)
+    # the lattice place beyond an edge not in view (a lens centre closer to the frame's edge than a pitch):
+    # the array may run on past the frame
+    assert whole_array_counts(_grid(lit, margin_px=19.0)) is None
+    assert whole_array_counts(_grid(hexed, margin_px=0.8 * 20 * math.sqrt(3.0) / 2, packing="hex")) is None
+    field_stop = lit.copy()
+    field_stop[2, 1] = field_stop[2, 10] = True  # a round field of view: the box's corners dark
+    assert whole_array_counts(_grid(field_stop)) == (6, 10)  # 2 of 60 places dark: one array, 2 lenses missing ...
+    field_stop[2, 2] = field_stop[7, 1] = field_stop[7, 10] = True
+    assert whole_array_counts(_grid(field_stop)) is None  # ... 5 of 60 (8 %): a field stop, not one array
+
+
+def test_a_saved_or_white_frame_grid_counts_the_whole_array_too(tmp_path, capsys):
+    """`mlaqc calibrate` writes the whole array's grid for an "auto" config, and `inspect --grid` and
+    `inspect --white` inspect with it as a self-calibrated frame does: the same lenses, the same note."""
+    from mlaqc.cli import main
+    from mlaqc.optics.config import config_to_toml
+
+    given, auto = cameras("small_camera.toml", 12, 14)
+    model = am.AnalyticModel(shape=(given.sensor.height_px, given.sensor.width_px), lenses=(12, 14),
+                             pitch_px=given.layout.subimage_pitch_px, phase_px=(0.3, -0.2))
+    counts = am.to_counts(am.expose(model.render(), 0.01, np.random.default_rng(3)), 12)
+    white = am.write_container(tmp_path / "white.tif", counts, 12, 0)
+    config = tmp_path / "auto.toml"
+    config.write_text(config_to_toml(auto))
+    assert main(["calibrate", str(white), "-c", str(config), "-o", str(tmp_path / "grid.json"), "-q"]) == 0
+    assert json.loads((tmp_path / "grid.json").read_text())["shape"] == {"rows": 12, "cols": 14}
+    for how in (["--grid", str(tmp_path / "grid.json")], ["--white", str(white)]):
+        out = tmp_path / how[0].strip("-")
+        assert main(["inspect", str(white), "-c", str(config), *how, "-o", str(out), "--no-db"]) == 0
+        report = json.loads((out / "report.json").read_text())
+        assert (report["summary"]["rows"], report["summary"]["cols"], report["summary"]["flagged"]) == (12, 14, 0)
+        assert any("14 x 12 lenses found" in n for n in report["notes"])
