@@ -151,6 +151,7 @@ def case_report(lenses: int) -> dict:
     cfg = config(lenses)
     grid = load_grid(CACHE / f"grid_{lenses}.json")
     res = inspect_image(load_frame(frame_paths(lenses, 1)[0], cfg), cfg, grid=grid)
+    render_report(res, cfg.to_dict())  # warm-up (the formatter's kernels, the first PNG's pool)
     base = peak_mib()
     with tempfile.TemporaryDirectory() as tmp:
         t = time.perf_counter()

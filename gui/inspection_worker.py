@@ -404,7 +404,7 @@ class InspectionWorker(QObject):
             self.progress.emit(job, pct, text)
 
         try:
-            from mlaqc.inspection.calibrate import calibrate_for
+            from mlaqc.inspection.array_extent import calibrate_whole
             from mlaqc.inspection.pipeline import inspect_image, load_frame
 
             cfg = req.cfg
@@ -441,7 +441,7 @@ class InspectionWorker(QObject):
                 stage(15, "loading the white image")
                 white = load_frame(req.white, cfg, dark=dark)
             stage(25, "calibrating the microlens grid")
-            grid = calibrate_for(white, cfg)
+            grid = calibrate_whole(white, cfg)
             stage(60, "measuring and identifying every lens")
             result = inspect_image(img, cfg, grid=grid, source=source, notes=tuple(notes))
             if info is not None:
@@ -472,10 +472,12 @@ class InspectionWorker(QObject):
         """The second measurement: load the pinhole frames (cancellable between frames), read every
         covered lens' focal error and optical centre on `result`'s grid, and combine (as
         `pipeline.with_through_focus`, in stages)."""
+        from mlaqc.inspection.array_extent import config_for_grid
         from mlaqc.inspection.combine import combine_through_focus
         from mlaqc.inspection.pinhole_frames import load_pinhole_frames
         from mlaqc.inspection.throughfocus import measure_through_focus
 
+        cfg = config_for_grid(cfg, result.grid)  # an "auto" frame that held the whole array: its counts
         t0 = time.perf_counter()
         loaded = []
         for k, f in enumerate(frames):

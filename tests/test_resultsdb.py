@@ -278,8 +278,10 @@ def test_two_writers_at_once_lose_nothing(target):
 def _seeded_lot(path, arrays=50, master_share=0.8, seed=4):
     """A lot of 20 x 20-lens arrays on two wafers: U(5,7) shifted (pitch, 30° ± 5°) in `master_share` of the
     arrays (the master's defect), 3 random flags of random types elsewhere in every array, a FAIL verdict
-    where an out-of-tolerance flag is. Returns the truth."""
+    where an out-of-tolerance flag is; the assembly's distance and rotation read on all but every tenth
+    array, its tilts on none. Returns the truth."""
     rng = np.random.default_rng(seed)
+    assembly_rng = np.random.default_rng(seed + 1000)  # (apart: the defects' draws stay as they were)
     types = ("pitch", "radius", "dim", "tilt", "decenter")
     master = set(rng.choice(arrays, int(round(master_share * arrays)), replace=False).tolist())
     truth = {"passed": {}, "arrays": {"W1": 0, "W2": 0}, "master": len(master)}
@@ -302,6 +304,10 @@ def _seeded_lot(path, arrays=50, master_share=0.8, seed=4):
             truth["passed"][wafer] = truth["passed"].get(wafer, 0) + (not failed)
             report = _report("FAIL" if failed else "PASS", defects)
             report["source"] = f"a{a}.tif"
+            distance, rotation = assembly_rng.normal(0.0, 0.5), assembly_rng.normal(0.0, 0.01)
+            if a % 10 != 9:
+                report["assembly"] = {"mla_sensor_distance_um": {"value": distance, "sigma": 0.1},
+                                      "mla_rotation_deg": {"value": rotation, "sigma": 0.002}}
             db.record(record_from_report(report), Identity(lot="L9", wafer=wafer, array=f"A{a:03d}"), None)
     return truth
 

@@ -51,7 +51,7 @@ def test_auto_counts_on_a_whole_array_inspect_it_as_that_array(tmp_path, fixture
                              pitch_px=given.layout.subimage_pitch_px, packing=given.mla.packing, phase_px=(0.3, -0.2))
     healthy = inspect(auto, model, tmp_path, "healthy")
     assert healthy.grid.shape == (rows, cols) and healthy.defects == ()
-    assert any(f"{cols} x {rows} lenses found" in n and "U(1,1) is the array's top-left lens" in n for n in healthy.notes)
+    assert any(f"{cols} x {rows} lenses with dark margins" in n and "U(1,1) is the array's top-left lens" in n for n in healthy.notes)
     assert not any("relative to the frame" in n for n in healthy.notes)
     # shifts of 3 µm (clear of every limit these frames state) on an inner lens, an edge lens and the
     # second ring: reported at the array's own indexes, as with the counts given
@@ -115,4 +115,25 @@ def test_a_saved_or_white_frame_grid_counts_the_whole_array_too(tmp_path, capsys
         assert main(["inspect", str(white), "-c", str(config), *how, "-o", str(out), "--no-db"]) == 0
         report = json.loads((out / "report.json").read_text())
         assert (report["summary"]["rows"], report["summary"]["cols"], report["summary"]["flagged"]) == (12, 14, 0)
-        assert any("14 x 12 lenses found" in n for n in report["notes"])
+        assert any("14 x 12 lenses with dark margins" in n for n in report["notes"])
+
+
+def test_a_white_frame_path_counts_the_array_and_a_cut_array_is_refused(tmp_path):
+    """inspect_file with a white frame (the app's path: it calibrates on the white, then inspects) counts
+    the array as the self-calibrated path does; an array smaller than the frame that runs off one side (lit
+    to the frame's edge there, dark elsewhere) is neither whole nor filling the frame: one sentence asking
+    for the counts, as before "auto" counted arrays."""
+    from mlaqc.errors import InputError
+
+    given, auto = cameras("small_camera.toml", 12, 14)
+    shape = (given.sensor.height_px, given.sensor.width_px)
+    model = am.AnalyticModel(shape=shape, lenses=(12, 14), pitch_px=given.layout.subimage_pitch_px, phase_px=(0.3, -0.2))
+    counts = am.to_counts(am.expose(model.render(), 0.01, np.random.default_rng(3)), 12)
+    white = am.write_container(tmp_path / "white.tif", counts, 12, 0)
+    result = inspect_file(white, auto, white=white)
+    assert result.grid.shape == (12, 14) and result.defects == ()
+    assert any("the grid given holds the whole array" in n for n in result.notes)
+    cut = dataclasses.replace(model, phase_px=(-4.0 * given.layout.subimage_pitch_px, 0.0))  # 1 lens off the left
+    counts = am.to_counts(am.expose(cut.render(), 0.01, np.random.default_rng(3)), 12)
+    with pytest.raises(InputError, match="not one whole array with dark margins on every side: give the array's counts"):
+        inspect_file(am.write_container(tmp_path / "cut.tif", counts, 12, 0), auto)

@@ -12,6 +12,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from mlaqc.errors import InputError
+
 WHOLE_FILL = 0.95  # the lit places fill the array's box to this share at least (a few missing lenses), else
 # they are not one rectangular array (a round field stop darkens a fifth of its box)
 MIN_LENSES = 3  # rows and columns at least (the smallest array the identification judges)
@@ -39,12 +41,15 @@ def whole_array_counts(grid) -> tuple[int, int] | None:
     return count_h, count_w
 
 
-def whole_array_note(count_h: int, count_w: int) -> str:
-    """What the report says of an "auto" frame that holds the whole array."""
-    return (f"The frame holds the whole array (mla.count_w / count_h = \"auto\"): {count_w} x {count_h} lenses "
-            "found, with dark margins on every side. U(1,1) is the array's top-left lens and its edge lenses are "
-            "judged as edges, as with those counts given; to read the array's assembly, give "
-            f"count_w = {count_w} and count_h = {count_h} in the config and run `mlaqc models` once.")
+def whole_array_note(count_h: int, count_w: int, from_grid: bool = False) -> str:
+    """What the report says of an "auto" frame that holds the whole array (`from_grid`: counted on the
+    white frame whose grid it was given)."""
+    how = ("the grid given holds the whole array" if from_grid else "the frame holds the whole array")
+    return (f"Lenses counted: {how} (mla.count_w / count_h = \"auto\"), {count_w} x {count_h} lenses with dark "
+            "margins on every side. U(1,1) is the array's top-left lens and its edge lenses are judged as edges, "
+            "as with those counts given (a whole edge row or column missing would be counted out: give the "
+            "counts for acceptance); to read the array's assembly, give count_w = "
+            f"{count_w} and count_h = {count_h} in the config and run `mlaqc models` once.")
 
 
 def with_counts(cfg, count_h: int, count_w: int):
@@ -55,11 +60,35 @@ def with_counts(cfg, count_h: int, count_w: int):
     return replace(cfg, mla=replace(cfg.mla, count_h=count_h, count_w=count_w, counts_auto=False))
 
 
+def config_for_grid(cfg, grid):
+    """`cfg`, or with "auto" counts and a grid that counted the whole array (`calibrate_whole`), `cfg` with
+    that grid's counts."""
+    if cfg.mla.counts_auto and grid.shape != (cfg.mla.count_h, cfg.mla.count_w):
+        return with_counts(cfg, *grid.shape)
+    return cfg
+
+
+def locate_array(img: np.ndarray, cfg):
+    """An "auto" frame's grid over the whole sensor, and the counts (rows, lenses per row) of the array
+    when the frame holds it whole (else None). InputError when it does neither: under half the lattice
+    places lit and no whole array among them (an array smaller than the frame, cut on a side)."""
+    from mlaqc.inspection.calibrate import MIN_FOUND_SHARE, calibrate_for
+
+    grid = calibrate_for(img, cfg)
+    counts = whole_array_counts(grid)
+    if counts is None and grid.lenses_found < MIN_FOUND_SHARE * grid.rows * grid.cols:
+        raise InputError(f"only {grid.lenses_found} of the {grid.cols}x{grid.rows} lens places that cover the "
+                         "frame are lit (mla.count_w / count_h = \"auto\"), and they are not one whole array with "
+                         "dark margins on every side: give the array's counts (mla.count_w, mla.count_h)")
+    return grid, counts
+
+
 def calibrate_whole(img: np.ndarray, cfg):
     """The grid of a white frame (mlaqc.inspection.calibrate.calibrate_for); with "auto" counts on a frame
     that holds the whole array, the grid of that array (its counts from the frame)."""
     from mlaqc.inspection.calibrate import calibrate_for
 
-    grid = calibrate_for(img, cfg)
-    counts = whole_array_counts(grid) if cfg.mla.counts_auto else None
+    if not cfg.mla.counts_auto:
+        return calibrate_for(img, cfg)
+    grid, counts = locate_array(img, cfg)
     return grid if counts is None else calibrate_for(img, with_counts(cfg, *counts))

@@ -11,9 +11,10 @@ from pathlib import Path
 import numpy as np
 
 from mlaqc.compiled import net_clock
-from mlaqc.inspection.array_extent import whole_array_counts, whole_array_note, with_counts
+from mlaqc.inspection.array_extent import (calibrate_whole, config_for_grid, locate_array, whole_array_note,
+                                           with_counts)
 from mlaqc.errors import InputError
-from mlaqc.inspection.assembly import measure_assembly
+from mlaqc.inspection.assembly import measure_assembly, not_read
 from mlaqc.inspection.calibrate import Grid, calibrate_for
 from mlaqc.inspection.combine import SOURCE_KEY
 from mlaqc.inspection.combine import verdict as overall_verdict
@@ -94,8 +95,9 @@ def inspect_image(img: np.ndarray, cfg: CameraConfig, *, grid: Grid | None = Non
 
 def _inspect_image(img: np.ndarray, cfg: CameraConfig, *, grid: Grid | None = None, source: str = "",
                    model: ReferenceModel | None = None, table: SignatureTable | SignatureSet | None = None,
-                   notes: tuple[str, ...] = ()) -> InspectionResult:
-    """`inspect_image` with the config's boundary model as given."""
+                   notes: tuple[str, ...] = (), counted: bool = False) -> InspectionResult:
+    """`inspect_image` with the config's boundary model as given (`counted`: `cfg`'s counts are those an
+    "auto" frame found, mlaqc.inspection.array_extent)."""
     t: dict[str, float] = {}
     clock = net_clock()  # a first-use kernel compile is not the stage's time (commands report it apart)
 
@@ -109,16 +111,15 @@ def _inspect_image(img: np.ndarray, cfg: CameraConfig, *, grid: Grid | None = No
         raise InputError(f"image is {img.shape[1]}x{img.shape[0]} px but the camera's sensor is "
                          f"{cfg.sensor.width_px}x{cfg.sensor.height_px}")
     auto_grid = None
-    if grid is not None and cfg.mla.counts_auto and grid.shape != (cfg.mla.count_h, cfg.mla.count_w):
-        # a white frame's grid that counted the whole array ("auto": see shared_grid): its counts are the array's
-        cfg, notes = with_counts(cfg, *grid.shape), tuple(notes) + (whole_array_note(*grid.shape),)
+    if grid is not None and config_for_grid(cfg, grid) is not cfg:  # a white frame's grid counted the array
+        cfg, counted = config_for_grid(cfg, grid), True
+        notes = tuple(notes) + (whole_array_note(*grid.shape, from_grid=True),)
     if grid is None and cfg.mla.counts_auto:
-        auto_grid = calibrate_for(img, cfg)
+        auto_grid, counts = locate_array(img, cfg)
         lap("calibrate")
-        counts = whole_array_counts(auto_grid)
         if counts is not None:  # "auto" on a frame that holds the whole array: inspected as that array
             whole = _inspect_image(img, with_counts(cfg, *counts), source=source,
-                                   notes=tuple(notes) + (whole_array_note(*counts),))
+                                   notes=tuple(notes) + (whole_array_note(*counts),), counted=True)
             whole.timings_s["calibrate"] = round(whole.timings_s.get("calibrate", 0.0) + t["calibrate"], 4)
             return whole
     if model is None or table is None:
@@ -171,7 +172,11 @@ def _inspect_image(img: np.ndarray, cfg: CameraConfig, *, grid: Grid | None = No
     measured = measure_lenses(found, table, cfg, (grid.residual_x_px, grid.residual_y_px) if own_grid else None)
     lap("measure")
     qc = cfg.qc
-    assembly = measure_assembly(grid, cfg).checked(qc)
+    assembly = measure_assembly(grid, cfg)
+    if counted and assembly.reason.startswith("no assembly calibration"):  # `mlaqc models` on "auto" would not
+        assembly = not_read(f"no assembly calibration for this array's counts: give count_w = {grid.cols} and "
+                            f"count_h = {grid.rows} in the config and run `mlaqc models --config CONFIG` once")
+    assembly = assembly.checked(qc)
     lap("assembly")
     verdict = overall_verdict(defects, qc, assembly)
     # every lens' reference is for the report, which shows a few: computed when (and as far as) it is read
@@ -259,7 +264,7 @@ def inspect_file(raw: str | Path | Sequence[str | Path], cfg: CameraConfig, *,
     grid = None
     if white is not None:
         wimg = load_frame(white, cfg, levels, dark=dark)
-        grid = calibrate_for(wimg, cfg)
+        grid = calibrate_whole(wimg, cfg)
     load_s = max(net_clock() - t0, 0.0)
     source = raw if isinstance(raw, (str, Path)) else list(raw)[0]
     result = inspect_image(img, cfg, grid=grid, source=str(source), notes=tuple(notes))
@@ -280,8 +285,7 @@ def with_through_focus(result: InspectionResult, paths: Sequence[str | Path], cf
     from mlaqc.inspection.pinhole_frames import load_pinhole_frames
     from mlaqc.inspection.throughfocus import measure_through_focus
 
-    if cfg.mla.counts_auto and result.grid.shape != (cfg.mla.count_h, cfg.mla.count_w):
-        cfg = with_counts(cfg, *result.grid.shape)  # the frame held the whole array: inspected with its counts
+    cfg = config_for_grid(cfg, result.grid)  # an "auto" frame that held the whole array: read with its counts
     t0 = net_clock()
     frames = load_pinhole_frames(paths, cfg, levels)
     t1 = net_clock()

@@ -275,7 +275,7 @@ def _dump_parts(obj: Any, level: int, out: list[str]) -> None:
 def _lines(lines: list[str], level: int) -> str:
     """A JSON list written one item (already encoded) per line at `level`'s indent."""
     pad = "  " * (level + 1)
-    return "[\n" + pad + (",\n" + pad).join(lines) + "\n" + "  " * level + "]"
+    return "[\n" + (pad + (",\n" + pad).join(lines) if lines else "") + "\n" + "  " * level + "]"
 
 
 _SCALAR_TYPES = frozenset({int, float, bool, type(None)})
