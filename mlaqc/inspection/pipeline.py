@@ -11,9 +11,9 @@ from pathlib import Path
 import numpy as np
 
 from mlaqc.compiled import net_clock
+from mlaqc.errors import InputError
 from mlaqc.inspection.array_extent import (calibrate_whole, config_for_grid, locate_array, whole_array_note,
                                            with_counts)
-from mlaqc.errors import InputError
 from mlaqc.inspection.assembly import measure_assembly, not_read
 from mlaqc.inspection.calibrate import Grid, calibrate_for
 from mlaqc.inspection.combine import SOURCE_KEY
@@ -111,9 +111,8 @@ def _inspect_image(img: np.ndarray, cfg: CameraConfig, *, grid: Grid | None = No
         raise InputError(f"image is {img.shape[1]}x{img.shape[0]} px but the camera's sensor is "
                          f"{cfg.sensor.width_px}x{cfg.sensor.height_px}")
     auto_grid = None
-    if grid is not None and config_for_grid(cfg, grid) is not cfg:  # a white frame's grid counted the array
-        cfg, counted = config_for_grid(cfg, grid), True
-        notes = tuple(notes) + (whole_array_note(*grid.shape, from_grid=True),)
+    if grid is not None and (of_grid := config_for_grid(cfg, grid)) is not cfg:  # a white frame counted the array
+        cfg, counted, notes = of_grid, True, tuple(notes) + (whole_array_note(*grid.shape, from_grid=True),)
     if grid is None and cfg.mla.counts_auto:
         auto_grid, counts = locate_array(img, cfg)
         lap("calibrate")
