@@ -1,5 +1,6 @@
 """A frame inspected with count_w = count_h = "auto" that holds the whole array: its lenses counted from
-the frame, so that the array is inspected as a whole (its corner U(1,1), its edge lenses judged as edges).
+the frame, so that the array is inspected as a whole (its corner U(1,1), its edge lenses judged as edges);
+one that shows some of the array's edges: the lattice cut there (`locate_array`).
 
 Why: "auto" lays a lattice over the whole sensor with a lens to spare on every side. When the array is
 smaller than the frame, the lattice places beyond its edges are dark, and its edge lenses, which lack a
@@ -19,11 +20,13 @@ WHOLE_FILL = 0.95  # the lit places fill the array's box to this share at least 
 MIN_LENSES = 3  # rows and columns at least (the smallest array the identification judges)
 
 
-def whole_array_counts(grid) -> tuple[int, int] | None:
-    """(rows, lenses per row) of the array an "auto" frame holds whole, from its grid (mlaqc.inspection.
-    calibrate.Grid): the lit lenses' centres a pitch or more inside the frame on every side (the lattice
-    place beyond each edge is in view, and dark) and filling their box; None when the array runs off the
-    frame (the lenses the frame cuts are lit) or is not one whole rectangular array (a field stop)."""
+SIDES = ("top", "bottom", "left", "right")
+
+
+def seen_edges(grid) -> tuple[tuple[int, int], tuple[str, ...]] | None:
+    """The lit lenses' box on an "auto" frame's grid, (rows, lenses per row), and the array's edges the frame
+    shows: the sides where the lit lenses stop a pitch or more inside the frame (the lattice place beyond is
+    in view, and dark); None when fewer than 3 x 3 lenses are lit."""
     lit = ~np.asarray(grid.missing, bool)
     rows, cols = np.flatnonzero(lit.any(axis=1)), np.flatnonzero(lit.any(axis=0))
     if rows.size < MIN_LENSES or cols.size < MIN_LENSES:
@@ -32,11 +35,22 @@ def whole_array_counts(grid) -> tuple[int, int] | None:
     step_x = float(grid.pitch_px[0])
     step_y = float(grid.pitch_px[1]) * (np.sqrt(3.0) / 2.0 if grid.packing == "hex" else 1.0)
     h, w = grid.image_shape
-    if x.min() < step_x or y.min() < step_y or x.max() > w - 1 - step_x or y.max() > h - 1 - step_y:
-        return None
+    inside = (y.min() >= step_y, y.max() <= h - 1 - step_y, x.min() >= step_x, x.max() <= w - 1 - step_x)
     count_h = int(rows[-1] - rows[0] + 1)
     count_w = int(lit[rows[0]:rows[-1] + 1].sum(axis=1).max())  # (hex: the rows' ends alternate between two columns)
-    if count_w < MIN_LENSES or lit.sum() < WHOLE_FILL * count_h * count_w:
+    return (count_h, count_w), tuple(side for side, seen in zip(SIDES, inside) if seen)
+
+
+def whole_array_counts(grid) -> tuple[int, int] | None:
+    """(rows, lenses per row) of the array an "auto" frame holds whole, from its grid (mlaqc.inspection.
+    calibrate.Grid): its edges seen on every side (`seen_edges`) and its lit lenses filling their box; None
+    when the array runs off the frame (the lenses the frame cuts are lit) or is not one whole rectangular
+    array (a field stop)."""
+    found = seen_edges(grid)
+    if found is None or len(found[1]) < len(SIDES):
+        return None
+    (count_h, count_w), _ = found
+    if count_w < MIN_LENSES or np.count_nonzero(~np.asarray(grid.missing, bool)) < WHOLE_FILL * count_h * count_w:
         return None
     return count_h, count_w
 
@@ -61,26 +75,48 @@ def with_counts(cfg, count_h: int, count_w: int):
 
 
 def config_for_grid(cfg, grid):
-    """`cfg`, or with "auto" counts and a grid that counted the whole array (`calibrate_whole`), `cfg` with
-    that grid's counts."""
-    if cfg.mla.counts_auto and grid.shape != (cfg.mla.count_h, cfg.mla.count_w):
+    """`cfg`, or with "auto" counts and a grid that `calibrate_whole` fitted to the array it found, `cfg`
+    with that grid's counts: fixed for a whole array, still "auto" for a part of one."""
+    from dataclasses import replace
+
+    if not cfg.mla.counts_auto or grid.shape == (cfg.mla.count_h, cfg.mla.count_w):
+        return cfg
+    if whole_array_counts(grid) == grid.shape:
         return with_counts(cfg, *grid.shape)
-    return cfg
+    return replace(cfg, mla=replace(cfg.mla, count_h=grid.rows, count_w=grid.cols))
+
+
+def partial_array_note(seen: tuple[str, ...]) -> str:
+    """What the report says of an "auto" frame that shows some of the array's edges."""
+    corner = "top" in seen and "left" in seen
+    return (f"The frame shows the array's {', '.join(seen)} edge{'s' if len(seen) > 1 else ''} (mla.count_w / count_h "
+            f"= \"auto\"): the lattice is cut there, the lenses along {'them' if len(seen) > 1 else 'it'} judged as "
+            "edge lenses and the dark places beyond not counted as lenses; " + ("U(1,1) is the array's top-left lens." if corner else
+                                                "U(1,1) is the top-left lens the frame shows, not the array's corner."))
 
 
 def locate_array(img: np.ndarray, cfg):
-    """An "auto" frame's grid over the whole sensor, and the counts (rows, lenses per row) of the array
-    when the frame holds it whole (else None). InputError when it does neither: under half the lattice
-    places lit and no whole array among them (an array smaller than the frame, cut on a side)."""
+    """An "auto" frame's grid, the config it was fitted with, and the counts (rows, lenses per row) of the
+    array when the frame holds it whole (else None). When the frame shows some of the array's edges (dark
+    lattice places beyond them), the lattice is cut down to the lit lenses' box, so that those edges are
+    the grid's (judged as edges, never a dark place flagged 'missing'); the config's counts are then the
+    box's, still "auto". InputError when under half the lattice places are lit and no edge explains it."""
+    from dataclasses import replace
+
     from mlaqc.inspection.calibrate import MIN_FOUND_SHARE, calibrate_for
 
     grid = calibrate_for(img, cfg)
+    found = seen_edges(grid)
     counts = whole_array_counts(grid)
-    if counts is None and grid.lenses_found < MIN_FOUND_SHARE * grid.rows * grid.cols:
-        raise InputError(f"only {grid.lenses_found} of the {grid.cols}x{grid.rows} lens places that cover the "
-                         "frame are lit (mla.count_w / count_h = \"auto\"), and they are not one whole array with "
-                         "dark margins on every side: give the array's counts (mla.count_w, mla.count_h)")
-    return grid, counts
+    if counts is not None or found is None or not found[1]:
+        if counts is None and grid.lenses_found < MIN_FOUND_SHARE * grid.rows * grid.cols:
+            raise InputError(f"only {grid.lenses_found} of the {grid.cols}x{grid.rows} lens places that cover the "
+                             "frame are lit (mla.count_w / count_h = \"auto\"), and they are not one whole array "
+                             "with dark margins on every side: give the array's counts (mla.count_w, mla.count_h)")
+        return grid, cfg, counts
+    (count_h, count_w), _ = found
+    boxed = replace(cfg, mla=replace(cfg.mla, count_h=count_h, count_w=count_w))  # (still "auto")
+    return calibrate_for(img, boxed), boxed, None
 
 
 def calibrate_whole(img: np.ndarray, cfg):
@@ -90,5 +126,5 @@ def calibrate_whole(img: np.ndarray, cfg):
 
     if not cfg.mla.counts_auto:
         return calibrate_for(img, cfg)
-    grid, counts = locate_array(img, cfg)
+    grid, _, counts = locate_array(img, cfg)
     return grid if counts is None else calibrate_for(img, with_counts(cfg, *counts))

@@ -12,8 +12,8 @@ import numpy as np
 
 from mlaqc.compiled import net_clock
 from mlaqc.errors import InputError
-from mlaqc.inspection.array_extent import (calibrate_whole, config_for_grid, locate_array, whole_array_note,
-                                           with_counts)
+from mlaqc.inspection.array_extent import (calibrate_whole, config_for_grid, locate_array, partial_array_note,
+                                           seen_edges, whole_array_note, with_counts)
 from mlaqc.inspection.assembly import measure_assembly, not_read
 from mlaqc.inspection.calibrate import Grid, calibrate_for
 from mlaqc.inspection.combine import SOURCE_KEY
@@ -110,11 +110,12 @@ def _inspect_image(img: np.ndarray, cfg: CameraConfig, *, grid: Grid | None = No
     if img.shape != (cfg.sensor.height_px, cfg.sensor.width_px):
         raise InputError(f"image is {img.shape[1]}x{img.shape[0]} px but the camera's sensor is "
                          f"{cfg.sensor.width_px}x{cfg.sensor.height_px}")
-    auto_grid = None
-    if grid is not None and (of_grid := config_for_grid(cfg, grid)) is not cfg:  # a white frame counted the array
-        cfg, counted, notes = of_grid, True, tuple(notes) + (whole_array_note(*grid.shape, from_grid=True),)
+    auto_grid, lattice_cfg = None, cfg  # (an "auto" frame's models are the sensor-wide lattice's)
+    if grid is not None and (of_grid := config_for_grid(cfg, grid)) is not cfg:  # a white frame located the array
+        counted = not of_grid.mla.counts_auto
+        cfg, notes = of_grid, tuple(notes) + ((whole_array_note(*grid.shape, from_grid=True),) if counted else ())
     if grid is None and cfg.mla.counts_auto:
-        auto_grid, counts = locate_array(img, cfg)
+        auto_grid, cfg, counts = locate_array(img, cfg)
         lap("calibrate")
         if counts is not None:  # "auto" on a frame that holds the whole array: inspected as that array
             whole = _inspect_image(img, with_counts(cfg, *counts), source=source,
@@ -122,7 +123,7 @@ def _inspect_image(img: np.ndarray, cfg: CameraConfig, *, grid: Grid | None = No
             whole.timings_s["calibrate"] = round(whole.timings_s.get("calibrate", 0.0) + t["calibrate"], 4)
             return whole
     if model is None or table is None:
-        cached_model, cached_table = _models(cfg)
+        cached_model, cached_table = _models(lattice_cfg if cfg.mla.counts_auto else cfg)
         model, table = model or cached_model, table or cached_table
     lap("models")
     own_grid = grid is None
@@ -134,7 +135,9 @@ def _inspect_image(img: np.ndarray, cfg: CameraConfig, *, grid: Grid | None = No
         lap("calibrate")
     elif own_grid:
         grid = auto_grid
-    notes = tuple(notes) + pitch_notes(float(np.mean(grid.pitch_px)), cfg) + anchoring_notes(cfg)
+    edges = seen_edges(grid)[1] if cfg.mla.counts_auto and seen_edges(grid) is not None else ()
+    notes = (tuple(notes) + pitch_notes(float(np.mean(grid.pitch_px)), cfg)
+             + ((partial_array_note(edges),) if edges else anchoring_notes(cfg)))
     half = window_half_px(cfg)
     subs = divide(img, grid, 2 * half + 1)
     sub, cx, cy = subs.data, subs.centre_x_px, subs.centre_y_px
