@@ -472,12 +472,12 @@ class InspectionWorker(QObject):
         """The second measurement: load the pinhole frames (cancellable between frames), read every
         covered lens' focal error and optical centre on `result`'s grid, and combine (as
         `pipeline.with_through_focus`, in stages)."""
-        from mlaqc.inspection.array_extent import config_for_grid
+        from mlaqc.inspection.array_extent import through_focus_config
         from mlaqc.inspection.combine import combine_through_focus
         from mlaqc.inspection.pinhole_frames import load_pinhole_frames
         from mlaqc.inspection.throughfocus import measure_through_focus
 
-        cfg = config_for_grid(cfg, result.grid)  # an "auto" frame that held the whole array: its counts
+        cfg = through_focus_config(cfg, result.grid)  # an "auto" frame that held the whole array: its counts
         t0 = time.perf_counter()
         loaded = []
         for k, f in enumerate(frames):

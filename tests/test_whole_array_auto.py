@@ -156,3 +156,49 @@ def test_a_frame_showing_some_of_the_arrays_edges_judges_them_as_edges(tmp_path,
     left_cut = inspect(auto, healthy, tmp_path, "left")
     assert left_cut.defects == () and left_cut.grid.rows == rows
     assert any("U(1,1) is the top-left lens the frame shows, not the array's corner" in n for n in left_cut.notes)
+
+
+def test_a_round_field_or_a_hex_array_off_the_top_is_refused_not_cut(tmp_path):
+    """The lattice is cut only to a box its lit lenses fill: a whole array seen through a round field stop
+    (its box's corners dark) is refused in one sentence asking for the counts, as before; so is a hex array
+    running off the frame's top (its top row in view may be a shifted one, which a box cannot hold)."""
+    from mlaqc.errors import InputError
+
+    given, auto = cameras("small_camera.toml", 16, 18)
+    shape = (given.sensor.height_px, given.sensor.width_px)
+    model = am.AnalyticModel(shape=shape, lenses=(16, 18), pitch_px=given.layout.subimage_pitch_px, phase_px=(0.3, -0.2))
+    yy, xx = np.mgrid[0:shape[0], 0:shape[1]]
+    field = np.hypot(yy - shape[0] / 2, xx - shape[1] / 2) < 0.42 * min(shape)  # cuts the array's corners
+    counts = am.to_counts(am.expose(model.render() * field, 0.01, np.random.default_rng(3)), 12)
+    with pytest.raises(InputError, match="not one whole array with dark margins on every side: give the array's counts"):
+        inspect_file(am.write_container(tmp_path / "field.tif", counts, 12, 0), auto)
+    given, auto = cameras("hex_small_camera.toml", 18, 16, margin_lenses=1.5)
+    p = given.layout.subimage_pitch_px
+    off_top = am.AnalyticModel(shape=(given.sensor.height_px, given.sensor.width_px), lenses=(18, 16), pitch_px=p,
+                               packing="hex", phase_px=(0.3, -3 * p * math.sqrt(3.0) / 2 - 0.2))
+    with pytest.raises(InputError, match="give the array's counts"):
+        inspect(auto, off_top, tmp_path, "off_top")
+
+
+def test_through_focus_needs_the_counts_of_a_cut_array():
+    """Through-focus frames are read where each lens sits on the MLA: a whole counted array gives it, a
+    lattice cut to part of the array does not (one sentence asking for the counts)."""
+    from mlaqc.errors import InputError
+    from mlaqc.inspection.array_extent import through_focus_config
+
+    _, auto = cameras("small_camera.toml", 6, 10)
+
+    def grid_of(missing):
+        g = _grid(missing)
+        g.shape, g.rows, g.cols = missing.shape, *missing.shape
+        return g
+
+    lattice = np.zeros((auto.mla.count_h, auto.mla.count_w), bool)
+    lattice[0, 0] = True  # the sensor-wide lattice itself (a lens dark somewhere): unchanged
+    assert through_focus_config(auto, grid_of(lattice)) is auto
+    whole = np.zeros((6, 10), bool)  # a grid fitted to a whole array (every lens lit, margins beyond)
+    assert not through_focus_config(auto, grid_of(whole)).mla.counts_auto
+    cut = whole.copy()
+    cut[:, 0] = True  # its first column dark: a box of part of the array, not the whole
+    with pytest.raises(InputError, match="set mla.count_w / count_h to the array's counts"):
+        through_focus_config(auto, grid_of(cut))

@@ -89,34 +89,61 @@ def config_for_grid(cfg, grid):
 def partial_array_note(seen: tuple[str, ...]) -> str:
     """What the report says of an "auto" frame that shows some of the array's edges."""
     corner = "top" in seen and "left" in seen
+    anchor = ("U(1,1) is the array's top-left lens" if corner else
+              "U(1,1) is the top-left lens the frame shows, not the array's corner")
     return (f"The frame shows the array's {', '.join(seen)} edge{'s' if len(seen) > 1 else ''} (mla.count_w / count_h "
             f"= \"auto\"): the lattice is cut there, the lenses along {'them' if len(seen) > 1 else 'it'} judged as "
-            "edge lenses and the dark places beyond not counted as lenses; " + ("U(1,1) is the array's top-left lens." if corner else
-                                                "U(1,1) is the top-left lens the frame shows, not the array's corner."))
+            f"edge lenses and the dark places beyond not counted as lenses; {anchor}; the lenses the frame cuts are "
+            "not inspected.")
+
+
+def boxed_counts(grid) -> tuple[int, int] | None:
+    """The counts (rows, lenses per row) to cut an "auto" grid down to, when it shows some of the array's
+    edges but not all: the lit lenses' box, which they fill to WHOLE_FILL (a round field stop does not: its
+    frame is refused as before). None otherwise, and for a hex array running off the frame's top (its top
+    row in view may be a shifted one, which a box of that width cannot hold)."""
+    found = seen_edges(grid)
+    if found is None or not 0 < len(found[1]) < len(SIDES):
+        return None
+    (count_h, count_w), seen = found
+    if grid.packing == "hex" and "top" not in seen:
+        return None
+    if np.count_nonzero(~np.asarray(grid.missing, bool)) < WHOLE_FILL * count_h * count_w:
+        return None
+    return count_h, count_w
 
 
 def locate_array(img: np.ndarray, cfg):
     """An "auto" frame's grid, the config it was fitted with, and the counts (rows, lenses per row) of the
     array when the frame holds it whole (else None). When the frame shows some of the array's edges (dark
-    lattice places beyond them), the lattice is cut down to the lit lenses' box, so that those edges are
-    the grid's (judged as edges, never a dark place flagged 'missing'); the config's counts are then the
-    box's, still "auto". InputError when under half the lattice places are lit and no edge explains it."""
+    lattice places beyond them, `boxed_counts`), the lattice is cut down to the lit lenses' box, so that those
+    edges are the grid's (judged as edges, never a dark place flagged 'missing'); the config's counts are then
+    the box's, still "auto". InputError when under half the lattice places are lit otherwise."""
     from dataclasses import replace
 
     from mlaqc.inspection.calibrate import MIN_FOUND_SHARE, calibrate_for
 
     grid = calibrate_for(img, cfg)
-    found = seen_edges(grid)
     counts = whole_array_counts(grid)
-    if counts is not None or found is None or not found[1]:
-        if counts is None and grid.lenses_found < MIN_FOUND_SHARE * grid.rows * grid.cols:
-            raise InputError(f"only {grid.lenses_found} of the {grid.cols}x{grid.rows} lens places that cover the "
-                             "frame are lit (mla.count_w / count_h = \"auto\"), and they are not one whole array "
-                             "with dark margins on every side: give the array's counts (mla.count_w, mla.count_h)")
-        return grid, cfg, counts
-    (count_h, count_w), _ = found
-    boxed = replace(cfg, mla=replace(cfg.mla, count_h=count_h, count_w=count_w))  # (still "auto")
-    return calibrate_for(img, boxed), boxed, None
+    box = boxed_counts(grid) if counts is None else None
+    if box is not None:
+        boxed = replace(cfg, mla=replace(cfg.mla, count_h=box[0], count_w=box[1]))  # (still "auto")
+        return calibrate_for(img, boxed), boxed, None
+    if counts is None and grid.lenses_found < MIN_FOUND_SHARE * grid.rows * grid.cols:
+        raise InputError(f"only {grid.lenses_found} of the {grid.cols}x{grid.rows} lens places that cover the "
+                         "frame are lit (mla.count_w / count_h = \"auto\"), and they are not one whole array "
+                         "with dark margins on every side: give the array's counts (mla.count_w, mla.count_h)")
+    return grid, cfg, counts
+
+
+def through_focus_config(cfg, grid):
+    """The config to read through-focus frames on `grid` with (`config_for_grid`); InputError on a grid cut
+    to part of the array, whose lenses' places on the MLA the frame does not tell."""
+    out = config_for_grid(cfg, grid)
+    if out is not cfg and out.mla.counts_auto:
+        raise InputError("the through-focus frames need the array's place in the camera, which a frame showing "
+                         "part of it does not give: set mla.count_w / count_h to the array's counts")
+    return out
 
 
 def calibrate_whole(img: np.ndarray, cfg):

@@ -13,7 +13,7 @@ import numpy as np
 from mlaqc.compiled import net_clock
 from mlaqc.errors import InputError
 from mlaqc.inspection.array_extent import (calibrate_whole, config_for_grid, locate_array, partial_array_note,
-                                           seen_edges, whole_array_note, with_counts)
+                                           seen_edges, through_focus_config, whole_array_note, with_counts)
 from mlaqc.inspection.assembly import measure_assembly, not_read
 from mlaqc.inspection.calibrate import Grid, calibrate_for
 from mlaqc.inspection.combine import SOURCE_KEY
@@ -135,7 +135,8 @@ def _inspect_image(img: np.ndarray, cfg: CameraConfig, *, grid: Grid | None = No
         lap("calibrate")
     elif own_grid:
         grid = auto_grid
-    edges = seen_edges(grid)[1] if cfg.mla.counts_auto and seen_edges(grid) is not None else ()
+    found = seen_edges(grid) if cfg.mla.counts_auto and cfg is not lattice_cfg else None  # a cut lattice's edges
+    edges = found[1] if found is not None else ()
     notes = (tuple(notes) + pitch_notes(float(np.mean(grid.pitch_px)), cfg)
              + ((partial_array_note(edges),) if edges else anchoring_notes(cfg)))
     half = window_half_px(cfg)
@@ -287,7 +288,7 @@ def with_through_focus(result: InspectionResult, paths: Sequence[str | Path], cf
     from mlaqc.inspection.pinhole_frames import load_pinhole_frames
     from mlaqc.inspection.throughfocus import measure_through_focus
 
-    cfg = config_for_grid(cfg, result.grid)  # an "auto" frame that held the whole array: read with its counts
+    cfg = through_focus_config(cfg, result.grid)  # an "auto" frame that held the whole array: read with its counts
     t0 = net_clock()
     frames = load_pinhole_frames(paths, cfg, levels)
     t1 = net_clock()
