@@ -41,18 +41,25 @@ def seen_edges(grid) -> tuple[tuple[int, int], tuple[str, ...]] | None:
     return (count_h, count_w), tuple(side for side, seen in zip(SIDES, inside) if seen)
 
 
+def _filled_box(grid) -> tuple[tuple[int, int], tuple[str, ...]] | None:
+    """`seen_edges`, when the lit lenses fill their box to WHOLE_FILL (one rectangular array, a few lenses
+    missing at most; a round field stop does not); None otherwise."""
+    found = seen_edges(grid)
+    if found is None:
+        return None
+    (count_h, count_w), _ = found
+    if count_w < MIN_LENSES or np.count_nonzero(~np.asarray(grid.missing, bool)) < WHOLE_FILL * count_h * count_w:
+        return None
+    return found
+
+
 def whole_array_counts(grid) -> tuple[int, int] | None:
     """(rows, lenses per row) of the array an "auto" frame holds whole, from its grid (mlaqc.inspection.
     calibrate.Grid): its edges seen on every side (`seen_edges`) and its lit lenses filling their box; None
     when the array runs off the frame (the lenses the frame cuts are lit) or is not one whole rectangular
     array (a field stop)."""
-    found = seen_edges(grid)
-    if found is None or len(found[1]) < len(SIDES):
-        return None
-    (count_h, count_w), _ = found
-    if count_w < MIN_LENSES or np.count_nonzero(~np.asarray(grid.missing, bool)) < WHOLE_FILL * count_h * count_w:
-        return None
-    return count_h, count_w
+    found = _filled_box(grid)
+    return found[0] if found is not None and len(found[1]) == len(SIDES) else None
 
 
 def whole_array_note(count_h: int, count_w: int, from_grid: bool = False) -> str:
@@ -99,18 +106,13 @@ def partial_array_note(seen: tuple[str, ...]) -> str:
 
 def boxed_counts(grid) -> tuple[int, int] | None:
     """The counts (rows, lenses per row) to cut an "auto" grid down to, when it shows some of the array's
-    edges but not all: the lit lenses' box, which they fill to WHOLE_FILL (a round field stop does not: its
-    frame is refused as before). None otherwise, and for a hex array running off the frame's top (its top
-    row in view may be a shifted one, which a box of that width cannot hold)."""
-    found = seen_edges(grid)
-    if found is None or not 0 < len(found[1]) < len(SIDES):
+    edges but not all: the lit lenses' box, which they fill (`_filled_box`: a round field stop's frame is
+    refused as before). None otherwise, and for a hex array running off the frame's top (its top row in
+    view may be a shifted one, which a box of that width cannot hold)."""
+    found = _filled_box(grid)
+    if found is None or not 0 < len(found[1]) < len(SIDES) or (grid.packing == "hex" and "top" not in found[1]):
         return None
-    (count_h, count_w), seen = found
-    if grid.packing == "hex" and "top" not in seen:
-        return None
-    if np.count_nonzero(~np.asarray(grid.missing, bool)) < WHOLE_FILL * count_h * count_w:
-        return None
-    return count_h, count_w
+    return found[0]
 
 
 def locate_array(img: np.ndarray, cfg):
