@@ -10,13 +10,15 @@ random ones, and through the same camera with an error-free array. The flawed fr
 
 the error-free frame with its own calibrated lattice. Every decode is devignetted by its array's white.
 Each view is compared with the error-free frame's, at the flawed lenses' (s, t) and everywhere else, on
-every sample the decode gives any weight, and so are refocused images (PSNR). Frames are cached in /tmp.
+every sample the decode gives any weight, and so are refocused images (PSNR). Noise-free runs also print
+two limits no decoder passes: the pixel grid's own (`phase_floor`: the error-free light field itself
+decoded from pixels half a pixel across) and an oracle's (`oracle_affine`: each flawed lens resampled by
+the affine map that best fits the error-free views). Frames are cached in /tmp.
 
     python bench/decode.py                                         # Table 1, noise-free and noisy
     python bench/decode.py --config fixtures/hex_camera.toml
     python bench/decode.py --config fixtures/lfm_40x_relay.toml   # the light-field microscope (datasheet optics)
     python bench/decode.py --timing                                # a 2048² frame decoded in-process
-    python bench/decode.py --aliasing                              # the sampling's own limit (pixel phase)
     python bench/decode.py --geometry                              # error-free views against exact rays
     python bench/decode.py --plenopticam /tmp/plcvenv/bin/python   # against PlenoptiCam (see plenopticam_decode.py)
 """
@@ -194,6 +196,9 @@ def compare(cfg, scene_name, scene, flawed_em, flawed_lenses, clean_em, rpp, noi
     wf_ = ((lf.weights > 0) & (ref.weights > 0.2)).astype(np.float64)  # the samples the rows compare
     print(f"    floor      : the error-free frame rendered again with other rays: view RMS at the flawed lenses' "
           f"(s, t) {rms(lf.values, ref.values, wf_ * flawed_mask):.4f}, elsewhere {rms(lf.values, ref.values, wf_ * elsewhere):.4f}")
+    if not noise:  # the limits: with noise, another frame's noise would be measured with them
+        phase_floor(cfg, scfg, scene_name, scene, clean_em, rpp, offs, ref, flawed_mask, elsewhere, out["b lattice"][0])
+        oracle_affine(img_f, wf, measured, ref, flawed_lenses, out["b lattice"][0])
     ab, rb, pb, qb = out["b lattice"]
     for name in ("c measured", "c + fill"):
         ac, rc, pc, qc = out[name]
@@ -239,25 +244,61 @@ def rect_mask(mask: np.ndarray, t_count: int) -> np.ndarray:
     return rectangular(lf).values[0, 0] > 0
 
 
-def aliasing(cfg, defocus_mm: float, rpp: float) -> None:
-    """The sampling's own limit: the error-free array moved by (1, -0.5) µm (about a fifth of a pixel),
-    decoded on its own calibrated lattice, against the unmoved one, every view, noise-free. A sharp image
-    in an undersampled sub-image changes with the pixels' phase, which no resampling undoes."""
-    clean = ErrorMap.zeros(cfg.mla.count_h, cfg.mla.count_w, cfg.mla.packing)
-    moved = clean.with_globals(mla_shift_x_um=1.0, mla_shift_y_um=-0.5)
-    scfg = scene_config(cfg, defocus_mm)
-    for name, scene in (("texture", texture()), ("points", points(cfg))):
-        lfs = []
-        for label, em in (("clean", clean), ("moved", moved)):
-            white = rendered(cfg, WhiteScene(), em, f"white_{label}_alias", rpp, False)
-            frame = rendered(scfg, scene, em, f"scene_{label}_{name}_alias", rpp, False)
-            smp = lattice_sampling(calibrate_for(load_frame(str(white), cfg), cfg))
-            lfs.append(decode_scene(load_decode_frame(str(frame), cfg), smp, view_offsets(smp.radius_px),
-                                    load_decode_frame(str(white), cfg)))
-        a, b = lfs
-        ok = (a.weights > 0.2) & (b.weights > 0.2)
-        print(f"  {name}: the error-free array moved (1, -0.5) µm, decoded where it moved, against unmoved: view "
-              f"RMS {np.sqrt(np.mean((a.values - b.values)[ok] ** 2)):.4f}")
+def phase_floor(cfg, scfg, scene_name, scene, clean_em, rpp, offs, ref, flawed_mask, elsewhere, b_at) -> None:
+    """The pixel grid's own limit, which no decoder passes: the error-free array on a sensor one pixel wider
+    and taller (the sensor stays centred on the axis, so its pixels sit half a pixel across the optics:
+    the same light field, sampled at another phase) and on one two pixels larger (a whole pixel: the same
+    phase, other rays), each decoded on its own calibrated lattice, against the error-free decode. The
+    half-pixel figure less the whole-pixel one in quadrature is the pixel phase's share: a perfect decode
+    of a lens whose sub-image moved half a pixel differs from the reference by that much."""
+    got = {}
+    for grow in (1, 2):
+        c = dataclasses.replace(cfg, sensor=dataclasses.replace(cfg.sensor, width_px=cfg.sensor.width_px + grow,
+                                                                height_px=cfg.sensor.height_px + grow))
+        sc = dataclasses.replace(scfg, sensor=c.sensor)
+        white = rendered(c, WhiteScene(), clean_em, f"white_grown{grow}", rpp, False)
+        frame = rendered(sc, scene, clean_em, f"scene_grown{grow}_{scene_name}", rpp, False)
+        smp = lattice_sampling(calibrate_for(load_frame(str(white), c), c))
+        lf = rectangular(decode_scene(load_decode_frame(str(frame), c), smp, offs, load_decode_frame(str(white), c)))
+        w = ((lf.weights > 0) & (ref.weights > 0.2)).astype(np.float64)
+        got[grow] = tuple(rms(lf.values, ref.values, w * m) for m in (flawed_mask, elsewhere))
+    (h_at, h_rest), (o_at, o_rest) = got[1], got[2]
+    share = np.sqrt(max(h_at ** 2 - o_at ** 2, 0.0))
+    print(f"    pixel phase: the error-free light field from pixels half a pixel across, view RMS at the flawed lenses' "
+          f"(s, t) {h_at:.4f} (elsewhere {h_rest:.4f}); a whole pixel across (other rays only) {o_at:.4f} "
+          f"({o_rest:.4f}); the phase's share {share:.4f} = {share / b_at:.3f} of (b)")
+
+
+def oracle_affine(img, white, measured, ref, flawed_lenses, b_at) -> None:
+    """A bound on resampling: each flawed lens sampled through the affine map of its view offsets (6
+    parameters, from its measured centre) fitted by least squares to the error-free views themselves, an
+    oracle no decoder has. What it leaves is not where the lens sends its light but what the lens did to it
+    (blur, aberration) and the pixels' phase. Square arrays (U(m,n) indexes the views directly)."""
+    from scipy.optimize import least_squares
+
+    from mlaqc.decode.lightfield import bilinear
+
+    if ref.packing != "square":
+        return
+    o = ref.view_offsets_px
+    ou, ov = np.meshgrid(o, o)
+    sq_c = sq_fit = n_all = 0.0
+    for m, n in flawed_lenses:
+        want, w = ref.values[:, :, m - 1, n - 1], ref.weights[:, :, m - 1, n - 1] > 0.2
+        x0, y0 = measured.x_px[m - 1, n - 1] + ou, measured.y_px[m - 1, n - 1] + ov
+
+        def resid(p, x0=x0, y0=y0, want=want, w=w):
+            xs, ys = x0 + p[0] + p[2] * ou + p[3] * ov, y0 + p[1] + p[4] * ou + p[5] * ov
+            v, _ = bilinear(img, xs, ys)
+            d, _ = bilinear(white, xs, ys)
+            return (np.where(d > 0, v / np.where(d > 0, d, 1.0), 0.0) - want)[w]
+
+        r0 = resid(np.zeros(6))
+        fit = least_squares(resid, np.zeros(6), diff_step=1e-3)
+        sq_c, sq_fit, n_all = sq_c + np.sum(r0 ** 2), sq_fit + np.sum(fit.fun ** 2), n_all + r0.size
+    best = np.sqrt(sq_fit / n_all)
+    print(f"    oracle: each flawed lens resampled by the affine map fitted to the error-free views: view RMS "
+          f"{best:.4f} at the flawed lenses ({np.sqrt(sq_c / n_all):.4f} unfitted) = {best / b_at:.3f} of (b)")
 
 
 def timing(cfg, repeats: int = 5) -> None:
@@ -365,7 +406,6 @@ def main() -> int:
     ap.add_argument("--slope", type=float, help="refocus slope, lenses per view pixel (default: the scene's)")
     ap.add_argument("--noise", choices=("both", "off", "on"), default="both")
     ap.add_argument("--timing", action="store_true")
-    ap.add_argument("--aliasing", action="store_true", help="the sampling's own limit: the array moved a fifth of a pixel")
     ap.add_argument("--geometry", action="store_true", help="decoded views of a point against exact rays")
     ap.add_argument("--picture", metavar="PNG", help="write a before/after picture of one view (texture, noise-free)")
     ap.add_argument("--plenopticam", metavar="PYTHON", help="compare with PlenoptiCam run by this interpreter")
@@ -382,9 +422,6 @@ def main() -> int:
         return 0
     if args.timing:
         timing(cfg)
-        return 0
-    if args.aliasing:
-        aliasing(cfg, args.defocus_mm, args.rays_per_pixel)
         return 0
     flawed_em, flawed = flawed_map(cfg, args.random, args.seed)
     clean_em = ErrorMap.zeros(cfg.mla.count_h, cfg.mla.count_w, cfg.mla.packing)
