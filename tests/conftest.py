@@ -30,7 +30,7 @@ if "MLAQC_TEST_DB_DIR" not in os.environ:
 # finds them: pytest, xdist workers, the `mlaqc` subprocesses and the Dask workers of the cluster tests.
 # Before the first test, one process per core compiles or loads each variant (and compiles the inspection
 # kernels' JIT rest): on CI's fresh clone the eleven the install left out compile here, both cores at once
-# (about four minutes); once they are in the cache, a second or two in all. No test compiles its own. The warm-up runs for whole folders
+# (about two and a half minutes); once they are in the cache, a second or two in all. No test compiles its own. The warm-up runs for whole folders
 # (`pytest`, `pytest tests`), not for a run of named files or tests, which compiles only what it uses;
 # MLAQC_TEST_WARMUP=1 or 0 turns it on or off whatever the run.
 

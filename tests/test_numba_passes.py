@@ -1,0 +1,144 @@
+"""The tracer's faster Numba passes give exactly Numba's own results: the live-variable analysis on bitsets
+(mlaqc.numba_liveness) and the SSA reconstruction that skips blocks not naming a variable (mlaqc.numba_ssa),
+on the frontend IR of the tracer's kernels and on every run Numba makes while compiling a kernel with
+inlined helpers, loops and branches; each is in place only inside its context."""
+
+import copy
+
+import numpy as np
+import pytest
+
+numba = pytest.importorskip("numba")
+
+from numba.core import analysis, ir_utils  # noqa: E402
+from numba.core.analysis import compute_cfg_from_blocks, compute_use_defs  # noqa: E402
+from numba.core.compiler import run_frontend  # noqa: E402
+
+from numba.core import ssa  # noqa: E402
+
+from mlaqc import numba_liveness, numba_ssa  # noqa: E402
+from mlaqc.optics import raytrace_kernels  # noqa: E402
+
+pytestmark = pytest.mark.skipif(numba_liveness._numba_modules() is None or numba_ssa._ssa_module() is None,
+                                reason="this Numba's passes are not the ones the modules reproduce")
+ORIGINAL = analysis.compute_live_map
+ORIGINAL_SSA = ssa._run_ssa
+KERNELS = ["kernel", "kernel_sag", "pass_front_refract", "bin_hits"]
+
+
+def _both(blocks):
+    cfg = compute_cfg_from_blocks(blocks)
+    usedefs = compute_use_defs(blocks)
+    return (ORIGINAL(cfg, blocks, usedefs.usemap, usedefs.defmap),
+            numba_liveness.compute_live_map(cfg, blocks, usedefs.usemap, usedefs.defmap))
+
+
+@pytest.mark.parametrize("name", KERNELS)
+def test_the_tracer_kernels_frontend_ir_gives_numbas_live_map(name):
+    func_ir = run_frontend(getattr(raytrace_kernels, name).py_func)
+    theirs, ours = _both(func_ir.blocks)
+    assert len(func_ir.blocks) > 3
+    assert ours == theirs
+    assert any(theirs.values())  # a map with live variables, not an empty one compared with another
+
+
+def test_every_analysis_of_a_compile_with_inlining_and_loops_matches(monkeypatch):
+    """Each live map Numba asks for while compiling (after each of its rewrites), computed both ways."""
+    calls = []
+
+    def checked(cfg, blocks, use, defs):
+        want = ORIGINAL(cfg, blocks, use, defs)
+        assert numba_liveness.compute_live_map(cfg, blocks, use, defs) == want
+        calls.append(len(blocks))
+        return want
+
+    monkeypatch.setattr(analysis, "compute_live_map", checked)
+    monkeypatch.setattr(ir_utils, "compute_live_map", checked)
+
+    walk = _small_kernel()
+    assert walk(np.linspace(-2, 2, 9), 3) == pytest.approx(walk.py_func(np.linspace(-2, 2, 9), 3))
+    assert len(calls) > 3 and max(calls) > 5
+
+
+def test_in_place_only_inside_the_context():
+    assert not numba_liveness.active()
+    with numba_liveness.bitset_liveness():
+        assert numba_liveness.active()
+        with numba_liveness.bitset_liveness():  # nested: still in place when the inner one ends
+            pass
+        assert numba_liveness.active() and ir_utils.compute_live_map is numba_liveness.compute_live_map
+    assert not numba_liveness.active()
+    assert analysis.compute_live_map is ORIGINAL and ir_utils.compute_live_map is ORIGINAL
+
+
+def _small_kernel():
+    """A fresh (uncompiled) kernel with an inlined helper, nested loops, branches and a break."""
+
+    @numba.njit(inline="always")
+    def clamp(x, lo, hi):
+        return lo if x < lo else (hi if x > hi else x)
+
+    @numba.njit
+    def walk(a, k):
+        total, i, j = 0.0, 0, 0
+        while i < a.size:
+            v = clamp(a[i], -1.0, 1.0)
+            if v > 0:
+                for j in range(k):
+                    total += v * j
+                    if total > 1e9:
+                        break
+            else:
+                total -= clamp(v * v, 0.0, 0.5)
+            i += 1
+        return total + j
+
+    return walk
+
+
+def _dump(blocks) -> list:
+    return [(label, [str(stmt) for stmt in block.body]) for label, block in blocks.items()]
+
+
+def _ssa_both(blocks):
+    """Numba's SSA reconstruction and the block-skipping one, each on its own copy of `blocks`."""
+    theirs = ORIGINAL_SSA(copy.deepcopy(blocks))
+    with numba_ssa.ssa_skipping_blocks():
+        ours = ssa._run_ssa(copy.deepcopy(blocks))
+    return theirs, ours
+
+
+@pytest.mark.parametrize("name", KERNELS[:3])  # (bin_hits assigns no variable twice)
+def test_the_tracer_kernels_frontend_ir_gives_numbas_ssa(name):
+    blocks = run_frontend(getattr(raytrace_kernels, name).py_func).blocks
+    theirs, ours = _ssa_both(blocks)
+    assert _dump(ours) == _dump(theirs)
+    violators = ssa._find_defs_violators(blocks, compute_cfg_from_blocks(blocks))
+    named = [numba_ssa._named(b) for b in blocks.values()]
+    # the comparison means something: variables to repair, and blocks that one of them never names
+    assert violators and any(v not in n for v in violators for n in named)
+
+
+def test_every_ssa_reconstruction_of_a_compile_matches(monkeypatch):
+    calls = []
+
+    def checked(blocks):
+        theirs, ours = _ssa_both(blocks)
+        assert _dump(ours) == _dump(theirs)
+        calls.append(len(blocks))
+        return ORIGINAL_SSA(blocks)
+
+    monkeypatch.setattr(ssa, "_run_ssa", checked)
+    walk = _small_kernel()
+    assert walk(np.linspace(-2, 2, 9), 3) == pytest.approx(walk.py_func(np.linspace(-2, 2, 9), 3))
+    assert calls and max(calls) > 5
+
+
+def test_ssa_skipping_only_inside_the_context():
+    assert not numba_ssa.active()
+    with numba_ssa.ssa_skipping_blocks():
+        assert numba_ssa.active()
+        with numba_ssa.ssa_skipping_blocks():
+            pass
+        assert numba_ssa.active()
+    assert not numba_ssa.active() and ssa._run_ssa is ORIGINAL_SSA
