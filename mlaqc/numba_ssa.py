@@ -7,11 +7,17 @@ definition that reaches it. A block that neither assigns nor uses the variable c
 unchanged (each statement is handed to a handler that returns it as it was, touching no state), but is
 still walked: violators x statements handler calls, about 7 million per tracer variant (a fifth of its
 compile). `ssa_skipping_blocks()` walks only the blocks whose statements name the violator (found once
-per reconstruction from the statements' variables, which a later violator's repair never changes), and
-copies the others' statement lists as the original's rewrite does, so the IR that comes out is the same
-(tests/test_numba_liveness.py compares both on real kernels; the tracer's compiled code is byte-identical
-either way). Only where Numba's functions have the shape this module was written against (checked once
-against their source); elsewhere it does nothing and compiles take their old time.
+per reconstruction from the statements' variables) and copies the others' statement lists, as the
+original's rewrite does.
+
+The IR that comes out is the same as long as no two statements share a mutable part (a repair copies a
+statement shallowly and re-points its variables in place, which would then reach the other statement), and
+as long as the names a repair makes are new ones: both hold for the IR Numba's own passes build.
+tests/test_numba_passes.py compares the two on the tracer kernels' IR and on every reconstruction of a
+compile; every reconstruction of all twelve tracer variants' compiles gave the same IR, and the compiled
+kernels are byte-identical. Only where Numba's functions have the shape this module was written against
+(Numba 0.68, checked once against their source); elsewhere it does nothing and compiles take their old
+time.
 """
 
 from __future__ import annotations
@@ -23,8 +29,10 @@ from typing import Any, Iterator
 
 _LOCK = threading.Lock()
 _LOCAL = threading.local()
-_STATE: dict[str, Any] = {"users": 0, "original": None, "rewrite": None, "module": None, "checked": False}
-# what this replacement relies on in numba.core.ssa (Numba 0.60-0.68)
+_STATE: dict[str, Any] = {"users": 0, "original": None, "rewrite": None, "module": None, "checked": False,
+                          "displaced": None}
+# what this replacement relies on in numba.core.ssa (Numba 0.68): the passes, and the handlers' leaving a
+# statement that does not name the variable as it was
 _EXPECTED = {
     "_run_ssa": ("violators = _find_defs_violators(blocks, cfg)", "blocks, defmap = _fresh_vars(blocks, varname)",
                  "blocks = _fix_ssa_vars(blocks, varname, defmap, cfg, df_plus,"),
@@ -32,6 +40,10 @@ _EXPECTED = {
                            "for stmt in _run_ssa_block_pass(states, blk, handler):", "newblk.body = newbody"),
     "_fresh_vars": ("states['varname'] = varname", "_run_block_rewrite(blocks, states, _FreshVarHandler())"),
     "_fix_ssa_vars": ("states['varname'] = varname", "_run_block_rewrite(blocks, states, _FixSSAVars("),
+    "_run_ssa_block_pass": ("ret = handler.on_assign(states, stmt)", "ret = handler.on_other(states, stmt)"),
+    "_FreshVarHandler": ("if assign.target.name == states['varname']:", "return assign", "return stmt"),
+    "_FixSSAVars": ("if phivar in varnames:", "return self._find_def(states, stmt)", "return assign",
+                    "return stmt"),
 }
 
 
@@ -73,7 +85,6 @@ def _run_block_rewrite(blocks, states, handler):
 def _ssa_module():
     """numba.core.ssa where its functions are the ones this module relies on, else None."""
     if not _STATE["checked"]:
-        _STATE["checked"] = True
         try:
             from numba.core import ssa
 
@@ -83,6 +94,7 @@ def _ssa_module():
                 _STATE.update(module=ssa, original=ssa._run_ssa, rewrite=ssa._run_block_rewrite)
         except Exception:  # noqa: BLE001 - another Numba: compile as it does
             _STATE["module"] = None
+        _STATE["checked"] = True
     return _STATE["module"]
 
 
@@ -93,7 +105,8 @@ def ssa_skipping_blocks() -> Iterator[None]:
     with _LOCK:
         ssa = _ssa_module()
         if ssa is not None:
-            if _STATE["users"] == 0:
+            if _STATE["users"] == 0:  # what it displaces comes back after (Numba's, or another's patch)
+                _STATE["displaced"] = (ssa._run_ssa, ssa._run_block_rewrite)
                 ssa._run_ssa, ssa._run_block_rewrite = _run_ssa, _run_block_rewrite
             _STATE["users"] += 1
     try:
@@ -102,8 +115,8 @@ def ssa_skipping_blocks() -> Iterator[None]:
         if ssa is not None:
             with _LOCK:
                 _STATE["users"] -= 1
-                if _STATE["users"] == 0:
-                    ssa._run_ssa, ssa._run_block_rewrite = _STATE["original"], _STATE["rewrite"]
+                if _STATE["users"] == 0 and ssa._run_ssa is _run_ssa:
+                    ssa._run_ssa, ssa._run_block_rewrite = _STATE["displaced"]
 
 
 def active() -> bool:
