@@ -17,14 +17,11 @@ its source); elsewhere it does nothing and compiles take their old time.
 
 from __future__ import annotations
 
-import contextlib
 import copy
 import inspect
-import threading
-from typing import Any, Iterator
+from typing import Any
 
-_LOCK = threading.Lock()
-_STATE: dict[str, Any] = {"users": 0, "module": None, "checked": False}
+from mlaqc.numba_patch import NumbaPatch
 
 
 class _SharedScopeCopy:
@@ -52,40 +49,33 @@ class _SharedScopeCopy:
         return getattr(copy, name)
 
 
-def _inliner_module():
-    """numba.core.inline_closurecall where its inliner copies blocks as this module expects, else None."""
-    if not _STATE["checked"]:
-        _STATE["checked"] = True
-        try:
-            from numba.core import inline_closurecall, ir
+def _find():
+    """(numba.core.inline_closurecall, ir.Block) where its inliner copies blocks as this module expects."""
+    from numba.core import inline_closurecall, ir
 
-            source = inspect.getsource(inline_closurecall.InlineWorker.inline_ir)
-            if inline_closurecall.copy is copy and "copy.deepcopy(the_ir.blocks[block_label])" in source:
-                _STATE["module"] = (inline_closurecall, ir.Block)
-        except Exception:  # noqa: BLE001 - another Numba: compile as it does
-            _STATE["module"] = None
-    return _STATE["module"]
+    source = inspect.getsource(inline_closurecall.InlineWorker.inline_ir)
+    if inline_closurecall.copy is copy and "copy.deepcopy(the_ir.blocks[block_label])" in source:
+        return inline_closurecall, ir.Block
+    return None
 
 
-@contextlib.contextmanager
-def shared_scope_copies() -> Iterator[None]:
+def _install(found) -> None:
+    found[0].copy = _SharedScopeCopy(found[1])
+
+
+def _restore(found, _displaced) -> None:
+    found[0].copy.forget()
+    found[0].copy = copy
+
+
+_PATCH = NumbaPatch(_find, _install, _restore)
+_inliner_module = _PATCH.found
+
+
+def shared_scope_copies():
     """While inside, Numba's inliner copies each IR's scope once (process-wide while any thread is inside:
     nested and concurrent uses are counted)."""
-    with _LOCK:
-        found = _inliner_module()
-        if found is not None:
-            if _STATE["users"] == 0:
-                found[0].copy = _SharedScopeCopy(found[1])
-            _STATE["users"] += 1
-    try:
-        yield
-    finally:
-        if found is not None:
-            with _LOCK:
-                _STATE["users"] -= 1
-                if _STATE["users"] == 0:
-                    found[0].copy.forget()
-                    found[0].copy = copy
+    return _PATCH.applied()
 
 
 def active() -> bool:

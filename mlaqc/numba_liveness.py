@@ -17,14 +17,12 @@ elsewhere it does nothing and compiles take their old time.
 
 from __future__ import annotations
 
-import contextlib
 import inspect
-import threading
 from collections import defaultdict
-from typing import Any, Iterator
+from typing import Any
 
-_LOCK = threading.Lock()
-_STATE: dict[str, Any] = {"users": 0, "modules": None, "checked": False, "displaced": None}
+from mlaqc.numba_patch import NumbaPatch
+
 # lines of numba.core.analysis.compute_live_map this replacement reproduces (Numba 0.68: earlier ones iterate
 # the blocks in another order, and are left alone)
 _EXPECTED = ("def def_reach(dct):", "dct[offset] |= used_or_defined", "dct[out_blk] |= dct[offset]",
@@ -84,44 +82,37 @@ def _names(x: int, order: list[str]) -> set[str]:
     return out
 
 
-def _numba_modules():
-    """(numba.core.analysis, numba.core.ir_utils) where compute_live_map is the one this module reproduces,
-    else None."""
-    if not _STATE["checked"]:
-        try:
-            from numba.core import analysis, ir_utils
+def _find():
+    """(numba.core.analysis, numba.core.ir_utils) where compute_live_map is the one this module reproduces."""
+    from numba.core import analysis, ir_utils
 
-            source = inspect.getsource(analysis.compute_live_map)
-            if all(line in source for line in _EXPECTED) and ir_utils.compute_live_map is analysis.compute_live_map:
-                _STATE["modules"] = (analysis, ir_utils)
-        except Exception:  # noqa: BLE001 - another Numba: compile as it does
-            _STATE["modules"] = None
-        _STATE["checked"] = True
-    return _STATE["modules"]
+    source = inspect.getsource(analysis.compute_live_map)
+    if all(line in source for line in _EXPECTED) and ir_utils.compute_live_map is analysis.compute_live_map:
+        return analysis, ir_utils
+    return None
 
 
-@contextlib.contextmanager
-def bitset_liveness() -> Iterator[None]:
+def _install(found) -> tuple:
+    displaced = tuple(module.compute_live_map for module in found)
+    for module in found:
+        module.compute_live_map = compute_live_map
+    return displaced
+
+
+def _restore(found, displaced) -> None:
+    for module, before in zip(found, displaced):
+        if module.compute_live_map is compute_live_map:  # (not if another patch has since replaced it)
+            module.compute_live_map = before
+
+
+_PATCH = NumbaPatch(_find, _install, _restore)
+_numba_modules = _PATCH.found
+
+
+def bitset_liveness():
     """While inside, Numba's live-variable analysis runs on bitsets (process-wide while any thread is
     inside: nested and concurrent uses are counted)."""
-    with _LOCK:
-        found = _numba_modules()
-        if found is not None:
-            if _STATE["users"] == 0:  # what it displaces comes back after (Numba's, or another's patch)
-                _STATE["displaced"] = tuple(module.compute_live_map for module in found)
-                for module in found:
-                    module.compute_live_map = compute_live_map
-            _STATE["users"] += 1
-    try:
-        yield
-    finally:
-        if found is not None:
-            with _LOCK:
-                _STATE["users"] -= 1
-                if _STATE["users"] == 0:
-                    for module, before in zip(found, _STATE["displaced"]):
-                        if module.compute_live_map is compute_live_map:
-                            module.compute_live_map = before
+    return _PATCH.applied()
 
 
 def active() -> bool:

@@ -22,15 +22,14 @@ time.
 
 from __future__ import annotations
 
-import contextlib
 import inspect
 import threading
-from typing import Any, Iterator
+from typing import Any
 
-_LOCK = threading.Lock()
+from mlaqc.numba_patch import NumbaPatch
+
 _LOCAL = threading.local()
-_STATE: dict[str, Any] = {"users": 0, "original": None, "rewrite": None, "module": None, "checked": False,
-                          "displaced": None}
+_STATE: dict[str, Any] = {"original": None, "rewrite": None, "module": None}  # Numba's, once recognised
 # what this replacement relies on in numba.core.ssa (Numba 0.68): the passes, and the handlers' leaving a
 # statement that does not name the variable as it was
 _EXPECTED = {
@@ -82,41 +81,35 @@ def _run_block_rewrite(blocks, states, handler):
     return newblocks
 
 
-def _ssa_module():
-    """numba.core.ssa where its functions are the ones this module relies on, else None."""
-    if not _STATE["checked"]:
-        try:
-            from numba.core import ssa
+def _find():
+    """numba.core.ssa where its functions are the ones this module relies on (their originals kept)."""
+    from numba.core import ssa
 
-            ok = all(all(line in inspect.getsource(getattr(ssa, name)) for line in lines)
-                     for name, lines in _EXPECTED.items())
-            if ok:
-                _STATE.update(module=ssa, original=ssa._run_ssa, rewrite=ssa._run_block_rewrite)
-        except Exception:  # noqa: BLE001 - another Numba: compile as it does
-            _STATE["module"] = None
-        _STATE["checked"] = True
-    return _STATE["module"]
+    if all(all(line in inspect.getsource(getattr(ssa, name)) for line in lines) for name, lines in _EXPECTED.items()):
+        _STATE.update(module=ssa, original=ssa._run_ssa, rewrite=ssa._run_block_rewrite)
+        return ssa
+    return None
 
 
-@contextlib.contextmanager
-def ssa_skipping_blocks() -> Iterator[None]:
+def _install(ssa) -> tuple:
+    displaced = (ssa._run_ssa, ssa._run_block_rewrite)
+    ssa._run_ssa, ssa._run_block_rewrite = _run_ssa, _run_block_rewrite
+    return displaced
+
+
+def _restore(ssa, displaced) -> None:
+    if ssa._run_ssa is _run_ssa:  # (not if another patch has since replaced it)
+        ssa._run_ssa, ssa._run_block_rewrite = displaced
+
+
+_PATCH = NumbaPatch(_find, _install, _restore)
+_ssa_module = _PATCH.found
+
+
+def ssa_skipping_blocks():
     """While inside, Numba's SSA reconstruction visits only the blocks that name each violator
     (process-wide while any thread is inside: nested and concurrent uses are counted)."""
-    with _LOCK:
-        ssa = _ssa_module()
-        if ssa is not None:
-            if _STATE["users"] == 0:  # what it displaces comes back after (Numba's, or another's patch)
-                _STATE["displaced"] = (ssa._run_ssa, ssa._run_block_rewrite)
-                ssa._run_ssa, ssa._run_block_rewrite = _run_ssa, _run_block_rewrite
-            _STATE["users"] += 1
-    try:
-        yield
-    finally:
-        if ssa is not None:
-            with _LOCK:
-                _STATE["users"] -= 1
-                if _STATE["users"] == 0 and ssa._run_ssa is _run_ssa:
-                    ssa._run_ssa, ssa._run_block_rewrite = _STATE["displaced"]
+    return _PATCH.applied()
 
 
 def active() -> bool:
