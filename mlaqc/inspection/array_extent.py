@@ -73,24 +73,21 @@ def whole_array_note(count_h: int, count_w: int, from_grid: bool = False) -> str
             f"{count_w} and count_h = {count_h} in the config and run `mlaqc models` once.")
 
 
-def with_counts(cfg, count_h: int, count_w: int):
+def with_counts(cfg, count_h: int, count_w: int, auto: bool = False):
     """`cfg` with the array's counts fixed: the config an "auto" frame holding the whole array is inspected
-    with (and its through-focus frames read with)."""
+    with (and its through-focus frames read with); with `auto`, the counts of a lattice cut to the part of
+    the array a frame shows, still "auto"."""
     from dataclasses import replace
 
-    return replace(cfg, mla=replace(cfg.mla, count_h=count_h, count_w=count_w, counts_auto=False))
+    return replace(cfg, mla=replace(cfg.mla, count_h=count_h, count_w=count_w, counts_auto=auto))
 
 
 def config_for_grid(cfg, grid):
     """`cfg`, or with "auto" counts and a grid that `calibrate_whole` fitted to the array it found, `cfg`
     with that grid's counts: fixed for a whole array, still "auto" for a part of one."""
-    from dataclasses import replace
-
     if not cfg.mla.counts_auto or grid.shape == (cfg.mla.count_h, cfg.mla.count_w):
         return cfg
-    if whole_array_counts(grid) == grid.shape:
-        return with_counts(cfg, *grid.shape)
-    return replace(cfg, mla=replace(cfg.mla, count_h=grid.rows, count_w=grid.cols))
+    return with_counts(cfg, *grid.shape, auto=whole_array_counts(grid) != grid.shape)
 
 
 def partial_array_note(seen: tuple[str, ...]) -> str:
@@ -121,15 +118,13 @@ def locate_array(img: np.ndarray, cfg):
     lattice places beyond them, `boxed_counts`), the lattice is cut down to the lit lenses' box, so that those
     edges are the grid's (judged as edges, never a dark place flagged 'missing'); the config's counts are then
     the box's, still "auto". InputError when under half the lattice places are lit otherwise."""
-    from dataclasses import replace
-
     from mlaqc.inspection.calibrate import MIN_FOUND_SHARE, calibrate_for
 
     grid = calibrate_for(img, cfg)
     counts = whole_array_counts(grid)
     box = boxed_counts(grid) if counts is None else None
     if box is not None:
-        boxed = replace(cfg, mla=replace(cfg.mla, count_h=box[0], count_w=box[1]))  # (still "auto")
+        boxed = with_counts(cfg, *box, auto=True)
         return calibrate_for(img, boxed), boxed, None
     if counts is None and grid.lenses_found < MIN_FOUND_SHARE * grid.rows * grid.cols:
         raise InputError(f"only {grid.lenses_found} of the {grid.cols}x{grid.rows} lens places that cover the "
