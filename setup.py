@@ -4,10 +4,10 @@
 machine's CPU, so the first `mlaqc inspect` after `pip install` compiles nothing. A build that fails (no C
 compiler, no Numba in the build environment) only warns: the package then compiles the kernels with
 Numba's JIT on first use, as before. An editable install also byte-compiles the sources, which
-PYTHONDONTWRITEBYTECODE would otherwise have every run recompile, and compiles the ray tracer's variant for
-the default camera into Numba's cache beside them (mlaqc.optics.tracer_variants), so that `mlaqc demo` and
-the Table 1 camera never wait for a compile; the other eleven variants compile in the background of the
-first command that traces (mlaqc.optics.tracer_background). MLAQC_AOT=0 skips both compiles.
+PYTHONDONTWRITEBYTECODE would otherwise have every run recompile, and compiles the ray tracer's variants
+for the shipped fixtures into Numba's cache beside them (mlaqc.optics.tracer_variants.INSTALL_VARIANTS), so
+that `mlaqc demo` and every fixture never wait for a compile; the other seven variants compile in the
+background of the first command that traces (mlaqc.optics.tracer_background). MLAQC_AOT=0 skips both.
 """
 
 from __future__ import annotations
@@ -30,8 +30,8 @@ class BuildKernels(build_ext):
 
     def run(self) -> None:
         self._built: list[Path] = []
-        # an editable install also compiles the default camera's tracer variant: started now, in a process of
-        # its own, so that it runs beside the kernels' build on a second core
+        # an editable install also compiles the fixtures' tracer variants: started now, in processes of their
+        # own, so that they run beside the kernels' build on the other cores
         self._tracer = self._start_tracer() if getattr(self, "editable_mode", False) else None
         super().run()
 
@@ -68,16 +68,15 @@ class BuildKernels(build_ext):
             self._compile_tracer()
 
     def _start_tracer(self) -> subprocess.Popen | None:
-        """The default camera's tracer variant compiled into Numba's cache in the source tree (where the
-        editable install runs it): the demo and Table 1 never wait; the other variants compile in the
-        background of the first command that traces (mlaqc.optics.tracer_background), or with `mlaqc kernels`."""
+        """The shipped fixtures' tracer variants compiled into Numba's cache in the source tree (where the
+        editable install runs it), one process per core: the demo and the fixtures never wait; the other
+        variants compile in the background of the first command that traces (mlaqc.optics.tracer_background),
+        or with `mlaqc kernels`."""
         if os.environ.get("MLAQC_AOT", "1") == "0":
             return None
         code = (f"import sys; sys.path.insert(0, {str(HERE)!r})\n"
-                "from mlaqc.optics.tracer_variants import INSTALL_VARIANTS, compile_variant\n"
-                "for v in INSTALL_VARIANTS:\n"
-                "    s, e = compile_variant(v)\n"
-                "    print(f'  {v.name}: ' + ('FAILED ' + e if e else f'{s:.0f} s'), flush=True)\n")
+                "from mlaqc.optics.tracer_variants import INSTALL_VARIANTS, compile_all\n"
+                "compile_all(INSTALL_VARIANTS, log=lambda text: print(text, flush=True))\n")
         try:
             return subprocess.Popen([sys.executable, "-c", code], cwd=str(HERE), stdout=subprocess.PIPE,
                                     stderr=subprocess.STDOUT, text=True,
@@ -92,7 +91,8 @@ class BuildKernels(build_ext):
         proc = getattr(self, "_tracer", None) or self._start_tracer()
         if proc is None:
             return
-        print("mlaqc: compiling the ray tracer for the default camera into Numba's cache ...", file=sys.stderr)
+        print("mlaqc: compiling the ray tracer's variants for the shipped fixtures into Numba's cache ...",
+              file=sys.stderr)
         out, _ = proc.communicate()
         print(out.rstrip(), file=sys.stderr)
         if proc.returncode != 0 or "FAILED" in out:

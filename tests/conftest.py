@@ -25,12 +25,12 @@ if "MLAQC_TEST_DB_DIR" not in os.environ:
 
 # ------------------------------------------------------------------------------------ Numba warm-up
 # The tracer's kernel has twelve compiled variants (mlaqc.optics.tracer_variants: lens boundaries x lattice x
-# per-lens tilts). `pip install -e .` compiles the default camera's into Numba's cache (setup.py), in the
+# per-lens tilts). `pip install -e .` compiles the fixtures' five into Numba's cache (setup.py), in the
 # package's __pycache__ (or $NUMBA_CACHE_DIR); the warm-up compiles the rest there, where every process
 # finds them: pytest, xdist workers, the `mlaqc` subprocesses and the Dask workers of the cluster tests.
 # Before the first test, one process per core compiles or loads each variant (and compiles the inspection
-# kernels' JIT rest): on CI's fresh clone the eleven the install left out compile here, both cores at once
-# (about two and a half minutes); once they are in the cache, a second or two in all. No test compiles its own. The warm-up runs for whole folders
+# kernels' JIT rest): on CI's fresh clone the seven the install left out compile here, both cores at once
+# (about a minute); once they are in the cache, a second or two in all. No test compiles its own. The warm-up runs for whole folders
 # (`pytest`, `pytest tests`), not for a run of named files or tests, which compiles only what it uses;
 # MLAQC_TEST_WARMUP=1 or 0 turns it on or off whatever the run.
 

@@ -1,9 +1,11 @@
 """The tracer's faster Numba passes give exactly Numba's own results: the live-variable analysis on bitsets
 (mlaqc.numba_liveness) and the SSA reconstruction that skips blocks not naming a variable (mlaqc.numba_ssa),
 on the frontend IR of the tracer's kernels and on every run Numba makes while compiling a kernel with
-inlined helpers, loops and branches; each is in place only inside its context."""
+inlined helpers, loops and branches; call typing remembered within a compile (mlaqc.numba_typing_memo)
+gives the same machine code; each is in place only inside its context."""
 
 import copy
+import re
 
 import numpy as np
 import pytest
@@ -16,13 +18,16 @@ from numba.core.compiler import run_frontend  # noqa: E402
 
 from numba.core import ssa  # noqa: E402
 
-from mlaqc import numba_liveness, numba_ssa  # noqa: E402
+from numba.core.types import functions as numba_functions  # noqa: E402
+
+from mlaqc import numba_liveness, numba_ssa, numba_typing_memo  # noqa: E402
 from mlaqc.optics import raytrace_kernels  # noqa: E402
 
 ORIGINAL = analysis.compute_live_map
 ORIGINAL_SSA = ssa._run_ssa
+ORIGINAL_CALL_TYPE = numba_functions.BaseFunction.get_call_type
 # each module reads Numba's source once, on first use: before any test here patches what it reads
-numba_liveness._numba_modules(), numba_ssa._ssa_module()
+numba_liveness._numba_modules(), numba_ssa._ssa_module(), numba_typing_memo._function_base()
 KERNELS = ["kernel", "kernel_sag", "pass_front_refract", "bin_hits"]
 
 
@@ -149,6 +154,7 @@ def test_the_installed_numba_is_the_one_the_passes_were_written_against():
     """An upgrade that turns the faster passes off (compiles back to their old time) is said here."""
     assert numba_liveness._numba_modules() is not None, f"numba {numba.__version__}: compute_live_map changed"
     assert numba_ssa._ssa_module() is not None, f"numba {numba.__version__}: the SSA reconstruction changed"
+    assert numba_typing_memo._function_base() is not None, f"numba {numba.__version__}: call typing changed"
 
 
 def test_each_context_restores_what_it_displaced(monkeypatch):
@@ -175,3 +181,61 @@ def test_a_block_rewrite_outside_a_reconstruction_is_numbas_own():
     with numba_ssa.ssa_skipping_blocks():
         got = _dump(ssa._fresh_vars(copy.deepcopy(blocks), name)[0])
     assert got == want
+
+
+def _machine_code(dispatcher) -> list[str]:
+    """The compiled function's assembly, without what differs between two compiles of the same code: the
+    version numbers Numba puts in mangled names, and the sizes of the strings that quote them."""
+    asm = re.sub(r"B\d+v\d+B", "BvB", next(iter(dispatcher.inspect_asm().values())))
+    return [line for line in asm.splitlines() if not re.match(r'\s*\.size\s+"\.const\.', line)]
+
+
+def _surface_hit_compiled(remember: bool, counter: list) -> tuple:
+    """A tracer function (inlined helpers, a None lattice, a rotation table) compiled afresh, with Numba's
+    call typing counted; (its result, its machine code)."""
+    flags = {k: v for k, v in raytrace_kernels._FLAGS.items() if k != "cache"}
+    fresh = numba.njit(**flags)(raytrace_kernels.surface_hit.py_func)
+    args = (0.1, 0.2, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.5, 2.0, 0.0, 0.0, np.eye(3)[None].copy(), 0, 0.0, 0.0,
+            10.0, 4.0, 4.0, None)
+    if remember:
+        with numba_typing_memo.remembered_call_types():
+            out = fresh(*args)
+    else:
+        out = fresh(*args)
+    return out, _machine_code(fresh), len(counter)
+
+
+def test_remembered_call_types_compile_the_same_machine_code(monkeypatch):
+    """The same code both ways, with far fewer questions put to Numba's templates."""
+    asked = []
+
+    def counted(self, context, args, kws):
+        asked.append(self)
+        return ORIGINAL_CALL_TYPE(self, context, args, kws)
+
+    monkeypatch.setattr(numba_functions.BaseFunction, "get_call_type", counted)
+    plain = _surface_hit_compiled(False, asked)
+    del asked[:]
+    remembered = _surface_hit_compiled(True, asked)
+    assert remembered[0] == plain[0] and len(plain[1]) > 500
+    assert remembered[1] == plain[1]
+    assert remembered[2] < plain[2] / 2, (remembered[2], plain[2])
+    assert numba_functions.BaseFunction.get_call_type is counted  # the test's own patch put back
+
+
+def test_a_remembered_answer_records_its_implementation_again():
+    """Lowering reads the implementation key last recorded for a signature's argument types; a remembered
+    answer records it as asking the templates would."""
+    from numba.core import types
+    from numba.core.registry import cpu_target
+
+    add = cpu_target.typing_context.resolve_value_type(__import__("operator").add)
+    args = (types.float64, types.float64)
+    with numba_typing_memo.remembered_call_types():
+        assert numba_typing_memo.active()
+        first = add.get_call_type(cpu_target.typing_context, args, {})
+        key = add._impl_keys[first.args]
+        add._impl_keys[first.args] = "another key"
+        assert add.get_call_type(cpu_target.typing_context, args, {}) is first
+        assert add._impl_keys[first.args] == key
+    assert not numba_typing_memo.active() and numba_typing_memo._memo == {}

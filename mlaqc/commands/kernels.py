@@ -1,7 +1,7 @@
 """`mlaqc kernels`: compile the inspection kernels and the ray tracer for this machine, or say whether they are.
 
-`pip install -e .` compiles the inspection kernels and the default camera's tracer variant (setup.py), and
-the first command that traces compiles the other tracer variants in the background
+`pip install -e .` compiles the inspection kernels and the shipped fixtures' tracer variants (setup.py),
+and the first command that traces compiles the other tracer variants in the background
 (mlaqc.optics.tracer_background); this command compiles everything in the foreground: for an install that
 could not (no C
 compiler then, `--no-build-isolation` without Numba, a non-editable install, whose tracer cache the build

@@ -10,6 +10,7 @@ from mlaqc.compiled import compile_notice
 from mlaqc.numba_inliner import shared_scope_copies
 from mlaqc.numba_liveness import bitset_liveness
 from mlaqc.numba_ssa import ssa_skipping_blocks
+from mlaqc.numba_typing_memo import remembered_call_types
 from mlaqc.optics.scene import FOUR_OVER_PI
 from mlaqc.optics.raytrace_kernels import (
     AVAILABLE, HEX_DIRS, IMAGE_SIDE, NO_TEXTURE, SQUARE_DIRS, bin_hits, kernel, kernel_sag)
@@ -127,7 +128,7 @@ class FastCamera:
             k = trace(*args)
         else:  # the variant's first batch: a compile on first use is said, not silent
             with compile_notice("the ray tracer"), shared_scope_copies(), bitset_liveness(), \
-                    ssa_skipping_blocks():
+                    ssa_skipping_blocks(), remembered_call_types():
                 k = trace(*args)
             self._warm = True
         rows, cols, w, box = args[8:12]

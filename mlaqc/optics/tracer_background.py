@@ -1,10 +1,10 @@
 """The ray tracer's variants compiled in the background of the first command that traces.
 
-`pip install -e .` compiles the default camera's variant (Table 1's, the demo's: square sag-intersection
-lenses) so that the install stays short; the first command that makes a Numba renderer afterwards starts
+`pip install -e .` compiles the variants the shipped fixtures use (tracer_variants.INSTALL_VARIANTS) and
+leaves the rest so that the install stays short; the first command that makes a Numba renderer starts
 one process at the idle priority (`python -m mlaqc.optics.tracer_background`) that waits for that command
-to end (a minute at most), then compiles the other variants
-into Numba's cache, the ones the shipped fixtures use first, and says so on screen. A stamp records that
+to end (a minute at most), then compiles any variant not in Numba's cache (the fixtures' first, where an
+install could not compile them), and says so on screen. A stamp records that
 every variant is compiled for these sources, this Numba and this Python, so later commands check a file,
 not the cache. A command that needs a variant before the background has reached it compiles it itself, as
 on first use before (said on screen). MLAQC_BACKGROUND_COMPILE=0 never starts one (the tests, the
