@@ -2,6 +2,7 @@
 run-time switches that compile nothing of their own, `mlaqc kernels --check` says what is compiled, and
 the inliner's faster copy makes the same IR."""
 
+import collections
 import copy
 import dataclasses
 import os
@@ -104,6 +105,85 @@ def test_shared_scope_copies_make_the_same_ir_with_one_scope():
     for label in func_ir.blocks:
         assert [str(s) for s in shared[label].body] == [str(s) for s in plain[label].body]
         assert isinstance(shared[label], ir.Block)
+
+
+def _isomorphic(a, b, seen: dict, originals: set, path: str = "ir") -> None:
+    """Two copies of one object graph: the same types and atoms, the same sharing (one object in one copy
+    wherever there is one in the other), no original among the copied objects; objects both hold (module
+    globals, constants Numba does not copy) are the same object."""
+    if a is b:
+        assert id(a) not in seen, path
+        return
+    assert type(a) is type(b), (path, type(a), type(b))
+    assert id(a) not in originals and id(b) not in originals, ("an original in a copy", path)
+    if id(a) in seen or id(b) in seen.values():
+        assert seen.get(id(a)) == id(b), ("shared differently", path)
+        return
+    seen[id(a)] = id(b)
+    if isinstance(a, (list, tuple)):
+        assert len(a) == len(b), path
+        for i, (u, v) in enumerate(zip(a, b)):
+            _isomorphic(u, v, seen, originals, f"{path}[{i}]")
+    elif isinstance(a, dict):
+        assert list(a) == list(b), path
+        for k in a:
+            _isomorphic(a[k], b[k], seen, originals, f"{path}[{k!r}]")
+    elif hasattr(a, "__dict__"):
+        _isomorphic(vars(a), vars(b), seen, originals, f"{path}.{type(a).__name__}")
+    else:
+        assert a == b, (path, a, b)
+
+
+def _ir_objects(x, out: set) -> set:
+    """ids of the IR's own objects (its blocks, statements, expressions, scope, containers)."""
+    if id(x) in out or isinstance(x, (str, int, float, bool, type(None))):
+        return out
+    if isinstance(x, (list, tuple, dict)) or type(x).__module__ == "numba.core.ir":
+        out.add(id(x))
+        items = x.values() if isinstance(x, dict) else x if isinstance(x, (list, tuple)) else vars(x).values()
+        for v in items:
+            _ir_objects(v, out)
+    return out
+
+
+@pytest.mark.parametrize("name", ["kernel", "kernel_sag", "stage1_forward", "scan_candidates", "bin_hits"])
+def test_the_inliners_copy_is_copy_deepcopys_object_for_object(name):
+    """numba_inliner.ir_deepcopy copies a whole IR, block by block through one memo as the inliner does,
+    into the same object graph as copy.deepcopy: types, values, which objects are shared, nothing original."""
+    from numba.core.compiler import run_frontend
+
+    blocks = run_frontend(getattr(raytrace_kernels, name).py_func).blocks
+    theirs_memo, ours_memo = {}, {}
+    theirs = {label: copy.deepcopy(block, theirs_memo) for label, block in blocks.items()}
+    ours = {label: numba_inliner.ir_deepcopy(block, ours_memo) for label, block in blocks.items()}
+    _isomorphic(theirs, ours, {}, _ir_objects(blocks, set()))
+    assert len(ours_memo) > 100
+
+
+def test_the_fast_copy_leaves_objects_with_a_copy_protocol_of_their_own_to_copy():
+    """A class with its own __deepcopy__, __reduce__ or __getstate__, slots, or a dict subclass, is copied
+    by copy.deepcopy itself."""
+
+    class Own:
+        def __deepcopy__(self, memo):
+            return "own"
+
+    class State:
+        def __getstate__(self):
+            return {"x": 1}
+
+    class Slots:
+        __slots__ = ("a",)
+
+    class Plain:
+        def __init__(self):
+            self.items = [1, [2]]
+
+    assert numba_inliner.ir_deepcopy([Own()], {}) == ["own"]
+    assert not any(numba_inliner._is_plain(c) for c in (State, Slots, collections.defaultdict, collections.OrderedDict))
+    p = Plain()
+    q = numba_inliner.ir_deepcopy((p, p), {})
+    assert q[0] is q[1] and q[0] is not p and q[0].items == [1, [2]] and q[0].items[1] is not p.items[1]
 
 
 def test_kernels_check_names_the_variants_an_empty_cache_lacks(tmp_path):
