@@ -30,8 +30,8 @@ class BuildKernels(build_ext):
 
     def run(self) -> None:
         self._built: list[Path] = []
-        # an editable install also compiles the fixtures' tracer variants: started now, in processes of their
-        # own, so that they run beside the kernels' build on the other cores
+        # an editable install also compiles the fixtures' tracer variants: started now, one process per core,
+        # so that they share the machine with the kernels' build rather than wait for it
         self._tracer = self._start_tracer() if getattr(self, "editable_mode", False) else None
         super().run()
 

@@ -35,15 +35,17 @@ _PLAIN: dict[type, bool] = {}
 
 
 def _is_plain(cls: type) -> bool:
-    """True when copy.deepcopy copies instances of `cls` by its generic path: a new instance given a deep
-    copy of the old one's __dict__ (no __deepcopy__, __reduce__, __getstate__, __setstate__ or slots of
-    its own, no copyreg entry)."""
+    """True when copy.deepcopy copies instances of `cls` by its generic path: `cls.__new__(cls)` given a deep
+    copy of the old one's __dict__ (no __deepcopy__, __reduce__, __getstate__, __setstate__,
+    __getnewargs__ or slots of its own, no copyreg entry, no built-in base but object)."""
     plain = _PLAIN.get(cls)
     if plain is None:
         plain = _PLAIN[cls] = (
             cls.__reduce_ex__ is object.__reduce_ex__ and cls.__reduce__ is object.__reduce__
             and getattr(cls, "__deepcopy__", None) is None and getattr(cls, "__getstate__", None) is object.__getstate__
             and not hasattr(cls, "__setstate__") and cls not in copyreg.dispatch_table
+            and not hasattr(cls, "__getnewargs__") and not hasattr(cls, "__getnewargs_ex__")
+            and all(k is object or k.__module__ != "builtins" for k in cls.__mro__)
             and cls not in copy._deepcopy_dispatch and not issubclass(cls, (type, list, dict, tuple, set))
             and not any(vars(k).get("__slots__") for k in cls.__mro__))
     return plain

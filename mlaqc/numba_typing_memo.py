@@ -7,14 +7,18 @@ calls per variant but only about 1,100 distinct (function, argument types) pairs
 27 s compile went to asking the same templates the same question.
 
 `remembered_call_types()` keeps, while the tracer compiles, the signature each (function, typing
-context, argument types, keyword types) resolved to, and answers the next call with the same key from it.
+context, target, compile flags, argument types, keyword types) resolved to, and answers the next call with
+the same key from it. (The flags are in the key because an `@overload`'s implementation is compiled with
+its caller's flags, its error model for one; the target because it orders the templates.)
 The templates are asked exactly as before for a key's first call, so the answer is Numba's own; each
 later call with that key records the winning template's implementation key again, as asking the
 templates would (lowering reads the last one recorded for the signature's argument types, which another
 key can share). A call that fails or raises is not remembered and fails again the same way. This holds while a template's answer depends on nothing but
-that key, which is so for every template the tracer's kernels use: their compiled kernels come out
-byte-identical with and without it (tests/test_numba_passes.py). Only where Numba's method has the shape
-this module was written against (Numba 0.68, checked once against its source); elsewhere it does nothing.
+that key, which is so for every template the tracer's kernels use: their machine code comes out the same
+with and without it (tests/test_numba_passes.py). Each time it is put in place it starts from an empty
+memo. Only where Numba's method has the shape this module was written against (Numba 0.68, checked once
+against its source); elsewhere it does nothing. A patch of someone else's put on top of it while it is in
+place keeps it beneath (it is then taken out only when that patch is).
 """
 
 from __future__ import annotations
@@ -29,16 +33,21 @@ from mlaqc.numba_patch import NumbaPatch
 _EXPECTED = ("def get_call_type(self, context, args, kws):", "for temp_cls in order:",
              "self._impl_keys[sig.args] = temp.get_impl_key(sig)", "return sig", "failures.raise_error()")
 
-_memo: dict = {}
 
 
 def _remembering(original):
-    """get_call_type answered from the memo for a key seen before, from `original` (and remembered) else."""
+    """get_call_type answered from a memo of its own for a key seen before, from `original` (and
+    remembered) else."""
+    from numba.core.target_extension import get_local_target
+    from numba.core.targetconfig import ConfigStack
+
+    memo: dict = {}
 
     def get_call_type(self, context, args, kws):
         try:
-            key = (self, context, tuple(args), tuple(sorted(kws.items())) if kws else ())
-            hit = _memo.get(key)
+            key = (self, context, get_local_target(context), ConfigStack.top_or_none(), tuple(args),
+                   tuple(sorted(kws.items())) if kws else ())
+            hit = memo.get(key)
         except TypeError:  # an unhashable argument type: asked as before
             return original(self, context, args, kws)
         if hit is not None:  # the winning template's implementation key recorded again, as its apply does
@@ -47,10 +56,11 @@ def _remembering(original):
             return sig
         sig = original(self, context, args, kws)
         if sig is not None:
-            _memo[key] = (sig, self._impl_keys[sig.args])
+            memo[key] = (sig, self._impl_keys[sig.args])
         return sig
 
     get_call_type.__wrapped__ = original
+    get_call_type.memo = memo
     return get_call_type
 
 
@@ -73,7 +83,6 @@ def _install(base) -> Any:
 def _restore(base, displaced) -> None:
     if getattr(base.get_call_type, "__wrapped__", None) is displaced:  # (not if another patch replaced it)
         base.get_call_type = displaced
-    _memo.clear()
 
 
 _PATCH = NumbaPatch(_find, _install, _restore)

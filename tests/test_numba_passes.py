@@ -238,4 +238,35 @@ def test_a_remembered_answer_records_its_implementation_again():
         add._impl_keys[first.args] = "another key"
         assert add.get_call_type(cpu_target.typing_context, args, {}) is first
         assert add._impl_keys[first.args] == key
-    assert not numba_typing_memo.active() and numba_typing_memo._memo == {}
+        memo = numba_functions.BaseFunction.get_call_type.memo
+        assert len(memo) == 1
+    assert not numba_typing_memo.active() and numba_functions.BaseFunction.get_call_type is ORIGINAL_CALL_TYPE
+    with numba_typing_memo.remembered_call_types():  # a fresh memo each time it is put in place
+        assert numba_functions.BaseFunction.get_call_type.memo == {}
+
+
+def test_an_overload_called_under_other_flags_is_typed_under_them():
+    """An @overload's implementation is compiled with its caller's flags: one function that divides by zero
+    under NumPy's error model (inf) and one under Python's (ZeroDivisionError), both compiled while the memo
+    is in place, each behave as their own flags say."""
+    from numba.extending import overload
+
+    def divide(x, y):
+        return x / y
+
+    @overload(divide)
+    def _divide(x, y):
+        return lambda x, y: x / y
+
+    @numba.njit(error_model="numpy")
+    def numpy_model(x, y):
+        return divide(x, y)
+
+    @numba.njit
+    def python_model(x, y):
+        return divide(x, y)
+
+    with numba_typing_memo.remembered_call_types():
+        assert numpy_model(1.0, 0.0) == np.inf
+        with pytest.raises(ZeroDivisionError):
+            python_model(1.0, 0.0)

@@ -179,8 +179,21 @@ def test_the_fast_copy_leaves_objects_with_a_copy_protocol_of_their_own_to_copy(
         def __init__(self):
             self.items = [1, [2]]
 
+    class Text(str):
+        pass
+
+    class Made:
+        def __new__(cls, a):
+            return super().__new__(cls)
+
+        def __getnewargs__(self):
+            return (1,)
+
     assert numba_inliner.ir_deepcopy([Own()], {}) == ["own"]
-    assert not any(numba_inliner._is_plain(c) for c in (State, Slots, collections.defaultdict, collections.OrderedDict))
+    assert not any(numba_inliner._is_plain(c) for c in (State, Slots, Text, Made, collections.defaultdict,
+                                                       collections.OrderedDict))
+    assert numba_inliner.ir_deepcopy([Text("ab")], {}) == ["ab"]
+    assert isinstance(numba_inliner.ir_deepcopy(Made(1), {}), Made)
     p = Plain()
     q = numba_inliner.ir_deepcopy((p, p), {})
     assert q[0] is q[1] and q[0] is not p and q[0].items == [1, [2]] and q[0].items[1] is not p.items[1]

@@ -131,7 +131,8 @@ def start_if_needed(stream: TextIO | None = None) -> bool:
 
 
 def _order(variant) -> tuple:
-    """The shipped fixtures' variants first (sag-intersection and circle apertures, untilted), then the rest."""
+    """The shipped fixtures' variants first (sag-intersection and circle apertures, untilted; the install's,
+    where it could not compile them), then the rest."""
     return (variant.lenses == "grid", variant.tilted and variant.packing == "hex", variant.tilted, variant.lenses)
 
 
