@@ -8,14 +8,14 @@ inline into functions of hundreds of blocks and thousands of variables, and thos
 kernel variant's compile (the square grid's: 38 s, 16 s without them, on this project's 2-core host).
 
 `shared_scope_copies()` gives the blocks of one IR one memo, so they share one copy of their scope, as the
-original blocks share the original. It also copies them with `ir_deepcopy`, which makes copy.deepcopy's
-copy without its generic reduce-and-reconstruct protocol for the lists, dicts, tuples and plain objects
-that make up most of an IR (a variant's copies 3.2 -> 1.9 s; tests/test_tracer_variants.py compares the
-two object for object on the tracer's kernels). The copy is the same IR (Numba relabels and renames it the same way
+original blocks share the original. It also copies them with `ir_deepcopy`, which makes copy.deepcopy's copy
+without its generic reduce-and-reconstruct protocol for the lists, dicts, tuples and plain objects that make
+up most of an IR (a variant's copies 3.2 -> 1.9 s; tests/test_tracer_variants.py compares the two object for
+object on the tracer's kernels). The copy is the same IR (Numba relabels and renames it the same way
 afterwards), so the compiled code is unchanged: the tracer's frames are bit-identical either way
-(bench/trace.py --images check, tests/test_tracer_variants.py). It is active only while the tracer
-compiles, and only where Numba's inliner still copies blocks with `copy.deepcopy` (checked once against
-its source); elsewhere it does nothing and compiles take their old time.
+(bench/trace.py --images check, tests/test_tracer_variants.py). It is active only while the tracer compiles,
+and only where Numba's inliner still copies blocks with `copy.deepcopy` (checked once against its source);
+elsewhere it does nothing and compiles take their old time.
 """
 
 from __future__ import annotations
