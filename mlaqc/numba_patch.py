@@ -1,7 +1,7 @@
-"""What the tracer's Numba patches share (numba_inliner, numba_liveness, numba_ssa, numba_typing_memo):
-Numba's source read once to decide whether a patch applies, and the patch in place process-wide while any
-thread is inside it (Numba compiles under one lock, so every compile meanwhile gets it; results are
-Numba's own either way)."""
+"""What the tracer's Numba patches share (numba_inliner, numba_liveness, numba_ssa, numba_typing_memo,
+numba_callee_ir): Numba's source read once to decide whether a patch applies, and the patch in place
+process-wide while any thread is inside it (Numba compiles under one lock, so every compile meanwhile gets
+it; results are Numba's own either way)."""
 
 from __future__ import annotations
 

@@ -2,7 +2,8 @@
 (mlaqc.numba_liveness) and the SSA reconstruction that skips blocks not naming a variable (mlaqc.numba_ssa),
 on the frontend IR of the tracer's kernels and on every run Numba makes while compiling a kernel with
 inlined helpers, loops and branches; call typing remembered within a compile (mlaqc.numba_typing_memo)
-gives the same machine code; each is in place only inside its context."""
+and each inlined function's IR built once (mlaqc.numba_callee_ir) give the same machine code; each is in
+place only inside its context."""
 
 import copy
 import re
@@ -20,7 +21,7 @@ from numba.core import ssa  # noqa: E402
 
 from numba.core.types import functions as numba_functions  # noqa: E402
 
-from mlaqc import numba_liveness, numba_ssa, numba_typing_memo  # noqa: E402
+from mlaqc import numba_callee_ir, numba_liveness, numba_ssa, numba_typing_memo  # noqa: E402
 from mlaqc.optics import raytrace_kernels  # noqa: E402
 
 ORIGINAL = analysis.compute_live_map
@@ -28,6 +29,7 @@ ORIGINAL_SSA = ssa._run_ssa
 ORIGINAL_CALL_TYPE = numba_functions.BaseFunction.get_call_type
 # each module reads Numba's source once, on first use: before any test here patches what it reads
 numba_liveness._numba_modules(), numba_ssa._ssa_module(), numba_typing_memo._function_base()
+numba_callee_ir._inline_worker()
 KERNELS = ["kernel", "kernel_sag", "pass_front_refract", "bin_hits"]
 
 
@@ -155,6 +157,7 @@ def test_the_installed_numba_is_the_one_the_passes_were_written_against():
     assert numba_liveness._numba_modules() is not None, f"numba {numba.__version__}: compute_live_map changed"
     assert numba_ssa._ssa_module() is not None, f"numba {numba.__version__}: the SSA reconstruction changed"
     assert numba_typing_memo._function_base() is not None, f"numba {numba.__version__}: call typing changed"
+    assert numba_callee_ir._inline_worker() is not None, f"numba {numba.__version__}: the inliner changed"
 
 
 def test_each_context_restores_what_it_displaced(monkeypatch):
@@ -270,3 +273,54 @@ def test_an_overload_called_under_other_flags_is_typed_under_them():
         assert numpy_model(1.0, 0.0) == np.inf
         with pytest.raises(ZeroDivisionError):
             python_model(1.0, 0.0)
+
+
+def _nested_inlining_kernel():
+    """A fresh kernel inlining one helper at four sites, the helper inlining another at two."""
+
+    @numba.njit(inline="always")
+    def square(x):
+        return x * x
+
+    @numba.njit(inline="always")
+    def norm2(x, y):
+        return square(x) + square(y)
+
+    @numba.njit(error_model="numpy")
+    def kernel(a):
+        total = 0.0
+        for i in range(a.size - 1):
+            if a[i] > 0:
+                total += norm2(a[i], a[i + 1]) / norm2(a[i + 1], 1.0)
+            else:
+                total -= norm2(a[i], 2.0) + norm2(1.0, a[i])
+        return total
+
+    return kernel
+
+
+def test_each_inlined_functions_ir_built_once_compiles_the_same_code(monkeypatch):
+    """The same results and machine code both ways, with the helpers' pipelines run once each instead of
+    once per site; the caller's flags come out the same (SSA off while it inlines)."""
+    from numba.core.inline_closurecall import InlineWorker
+
+    runs = []
+    original = InlineWorker.run_untyped_passes
+
+    def counted(self, func, enable_ssa=False):
+        runs.append(func.__name__)
+        return original(self, func, enable_ssa)
+
+    monkeypatch.setattr(InlineWorker, "run_untyped_passes", counted)
+    a = np.linspace(-2, 3, 11)
+    plain = _nested_inlining_kernel()
+    want = plain(a)
+    plain_runs, runs[:] = list(runs), []
+    remembered = _nested_inlining_kernel()
+    with numba_callee_ir.remembered_callee_irs():
+        assert numba_callee_ir.active()
+        got = remembered(a)
+    assert not numba_callee_ir.active()
+    assert got == want == pytest.approx(plain.py_func(a))
+    assert _machine_code(remembered) == _machine_code(plain)
+    assert plain_runs.count("norm2") == 4 and runs.count("norm2") == 1, (plain_runs, runs)

@@ -7,6 +7,7 @@ from __future__ import annotations
 import numpy as np
 
 from mlaqc.compiled import compile_notice
+from mlaqc.numba_callee_ir import remembered_callee_irs
 from mlaqc.numba_inliner import shared_scope_copies
 from mlaqc.numba_liveness import bitset_liveness
 from mlaqc.numba_ssa import ssa_skipping_blocks
@@ -128,7 +129,7 @@ class FastCamera:
             k = trace(*args)
         else:  # the variant's first batch: a compile on first use is said, not silent
             with compile_notice("the ray tracer"), shared_scope_copies(), bitset_liveness(), \
-                    ssa_skipping_blocks(), remembered_call_types():
+                    ssa_skipping_blocks(), remembered_call_types(), remembered_callee_irs():
                 k = trace(*args)
             self._warm = True
         rows, cols, w, box = args[8:12]
