@@ -7,10 +7,12 @@ same helpers at many sites, so the same pipelines ran about 175 times per varian
 
 `remembered_callee_irs()` keeps, while the tracer compiles, the IR that pipeline made for each (function,
 contexts, pipeline, flags, declared locals), and gives it to the next site that inlines the same function
-under the same settings. The inliner only ever copies that IR (its first step), so the copies are what
-a fresh run would have given, apart from the numbers of the labels and variables Numba makes up, which
+under the same settings, with a function identity of its own (the inlined variables are named after
+it, as after a fresh run). The inliner only ever copies that IR (its first step), so the copies are what
+a fresh run would have given, apart from the numbers of the labels and identities Numba makes up, which
 come from process-wide counters; the pipeline's side effect on the caller's flags (SSA off) is made
-again on each reuse. The compiled kernels' frames are bit-identical with and without it
+again on each reuse. (The inliner's shared-scope copy, numba_inliner, then starts a fresh memo for each
+site: inline_ir copies its copy at once, so the last scope it saw is never the remembered IR's.) The compiled kernels' frames are bit-identical with and without it
 (bench/trace.py --images check), and tests/test_numba_passes.py checks a small compile's results and
 machine code. Only where Numba's inliner has the shape this module was written against (Numba 0.68,
 checked once against its source); elsewhere it does nothing.
@@ -18,6 +20,7 @@ checked once against its source); elsewhere it does nothing.
 
 from __future__ import annotations
 
+import copy
 import inspect
 from typing import Any
 
@@ -27,7 +30,8 @@ from mlaqc.numba_patch import NumbaPatch
 # run_untyped_passes, and inline_ir copies it before it changes anything
 _EXPECTED_CALLER = ("callee_ir = self.run_untyped_passes(function)",
                     "return self.inline_ir(caller_ir, block, i, callee_ir, freevars,")
-_EXPECTED_COPY = ("# Always copy the callee IR, it gets mutated", "callee_ir = copy_ir(callee_ir)")
+_EXPECTED_COPY = ("# Always copy the callee IR, it gets mutated", "callee_ir = copy_ir(callee_ir)",
+                  "callee_ir_original = copy_ir(callee_ir)")
 _EXPECTED_PASSES = ("state.flags = self.flags", "state.flags.enable_ssa = enable_ssa")
 
 
@@ -45,6 +49,9 @@ def _remembering(original_inline_function):
             return original_inline_function(self, caller_ir, block, i, function, arg_typs=arg_typs)
         if callee_ir is None:
             callee_ir = memo[key] = self.run_untyped_passes(function)
+        else:  # a function identity of its own, as a fresh run gives: the site's variables are named after it
+            callee_ir = copy.copy(callee_ir)
+            callee_ir.func_id = callee_ir.func_id.derive()
         return self.inline_ir(caller_ir, block, i, callee_ir, function.__code__.co_freevars, arg_typs=arg_typs)
 
     inline_function.__wrapped__ = original_inline_function
