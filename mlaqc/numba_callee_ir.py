@@ -22,9 +22,8 @@ from __future__ import annotations
 
 import copy
 import inspect
-from typing import Any
 
-from mlaqc.numba_patch import NumbaPatch
+from mlaqc.numba_patch import wrapping
 
 # lines of InlineWorker.inline_function and .inline_ir this memo relies on: the callee's IR comes from
 # run_untyped_passes, and inline_ir copies it before it changes anything
@@ -72,18 +71,7 @@ def _find():
     return None
 
 
-def _install(worker) -> Any:
-    displaced = worker.inline_function
-    worker.inline_function = _remembering(displaced)
-    return displaced
-
-
-def _restore(worker, displaced) -> None:
-    if getattr(worker.inline_function, "__wrapped__", None) is displaced:  # (not if another patch replaced it)
-        worker.inline_function = displaced
-
-
-_PATCH = NumbaPatch(_find, _install, _restore)
+_PATCH = wrapping(_find, "inline_function", _remembering)
 _inline_worker = _PATCH.found
 
 

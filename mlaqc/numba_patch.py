@@ -51,3 +51,20 @@ class NumbaPatch:
                     self._users -= 1
                     if self._users == 0:
                         self._restore(found, self._displaced)
+
+
+def wrapping(find: Callable[[], Any], name: str, wrap: Callable[[Any], Any]) -> NumbaPatch:
+    """A NumbaPatch that replaces attribute `name` of what `find()` returns with `wrap(original)` (a
+    function whose `__wrapped__` is the original), and puts the original back unless another patch has
+    since replaced the wrapper (that patch then keeps it beneath until it is taken out itself)."""
+
+    def install(owner: Any) -> Any:
+        displaced = getattr(owner, name)
+        setattr(owner, name, wrap(displaced))
+        return displaced
+
+    def restore(owner: Any, displaced: Any) -> None:
+        if getattr(getattr(owner, name), "__wrapped__", None) is displaced:
+            setattr(owner, name, displaced)
+
+    return NumbaPatch(find, install, restore)

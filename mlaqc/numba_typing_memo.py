@@ -24,9 +24,8 @@ keeps it beneath (it is then taken out only when that patch is).
 from __future__ import annotations
 
 import inspect
-from typing import Any
 
-from mlaqc.numba_patch import NumbaPatch
+from mlaqc.numba_patch import wrapping
 
 # lines of numba.core.types.functions.BaseFunction.get_call_type this memo relies on (the first answer is
 # returned as soon as a template gives one, and recorded for lowering by the signature's args)
@@ -73,18 +72,7 @@ def _find():
     return None
 
 
-def _install(base) -> Any:
-    displaced = base.get_call_type
-    base.get_call_type = _remembering(displaced)
-    return displaced
-
-
-def _restore(base, displaced) -> None:
-    if getattr(base.get_call_type, "__wrapped__", None) is displaced:  # (not if another patch replaced it)
-        base.get_call_type = displaced
-
-
-_PATCH = NumbaPatch(_find, _install, _restore)
+_PATCH = wrapping(_find, "get_call_type", _remembering)
 _function_base = _PATCH.found
 
 

@@ -168,11 +168,17 @@ def test_each_context_restores_what_it_displaced(monkeypatch):
     def theirs_ssa(blocks):
         return ORIGINAL_SSA(blocks)
 
+    def theirs_call_type(self, context, args, kws):
+        return ORIGINAL_CALL_TYPE(self, context, args, kws)
+
     monkeypatch.setattr(analysis, "compute_live_map", theirs_live)
     monkeypatch.setattr(ssa, "_run_ssa", theirs_ssa)
-    with numba_liveness.bitset_liveness(), numba_ssa.ssa_skipping_blocks():
+    monkeypatch.setattr(numba_functions.BaseFunction, "get_call_type", theirs_call_type)
+    with numba_liveness.bitset_liveness(), numba_ssa.ssa_skipping_blocks(), numba_typing_memo.remembered_call_types():
         assert analysis.compute_live_map is numba_liveness.compute_live_map and ssa._run_ssa is numba_ssa._run_ssa
+        assert numba_functions.BaseFunction.get_call_type.__wrapped__ is theirs_call_type
     assert analysis.compute_live_map is theirs_live and ssa._run_ssa is theirs_ssa
+    assert numba_functions.BaseFunction.get_call_type is theirs_call_type
 
 
 def test_a_block_rewrite_outside_a_reconstruction_is_numbas_own():
