@@ -4,6 +4,9 @@ not invalidate Numba's cache of them (keyed on the kernels' own file)."""
 
 from __future__ import annotations
 
+import contextlib
+from typing import Iterator
+
 import numpy as np
 
 from mlaqc.compiled import compile_notice
@@ -43,6 +46,16 @@ def pair_limits(mla) -> np.ndarray:
                 lim[:, i] = np.where(on, (dx * dx + dy * dy - q[:, i]) / (2.0 * mla.p), np.inf)
         out.append(lim)
     return np.ascontiguousarray(np.stack(out))
+
+
+@contextlib.contextmanager
+def _faster_compile() -> Iterator[None]:
+    """Numba's front end without its quadratic or repeated work while a tracer variant compiles (the
+    numba_* patches; each gives Numba's own result and is in place only where Numba has the shape it
+    was written against)."""
+    with shared_scope_copies(), bitset_liveness(), ssa_skipping_blocks(), remembered_call_types(), \
+            remembered_callee_irs():
+        yield
 
 
 class FastCamera:
@@ -128,8 +141,7 @@ class FastCamera:
         if self._warm:
             k = trace(*args)
         else:  # the variant's first batch: a compile on first use is said, not silent
-            with compile_notice("the ray tracer"), shared_scope_copies(), bitset_liveness(), \
-                    ssa_skipping_blocks(), remembered_call_types(), remembered_callee_irs():
+            with compile_notice("the ray tracer"), _faster_compile():
                 k = trace(*args)
             self._warm = True
         rows, cols, w, box = args[8:12]
