@@ -172,6 +172,8 @@ def compare(cfg, scene_name, scene, flawed_em, flawed_lenses, clean_em, rpp, noi
     decoded = {}
     for name, smp in samplings.items():
         lf = decode_scene(img_f, smp, offs, wf)
+        dropped = 0 if lf.foreign is None else int(lf.foreign[:, :, flawed_mask if ref.packing != "rect" else
+                                                                  lens_mask(kinds.shape, flawed_lenses)].sum())
         if name.endswith("fill"):  # lenses of confidence under 0.5 refilled along the scene's parallax
             lf = filled(lf, lenses=smp.inside)
         lf = rectangular(lf)  # (as `mlaqc decode`: filled on the array's own lattice, then resampled)
@@ -188,6 +190,9 @@ def compare(cfg, scene_name, scene, flawed_em, flawed_lenses, clean_em, rpp, noi
         per_type = ", ".join(f"{t} {rms(lf.values, ref.values, wf_ * m):.4f}" for t, m in type_masks.items())
         print(f"    {name:11s}: view RMS at flawed lenses {at:.4f} ({per_type}), elsewhere {rest:.4f}; refocused "
               f"PSNR near flawed lenses {p_at:.2f} dB, elsewhere {p_rest:.2f} dB")
+        if dropped:
+            print(f"                 {dropped} of the flawed lenses' samples hold mostly another lens' light: "
+                  f"{'refilled' if name.endswith('fill') else 'dropped (not compared)'}")
     if picture is not None and ref.packing == "square":
         before_after(picture, decoded["b lattice"], decoded["c measured"], ref, flawed_em)
     # the render's own error: the error-free frame again with other rays, decoded the same way

@@ -379,6 +379,7 @@ def test_decode_command_writes_the_light_field(small_frames):
     assert list(values.shape) == doc["shape"] and values.shape == weights.shape
     assert values.shape[2:] == (24, 24) and values.shape[0] == values.shape[1] == len(doc["view_offsets_px"])
     assert doc["sampling"] == "measured" and doc["devignetted"] and doc["refocus_slopes"] == [0.0, 0.1]
+    assert isinstance(doc["lenses"]["foreign_light_samples"], int)
     assert np.load(out / "refocus.npy").shape == (2, 24, 24)
     for name in ("views.tif", "mosaic.png", "refocus_0.png", "refocus_1.png"):
         assert (out / name).stat().st_size > 0

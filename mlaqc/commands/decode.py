@@ -198,6 +198,7 @@ def decode_raw(raw: str, spec: DecodeSpec):
     sampling, white_lf = spec.setup["sampling"], spec.setup["white_lf"]
     lf = decode_scene(load_decode_frame(raw, spec.cfg, spec.levels), sampling, spec.setup["offsets"], white_lf, raw)
     check_scene(lf, raw)
+    foreign = 0 if lf.foreign is None else int(np.count_nonzero(lf.foreign))
     if spec.fill:
         lf = filled(lf, lenses=sampling.inside)
     lf = rectangular(lf)
@@ -208,6 +209,7 @@ def decode_raw(raw: str, spec: DecodeSpec):
                         "subimage_radius_px": round(sampling.radius_px, 3),
                         "without_light_field": int(np.count_nonzero(lens_weight == 0)),
                         "reduced_weight": int(np.count_nonzero((lens_weight > 0) & (lens_weight < 1))),
+                        "foreign_light_samples": foreign,
                         "filled": spec.fill}}
     return lf, facts
 
@@ -235,4 +237,11 @@ def _summary(folder: Path, lf, facts: dict[str, Any]) -> str:
     return (f"wrote {folder}: {nv}x{nu} views of {cols}x{rows} lenses ({lf.packing}), sampled on {how}, "
             f"{'devignetted' if facts['devignetted'] else 'not devignetted (no --white)'}; "
             f"{lenses['without_light_field']} lenses without light field, {lenses['reduced_weight']} at reduced "
-            f"weight ({facts['seconds']:.2f} s)")
+            f"weight{_foreign_text(lenses)} ({facts['seconds']:.2f} s)")
+
+
+def _foreign_text(lenses: dict[str, Any]) -> str:
+    n = lenses["foreign_light_samples"]
+    if not n:
+        return ""
+    return f", {n} samples mostly another lens' light {'refilled' if lenses['filled'] else 'dropped'}"

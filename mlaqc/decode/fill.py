@@ -23,9 +23,9 @@ MIN_VIEWS = 9  # views a slope's shifted neighbours must all reach for it to be 
 
 
 def filled(lf: LightField, below: float = 0.5, lenses: np.ndarray | None = None) -> LightField:
-    """Lenses whose weight is under `below` in every view refilled from their neighbours; with `lenses`
-    ((rows, cols) bool: the sampling's `inside`), only those (a lens the frame does not hold is not
-    extrapolated).
+    """Lenses whose weight is under `below` in every view refilled from their neighbours, and the samples
+    dropped as another lens' light (`lf.foreign`) likewise; with `lenses` ((rows, cols) bool: the
+    sampling's `inside`), only those (a lens the frame does not hold is not extrapolated).
 
     A scene off the plane the MLA sees in focus moves across the lenses from view to view (parallax): what
     a lens sees in view u, its neighbour one pitch along x sees in view u + 1/slope (`refocus`'s
@@ -40,7 +40,9 @@ def filled(lf: LightField, below: float = 0.5, lenses: np.ndarray | None = None)
     vals = lf.values.astype(np.float64)
     good = np.where(w >= below, w, 0.0)
     hex_ = lf.packing == "hex"
-    doubted = np.argwhere((w.max(axis=(0, 1)) < below) & (True if lenses is None else lenses))
+    whole = w.max(axis=(0, 1)) < below
+    holed = np.zeros_like(whole) if lf.foreign is None else lf.foreign.any(axis=(0, 1))
+    doubted = np.argwhere((whole | holed) & (True if lenses is None else lenses))
     if not len(doubted):
         return lf
     t, s = doubted[:, 0], doubted[:, 1]
@@ -60,6 +62,10 @@ def filled(lf: LightField, below: float = 0.5, lenses: np.ndarray | None = None)
     use_along, use_plain = (_keeps_own_light(x, own, own_w, level) for x in (along, plain))
     keep_own = (~use_along & ~use_plain)[None, None] | ~reach
     refill = np.where(_expand(use_along[None, None], along), along, plain)
+    if lf.foreign is not None:  # a lens with light of its own: only its foreign samples take the refill
+        part = ~whole[t, s][None, None]
+        keep_own = np.where(part, ~lf.foreign[:, :, t, s] | ~reach, keep_own)
+        refill = np.where(_expand(part, refill), along, refill)
     new_vals, new_w = vals.copy(), w.copy()
     new_vals[:, :, t, s] = np.where(_expand(keep_own, own), own, refill)
     new_w[:, :, t, s] = np.where(keep_own, own_w, 0.5 * den / len(around))

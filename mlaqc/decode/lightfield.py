@@ -20,6 +20,7 @@ from typing import Any
 
 import numpy as np
 
+from mlaqc.decode.foreign import foreign_share, without_foreign_light
 from mlaqc.decode.sampling import LensSampling
 from mlaqc.errors import InputError
 from mlaqc.optics.lattice import SQRT3_2
@@ -36,6 +37,7 @@ class LightField:
     view_offsets_px: np.ndarray  # (n,) pixel offsets of the views from a sub-image centre (both axes)
     packing: str  # the (t, s) grid: 'square', 'hex' (U(m,n) order) or 'rect' (a hex array resampled)
     devignetted: bool = False
+    foreign: np.ndarray | None = None  # (nv, nu, rows, cols) samples dropped as mostly another lens' light
 
     @property
     def spatial_shape(self) -> tuple[int, int]:
@@ -77,7 +79,9 @@ def decode(img: np.ndarray, sampling: LensSampling, offsets_px: np.ndarray) -> L
 def decode_scene(img: np.ndarray, sampling: LensSampling, offsets_px: np.ndarray, white: Any = None,
                  source: str = "the frame") -> LightField:
     """`img`'s light field, divided by the white's (an image, or its LightField decoded at the same samples:
-    a batch decodes its white once) when one is given; InputError when the two differ in colour."""
+    a batch decodes its white once) when one is given; InputError when the two differ in colour. With a
+    white and a sampling that knows the flagged lenses (a report), the samples around them that hold
+    another lens' light are weighed by their own light's share (`mlaqc.decode.foreign`)."""
     lf = decode(img, sampling, offsets_px)
     if white is None:
         return lf
@@ -86,7 +90,10 @@ def decode_scene(img: np.ndarray, sampling: LensSampling, offsets_px: np.ndarray
     if (white.values.ndim == 5) != (lf.values.ndim == 5):
         raise InputError(f"{source} and the white frame differ in colour (one has a colour filter array, the "
                          "other not): they are not of one camera")
-    return devignetted(lf, white)
+    lf = devignetted(lf, white)
+    if sampling.flagged is not None and sampling.flagged.any():
+        lf = without_foreign_light(lf, foreign_share(white, sampling.flagged))
+    return lf
 
 
 def bilinear(img: np.ndarray, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -163,7 +170,7 @@ def rectangular(lf: LightField) -> LightField:
     fr = v_out - r0
     wv, ww = _lerp_rows(wv, ww, r0.astype(int), fr)
     values = np.where(_expand(ww > 0, wv), wv / np.where(_expand(ww, wv) > 0, _expand(ww, wv), 1.0), 0.0)
-    return replace(lf, values=values.astype(np.float32), weights=ww.astype(np.float32), packing="rect")
+    return replace(lf, values=values.astype(np.float32), weights=ww.astype(np.float32), packing="rect", foreign=None)
 
 
 def _lerp_columns(wv: np.ndarray, w: np.ndarray, c0: np.ndarray, frac: np.ndarray):

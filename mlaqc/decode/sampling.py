@@ -51,6 +51,7 @@ class LensSampling:
     image_shape: tuple[int, int]
     source: str  # 'design', 'lattice' or 'measured'
     inside: np.ndarray | None = None  # lenses whose sub-image the frame holds (None: all)
+    flagged: np.ndarray | None = None  # lenses an inspection flagged (measured sampling only)
 
     @property
     def shape(self) -> tuple[int, int]:
@@ -90,7 +91,7 @@ def measured_sampling(grid: Any, report: dict[str, Any]) -> LensSampling:
     x, y = np.where(use, mx, base.x_px), np.where(use, my, base.y_px)
     weight = base.weight * confidence
     return LensSampling(x, y, base.scale, weight, grid.packing, base.pitch_px, base.radius_px, base.image_shape,
-                        "measured", base.inside)
+                        "measured", base.inside, flagged)
 
 
 def report_grid(report: dict[str, Any], source: str) -> Any:

@@ -1,0 +1,99 @@
+"""Samples that hold another lens' light. A flawed lens can send part of its light into a neighbour's
+sub-image and take in part of a neighbour's: a decentered singlet's rear surface meets its neighbours' sags
+off the cell edge, so rays that enter one lens leave through the next, and a lens whose sub-image moved
+sits closer to one neighbour. The white frame shows it: such a sample receives more white than a healthy
+lens there would, the share a healthy lens would not receive being foreign light. Dividing by the white
+keeps the mixture as if it were the lens' own; here it is measured, the sample's confidence lowered by it,
+and samples mostly foreign (under PURITY_MIN own light) dropped, for `fill.filled` to refill.
+
+The healthy expectation is the median white of the lens' unflagged neighbours in the same view (the
+white varies smoothly over the array), judged on the flagged lenses and their neighbours only: elsewhere
+an inspection found nothing that moves light between lenses."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from mlaqc.optics.lattice import neighbour_offsets
+
+if TYPE_CHECKING:
+    from mlaqc.decode.lightfield import LightField
+
+# a sample whose white is more than 1 / PURITY_MIN of a healthy lens' (over a quarter more light) holds
+# mostly what it should not: its weight becomes 0 (measured on the Table 1 texture, bench/decode.py: the
+# decentered lenses' rim samples hold 20-45 % foreign light, their views' worst errors)
+PURITY_MIN = 0.8
+MIN_HEALTHY = 2  # healthy neighbours a lens' expectation needs
+
+
+def foreign_share(white: LightField, flagged: np.ndarray) -> np.ndarray:
+    """Per sample (nv, nu, rows, cols): the share of its white a healthy lens there would not receive,
+    1 - expected / own where the sample has more white than expected; 0 where it has not, where it cannot
+    be judged, and on lenses neither flagged nor beside a flagged one."""
+    w = white.values if white.values.ndim == 4 else white.values.mean(axis=-1)
+    share = np.zeros(w.shape, np.float32)
+    judge = _with_neighbours(flagged, white.packing) & (_healthy_around(flagged, white.packing) >= MIN_HEALTHY)
+    t, s = np.nonzero(judge)
+    if not len(t):
+        return share
+    around = []
+    for tn, sn, ok in _around(white.packing, t, s, flagged.shape):
+        tc, sc = np.where(ok, tn, 0), np.where(ok, sn, 0)
+        healthy = ok & ~flagged[tc, sc]
+        v = w[:, :, tc, sc]
+        around.append(np.where(healthy[None, None] & (white.weights[:, :, tc, sc] > 0) & (v > 0), v, np.nan))
+    expected, count = _nan_median(np.stack(around))
+    own = w[:, :, t, s]
+    judged = (count >= MIN_HEALTHY) & (own > 0) & (white.weights[:, :, t, s] > 0)
+    with np.errstate(all="ignore"):
+        extra = np.where(judged, 1.0 - expected / np.where(own > 0, own, 1.0), 0.0)
+    share[:, :, t, s] = np.clip(extra, 0.0, 1.0)
+    return share
+
+
+def without_foreign_light(lf: LightField, share: np.ndarray) -> LightField:
+    """`lf` with each sample's weight scaled by its own-light share (1 - `share`), samples under PURITY_MIN
+    dropped (weight 0) and marked in `foreign` for a refill."""
+    foreign = (share > 1.0 - PURITY_MIN) & (lf.weights > 0)
+    weights = np.where(foreign, 0.0, lf.weights * (1.0 - share)).astype(np.float32)
+    return replace(lf, weights=weights, foreign=foreign)
+
+
+def _nan_median(stack: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The median over axis 0 of the finite values (NaN where none) and their count: a sort along the few
+    neighbours, three times faster than `np.nanmedian` on these stacks."""
+    a = np.sort(stack, axis=0)  # NaN sorts last
+    n = np.sum(np.isfinite(stack), axis=0)
+    lo = np.take_along_axis(a, np.maximum(n - 1, 0)[None] // 2, axis=0)[0]
+    hi = np.take_along_axis(a, (n // 2)[None], axis=0)[0]
+    return np.where(n > 0, 0.5 * (lo + hi), np.nan), n
+
+
+def _healthy_around(flagged: np.ndarray, packing: str) -> np.ndarray:
+    """Per lens, how many of its neighbours are on the array and not flagged."""
+    t, s = np.nonzero(np.ones_like(flagged))
+    count = np.zeros(flagged.size, int)
+    for tn, sn, ok in _around(packing, t, s, flagged.shape):
+        count += ok & ~flagged[np.where(ok, tn, 0), np.where(ok, sn, 0)]
+    return count.reshape(flagged.shape)
+
+
+def _with_neighbours(flagged: np.ndarray, packing: str) -> np.ndarray:
+    """The flagged lenses and every lattice neighbour of one."""
+    out = flagged.copy()
+    t, s = np.nonzero(flagged)
+    for tn, sn, ok in _around(packing, t, s, flagged.shape):
+        out[tn[ok], sn[ok]] = True
+    return out
+
+
+def _around(packing: str, t: np.ndarray, s: np.ndarray, shape: tuple[int, int]):
+    """Lenses (t, s)' nearest neighbours (square 8, hex 6; `neighbour_offsets`), one (rows, cols, on the
+    array) triple of arrays per neighbour."""
+    steps = np.array([neighbour_offsets(packing, p) for p in (0, 1)])  # (parity, neighbour, (dr, dc))
+    for j in range(steps.shape[1]):
+        tn, sn = t + steps[t % 2, j, 0], s + steps[t % 2, j, 1]
+        yield tn, sn, (tn >= 0) & (tn < shape[0]) & (sn >= 0) & (sn < shape[1])
