@@ -24,7 +24,7 @@ import math
 
 import numpy as np
 
-from mlaqc.optics import lowdisc
+from mlaqc.optics import kernel_sources, lowdisc
 from mlaqc.optics.lattice import SQRT3_2
 from mlaqc.optics.raytrace import INV_ROW_PAIR_HEX
 from mlaqc.optics.scene import FOUR_OVER_PI
@@ -51,6 +51,8 @@ def _identity(fn):
 # ulp or two of the uncontracted NumPy reference. The other fast-math flags would break the NaN (miss)
 # and +-0 handling the kernel relies on.
 _FLAGS = dict(cache=True, nogil=True, error_model="numpy", fastmath={"contract"})
+if AVAILABLE:  # Numba's cache stamped by every source the kernels are compiled from, not this file alone
+    kernel_sources.register(__file__, kernel_sources.TRACER_SOURCES)
 _jit = njit(**_FLAGS) if AVAILABLE else _identity
 _jit_inline = njit(inline="always", **_FLAGS) if AVAILABLE else _identity
 poly_sin = _jit_inline(_poly_sin)

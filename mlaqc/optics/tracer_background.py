@@ -22,10 +22,13 @@ import threading
 from pathlib import Path
 from typing import TextIO
 
+from mlaqc.optics.kernel_sources import TRACER_SOURCES, digest
+
 ENV_SWITCH = "MLAQC_BACKGROUND_COMPILE"
 HERE = Path(__file__).resolve().parent
-# the sources the kernel is compiled from (Numba's own cache key covers only raytrace_kernels.py)
-SOURCES = ("raytrace_kernels.py", "lowdisc.py", "unitcircle.py", "tracer_variants.py")
+# what the compiled variants depend on: the kernels' sources (Numba's cache is stamped with them too,
+# kernel_sources) and the variants' list
+SOURCES = (*TRACER_SOURCES, HERE / "tracer_variants.py")
 # the job waits for the command that started it to end, this long at most (a hyperthread shared with a
 # compile slowed the demo 2.5x even at idle priority)
 WAIT_FOR_STARTER_S = 60.0
@@ -58,8 +61,7 @@ def sources_key() -> str:
     from importlib.metadata import PackageNotFoundError, version
 
     h = hashlib.sha1()
-    for name in SOURCES:
-        h.update((HERE / name).read_bytes())
+    h.update(digest(SOURCES).encode())
     try:
         numba = version("numba")
     except PackageNotFoundError:

@@ -1,0 +1,78 @@
+"""Numba's cache of a kernel module is stale when any source it is compiled from changes
+(mlaqc.optics.kernel_sources): two throw-away modules, a kernel that inlines a helper from the other,
+compiled in fresh processes as a user's commands would be."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+import textwrap
+from pathlib import Path
+
+import pytest
+
+from mlaqc.optics import kernel_sources, tracer_background
+
+pytest.importorskip("numba")
+
+KERNEL = textwrap.dedent("""
+    from pathlib import Path
+    from numba import njit
+    from mlaqc.optics import kernel_sources
+    {register}
+    import helper_mod
+    g = njit(inline="always", cache=True)(helper_mod.f)
+
+    @njit(cache=True)
+    def k(x):
+        return g(x) * 2.0
+""")
+REGISTER = 'kernel_sources.register(__file__, (Path(__file__), Path(__file__).with_name("helper_mod.py")))'
+
+
+def run(folder: Path) -> tuple[str, bool]:
+    """k(1.0) in a fresh process, and whether it came from Numba's cache."""
+    env = {k: v for k, v in os.environ.items() if not k.startswith("NUMBA_CACHE")}
+    env["NUMBA_DEBUG_CACHE"] = "1"
+    out = subprocess.run([sys.executable, "-c", "import kernel_mod; print('k =', kernel_mod.k(1.0))"], cwd=folder,
+                         env=env, capture_output=True, text=True, check=True).stdout
+    value = next(line for line in out.splitlines() if line.startswith("k = "))[4:]
+    return value, "data loaded from" in out
+
+
+@pytest.mark.parametrize("registered", [True, False])
+def test_an_edited_helper_module_recompiles_the_kernel(tmp_path, registered):
+    """Numba alone serves the old machine code after the helper's module changes; registered, the
+    kernel is compiled again."""
+    (tmp_path / "helper_mod.py").write_text("def f(x):\n    return x + 1.0\n")
+    (tmp_path / "kernel_mod.py").write_text(KERNEL.format(register=REGISTER if registered else ""))
+    assert run(tmp_path) == ("4.0", False)
+    assert run(tmp_path) == ("4.0", True)  # the second process loads it from the cache
+    (tmp_path / "helper_mod.py").write_text("def f(x):\n    return x + 100.0\n")
+    assert run(tmp_path) == (("202.0", False) if registered else ("4.0", True))
+
+
+def test_the_tracer_is_stamped_by_everything_it_takes_from_other_modules():
+    """Every name raytrace_kernels imports from an mlaqc module is in its stamp, as a whole module or by
+    name, and the background job's stamp covers the same."""
+    import ast
+
+    path = Path(kernel_sources.__file__).with_name("raytrace_kernels.py")
+    whole = {p.stem for p in kernel_sources.TRACER_SOURCES if not isinstance(p, tuple)}
+    named = {(m.rsplit(".", 1)[1], n) for m, n in (p for p in kernel_sources.TRACER_SOURCES if isinstance(p, tuple))}
+    for node in ast.walk(ast.parse(path.read_text())):
+        if isinstance(node, ast.ImportFrom) and node.module == "mlaqc.optics":
+            assert {a.name for a in node.names} - {"kernel_sources"} <= whole
+        elif isinstance(node, ast.ImportFrom) and (node.module or "").startswith("mlaqc."):
+            module = node.module.rsplit(".", 1)[1]
+            assert module in whole or all((module, a.name) in named for a in node.names), node.module
+    assert set(kernel_sources.TRACER_SOURCES) <= set(tracer_background.SOURCES)
+
+
+def test_the_stamp_follows_a_borrowed_function_and_constant(monkeypatch):
+    from mlaqc.optics import scene
+
+    before = kernel_sources.digest(kernel_sources.TRACER_SOURCES)
+    monkeypatch.setattr(scene, "FOUR_OVER_PI", scene.FOUR_OVER_PI * (1 + 1e-15))
+    assert kernel_sources.digest(kernel_sources.TRACER_SOURCES) != before
