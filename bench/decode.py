@@ -172,8 +172,7 @@ def compare(cfg, scene_name, scene, flawed_em, flawed_lenses, clean_em, rpp, noi
     decoded = {}
     for name, smp in samplings.items():
         lf = decode_scene(img_f, smp, offs, wf)
-        dropped = 0 if lf.foreign is None else int(lf.foreign[:, :, flawed_mask if ref.packing != "rect" else
-                                                                  lens_mask(kinds.shape, flawed_lenses)].sum())
+        dropped = 0 if lf.foreign is None else int(lf.foreign[:, :, lens_mask(kinds.shape, flawed_lenses)].sum())
         if name.endswith("fill"):  # lenses of confidence under 0.5 refilled along the scene's parallax
             lf = filled(lf, lenses=smp.inside)
         lf = rectangular(lf)  # (as `mlaqc decode`: filled on the array's own lattice, then resampled)

@@ -11,10 +11,9 @@ import numpy as np
 import pytest
 
 from mlaqc.decode.fill import filled
-from mlaqc.decode.foreign import PURITY_MIN, _nan_median, _with_neighbours, foreign_share
-from mlaqc.decode.lightfield import decode, decode_scene, view_offsets
+from mlaqc.decode.foreign import PURITY_MIN, _nan_median, foreign_share, without_foreign_light
+from mlaqc.decode.lightfield import LightField, decode, decode_scene, devignetted, view_offsets
 from mlaqc.decode.sampling import measured_sampling
-from mlaqc.optics.lattice import Lattice
 from test_decode import RADIUS, centres, frame, sampling_at
 
 LENS = (4, 5)  # 0-based: U(5,6)
@@ -118,17 +117,42 @@ def test_without_a_report_nothing_is_judged():
                                rtol=1e-5)
 
 
-@pytest.mark.parametrize("packing", ["square", "hex"])
-def test_the_lenses_judged_are_the_flagged_ones_and_their_neighbours(packing):
-    lat = Lattice(packing, 7, 8, 1.0)
-    flagged = np.zeros((7, 8), bool)
-    flagged[3, 4] = flagged[0, 0] = True
-    got = _with_neighbours(flagged, packing)
-    nb = lat.neighbours()
-    want = flagged.ravel().copy()
-    for k in np.flatnonzero(flagged):
-        want[nb[k][nb[k] >= 0]] = True
-    np.testing.assert_array_equal(got.ravel(), want)
+@pytest.mark.parametrize("packing, colour", [("hex", False), ("square", True), ("hex", True)])
+def test_foreign_light_on_either_lattice_in_colour_and_at_the_edge(packing, colour):
+    """Light fields given directly: two flagged lenses, one on the array's first row (neighbours on one
+    side), take half a white's worth of another lens' light in their views u >= 2; a third is brighter
+    all over (more transmission), which is not foreign light. The scene is linear across the row (the
+    neighbours' mean is exact, on hex too: the next row's two sit half a pitch either side)."""
+    rows, cols, n = 6, 7, 9
+    o = np.arange(n, dtype=float) - n // 2
+    t, s = np.mgrid[0:rows, 0:cols].astype(float)
+    x = s + (0.5 * (t % 2) if packing == "hex" else 0.0)
+    truth = np.broadcast_to(1.0 + 0.1 * x, (n, n, rows, cols)).copy()
+    white = np.ones((n, n, rows, cols))
+    rim = np.broadcast_to(o[None, :, None, None] >= 2, white.shape)
+    flagged = np.zeros((rows, cols), bool)
+    for m, c in ((0, 3), (3, 3)):
+        flagged[m, c] = True
+        white[:, :, m, c] += 0.5 * rim[:, :, m, c]
+    flagged[3, 5] = True
+    white[:, :, 3, 5] *= 1.4  # brighter all over
+    scene = truth * white + np.where(white > 1.2, 0.5 * FOREIGN_RADIANCE, 0.0) * (rim & flagged[None, None])
+    scene[:, :, 3, 5] = truth[:, :, 3, 5] * white[:, :, 3, 5]
+    if colour:
+        tint = np.array([1.0, 0.5, 2.0])
+        white, scene, truth = white[..., None] * tint, scene[..., None] * tint, truth[..., None] * np.ones(3)
+    ones = np.ones((n, n, rows, cols), np.float32)
+    w_lf = LightField(white.astype(np.float32), ones, o, packing)
+    lf = devignetted(LightField(scene.astype(np.float32), ones, o, packing), w_lf)
+    lf = without_foreign_light(lf, foreign_share(w_lf, flagged))
+    expect = rim & flagged[None, None]
+    expect[:, :, 3, 5] = False
+    np.testing.assert_array_equal(lf.foreign, expect)
+    assert np.all(lf.weights[~expect] == 1.0)
+    out = filled(lf)
+    np.testing.assert_allclose(out.values[expect], truth[expect], rtol=1e-5)
+    assert np.all(out.weights[expect] > 0) and not out.foreign.any()
+    np.testing.assert_array_equal(out.values[~expect], lf.values[~expect])
 
 
 def test_the_median_of_the_neighbours_skips_the_missing_ones():

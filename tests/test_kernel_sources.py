@@ -28,7 +28,7 @@ KERNEL = textwrap.dedent("""
     def k(x):
         return g(x) * 2.0
 """)
-REGISTER = 'kernel_sources.register(__file__, (Path(__file__), Path(__file__).with_name("helper_mod.py")))'
+REGISTER = 'kernel_sources.register(__file__, (Path(__file__), "helper_mod"))'
 
 
 def run(folder: Path) -> tuple[str, bool]:
@@ -59,15 +59,28 @@ def test_the_tracer_is_stamped_by_everything_it_takes_from_other_modules():
     import ast
 
     path = Path(kernel_sources.__file__).with_name("raytrace_kernels.py")
-    whole = {p.stem for p in kernel_sources.TRACER_SOURCES if not isinstance(p, tuple)}
-    named = {(m.rsplit(".", 1)[1], n) for m, n in (p for p in kernel_sources.TRACER_SOURCES if isinstance(p, tuple))}
+    srcs = kernel_sources.TRACER_SOURCES
+    whole = {s.rsplit(".", 1)[1] for s in srcs if isinstance(s, str)}
+    named = {(m.rsplit(".", 1)[1], n) for m, n in (s for s in srcs if isinstance(s, tuple))}
+    assert path in srcs
     for node in ast.walk(ast.parse(path.read_text())):
         if isinstance(node, ast.ImportFrom) and node.module == "mlaqc.optics":
             assert {a.name for a in node.names} - {"kernel_sources"} <= whole
         elif isinstance(node, ast.ImportFrom) and (node.module or "").startswith("mlaqc."):
             module = node.module.rsplit(".", 1)[1]
             assert module in whole or all((module, a.name) in named for a in node.names), node.module
-    assert set(kernel_sources.TRACER_SOURCES) <= set(tracer_background.SOURCES)
+    assert set(srcs) <= set(tracer_background.SOURCES)
+
+
+def test_registering_again_keeps_one_locator_in_front():
+    """A second registration (a module reloaded) replaces the first locator, and Numba's own stay."""
+    from numba.core import caching
+
+    before = [c for c in caching.CacheImpl._locator_classes if not hasattr(c, "_mlaqc_sources_locator")]
+    kernel_sources.register(kernel_sources.TRACER_SOURCES[0], kernel_sources.TRACER_SOURCES)
+    kernel_sources.register(kernel_sources.TRACER_SOURCES[0], kernel_sources.TRACER_SOURCES)
+    now = caching.CacheImpl._locator_classes
+    assert hasattr(now[0], "_mlaqc_sources_locator") and now[1:] == before
 
 
 def test_the_stamp_follows_a_borrowed_function_and_constant(monkeypatch):
@@ -76,3 +89,15 @@ def test_the_stamp_follows_a_borrowed_function_and_constant(monkeypatch):
     before = kernel_sources.digest(kernel_sources.TRACER_SOURCES)
     monkeypatch.setattr(scene, "FOUR_OVER_PI", scene.FOUR_OVER_PI * (1 + 1e-15))
     assert kernel_sources.digest(kernel_sources.TRACER_SOURCES) != before
+
+
+def test_the_stamp_is_the_loaded_code_not_the_file(tmp_path, monkeypatch):
+    """A module edited on disk after this process imported it: the stamp stays that of the code loaded,
+    so what this process compiles is not saved as the new file's."""
+    (tmp_path / "loaded_mod.py").write_text("def f(x):\n    return x + 1.0\n")
+    monkeypatch.syspath_prepend(str(tmp_path))
+    import loaded_mod  # noqa: F401
+
+    before = kernel_sources.digest(("loaded_mod",))
+    (tmp_path / "loaded_mod.py").write_text("def f(x):\n    return x + 2.0\n")
+    assert kernel_sources.digest(("loaded_mod",)) == before

@@ -10,7 +10,7 @@ import socket
 import sys
 import time
 import uuid
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -201,7 +201,8 @@ def decode_raw(raw: str, spec: DecodeSpec):
     foreign = 0 if lf.foreign is None else int(np.count_nonzero(lf.foreign))
     if spec.fill:
         lf = filled(lf, lenses=sampling.inside)
-    lf = rectangular(lf)
+    unfilled = 0 if lf.foreign is None else int(np.count_nonzero(lf.foreign))
+    lf = replace(rectangular(lf), foreign=None)  # counted: not carried further (a Dask worker returns it)
     lens_weight = sampling.weight
     facts = {"sampling": sampling.source, "devignetted": white_lf is not None,  # (the source: decoded_here's)
              "lenses": {"rows": int(sampling.shape[0]), "cols": int(sampling.shape[1]),
@@ -209,7 +210,7 @@ def decode_raw(raw: str, spec: DecodeSpec):
                         "subimage_radius_px": round(sampling.radius_px, 3),
                         "without_light_field": int(np.count_nonzero(lens_weight == 0)),
                         "reduced_weight": int(np.count_nonzero((lens_weight > 0) & (lens_weight < 1))),
-                        "foreign_light_samples": foreign,
+                        "foreign_light_samples": foreign, "foreign_light_refilled": foreign - unfilled,
                         "filled": spec.fill}}
     return lf, facts
 
@@ -241,7 +242,8 @@ def _summary(folder: Path, lf, facts: dict[str, Any]) -> str:
 
 
 def _foreign_text(lenses: dict[str, Any]) -> str:
-    n = lenses["foreign_light_samples"]
+    n, refilled = lenses["foreign_light_samples"], lenses["foreign_light_refilled"]
     if not n:
         return ""
-    return f", {n} samples mostly another lens' light {'refilled' if lenses['filled'] else 'dropped'}"
+    return (f", {n} samples mostly another lens' light dropped"
+            + (f" ({refilled} refilled from the neighbours)" if lenses["filled"] else ""))

@@ -69,7 +69,8 @@ def filled(lf: LightField, below: float = 0.5, lenses: np.ndarray | None = None)
     new_vals, new_w = vals.copy(), w.copy()
     new_vals[:, :, t, s] = np.where(_expand(keep_own, own), own, refill)
     new_w[:, :, t, s] = np.where(keep_own, own_w, 0.5 * den / len(around))
-    return replace(lf, values=new_vals.astype(np.float32), weights=new_w.astype(np.float32))
+    foreign = None if lf.foreign is None else lf.foreign & (new_w == 0)  # those no neighbour could refill
+    return replace(lf, values=new_vals.astype(np.float32), weights=new_w.astype(np.float32), foreign=foreign)
 
 
 def _neighbours(hex_: bool, t: np.ndarray, s: np.ndarray, rows: int, cols: int, diagonal: bool):

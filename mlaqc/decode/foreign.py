@@ -17,7 +17,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from mlaqc.optics.lattice import neighbour_offsets
+from mlaqc.optics.lattice import Lattice
 
 if TYPE_CHECKING:
     from mlaqc.decode.lightfield import LightField
@@ -32,25 +32,33 @@ MIN_HEALTHY = 2  # healthy neighbours a lens' expectation needs
 def foreign_share(white: LightField, flagged: np.ndarray) -> np.ndarray:
     """Per sample (nv, nu, rows, cols): the share of its white a healthy lens there would not receive,
     1 - expected / own where the sample has more white than expected; 0 where it has not, where it cannot
-    be judged, and on lenses neither flagged nor beside a flagged one."""
+    be judged, and on lenses neither flagged nor beside a flagged one. A lens brighter all over (more
+    transmission, a larger pupil image) is not foreign light: its samples are judged against its median
+    excess, foreign light being where a lens has more than the rest of it."""
     w = white.values if white.values.ndim == 4 else white.values.mean(axis=-1)
     share = np.zeros(w.shape, np.float32)
-    judge = _with_neighbours(flagged, white.packing) & (_healthy_around(flagged, white.packing) >= MIN_HEALTHY)
-    t, s = np.nonzero(judge)
-    if not len(t):
+    rows, cols = flagged.shape
+    nb = Lattice(white.packing, rows, cols).neighbours()  # (lenses, k) flat indices, -1 off the array
+    flat = flagged.ravel()
+    healthy = (nb >= 0) & ~flat[np.maximum(nb, 0)]
+    near = flat.copy()
+    near[nb[flat][nb[flat] >= 0]] = True
+    k = np.flatnonzero(near & (healthy.sum(axis=1) >= MIN_HEALTHY))
+    if not len(k):
         return share
-    around = []
-    for tn, sn, ok in _around(white.packing, t, s, flagged.shape):
-        tc, sc = np.where(ok, tn, 0), np.where(ok, sn, 0)
-        healthy = ok & ~flagged[tc, sc]
-        v = w[:, :, tc, sc]
-        around.append(np.where(healthy[None, None] & (white.weights[:, :, tc, sc] > 0) & (v > 0), v, np.nan))
+    t, s = np.divmod(k, cols)
+    wf, ww = w.reshape(w.shape[:2] + (-1,)), white.weights.reshape(w.shape[:2] + (-1,))
+    around = [np.where(healthy[k, j][None, None] & (ww[:, :, nb[k, j]] > 0) & (wf[:, :, nb[k, j]] > 0),
+                       wf[:, :, nb[k, j]], np.nan) for j in range(nb.shape[1])]
     expected, count = _nan_median(np.stack(around))
     own = w[:, :, t, s]
     judged = (count >= MIN_HEALTHY) & (own > 0) & (white.weights[:, :, t, s] > 0)
     with np.errstate(all="ignore"):
-        extra = np.where(judged, 1.0 - expected / np.where(own > 0, own, 1.0), 0.0)
-    share[:, :, t, s] = np.clip(extra, 0.0, 1.0)
+        ratio = np.where(judged, own / expected, np.nan)
+    typical, _ = _nan_median(ratio.reshape(-1, len(k)))
+    ratio = ratio / np.maximum(np.nan_to_num(typical, nan=1.0), 1.0)[None, None]
+    with np.errstate(all="ignore"):
+        share[:, :, t, s] = np.where(judged, np.clip(1.0 - 1.0 / ratio, 0.0, 1.0), 0.0)
     return share
 
 
@@ -70,30 +78,3 @@ def _nan_median(stack: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     lo = np.take_along_axis(a, np.maximum(n - 1, 0)[None] // 2, axis=0)[0]
     hi = np.take_along_axis(a, (n // 2)[None], axis=0)[0]
     return np.where(n > 0, 0.5 * (lo + hi), np.nan), n
-
-
-def _healthy_around(flagged: np.ndarray, packing: str) -> np.ndarray:
-    """Per lens, how many of its neighbours are on the array and not flagged."""
-    t, s = np.nonzero(np.ones_like(flagged))
-    count = np.zeros(flagged.size, int)
-    for tn, sn, ok in _around(packing, t, s, flagged.shape):
-        count += ok & ~flagged[np.where(ok, tn, 0), np.where(ok, sn, 0)]
-    return count.reshape(flagged.shape)
-
-
-def _with_neighbours(flagged: np.ndarray, packing: str) -> np.ndarray:
-    """The flagged lenses and every lattice neighbour of one."""
-    out = flagged.copy()
-    t, s = np.nonzero(flagged)
-    for tn, sn, ok in _around(packing, t, s, flagged.shape):
-        out[tn[ok], sn[ok]] = True
-    return out
-
-
-def _around(packing: str, t: np.ndarray, s: np.ndarray, shape: tuple[int, int]):
-    """Lenses (t, s)' nearest neighbours (square 8, hex 6; `neighbour_offsets`), one (rows, cols, on the
-    array) triple of arrays per neighbour."""
-    steps = np.array([neighbour_offsets(packing, p) for p in (0, 1)])  # (parity, neighbour, (dr, dc))
-    for j in range(steps.shape[1]):
-        tn, sn = t + steps[t % 2, j, 0], s + steps[t % 2, j, 1]
-        yield tn, sn, (tn >= 0) & (tn < shape[0]) & (sn >= 0) & (sn < shape[1])
