@@ -170,7 +170,8 @@ def rectangular(lf: LightField) -> LightField:
     fr = v_out - r0
     wv, ww = _lerp_rows(wv, ww, r0.astype(int), fr)
     values = np.where(_expand(ww > 0, wv), wv / np.where(_expand(ww, wv) > 0, _expand(ww, wv), 1.0), 0.0)
-    return replace(lf, values=values.astype(np.float32), weights=ww.astype(np.float32), packing="rect", foreign=None)
+    return replace(lf, values=values.astype(np.float32), weights=ww.astype(np.float32), packing="rect",
+                   foreign=None)
 
 
 def _lerp_columns(wv: np.ndarray, w: np.ndarray, c0: np.ndarray, frac: np.ndarray):
