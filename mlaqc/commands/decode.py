@@ -169,6 +169,7 @@ def _setup(args: argparse.Namespace, cfg: Any, levels) -> dict[str, Any]:
     """The sampling (from the grid, the white's calibration, or the report) and the white's light field."""
     from mlaqc.commands.inspect import shared_grid
     from mlaqc.decode import sampling as smp
+    from mlaqc.decode.foreign import foreign_share
     from mlaqc.decode.frames import averaged
     from mlaqc.decode.lightfield import decode, view_offsets
 
@@ -186,7 +187,9 @@ def _setup(args: argparse.Namespace, cfg: Any, levels) -> dict[str, Any]:
         sampling = smp.lattice_sampling(grid)
     offsets = view_offsets(sampling.radius_px, args.views)
     white_lf = decode(averaged(list(args.white), cfg, levels), sampling, offsets) if args.white else None
-    return {"sampling": sampling, "offsets": offsets, "white_lf": white_lf}
+    judged = white_lf is not None and sampling.flagged is not None and sampling.flagged.any()
+    share = foreign_share(white_lf, sampling.flagged) if judged else None  # once, for every frame
+    return {"sampling": sampling, "offsets": offsets, "white_lf": white_lf, "foreign_share": share}
 
 
 def decode_raw(raw: str, spec: DecodeSpec):
@@ -196,7 +199,8 @@ def decode_raw(raw: str, spec: DecodeSpec):
     from mlaqc.decode.lightfield import decode_scene, rectangular
 
     sampling, white_lf = spec.setup["sampling"], spec.setup["white_lf"]
-    lf = decode_scene(load_decode_frame(raw, spec.cfg, spec.levels), sampling, spec.setup["offsets"], white_lf, raw)
+    lf = decode_scene(load_decode_frame(raw, spec.cfg, spec.levels), sampling, spec.setup["offsets"], white_lf, raw,
+                      spec.setup["foreign_share"])
     check_scene(lf, raw)
     foreign = 0 if lf.foreign is None else int(np.count_nonzero(lf.foreign))
     if spec.fill:

@@ -77,11 +77,12 @@ def decode(img: np.ndarray, sampling: LensSampling, offsets_px: np.ndarray) -> L
 
 
 def decode_scene(img: np.ndarray, sampling: LensSampling, offsets_px: np.ndarray, white: Any = None,
-                 source: str = "the frame") -> LightField:
+                 source: str = "the frame", share: np.ndarray | None = None) -> LightField:
     """`img`'s light field, divided by the white's (an image, or its LightField decoded at the same samples:
     a batch decodes its white once) when one is given; InputError when the two differ in colour. With a
     white and a sampling that knows the flagged lenses (a report), the samples around them that hold
-    another lens' light are weighed by their own light's share (`mlaqc.decode.foreign`)."""
+    another lens' light are weighed by their own light's share (`mlaqc.decode.foreign`; `share`: that
+    white's `foreign_share`, which a batch computes once)."""
     lf = decode(img, sampling, offsets_px)
     if white is None:
         return lf
@@ -92,7 +93,7 @@ def decode_scene(img: np.ndarray, sampling: LensSampling, offsets_px: np.ndarray
                          "other not): they are not of one camera")
     lf = devignetted(lf, white)
     if sampling.flagged is not None and sampling.flagged.any():
-        lf = without_foreign_light(lf, foreign_share(white, sampling.flagged))
+        lf = without_foreign_light(lf, foreign_share(white, sampling.flagged) if share is None else share)
     return lf
 
 
