@@ -101,3 +101,21 @@ def test_the_stamp_is_the_loaded_code_not_the_file(tmp_path, monkeypatch):
     before = kernel_sources.digest(("loaded_mod",))
     (tmp_path / "loaded_mod.py").write_text("def f(x):\n    return x + 2.0\n")
     assert kernel_sources.digest(("loaded_mod",)) == before
+
+
+def test_a_module_of_jitted_helpers_is_stamped_by_their_code(tmp_path, monkeypatch):
+    """A module whose helpers are Numba dispatchers (as one split off raytrace_kernels would be): its stamp
+    follows their Python code."""
+    import importlib
+
+    monkeypatch.syspath_prepend(str(tmp_path))
+    monkeypatch.setattr(sys, "dont_write_bytecode", True)
+    path = tmp_path / "jit_helpers_mod.py"
+    digests = []
+    for body in ("x + 1.0", "x + 200.0"):
+        path.write_text(f"from numba import njit\n\n\n@njit(inline='always')\ndef f(x):\n    return {body}\n")
+        module = (importlib.reload(sys.modules["jit_helpers_mod"]) if digests
+                  else importlib.import_module("jit_helpers_mod"))
+        assert hasattr(module.f, "py_func")
+        digests.append(kernel_sources.digest(("jit_helpers_mod",)))
+    assert digests[0] != digests[1]

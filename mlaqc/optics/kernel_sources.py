@@ -71,7 +71,9 @@ def digest(sources: tuple) -> str:
 
 def _feed(h, label: str, value) -> None:
     """One labelled item into the hash, length-prefixed: a function's compiled code, an array's dtype,
-    shape and bytes, bytes as they are, a number or string by repr; anything else (modules, classes) not."""
+    shape and bytes, bytes as they are, a number or string by repr; anything else (modules, classes) not.
+    A Numba dispatcher counts as the Python function it compiles."""
+    value = getattr(value, "py_func", value)
     if isinstance(value, types.FunctionType):
         data = _code_bytes(value.__code__)
     elif isinstance(value, np.ndarray):
