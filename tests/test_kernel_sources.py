@@ -28,7 +28,27 @@ KERNEL = textwrap.dedent("""
     def k(x):
         return g(x) * 2.0
 """)
-REGISTER = 'kernel_sources.register(__file__, (Path(__file__), "helper_mod"))'
+REGISTER = 'kernel_sources.register((Path(__file__), "helper_mod"))'
+# the tracer's layout: the first kernel file imported registers every kernel file, a helper file's own
+# functions are jitted there, and the kernel inlines them from it
+JIT_MOD = textwrap.dedent("""
+    from pathlib import Path
+    from numba import njit
+    from mlaqc.optics import kernel_sources
+    HERE = Path(__file__).resolve().parent
+    kernel_sources.register((HERE / "kernel_mod.py", HERE / "helper_mod.py"))
+    inline = njit(inline="always", cache=True)
+""")
+HELPER_FILE = "from jit_mod import inline\n\n@inline\ndef f(x):\n    return x + {}\n"
+KERNEL_OF_FILES = textwrap.dedent("""
+    from numba import njit
+    from jit_mod import inline
+    from helper_mod import f
+
+    @njit(cache=True)
+    def k(x):
+        return f(x) * 2.0
+""")
 
 
 def run(folder: Path) -> tuple[str, bool]:
@@ -53,22 +73,40 @@ def test_an_edited_helper_module_recompiles_the_kernel(tmp_path, registered):
     assert run(tmp_path) == (("202.0", False) if registered else ("4.0", True))
 
 
+def test_a_split_off_helper_file_recompiles_the_kernel_that_inlines_it(tmp_path):
+    """As the tracer is laid out (kernel_jit registers kernel_geometry, kernel_sampling and
+    raytrace_kernels): an edit to a jitted helper's own file recompiles the kernel in another file."""
+    (tmp_path / "jit_mod.py").write_text(JIT_MOD)
+    (tmp_path / "helper_mod.py").write_text(HELPER_FILE.format("1.0"))
+    (tmp_path / "kernel_mod.py").write_text(KERNEL_OF_FILES)
+    assert run(tmp_path) == ("4.0", False)
+    assert run(tmp_path) == ("4.0", True)
+    (tmp_path / "helper_mod.py").write_text(HELPER_FILE.format("100.0"))
+    assert run(tmp_path) == ("202.0", False)
+
+
 def test_the_tracer_is_stamped_by_everything_it_takes_from_other_modules():
-    """Every name raytrace_kernels imports from an mlaqc module is in its stamp, as a whole module or by
-    name, and the background job's stamp covers the same."""
+    """Every name a kernel file imports from an mlaqc module is in the stamp, as a kernel file, a whole
+    module or by name; every module that jits tracer code is a kernel file; the background job's stamp
+    covers the same."""
     import ast
 
-    path = Path(kernel_sources.__file__).with_name("raytrace_kernels.py")
     srcs = kernel_sources.TRACER_SOURCES
-    whole = {s.rsplit(".", 1)[1] for s in srcs if isinstance(s, str)}
+    files = {p.stem for p in kernel_sources.KERNEL_FILES}
+    whole = {s.rsplit(".", 1)[1] for s in srcs if isinstance(s, str)} | files
     named = {(m.rsplit(".", 1)[1], n) for m, n in (s for s in srcs if isinstance(s, tuple))}
-    assert path in srcs
-    for node in ast.walk(ast.parse(path.read_text())):
-        if isinstance(node, ast.ImportFrom) and node.module == "mlaqc.optics":
-            assert {a.name for a in node.names} - {"kernel_sources"} <= whole
-        elif isinstance(node, ast.ImportFrom) and (node.module or "").startswith("mlaqc."):
-            module = node.module.rsplit(".", 1)[1]
-            assert module in whole or all((module, a.name) in named for a in node.names), node.module
+    assert files == {"kernel_jit", "kernel_geometry", "kernel_sampling", "raytrace_kernels"}
+    assert all(p in srcs and p.exists() for p in kernel_sources.KERNEL_FILES)
+    for path in kernel_sources.KERNEL_FILES:
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, ast.ImportFrom) and node.module == "mlaqc.optics":
+                assert {a.name for a in node.names} - {"kernel_sources"} <= whole
+            elif isinstance(node, ast.ImportFrom) and (node.module or "").startswith("mlaqc."):
+                module = node.module.rsplit(".", 1)[1]
+                assert module in whole or all((module, a.name) in named for a in node.names), node.module
+    jitting = {p.stem for p in Path(kernel_sources.__file__).parent.glob("*.py")
+               if "from mlaqc.optics.kernel_jit import" in p.read_text()}
+    assert jitting <= files
     assert set(srcs) <= set(tracer_background.SOURCES)
 
 
@@ -77,8 +115,8 @@ def test_registering_again_keeps_one_locator_in_front():
     from numba.core import caching
 
     before = [c for c in caching.CacheImpl._locator_classes if not hasattr(c, "_mlaqc_sources_locator")]
-    kernel_sources.register(kernel_sources.TRACER_SOURCES[0], kernel_sources.TRACER_SOURCES)
-    kernel_sources.register(kernel_sources.TRACER_SOURCES[0], kernel_sources.TRACER_SOURCES)
+    kernel_sources.register(kernel_sources.TRACER_SOURCES)
+    kernel_sources.register(kernel_sources.TRACER_SOURCES)
     now = caching.CacheImpl._locator_classes
     assert hasattr(now[0], "_mlaqc_sources_locator") and now[1:] == before
 

@@ -22,7 +22,7 @@ from numba.core import ssa  # noqa: E402
 from numba.core.types import functions as numba_functions  # noqa: E402
 
 from mlaqc import numba_callee_ir, numba_liveness, numba_ssa, numba_typing_memo  # noqa: E402
-from mlaqc.optics import raytrace_kernels  # noqa: E402
+from mlaqc.optics import kernel_geometry, kernel_jit, raytrace_kernels  # noqa: E402
 
 ORIGINAL = analysis.compute_live_map
 ORIGINAL_SSA = ssa._run_ssa
@@ -202,8 +202,8 @@ def _machine_code(dispatcher) -> list[str]:
 def _surface_hit_compiled(remember: bool, counter: list) -> tuple:
     """A tracer function (inlined helpers, a None lattice, a rotation table) compiled afresh, with Numba's
     call typing counted; (its result, its machine code)."""
-    flags = {k: v for k, v in raytrace_kernels._FLAGS.items() if k != "cache"}
-    fresh = numba.njit(**flags)(raytrace_kernels.surface_hit.py_func)
+    flags = {k: v for k, v in kernel_jit.FLAGS.items() if k != "cache"}
+    fresh = numba.njit(**flags)(kernel_geometry.surface_hit.py_func)
     args = (0.1, 0.2, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.5, 2.0, 0.0, 0.0, np.eye(3)[None].copy(), 0, 0.0, 0.0,
             10.0, 4.0, 4.0, None)
     if remember:

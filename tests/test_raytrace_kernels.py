@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from mlaqc.optics import raytrace_kernels
+from mlaqc.optics import kernel_jit, kernel_layout, raytrace_kernels
 from mlaqc.optics.config import load_config
 from mlaqc.optics.errormap import ErrorMap
 from mlaqc.optics.render import Renderer, _bin_patch
@@ -115,7 +115,7 @@ def _sparse_defects(packing: str, shape: tuple[int, int], seed: int) -> ErrorMap
 
 def _exhaustive(r: Renderer) -> Renderer:
     """The renderer with pruning off: every doubted ray scans all its candidates (the reference path)."""
-    r.fast.base[raytrace_kernels.S_PRUNE] = 0.0
+    r.fast.base[kernel_layout.S_PRUNE] = 0.0
     return r
 
 
@@ -146,13 +146,13 @@ def test_pruned_retrace_renders_the_exhaustive_image_bit_for_bit(packing, mla, e
 
 def test_hits_come_in_ray_order_with_their_bounding_box():
     r = Renderer(SMALL, _harsh_errors(), engine="numba")
-    rows, cols, w, box = r.fast.trace_hits(raytrace_kernels.IMAGE_SIDE, 11, 30_000, tile=(-0.4, 0.1, 0.2, 0.5))
-    idx, w2 = r.fast.trace(raytrace_kernels.IMAGE_SIDE, 11, 30_000, tile=(-0.4, 0.1, 0.2, 0.5))
+    rows, cols, w, box = r.fast.trace_hits(kernel_layout.IMAGE_SIDE, 11, 30_000, tile=(-0.4, 0.1, 0.2, 0.5))
+    idx, w2 = r.fast.trace(kernel_layout.IMAGE_SIDE, 11, 30_000, tile=(-0.4, 0.1, 0.2, 0.5))
     assert len(w) > 20_000 and np.all(w > 0)
     assert list(box) == [rows.min(), rows.max(), cols.min(), cols.max()]
     assert np.array_equal(idx, rows.astype(np.int64) * SMALL.sensor.width_px + cols) and np.array_equal(w, w2)
     # counter-based draws: a batch's first rays do not depend on how many rays follow them
-    idx_short, _ = r.fast.trace(raytrace_kernels.IMAGE_SIDE, 11, 1000, tile=(-0.4, 0.1, 0.2, 0.5))
+    idx_short, _ = r.fast.trace(kernel_layout.IMAGE_SIDE, 11, 1000, tile=(-0.4, 0.1, 0.2, 0.5))
     assert np.array_equal(idx_short, idx[:len(idx_short)])
 
 
@@ -175,5 +175,5 @@ def test_the_silenced_numba_ssa_warning_matches_numbas_own_message():
     the warnings reached the user on every first compile of the sag-intersection tracer)."""
     errors = pytest.importorskip("numba.core.errors")
     message = str(errors.NumbaIRAssumptionWarning("variable 'v_own_edge_hex_v1' is not in scope."))
-    assert re.match(raytrace_kernels.SSA_SCOPE_WARNING, message, re.I)
-    assert not re.match(raytrace_kernels.SSA_SCOPE_WARNING, "variable 'x' is undefined", re.I)
+    assert re.match(kernel_jit.SSA_SCOPE_WARNING, message, re.I)
+    assert not re.match(kernel_jit.SSA_SCOPE_WARNING, "variable 'x' is undefined", re.I)

@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 from mlaqc import numba_inliner
-from mlaqc.optics import raytrace_kernels
+from mlaqc.optics import kernel_layout, kernel_sampling, raytrace_kernels
 from mlaqc.optics.config import config_from_dict, load_config
 from mlaqc.optics.errormap import ErrorMap
 from mlaqc.optics.render import Renderer
@@ -28,7 +28,7 @@ pytestmark = pytest.mark.skipif(not raytrace_kernels.AVAILABLE, reason="needs nu
 
 def _signature(renderer: Renderer, texture=None) -> tuple:
     """The kernel and Numba argument types one batch of this renderer calls (what selects a compiled variant)."""
-    trace, args = renderer.fast.call(raytrace_kernels.IMAGE_SIDE, 0, 8, texture=texture)
+    trace, args = renderer.fast.call(kernel_layout.IMAGE_SIDE, 0, 8, texture=texture)
     return trace.__name__, tuple(trace.typeof_pyval(a) for a in args)
 
 
@@ -146,13 +146,14 @@ def _ir_objects(x, out: set) -> set:
     return out
 
 
-@pytest.mark.parametrize("name", ["kernel", "kernel_sag", "stage1_forward", "scan_candidates", "bin_hits"])
+@pytest.mark.parametrize("name", ["kernel", "kernel_sag", "scan_candidates", "bin_hits", "sampling.stage1_forward"])
 def test_the_inliners_copy_is_copy_deepcopys_object_for_object(name):
     """numba_inliner.ir_deepcopy copies a whole IR, block by block through one memo as the inliner does,
     into the same object graph as copy.deepcopy: types, values, which objects are shared, nothing original."""
     from numba.core.compiler import run_frontend
 
-    blocks = run_frontend(getattr(raytrace_kernels, name).py_func).blocks
+    module, _, name = name.rpartition(".")
+    blocks = run_frontend(getattr(kernel_sampling if module else raytrace_kernels, name).py_func).blocks
     theirs_memo, ours_memo = {}, {}
     theirs = {label: copy.deepcopy(block, theirs_memo) for label, block in blocks.items()}
     ours = {label: numba_inliner.ir_deepcopy(block, ours_memo) for label, block in blocks.items()}

@@ -16,14 +16,14 @@ from mlaqc.numba_liveness import bitset_liveness
 from mlaqc.numba_ssa import ssa_skipping_blocks
 from mlaqc.numba_typing_memo import remembered_call_types
 from mlaqc.optics.scene import FOUR_OVER_PI
-from mlaqc.optics.raytrace_kernels import (
-    AVAILABLE, HEX_DIRS, IMAGE_SIDE, NO_TEXTURE, SQUARE_DIRS, bin_hits, kernel, kernel_sag)
-from mlaqc.optics.raytrace_kernels import (  # the settings' indices
+from mlaqc.optics.kernel_layout import IMAGE_SIDE, NO_TEXTURE
+from mlaqc.optics.kernel_layout import (  # the settings' indices
     S_AX0, S_AY0, S_C1, S_C2, S_CB, S_CBW, S_CC0, S_CLEAR, S_CLEARGAP, S_COLS, S_COUNT, S_CR0, S_FRES, S_GROT, S_H,
     S_HALFBM, S_INVKR, S_INVP, S_INVPIX, S_J0, S_MODE, S_N, S_NMLA, S_P, S_PCOLS, S_PIX, S_PRUNE, S_PX, S_PY, S_R00,
     S_R01, S_R10, S_R11, S_RCIRC2, S_RIM2, S_ROWS, S_RPUPIL, S_SHIFTX, S_SHIFTY, S_SOBOL, S_SQUARE, S_SQW, S_SX0,
     S_SY0, S_T, S_TEXHX, S_TEXHY, S_TEXTURE, S_W, S_X0, S_X1, S_Y0, S_Y1, S_ZEXIT, S_ZFRONT, S_ZMLA, S_ZOBJ,
     S_ZSENS, S_ZSTART)
+from mlaqc.optics.raytrace_kernels import AVAILABLE, HEX_DIRS, SQUARE_DIRS, bin_hits, kernel, kernel_sag
 
 
 def pair_limits(mla) -> np.ndarray:

@@ -1,15 +1,14 @@
-"""Numba's on-disk cache of a kernel module, made stale by anything the kernels are compiled from.
+"""Numba's on-disk cache of the tracer's kernel modules, made stale by anything the kernels are compiled from.
 
-Numba stamps a cached function with its own file only. A kernel inlines helpers and freezes constants
-from other modules (raytrace_kernels takes its sine, its Sobol' generator, the pupil's sampling and
-lattice constants from five), so after an edit to one of those alone, a `git pull` into an editable
-install say, Numba kept loading the old machine code: silently wrong frames. `register(kernels_file,
-sources)` puts a cache locator in front of Numba's own for that file's functions: the cache goes where
-Numba's own locators put it, and its stamp is a digest of the sources as this process loaded them (a
-process that imported a helper before a `git pull` stamps what it compiles with the old helper's code,
-not the new file's). Importing this module does not import Numba (tracer_background reads
-TRACER_SOURCES to check its own stamp).
-"""
+Numba stamps a cached function with its own file only. The tracer's kernels inline helpers and freeze
+constants from other modules (their sine, their Sobol' generator, the pupil's sampling and lattice
+constants), so after an edit to one of those alone, a `git pull` into an editable install say, Numba kept
+loading the old machine code: silently wrong frames. `register(sources)` puts a cache locator in front of
+Numba's own for the functions of the files among `sources`: the cache goes where Numba's own locators put
+it, and its stamp is a digest of the sources as this process loaded them (a process that imported a
+helper before a `git pull` stamps what it compiles with the old helper's code, not the new file's).
+Importing this module does not import Numba (tracer_background reads TRACER_SOURCES to check its own
+stamp)."""
 
 from __future__ import annotations
 
@@ -23,24 +22,30 @@ from pathlib import Path
 import numpy as np
 
 HERE = Path(__file__).resolve().parent
-# what the ray tracer's kernels are compiled from: raytrace_kernels.py itself (a file: it is being
-# imported when it registers), the two modules it takes most of its helpers from (every function and
-# constant they define), and the four names it borrows from three others, whose edits elsewhere (the
-# NumPy tracer, the scenes, the lattice) leave the kernels as they are
-TRACER_SOURCES: tuple = (HERE / "raytrace_kernels.py", "mlaqc.optics.lowdisc", "mlaqc.optics.unitcircle",
-                         ("mlaqc.optics.scene", "aperture_point"), ("mlaqc.optics.scene", "FOUR_OVER_PI"),
-                         ("mlaqc.optics.raytrace", "INV_ROW_PAIR_HEX"), ("mlaqc.optics.lattice", "SQRT3_2"))
+# what the ray tracer's kernels are compiled from: the files of its kernel modules (files: the first of them
+# to be imported registers them all, kernel_jit), the three modules it takes its layout and most of its
+# helpers from (every function and constant they define), and the four names it borrows from three others,
+# whose edits elsewhere (the NumPy tracer, the scenes, the lattice) leave the kernels as they are
+KERNEL_FILES: tuple = tuple(HERE / f"{name}.py" for name in
+                            ("kernel_jit", "kernel_geometry", "kernel_sampling", "raytrace_kernels"))
+TRACER_SOURCES: tuple = (*KERNEL_FILES, "mlaqc.optics.kernel_layout", "mlaqc.optics.lowdisc",
+                         "mlaqc.optics.unitcircle", ("mlaqc.optics.scene", "aperture_point"),
+                         ("mlaqc.optics.scene", "FOUR_OVER_PI"), ("mlaqc.optics.raytrace", "INV_ROW_PAIR_HEX"),
+                         ("mlaqc.optics.lattice", "SQRT3_2"))
 
 _DIGESTS: dict[str, str] = {}  # a kernel module's file -> the digest of what it is compiled from
 _MARK = "_mlaqc_sources_locator"  # set on the locator class (a module reload makes a second one)
 
 
-def register(kernels_file: str, sources: tuple) -> None:
-    """Stamp the Numba cache of `kernels_file`'s functions with `digest(sources)`, taken now; call while
-    that file is imported, before its first cached function is decorated."""
+def register(sources: tuple) -> None:
+    """Stamp the Numba cache of the functions of every file among `sources` with `digest(sources)`, taken
+    now; call while the first of those files is imported, before any of their cached functions is decorated."""
     from numba.core import config
 
-    _DIGESTS[os.path.abspath(kernels_file)] = digest(sources)
+    stamp = digest(sources)
+    for src in sources:
+        if isinstance(src, Path):
+            _DIGESTS[os.path.abspath(src)] = stamp
     if config.CACHE_LOCATOR_CLASSES:  # Numba then ignores its locator list, and so this stamp
         warnings.warn("NUMBA_CACHE_LOCATOR_CLASSES is set: the ray tracer's cache is stamped by Numba alone, "
                       "and can serve old code after an edit to a module its kernels inline from", stacklevel=2)

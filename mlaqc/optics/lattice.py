@@ -210,7 +210,7 @@ def hex_cell(u, v):
     is two rectangular ones (1 by sqrt(3)): the even 0-based rows, and the odd rows shifted by (1/2,
     sqrt(3)/2); the nearer of their nearest points (each by rounding) wins, the even row's on a tie
     (Lattice.nearest is this). Plain arithmetic and selects: the compiled tracer
-    (mlaqc.optics.raytrace_kernels.hex_locate) does the same operations."""
+    (mlaqc.optics.kernel_geometry.hex_locate) does the same operations."""
     (ra, ca, dua, dva), (rb, cb, dub, dvb) = _hex_candidates(u, v)
     take = dub * dub + dvb * dvb < dua * dua + dva * dva
     return np.where(take, rb, ra), np.where(take, cb, ca), np.where(take, dub, dua), np.where(take, dvb, dva)

@@ -34,7 +34,7 @@ import numpy as np
 from mlaqc.optics.config import CameraConfig, require_thick_main_lens
 from mlaqc.optics.errormap import ErrorMap
 from mlaqc.errors import InputError
-from mlaqc.optics import lowdisc
+from mlaqc.optics import kernel_layout, lowdisc
 from mlaqc.optics.raytrace import Camera, Rays
 from mlaqc.optics.unitcircle import counter_uniforms
 from mlaqc.optics.scene import (CellGrid, ImageRegion, PointScene, Scene, SourceRegion, TextureScene, WhiteScene,
@@ -460,8 +460,8 @@ class Renderer:
     def _fast_mode(self, point) -> int:
         """The kernel's mode: an ideal main lens traces every scene from the image side (a point's rays
         through its image)."""
-        return (_kernels().POINT if point is not None and self.region is not None else
-                _kernels().IMAGE_SIDE if self.sampling == "image" else _kernels().OBJECT_SIDE)
+        return (kernel_layout.POINT if point is not None and self.region is not None else
+                kernel_layout.IMAGE_SIDE if self.sampling == "image" else kernel_layout.OBJECT_SIDE)
 
     def _weigh_by_main_lens(self, scene: Scene, r: Rays) -> None:
         """Trace image-side rays back through the main lens: vignetting, Fresnel, and the object radiance."""

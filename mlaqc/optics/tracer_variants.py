@@ -79,7 +79,7 @@ def compile_variant(variant: Variant) -> tuple[float, str]:
 def is_ready(variant: Variant) -> bool:
     """True when this process has the variant's kernel or Numba's cache holds it for this machine (loads it,
     never compiles)."""
-    from mlaqc.optics.raytrace_kernels import IMAGE_SIDE
+    from mlaqc.optics.kernel_layout import IMAGE_SIDE
 
     trace, args = variant.renderer().fast.call(IMAGE_SIDE, 0, 8)
     signature = tuple(trace.typeof_pyval(a) for a in args)
