@@ -37,7 +37,8 @@ import numpy as np
 
 from mlaqc.decode.frames import load_decode_frame
 from mlaqc.decode.fill import filled
-from mlaqc.decode.lightfield import decode_scene, rectangular, refocus, view_offsets
+from mlaqc.decode.lightfield import rectangular, refocus, view_offsets
+from mlaqc.decode.scene import decode_scene
 from mlaqc.decode.sampling import design_sampling, lattice_sampling, measured_sampling, report_grid
 from mlaqc.inspection.calibrate import calibrate_for
 from mlaqc.inspection.pipeline import inspect_image, load_frame

@@ -64,7 +64,8 @@ def decode_request(req: dict) -> Any:
     """The light field a request asks for: {'image', 'white' (or None), 'grid', 'defects', 'measured',
     'scene_path', 'cfg'}; a scene is loaded here and divided by the white."""
     from mlaqc.decode import sampling as smp
-    from mlaqc.decode.lightfield import decode_scene, rectangular, view_offsets
+    from mlaqc.decode.lightfield import rectangular, view_offsets
+    from mlaqc.decode.scene import decode_scene
 
     grid = req["grid"]
     report = {"defects": [{"row": d.m, "col": d.n, "error_type": d.error_type} for d in req["defects"]]}

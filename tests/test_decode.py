@@ -518,7 +518,7 @@ def test_a_hex_array_decodes_onto_a_rectangular_grid(tmp_path):
 
 
 def test_a_white_of_another_colour_kind_is_one_sentence():
-    from mlaqc.decode.lightfield import decode_scene
+    from mlaqc.decode.scene import decode_scene
 
     x, y = centres()
     mono = frame(x, y).astype(np.float32)

@@ -12,7 +12,8 @@ import pytest
 
 from mlaqc.decode.fill import filled
 from mlaqc.decode.foreign import PURITY_MIN, foreign_share, without_foreign_light
-from mlaqc.decode.lightfield import LightField, decode, decode_scene, devignetted, view_offsets
+from mlaqc.decode.lightfield import LightField, decode, devignetted, view_offsets
+from mlaqc.decode.scene import decode_scene
 from mlaqc.decode.sampling import measured_sampling
 from mlaqc.inspection.medians import last_axis_medians
 from test_decode import RADIUS, centres, frame, sampling_at

@@ -1,5 +1,5 @@
 """The tracer's variants compiled in the background of the first command that traces
-(mlaqc.optics.tracer_background): started once, never twice at a time, never once every variant is
+(mlaqc.optics.tracer_background, the job mlaqc.optics.tracer_compile_job): started once, never twice at a time, never once every variant is
 compiled for the current sources, said on screen; the job compiles what is missing and stamps the cache.
 The process start and the compiles are replaced by recorders: nothing here spawns or compiles."""
 
@@ -16,6 +16,7 @@ from pathlib import Path
 import pytest
 
 from mlaqc.optics import tracer_background as bg
+from mlaqc.optics import tracer_compile_job as job
 from mlaqc.optics import tracer_variants
 
 FIXTURES = Path(__file__).resolve().parent.parent / "fixtures"
@@ -39,7 +40,7 @@ def test_the_first_tracing_command_starts_one_background_compile(place):
     assert bg.start_if_needed(said) is True
     assert bg.start_if_needed(said) is False  # once per process
     (cmd, kw), = started
-    assert cmd[-3:] == ["-m", "mlaqc.optics.tracer_background", str(os.getpid())] and kw["start_new_session"]
+    assert cmd[-3:] == ["-m", "mlaqc.optics.tracer_compile_job", str(os.getpid())] and kw["start_new_session"]
     assert kw["env"][bg.ENV_SWITCH] == "0"  # the job itself starts no other
     assert "in the background" in said.getvalue() and str(bg.log_path()) in said.getvalue()
 
@@ -51,7 +52,7 @@ def test_no_background_compile_when_all_are_compiled_one_runs_or_it_is_off(place
     monkeypatch.setattr(bg, "_STARTED", type(bg._STARTED)())
     (tmp / "tracer_variants.ready").write_text("another source\n")  # sources changed since: stale
     assert not bg.all_compiled()
-    lock = bg._lock_path()
+    lock = bg.lock_path()
     lock.parent.mkdir(parents=True, exist_ok=True)
     with open(lock, "a") as held:
         fcntl.flock(held, fcntl.LOCK_EX)  # as the running job holds it
@@ -80,8 +81,8 @@ def test_the_job_compiles_what_is_missing_fixtures_first_then_stamps(place, monk
         return [(v, 1.0, "") for v in todo]
 
     monkeypatch.setattr(tracer_variants, "compile_all", compile_all)
-    monkeypatch.setattr(bg, "_lowest_priority", lambda: None)
-    assert bg.main([]) == 0
+    monkeypatch.setattr(job, "_lowest_priority", lambda: None)
+    assert job.main([]) == 0
     assert len(compiled) == len(tracer_variants.VARIANTS) - 1 and tracer_variants.VARIANTS[0] not in compiled
     first = compiled[:3]
     assert all(v.lenses != "grid" and not v.tilted for v in first)  # what the shipped fixtures use comes first
@@ -92,13 +93,13 @@ def test_the_job_compiles_what_is_missing_fixtures_first_then_stamps(place, monk
 def test_a_failed_variant_leaves_no_stamp_and_a_second_job_waits_for_none(place, monkeypatch):
     monkeypatch.setattr(tracer_variants, "is_ready", lambda v: False)
     monkeypatch.setattr(tracer_variants, "compile_all", lambda todo, log=print: [(v, 1.0, "boom") for v in todo])
-    monkeypatch.setattr(bg, "_lowest_priority", lambda: None)
-    assert bg.main([]) == 0 and not bg.all_compiled()
-    lock = bg._lock_path()
+    monkeypatch.setattr(job, "_lowest_priority", lambda: None)
+    assert job.main([]) == 0 and not bg.all_compiled()
+    lock = bg.lock_path()
     with open(lock, "a") as held:
         fcntl.flock(held, fcntl.LOCK_EX)
         monkeypatch.setattr(tracer_variants, "compile_all", lambda *a, **k: pytest.fail("a second job compiled"))
-        assert bg.main([]) == 0
+        assert job.main([]) == 0
 
 
 def test_the_job_waits_for_the_command_that_started_it():
@@ -107,11 +108,11 @@ def test_the_job_waits_for_the_command_that_started_it():
     starter = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(0.6)"])
     threading.Thread(target=starter.wait, daemon=True).start()  # reaped as its shell would reap it
     t0 = time.monotonic()
-    bg._after(starter.pid, limit_s=10.0)
+    job._after(starter.pid, limit_s=10.0)
     waited = time.monotonic() - t0
     assert 0.3 < waited < 5.0
     t0 = time.monotonic()
-    bg._after(os.getpid(), limit_s=0.3)  # a command still running: not for ever
+    job._after(os.getpid(), limit_s=0.3)  # a command still running: not for ever
     assert time.monotonic() - t0 < 2.0
 
 

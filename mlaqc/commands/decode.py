@@ -196,7 +196,8 @@ def decode_raw(raw: str, spec: DecodeSpec):
     """One scene frame's light field (devignetted, hex resampled, filled as asked) and its facts."""
     from mlaqc.decode.frames import load_decode_frame
     from mlaqc.decode.fill import filled
-    from mlaqc.decode.lightfield import decode_scene, rectangular
+    from mlaqc.decode.lightfield import rectangular
+    from mlaqc.decode.scene import decode_scene
 
     sampling, white_lf = spec.setup["sampling"], spec.setup["white_lf"]
     lf = decode_scene(load_decode_frame(raw, spec.cfg, spec.levels), sampling, spec.setup["offsets"], white_lf, raw,

@@ -1,6 +1,7 @@
 """The 4D light field of a plenoptic frame: decoding (`decode`), devignetting by a white frame
 (`devignetted`), a hex array's views on a rectangular grid (`rectangular`) and shift-and-add refocusing
-(`refocus`); lenses without a usable light field are refilled by `mlaqc.decode.fill`.
+(`refocus`); lenses without a usable light field are refilled by `mlaqc.decode.fill`, and a scene frame
+is decoded against its white by `mlaqc.decode.scene`.
 
 Axes of `LightField.values`: (v, u, t, s[, channel]): (v, u) the view, i.e. the pupil point, as a pixel
 offset (v down, u right) from each lens' sub-image centre, view_offsets_px[j], view_offsets_px[i]; (t, s)
@@ -16,11 +17,9 @@ from __future__ import annotations
 
 import warnings
 from dataclasses import dataclass, replace
-from typing import Any
 
 import numpy as np
 
-from mlaqc.decode.foreign import foreign_share, without_foreign_light
 from mlaqc.decode.sampling import LensSampling
 from mlaqc.errors import InputError
 from mlaqc.optics.lattice import SQRT3_2
@@ -74,27 +73,6 @@ def decode(img: np.ndarray, sampling: LensSampling, offsets_px: np.ndarray) -> L
     disc = np.hypot(o[:, None], o[None, :]) <= sampling.radius_px - 0.5
     weights = (inside & disc[:, :, None, None]) * sampling.weight[None, None]
     return LightField(values, weights.astype(np.float32), o, sampling.packing)
-
-
-def decode_scene(img: np.ndarray, sampling: LensSampling, offsets_px: np.ndarray, white: Any = None,
-                 source: str = "the frame", share: np.ndarray | None = None) -> LightField:
-    """`img`'s light field, divided by the white's (an image, or its LightField decoded at the same samples:
-    a batch decodes its white once) when one is given; InputError when the two differ in colour. With a
-    white and a sampling that knows the flagged lenses (a report), the samples around them that hold
-    another lens' light are weighed by their own light's share (`mlaqc.decode.foreign`; `share`: that
-    white's `foreign_share`, which a batch computes once)."""
-    lf = decode(img, sampling, offsets_px)
-    if white is None:
-        return lf
-    if not isinstance(white, LightField):
-        white = decode(white, sampling, offsets_px)
-    if (white.values.ndim == 5) != (lf.values.ndim == 5):
-        raise InputError(f"{source} and the white frame differ in colour (one has a colour filter array, the "
-                         "other not): they are not of one camera")
-    lf = devignetted(lf, white)
-    if sampling.flagged is not None and sampling.flagged.any():
-        lf = without_foreign_light(lf, foreign_share(white, sampling.flagged) if share is None else share)
-    return lf
 
 
 def bilinear(img: np.ndarray, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

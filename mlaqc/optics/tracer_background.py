@@ -2,7 +2,7 @@
 
 `pip install -e .` compiles the variants the shipped fixtures use (tracer_variants.INSTALL_VARIANTS) and
 leaves the rest so that the install stays short; the first command that makes a Numba renderer starts
-one process at the idle priority (`python -m mlaqc.optics.tracer_background`) that waits for that command
+one process at the idle priority (`python -m mlaqc.optics.tracer_compile_job`) that waits for that command
 to end (a minute at most), then compiles any variant not in Numba's cache (the fixtures' first, where an
 install could not compile them), and says so on screen. A stamp records that
 every variant is compiled for these sources, this Numba and this Python, so later commands check a file,
@@ -29,9 +29,6 @@ HERE = Path(__file__).resolve().parent
 # what the compiled variants depend on: the kernels' sources (Numba's cache is stamped with them too,
 # kernel_sources) and the variants' list
 SOURCES = (*TRACER_SOURCES, HERE / "tracer_variants.py")
-# the job waits for the command that started it to end, this long at most (a hyperthread shared with a
-# compile slowed the demo 2.5x even at idle priority)
-WAIT_FOR_STARTER_S = 60.0
 _STARTED = threading.Event()
 
 
@@ -52,7 +49,7 @@ def log_path() -> Path:
     return _cache_dir() / "tracer-compile.log"
 
 
-def _lock_path() -> Path:
+def lock_path() -> Path:
     return _cache_dir() / "tracer-compile.lock"
 
 
@@ -99,7 +96,7 @@ def running() -> bool:
     """Whether a background compile holds its lock now."""
     import fcntl
 
-    path = _lock_path()
+    path = lock_path()
     path.parent.mkdir(parents=True, exist_ok=True)
     with open(path, "a") as fh:
         try:
@@ -121,7 +118,7 @@ def start_if_needed(stream: TextIO | None = None) -> bool:
             return False
         log = log_path()
         with open(log, "ab") as out:
-            subprocess.Popen([sys.executable, "-m", "mlaqc.optics.tracer_background", str(os.getpid())],
+            subprocess.Popen([sys.executable, "-m", "mlaqc.optics.tracer_compile_job", str(os.getpid())],
                              stdin=subprocess.DEVNULL,
                              stdout=out, stderr=subprocess.STDOUT, start_new_session=True, close_fds=True,
                              env={**os.environ, ENV_SWITCH: "0"})
@@ -130,71 +127,3 @@ def start_if_needed(stream: TextIO | None = None) -> bool:
     print(f"mlaqc: compiling the ray tracer's other variants in the background, at idle priority (a few minutes; "
           f"log {log}; `mlaqc kernels --check` says which are ready)", file=stream or sys.stderr, flush=True)
     return True
-
-
-def _order(variant) -> tuple:
-    """The shipped fixtures' variants first (sag-intersection and circle apertures, untilted; the install's,
-    where it could not compile them), then the rest."""
-    return (variant.lenses == "grid", variant.tilted and variant.packing == "hex", variant.tilted, variant.lenses)
-
-
-def _lowest_priority() -> None:
-    """CPU only when nothing else wants it (Linux's idle class; else nice 19), for this process and the
-    compiling processes it starts (they inherit it): the command that started it runs at full speed."""
-    try:
-        os.sched_setscheduler(0, os.SCHED_IDLE, os.sched_param(0))
-    except (AttributeError, OSError):
-        try:
-            os.nice(19)
-        except OSError:
-            pass
-
-
-def _after(pid: int | None, limit_s: float = WAIT_FOR_STARTER_S) -> None:
-    """Wait until process `pid` (the command that started the job) has ended, at most `limit_s`: a short
-    command (the demo, a simulate) runs with the machine to itself; a long one (the app) not for ever."""
-    import time
-
-    end = time.monotonic() + limit_s
-    while pid and time.monotonic() < end:
-        try:
-            os.kill(pid, 0)
-        except ProcessLookupError:
-            return
-        except PermissionError:
-            pass
-        time.sleep(0.2)
-
-
-def main(argv: list[str] | None = None) -> int:
-    """The background job: after the command that started it, compile every variant not in Numba's cache,
-    one process per core at idle priority, then write the stamp; exits at once if another holds the lock."""
-    import fcntl
-    import time
-
-    args = sys.argv[1:] if argv is None else argv
-
-    os.environ[ENV_SWITCH] = "0"
-    path = _lock_path()
-    path.parent.mkdir(parents=True, exist_ok=True)
-    lock = open(path, "a")  # held until this process ends
-    try:
-        fcntl.flock(lock, fcntl.LOCK_EX | fcntl.LOCK_NB)
-    except BlockingIOError:
-        return 0
-    _lowest_priority()
-    _after(int(args[0]) if args and args[0].isdigit() else None)
-    from mlaqc.optics.tracer_variants import VARIANTS, compile_all, is_ready
-
-    start = time.strftime("%Y-%m-%d %H:%M:%S")
-    missing = tuple(v for v in sorted(VARIANTS, key=_order) if not is_ready(v))
-    print(f"{start} mlaqc {os.getpid()}: compiling {len(missing)} tracer variant(s)", flush=True)
-    failed = [v for v, _, error in compile_all(missing, log=lambda text: print(text, flush=True)) if error]
-    if not failed:
-        mark_all_compiled()
-    print(f"{time.strftime('%Y-%m-%d %H:%M:%S')} done" + (f"; failed: {len(failed)}" if failed else ""), flush=True)
-    return 0
-
-
-if __name__ == "__main__":
-    sys.exit(main())
