@@ -15,7 +15,8 @@ import numpy as np
 import pytest
 
 from mlaqc.inspection.baselines import local_deviations
-from mlaqc.inspection.identify import _NAMES, identify
+from mlaqc.inspection.detection import DEVIATION_KEYS
+from mlaqc.inspection.identify import identify
 from mlaqc.inspection.results import LensMetrics
 from mlaqc.models.signatures import FEATURES, RINGS
 from mlaqc.optics.config import load_config
@@ -41,7 +42,7 @@ def _maps(rows: int, cols: int, slope_per_lens: float) -> dict[str, np.ndarray]:
     per column (a steep vignetting), with a tiny deterministic ripple so no two values tie."""
     m, n = np.mgrid[:rows, :cols].astype(float)
     ripple = 1e-6 * np.sin(1.7 * m + 2.3 * n)
-    maps = {k: np.zeros((rows, cols)) for k in _NAMES + RINGS}
+    maps = {k: np.zeros((rows, cols)) for k in DEVIATION_KEYS + RINGS}
     maps["flux"] = 1.0 - slope_per_lens * (m + 0.37 * n) + ripple
     return maps
 

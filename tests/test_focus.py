@@ -6,7 +6,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from mlaqc.inspection.identify import FOCUS_KINDS, fit_all, focus_score, ring_noise
+from mlaqc.inspection.detection import FOCUS_KINDS, focus_score, ring_noise
+from mlaqc.inspection.identify import fit_all
 from mlaqc.inspection.pipeline import _models, inspect_image, prepare
 from mlaqc.inspection.rawio import RawFrame
 from mlaqc.inspection.results import LensMetrics

@@ -11,13 +11,8 @@ import numpy as np
 import pytest
 from analytic_frames import AnalyticModel, Anomaly, expose, to_counts, write_container
 
-from mlaqc.inspection.identify import (
-    DETECTORS,
-    _detector_values,
-    _focus_templates,
-    min_reportable,
-    sub_reportable_reach,
-)
+from mlaqc.inspection.detection import DETECTORS, detector_values, focus_templates, min_reportable
+from mlaqc.inspection.identify import sub_reportable_reach
 from mlaqc.inspection.pipeline import inspect_file, inspect_image, prepare
 from mlaqc.inspection.rawio import RawFrame
 from mlaqc.models.signatures import FEATURES, RINGS, signature_table
@@ -46,7 +41,7 @@ def test_the_reach_lies_between_the_rendered_errors_below_the_reportable_size_an
     cfg = default_config()
     table, whiten = _table_and_whiten(cfg)
     det, focus = sub_reportable_reach(table, cfg.qc, whiten)
-    templates = _focus_templates(table)
+    templates = focus_templates(table)
     unit = templates / np.linalg.norm(templates, axis=1, keepdims=True)  # (whiten: the identity)
     mins = min_reportable(cfg.qc)
     inside, bracket = np.zeros(len(DETECTORS) + 1), np.zeros(len(DETECTORS) + 1)
@@ -56,7 +51,7 @@ def test_the_reach_lies_between_the_rendered_errors_below_the_reportable_size_an
         mags = np.asarray(mags)
         feats = np.asarray(table.features[kind])
         rings = np.asarray(table.rings[kind])
-        values = np.column_stack([_detector_values(feats[:, :len(FEATURES)]), (rings @ unit.T).max(axis=1)])
+        values = np.column_stack([detector_values(feats[:, :len(FEATURES)]), (rings @ unit.T).max(axis=1)])
         within = np.abs(mags) <= mins[kind] + 1e-12
         beyond = [np.flatnonzero(mags == mags[side].min() if s > 0 else mags == mags[side].max())
                   for s, side in ((1, mags > mins[kind]), (-1, mags < -mins[kind])) if side.any()]

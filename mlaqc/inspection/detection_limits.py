@@ -16,11 +16,11 @@ from __future__ import annotations
 
 import numpy as np
 
-from mlaqc.inspection.identify import (_DETECTING, FEATURES, FOCUS_KINDS, LIMIT_MARGIN, Noise, _detector_values,
-                                       _focus_templates, _kind_curve, min_reportable)
+from mlaqc.inspection.detection import (DETECTING, FOCUS_KINDS, LIMIT_MARGIN, Noise, detector_values, focus_templates,
+                                        kind_curve, min_reportable)
 from mlaqc.inspection.medians import nanmedian_columns
 from mlaqc.inspection.lens_classes import corner_lenses, noise_classes, ring_distance
-from mlaqc.models.signatures import SignatureTable
+from mlaqc.models.signatures import FEATURES, SignatureTable
 from mlaqc.optics.config import QC
 
 FLOOR_MARGIN = 1.2
@@ -61,15 +61,15 @@ def _worst(values: list[float | None]) -> float | None:
 
 def _limits_at(table: SignatureTable, qc: QC, noise: Noise, sigma: np.ndarray) -> dict[str, list[float | None]]:
     """Per limit key, one limit per row of `sigma` (S, DETECTORS): the detectors' spreads of a lens."""
-    templates = _focus_templates(table)
+    templates = focus_templates(table)
     mins = min_reportable(qc)
     out: dict[str, list[float | None]] = {}
     for kind, unit in KINDS:
         if kind not in table.magnitudes:
             continue
-        grid_m, grid_f = _kind_curve(table, kind, 0)
-        det = _detector_values(grid_f[:, :len(FEATURES)])  # (G, DETECTORS)
-        z = (det[None, :, :] / sigma[:, None, :])[..., _DETECTING].max(axis=-1)  # (S, G)
+        grid_m, grid_f = kind_curve(table, kind, 0)
+        det = detector_values(grid_f[:, :len(FEATURES)])  # (G, DETECTORS)
+        z = (det[None, :, :] / sigma[:, None, :])[..., DETECTING].max(axis=-1)  # (S, G)
         if kind in FOCUS_KINDS and templates.size:
             tw = templates @ noise.rings.whiten
             tw /= np.linalg.norm(tw, axis=1, keepdims=True)

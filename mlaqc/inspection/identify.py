@@ -13,7 +13,8 @@ fit (`_disturbed`): in a small array a few defects' neighbourhoods are a large s
 the noise of a sub-image must not depend on the array's size. A lens whose window misses lenses (not
 inspected, lost, left out) is compared with the median of its neighbours' values less the phase pattern
 (`_phase_removed`): the pattern is too fast for a median, and one over other lenses aliases it otherwise.
-Each frame also reports its detection limit (mlaqc.inspection.detection_limits).
+The deviations, their noise and the score are mlaqc.inspection.detection's; each frame also reports its
+detection limit (mlaqc.inspection.detection_limits).
 
 Classification inverts the signature table (matched to the frame's rim width by the caller): the
 flagged lens' feature changes, taken along and across its own shift, and its ring profile are fitted by
@@ -58,18 +59,22 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from mlaqc.inspection.baselines import local_deviations
+from mlaqc.inspection.detection import (DETECTING, DETECTORS, DEVIATION_AXES, DEVIATION_KEYS, FOCUS_KINDS, Noise,
+                                        RingNoise, detection_noise, detection_score, detector_values, deviations,
+                                        focus_score, focus_templates, kind_curve, min_reportable, noise_floors,
+                                        response, ring_noise)
+from mlaqc.inspection.detection_limits import detection_limits
 from mlaqc.inspection.filters import (
     lattice_max_of_neighbours,
     lattice_neighbours,
     max_filter_nearest,
     with_neighbours,
 )
-from mlaqc.inspection.lens_classes import corner_lenses, edge_classes, hex_row_ends, noise_classes
+from mlaqc.inspection.lens_classes import corner_lenses, edge_classes, hex_row_ends
 from mlaqc.inspection.medians import column_medians, nanmedian_columns
 from mlaqc.inspection.phase_pattern import (PhaseModel, _phase_skips, phase_model,
                                             remove_phase_pattern, remove_phase_trend)
 from mlaqc.inspection.results import Defect, LensMetrics
-from mlaqc.inspection.spreads import _column_tail_sigmas, _quiet_inner, class_sigmas, robust_sigma, tail_sigma
 from mlaqc.models.position_split import (PositionSplit, contrast_spread, neighbour_contrast, split_limits,
                                          type_position)
 from mlaqc.models.signatures import (FEATURES, RINGS, SignatureTable, along_gain_small, lens_features,
@@ -79,191 +84,10 @@ from mlaqc.optics.config import QC
 from mlaqc.optics.lattice import Lattice
 
 UNEXPLAINED = 0.75  # a best fit leaving more than this share of the deviation's chi-square: type 'unknown' (measured: tracer defects leave 0.1-0.7, foreign anomalies 0.8-0.95)
-LIMIT_MARGIN = 2.0  # a lens at the detection limit scores detect_sigma + 2 on average: found 97.7 % of the time
 _CHI2_AMBIGUOUS = 9.0  # an opposite-sign reading closer than this (3 sigma) is listed as an alternative
 TWIN_SHARE = 0.05  # radius and thickness readings whose chi-squares differ by less than this share: alike
-FOCUS_KINDS = ("radius", "thickness")  # errors that defocus the lens: what the focus test looks for
 
 
-_NAMES = ("offset_x_px", "offset_y_px", "asym_x", "asym_y", "blur", "flux", "ssim", "sharpness")
-
-
-_AXES = [k.split("_")[1][0] if k in ("offset_x_px", "offset_y_px", "asym_x", "asym_y") else "" for k in _NAMES]
-
-
-def deviations(metrics: LensMetrics, phase: PhaseModel | None = None,
-               planes: list[np.ndarray] | None = None,
-               packing: str = "square") -> tuple[dict[str, np.ndarray], dict[str, float]]:
-    """Local deviations of the classification features (their sub-pixel phase pattern removed when the
-    lenses' `phase` is given; or `planes`, already computed in _NAMES order) and their robust spreads
-    over the inner lenses."""
-    if planes is None:
-        planes = local_deviations([metrics[k] for k in _NAMES], _AXES, packing=packing)
-        if phase is not None:
-            planes = remove_phase_pattern(planes, phase)
-    dev = dict(zip(_NAMES, planes))
-    inner = edge_classes(metrics.shape) == 2
-    sig = {k: robust_sigma(v[inner]) if np.isfinite(v[inner]).sum() > 8 else robust_sigma(v) for k, v in dev.items()}
-    return dev, sig
-
-
-@dataclass(frozen=True)
-class RingNoise:
-    """The residual-profile deviations of every lens (rows, cols, len(RINGS)) and their noise: `whiten`
-    (L with L L' = inverse covariance) turns a profile change into independent unit-noise components."""
-
-    dev: np.ndarray
-    whiten: np.ndarray
-
-
-def ring_noise(metrics: LensMetrics, phase: PhaseModel | None = None, floor: np.ndarray | None = None,
-               planes: list[np.ndarray] | None = None, packing: str = "square",
-               exclude: np.ndarray | None = None) -> RingNoise:
-    """Local deviations of the ring profile, whitened by their covariance over the array's inner lenses
-    (those within 4 robust sigma on every ring: a defect must not widen the noise it is judged against).
-
-    The outer two rows and columns are their own classes: their 5 x 5 neighbourhood reaches past the
-    array, and their profile deviations come out biased and wider (measured at 50 rays/pixel: median
-    matched-filter z 1.7 against 1.2 inside). Each class' median is taken off and its deviations are
-    scaled down to the inner lenses' noise where wider, so that one threshold holds everywhere.
-    `phase`: remove the sub-pixel phase pattern (`remove_phase_pattern`); `floor` (per ring): the
-    smallest noise the covariance may claim, so a noise-free frame cannot make the whitening explode;
-    `planes`: the rings' deviations, already computed; `exclude`: lenses left out of the inner lenses'
-    noise (`_quiet_inner`)."""
-    if planes is None:
-        planes = local_deviations([metrics[r] for r in RINGS], [""] * len(RINGS), packing=packing)
-        if phase is not None:
-            planes = remove_phase_pattern(planes, phase)
-    dev = np.stack(planes, axis=-1)
-    cls = edge_classes(dev.shape[:2])
-    finite = np.isfinite(dev).all(axis=-1)
-    for c in range(3):
-        sel = (cls == c) & finite
-        if sel.any():
-            dev[sel] -= column_medians(dev[sel])  # (np.median's, finite values)
-    inner = (cls == 2) & finite
-    quiet = _quiet_inner(inner, exclude, 4 * len(RINGS) + 1)  # enough for a covariance, the defects left out
-    flat = dev[quiet] if quiet is not inner or inner.sum() > 8 * len(RINGS) else dev[finite]
-    sig = np.array([robust_sigma(flat[:, k]) for k in range(flat.shape[1])]) if len(flat) else np.ones(len(RINGS))
-    core = (np.abs(flat) < 4 * sig).all(axis=1)
-    cov = np.cov(flat[core].T) if core.sum() > 4 * len(RINGS) else np.diag(sig ** 2)
-    if floor is not None:
-        cov += np.diag(np.asarray(floor, float) ** 2)
-    cov += np.eye(len(sig)) * 1e-12 * max(np.trace(cov), 1e-30)  # never singular
-    whiten = np.linalg.cholesky(np.linalg.inv(cov))
-    cls = noise_classes(dev.shape[:2])
-    # edge classes by their tail-aware spread, against the inner lenses' plain robust one (which a few
-    # defects among the inner lenses do not inflate, while their tails would in a small array)
-    # (whitened: unit noise, the floor included, so the tail's outlier cut assumes at least that)
-    left = finite & ~exclude if quiet is not inner else finite  # the inner lenses' spread without the defects
-    spread = {c: robust_sigma(w) if c == 2 else tail_sigma(w, 1.0)
-              for c, w in ((c, (dev[(cls == c) & (left if c == 2 else finite)] @ whiten).ravel()) for c in range(4))}
-    for c in (0, 1, 3):  # (never sharpened: fewer lenses, a less sure spread)
-        if np.isfinite(spread[c]) and np.isfinite(spread[2]) and spread[c] > spread[2]:
-            dev[cls == c] *= spread[2] / spread[c]
-    return RingNoise(dev, whiten)
-
-
-def _focus_templates(table: SignatureTable) -> np.ndarray:
-    """Every defocus signature's ring profile (radius and thickness, both signs), one per row."""
-    rows = [table.rings[k] for k in FOCUS_KINDS if k in table.rings]
-    return np.concatenate(rows) if rows else np.zeros((0, len(RINGS)))
-
-
-def focus_score(rings: RingNoise, table: SignatureTable) -> np.ndarray:
-    """Per lens, the best matched-filter z of its ring-profile change against every defocus signature in
-    the table (radius and thickness, both signs): the optimal test for a known profile in Gaussian noise."""
-    templates = _focus_templates(table)
-    if templates.size == 0:
-        return np.zeros(rings.dev.shape[:2])
-    tw = templates @ rings.whiten  # (M, R) in unit-noise coordinates
-    tw /= np.linalg.norm(tw, axis=1, keepdims=True)
-    z = np.nan_to_num(rings.dev @ rings.whiten) @ tw.T
-    # each edge class' filter outputs scaled to the inner lenses' spread where wider (as the rings are):
-    # what matters is the spread along each signature, which the rings' own scaling does not bound
-    cls = noise_classes(z.shape[:2])
-    inner = np.maximum(column_medians(np.abs(z[cls == 2])) * 1.4826, 1e-9) if (cls == 2).sum() > 20 else None
-    for c in (0, 1, 3):
-        sel = cls == c
-        if inner is not None and sel.sum() > 20:
-            z[sel] /= np.maximum(_column_tail_sigmas(z[sel], 1.0) / inner, 1.0)  # unit-noise z: cut from 10
-    return z.max(axis=-1)
-
-
-# Detection quantities read from the feature deviations (FEATURES order). SSIM is measured and used to
-# classify, but does not detect: it answers to every change at once, and at the array's edges its tails
-# are heavy (measured: z 10-11 on healthy second-row lenses of a 400 rays/pixel tracer frame).
-DETECTORS = ("offset", "asym", "blur", "flux", "ssim", "sharpness")
-_DETECTING = [k for k, name in enumerate(DETECTORS) if name != "ssim"]
-
-
-def _detector_values(f: np.ndarray) -> np.ndarray:
-    """The DETECTORS' sizes (…, 6) of feature changes f (…, FEATURES…): offset and asymmetry as lengths."""
-    return np.stack([np.hypot(f[..., 0], f[..., 1]), np.hypot(f[..., 2], f[..., 3]), f[..., 4], np.abs(f[..., 5]),
-                     -f[..., 6], np.abs(f[..., 7])], axis=-1)
-
-
-def min_reportable(qc: QC) -> dict[str, float]:
-    """The smallest error worth reporting per kind (its unit): `report_fraction` of its tolerance. A
-    deviation smaller than what such an error causes is not flagged however significant it is."""
-    f = qc.report_fraction
-    return {"pitch": f * qc.pitch_um, "position": f * qc.pitch_um, "decenter": f * qc.decenter_um,
-            "radius": f * qc.radius_rel, "tilt": f * qc.tilt_deg, "thickness": f * qc.thickness_um,
-            "dim": f * qc.dim_rel}
-
-
-def response(table: SignatureTable, kind: str, magnitude: float) -> np.ndarray:
-    """The table's FEATURES + RINGS change for `kind` at `magnitude` (linear between rendered magnitudes,
-    through zero); zeros outside the rendered range on that side."""
-    grid_m, grid_f = _kind_curve(table, kind, 0)
-    if not grid_m[0] <= magnitude <= grid_m[-1]:
-        return np.zeros(grid_f.shape[1])
-    return np.array([np.interp(magnitude, grid_m, grid_f[:, j]) for j in range(grid_f.shape[1])])
-
-
-def noise_floors(table: SignatureTable, qc: QC) -> tuple[np.ndarray, np.ndarray]:
-    """Floors of the DETECTORS' and the rings' noise: a quarter of the largest change any error at its
-    minimum reportable size makes, over the detection threshold. The spread a frame measures is used
-    above it; below it (a nearly noise-free frame) the floor keeps every z finite and bounded."""
-    mins = min_reportable(qc)
-    det, ring = np.zeros(len(DETECTORS)), np.zeros(len(RINGS))
-    for kind in ("pitch", "decenter", "radius", "thickness"):
-        if kind not in table.magnitudes:
-            continue
-        for sign in (-1, 1):
-            r = response(table, kind, sign * mins[kind])
-            det = np.maximum(det, np.abs(_detector_values(r[:len(FEATURES)])))
-            ring = np.maximum(ring, np.abs(r[len(FEATURES):]))
-    return det / (4 * qc.detect_sigma), ring / (4 * qc.detect_sigma)
-
-
-@dataclass(frozen=True)
-class Noise:
-    """What one frame's detection works against: per lens the spread of each DETECTOR (rows, cols, 6),
-    floored (`noise_floors`) and per edge class; and the ring profile's whitening."""
-
-    sigma: np.ndarray
-    rings: RingNoise
-
-
-def detection_noise(dev: dict[str, np.ndarray], rings: RingNoise, det_floor: np.ndarray,
-                    exclude: np.ndarray | None = None, packing: str = "square") -> Noise:
-    """The per-lens spreads of the DETECTORS from the frame's own deviations (`class_sigmas`; `exclude`:
-    lenses left out of the inner, second-ring and edge-group spreads)."""
-    floors = np.repeat(det_floor, [2, 2, 1, 1, 1, 1])  # the DETECTORS over the _NAMES' 8 maps
-    each = class_sigmas(np.stack([dev[k] for k in _NAMES], axis=-1), floors, exclude, packing)
-    sig = np.concatenate([0.5 * (each[..., 0:1] + each[..., 1:2]), 0.5 * (each[..., 2:3] + each[..., 3:4]),
-                          each[..., 4:]], axis=-1)
-    return Noise(sig, rings)
-
-
-def detection_score(dev: dict[str, np.ndarray], noise: Noise, focus=None) -> np.ndarray:
-    """Largest z over the detection features, per lens; `focus`: the ring-profile matched filter."""
-    f = np.stack([dev[k] for k in _NAMES], axis=-1)  # (rows, cols, 8) in FEATURES' layout
-    z = (_detector_values(f) / noise.sigma)[..., _DETECTING]
-    if focus is not None:
-        z = np.concatenate([z, focus[..., None]], axis=-1)
-    return np.nanmax(np.where(np.isfinite(z), z, 0.0), axis=-1)
 
 
 # a flagged lens whose centre moved this share of the sub-images' size (their second-moment radius) is its
@@ -359,7 +183,7 @@ def fit_kind(table: SignatureTable, kind: str, vec: np.ndarray, sigmas: np.ndarr
     """Best magnitude of `kind` for feature changes `vec` and its chi-square (magnitude interpolated
     linearly in the table, through zero); `sign` restricts a signed kind to one side; `whiten`: the
     ring noise (`RingNoise.whiten`) to fit the ring profile too."""
-    grid_m, grid_f = _kind_curve(table, kind, sign)
+    grid_m, grid_f = kind_curve(table, kind, sign)
     chi2 = _chi2(_unit_noise(vec, sigmas, whiten)[None, :], _unit_noise(grid_f, sigmas, whiten))
     i = int(np.argmin(chi2))
     return float(grid_m[i]), float(chi2[i])
@@ -370,31 +194,6 @@ def _chi2(observed: np.ndarray, predicted: np.ndarray) -> np.ndarray:
     return ((observed - predicted) ** 2).sum(axis=-1)
 
 
-def _kind_curve(table: SignatureTable, kind: str, sign: int) -> tuple[np.ndarray, np.ndarray]:
-    """The dense magnitude curve of `kind` (one sign of it if `sign`), FEATURES then RINGS, cached on the
-    table object: every flagged lens is fitted against the same curves."""
-    cache = table.__dict__.setdefault("_curves", {})
-    curve = cache.get((kind, sign))
-    if curve is None:
-        mags, feats = table.magnitudes[kind], np.concatenate([table.features[kind], table.rings[kind]], axis=1)
-        if sign:
-            keep = np.sign(mags) == sign
-            mags, feats = mags[keep], feats[keep]
-        order = np.argsort(mags)
-        curve = cache[(kind, sign)] = _dense_curve(mags[order], feats[order])
-    return curve
-
-
-def _dense_curve(mags: np.ndarray, feats: np.ndarray, per_step: int = 40) -> tuple[np.ndarray, np.ndarray]:
-    """The table's magnitude curve with the origin added, resampled densely for the fit."""
-    if not np.any(mags == 0):
-        k = np.searchsorted(mags, 0.0)
-        mags = np.insert(mags, k, 0.0)
-        feats = np.insert(feats, k, np.zeros(feats.shape[1]), axis=0)
-    t = np.linspace(0, len(mags) - 1, (len(mags) - 1) * per_step + 1)
-    i0 = np.clip(np.floor(t).astype(int), 0, len(mags) - 2)
-    w = (t - i0)[:, None]
-    return mags[i0] * (1 - w[:, 0]) + mags[i0 + 1] * w[:, 0], feats[i0] * (1 - w) + feats[i0 + 1] * w
 
 
 def fit_all(table: SignatureTable, vecs: np.ndarray, sigmas: np.ndarray,
@@ -407,11 +206,11 @@ def fit_all(table: SignatureTable, vecs: np.ndarray, sigmas: np.ndarray,
     uv = _unit_noise(vecs, sigmas, whiten)
     other = table.across_table() if across is not None else table
     for kind in table.magnitudes:
-        grid_m, grid_f = _kind_curve(table, kind, 0)
+        grid_m, grid_f = kind_curve(table, kind, 0)
         pred = _unit_noise(grid_f, sigmas, whiten)[None]
         if other is not table and kind in table.across:
             w = np.asarray(across, dtype=np.float64)[:, None, None]
-            pred = (1.0 - w) * pred + w * _unit_noise(_kind_curve(other, kind, 0)[1], sigmas, whiten)[None]
+            pred = (1.0 - w) * pred + w * _unit_noise(kind_curve(other, kind, 0)[1], sigmas, whiten)[None]
         chi2 = _chi2(uv[:, None, :], pred)
         best = np.argmin(chi2, axis=1)
         for q, i in enumerate(best):
@@ -509,18 +308,18 @@ def _local_planes(metrics: LensMetrics, position, phase: PhaseModel | None, pack
     trend = class_centred([v - p for v, p in zip(values, planes)], packing)
     if phase is not None:
         trend = remove_phase_trend(trend, phase)
-    names = list(_NAMES) + list(RINGS) + (["offset_x_px", "offset_y_px"] if position is not None else [])
+    names = list(DEVIATION_KEYS) + list(RINGS) + (["offset_x_px", "offset_y_px"] if position is not None else [])
     return planes, dict(zip(names, trend))
 
 
 def _index_values(metrics: LensMetrics, position) -> list[np.ndarray]:
     """The index maps identification reads, in `_local_planes`' order: classification, rings, `position`'s."""
-    return [metrics[k] for k in _NAMES] + [metrics[r] for r in RINGS] + list(position or ())
+    return [metrics[k] for k in DEVIATION_KEYS] + [metrics[r] for r in RINGS] + list(position or ())
 
 
 def _index_axes(position) -> list[str]:
     """The axis of each of `_index_values`' maps (`local_deviations`' `axes`)."""
-    return _AXES + [""] * len(RINGS) + (["x", "y"] if position is not None else [])
+    return DEVIATION_AXES + [""] * len(RINGS) + (["x", "y"] if position is not None else [])
 
 
 def _phase_removed(values: list[np.ndarray], axes: list[str], raw: list[np.ndarray], phase: PhaseModel | None,
@@ -590,7 +389,7 @@ def _deviation_maps(metrics: LensMetrics, planes: list[np.ndarray], position):
     """The classification deviations and their spreads (`deviations`), and the detection deviations (the
     classification ones with the offsets from the lower-noise `position` signal where it is given), from
     `_local_planes`' planes, phase pattern removed."""
-    dev, sig = deviations(metrics, planes=planes[:len(_NAMES)])
+    dev, sig = deviations(metrics, planes=planes[:len(DEVIATION_KEYS)])
     return dev, sig, dev if position is None else dict(dev, offset_x_px=planes[-2], offset_y_px=planes[-1])
 
 
@@ -610,7 +409,7 @@ def _judged(metrics: LensMetrics, position, phase: PhaseModel | None, table: Sig
     axes = _index_axes(position)
     planes = _phase_removed(values, axes, raw, phase, exclude=exclude, packing=packing, centred=centred)
     dev, sig, detect_dev = _deviation_maps(metrics, planes, position)
-    rings_at = slice(len(_NAMES), len(_NAMES) + len(RINGS))
+    rings_at = slice(len(DEVIATION_KEYS), len(DEVIATION_KEYS) + len(RINGS))
     disturbed = None
     for step in range(passes + 1):
         rings = ring_noise(metrics, floor=ring_floor, planes=planes[rings_at], exclude=disturbed)
@@ -720,13 +519,13 @@ def sub_reportable_reach(table: SignatureTable, qc: QC, whiten: np.ndarray) -> t
     error of the table's kinds gives at or below its minimum reportable size: what a lens carrying only
     such an error does not exceed, whatever kind its reading names. `whiten`: the frame's ring noise."""
     mins = min_reportable(qc)
-    tw = _focus_templates(table) @ whiten
+    tw = focus_templates(table) @ whiten
     tw /= np.maximum(np.linalg.norm(tw, axis=1, keepdims=True), 1e-300)
     det, focus = np.zeros(len(DETECTORS)), 0.0
     for kind in (k for k in table.magnitudes if k in mins):
-        grid_m, grid_f = _kind_curve(table, kind, 0)
+        grid_m, grid_f = kind_curve(table, kind, 0)
         sub = grid_f[np.abs(grid_m) <= mins[kind] + 1e-12]  # (never empty: the curve holds the origin)
-        det = np.maximum(det, _detector_values(sub[:, :len(FEATURES)]).max(axis=0))
+        det = np.maximum(det, detector_values(sub[:, :len(FEATURES)]).max(axis=0))
         focus = max(focus, float(((sub[:, len(FEATURES):] @ whiten) @ tw.T).max(initial=0.0)))
     return det, focus
 
@@ -737,8 +536,8 @@ def reach_excess(detect_dev: dict[str, np.ndarray], noise: Noise, focus: np.ndar
     (`focus`: the ring matched filter's z map) exceeds `reach` (`sub_reportable_reach`), against its own
     noise: beyond the detection threshold, no error too small to report makes that lens."""
     m, n = lenses
-    f = np.stack([detect_dev[k][m, n] for k in _NAMES], axis=-1)
-    z = ((_detector_values(f) - reach[0]) / noise.sigma[m, n])[:, _DETECTING]
+    f = np.stack([detect_dev[k][m, n] for k in DEVIATION_KEYS], axis=-1)
+    z = ((detector_values(f) - reach[0]) / noise.sigma[m, n])[:, DETECTING]
     z = np.concatenate([z, (focus[m, n] - reach[1])[:, None]], axis=-1)
     return np.max(np.where(np.isfinite(z), z, -np.inf), axis=-1, initial=-np.inf)
 
@@ -867,7 +666,6 @@ def identify(metrics: LensMetrics, missing: np.ndarray, qc: QC, table: Signature
         defects.append(Defect(int(m) + 1, int(n) + 1, kind, mag, unit, direction, float(score[m, n]),
                               abs(mag) <= limit, indexes, alternatives=alts))
         error_type[m, n] = kind
-    from mlaqc.inspection.detection_limits import detection_limits  # (it reads this module's tables' helpers)
 
     limits = detection_limits(table, qc, noise, ~outside & ~corners)
     if "decenter" in table.magnitudes:  # (a flat-sided MLA has no decenter: nothing to tell pitch from)

@@ -28,7 +28,8 @@ from itertools import pairwise
 import numpy as np
 
 from mlaqc.inspection.measure_kernels import coarse_chi2, focal_scan
-from mlaqc.inspection.identify import RINGS, Identification, _kind_curve, _unit_noise, class_centred, response
+from mlaqc.inspection.detection import kind_curve, response
+from mlaqc.inspection.identify import RINGS, Identification, _unit_noise, class_centred
 from mlaqc.inspection.spreads import robust_sigma
 from mlaqc.parallel import run_parts
 from mlaqc.models.signatures import FEATURES, SignatureTable, to_along_xy
@@ -130,7 +131,7 @@ def _focal_chi2(feats: np.ndarray, found: Identification, table: SignatureTable)
     unit-noise features, its chi-square against the coarse curve (every COARSE-th point), which lenses
     had all their focus indexes, and the fit's degrees of freedom. feats: (L, FEATURES + RINGS), shift
     and asymmetry columns unused (they say where a lens points, not how it focuses)."""
-    dense_m, dense_f = _kind_curve(table, "radius", 0)
+    dense_m, dense_f = kind_curve(table, "radius", 0)
     sig = np.array(found.feature_sigmas, dtype=np.float64)
     sig[:4] = np.inf
     whiten = found.noise.rings.whiten if found.noise is not None else None
