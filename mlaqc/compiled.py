@@ -32,6 +32,8 @@ from typing import Any, Callable
 
 import numpy as np
 
+from mlaqc.user_cache import cache_dir
+
 # the modules whose declared kernels are compiled ahead of time (their sources make the stamp)
 AOT_MODULES = (
     "mlaqc.inspection.rawio_kernels",
@@ -327,8 +329,6 @@ def cpu_identity() -> str:
 def extension_paths() -> list[Path]:
     """Where the extension may be: in the package (built at install), else in the user's cache."""
     suffix = importlib.machinery.EXTENSION_SUFFIXES[0]
-    from mlaqc.models.store import cache_dir
-
     return [PACKAGE_DIR / f"{EXTENSION}{suffix}", cache_dir() / "kernels" / f"{EXTENSION}{suffix}"]
 
 

@@ -39,7 +39,7 @@ def run(args: argparse.Namespace) -> int:
     """Build what is missing (or everything with --rebuild); 0 on success."""
     from mlaqc.models.assembly_model import assembly_model
     from mlaqc.models.reference import config_key, reference_model
-    from mlaqc.models.store import cache_dir
+    from mlaqc.user_cache import cache_dir
     from mlaqc.models.signatures import signature_key, signature_table
 
     cfg = load_config(args.config)

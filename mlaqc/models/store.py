@@ -7,7 +7,6 @@ model curves), so each behaves the same on a damaged or unwritable cache.
 from __future__ import annotations
 
 import json
-import os
 import zipfile
 import zlib
 from collections.abc import Callable
@@ -15,16 +14,12 @@ from pathlib import Path
 from typing import Any, TypeVar
 
 from mlaqc.atomic import write_json_atomic
+from mlaqc.user_cache import cache_dir
 
 PACKAGE_DATA = Path(__file__).resolve().parents[1] / "data"
 T = TypeVar("T")
 # what reading a damaged entry raises (a truncated or garbled .npz: BadZipFile, EOFError, zlib.error)
 _DAMAGED = (OSError, ValueError, KeyError, TypeError, IndexError, EOFError, zipfile.BadZipFile, zlib.error)
-
-
-def cache_dir() -> Path:
-    """Where built models are kept: $MLAQC_CACHE or ~/.cache/mlaqc."""
-    return Path(os.environ.get("MLAQC_CACHE", Path.home() / ".cache" / "mlaqc"))
 
 
 def stored(name: str, build: Callable[[], T], read: Callable[[Path], T], write: Callable[[T, Path], None], *,

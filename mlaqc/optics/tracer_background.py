@@ -23,6 +23,7 @@ from pathlib import Path
 from typing import TextIO
 
 from mlaqc.optics.kernel_sources import TRACER_SOURCES, digest
+from mlaqc.user_cache import cache_dir
 
 ENV_SWITCH = "MLAQC_BACKGROUND_COMPILE"
 HERE = Path(__file__).resolve().parent
@@ -32,25 +33,20 @@ SOURCES = (*TRACER_SOURCES, HERE / "tracer_variants.py")
 _STARTED = threading.Event()
 
 
-def _cache_dir() -> Path:
-    """The user's mlaqc cache, $MLAQC_CACHE or ~/.cache/mlaqc (mlaqc.models.store's; optics sits below models)."""
-    return Path(os.environ.get("MLAQC_CACHE", Path.home() / ".cache" / "mlaqc"))
-
-
 def stamp_path() -> Path:
     """Beside Numba's cache of the kernel (the package's __pycache__) when writable, else the user's cache."""
     folder = HERE / "__pycache__"
     if (folder.is_dir() and os.access(folder, os.W_OK)) or (not folder.exists() and os.access(HERE, os.W_OK)):
         return folder / "tracer_variants.ready"
-    return _cache_dir() / "tracer_variants.ready"
+    return cache_dir() / "tracer_variants.ready"
 
 
 def log_path() -> Path:
-    return _cache_dir() / "tracer-compile.log"
+    return cache_dir() / "tracer-compile.log"
 
 
 def lock_path() -> Path:
-    return _cache_dir() / "tracer-compile.lock"
+    return cache_dir() / "tracer-compile.lock"
 
 
 def sources_key() -> str:
