@@ -38,7 +38,8 @@ import mlaqc.inspection.calibrate as calibration  # noqa: E402
 import mlaqc.inspection.disc_fit as disc_fit  # noqa: E402
 import mlaqc.inspection.fourier_lattice as fourier_lattice  # noqa: E402
 from mlaqc.inspection.calibrate import calibrate  # noqa: E402
-from mlaqc.inspection.rawio import load_raw, normalized, suppress_hot_pixels  # noqa: E402
+from mlaqc.inspection.raw_levels import normalized, suppress_hot_pixels  # noqa: E402
+from mlaqc.inspection.rawio import load_raw  # noqa: E402
 from mlaqc.inspection.subimages import divide  # noqa: E402
 from mlaqc.optics.config import default_config, load_config  # noqa: E402
 

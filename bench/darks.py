@@ -39,7 +39,8 @@ from robustness import Cell, _match_truth, centre_rms, score  # noqa: E402
 
 from mlaqc.commands.inspect import inspect_raw  # noqa: E402
 from mlaqc.inspection.darks import build_master_dark  # noqa: E402
-from mlaqc.inspection.rawio import Levels, write_raw  # noqa: E402
+from mlaqc.inspection.raw_levels import Levels  # noqa: E402
+from mlaqc.inspection.raw_write import write_raw  # noqa: E402
 from mlaqc.optics.config import default_config  # noqa: E402
 
 BITS, BLACK, READ_DN = 12, 64, 3.0

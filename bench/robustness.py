@@ -39,7 +39,7 @@ import analytic_frames as am  # noqa: E402
 from identify_accuracy import seeded  # noqa: E402
 
 from mlaqc.inspection.pipeline import inspect_file  # noqa: E402
-from mlaqc.inspection.rawio import write_raw  # noqa: E402
+from mlaqc.inspection.raw_write import write_raw  # noqa: E402
 from mlaqc.optics.config import default_config, load_config  # noqa: E402
 from mlaqc.optics.sensor import white_level  # noqa: E402
 from mlaqc.optics.simulate import simulate  # noqa: E402

@@ -68,7 +68,7 @@ def frame_paths(lenses: int, count: int) -> list[Path]:
     """`count` raw frames of the camera with 40 seeded defects (one render, independent sensor noise)."""
     import numpy as np
 
-    from mlaqc.inspection.rawio import write_raw
+    from mlaqc.inspection.raw_write import write_raw
     from mlaqc.optics.errormap import random_defects
     from mlaqc.optics.render import Renderer
     from mlaqc.optics.scene import WhiteScene

@@ -1,6 +1,6 @@
 """Headless capture: frames (or averages of frames) from any Camera to raw files with provenance sidecars.
 
-Files. Each saved frame is one raw file written atomically with `mlaqc.inspection.rawio.write_raw` (TIFF or DNG,
+Files. Each saved frame is one raw file written atomically with `mlaqc.inspection.raw_write.write_raw` (TIFF or DNG,
 bits/CFA/black/white level in the file's own mlaqc record, plus a compact `acquisition` record in its
 metadata) and one sidecar ``<raw name>.meta.json`` beside it (e.g. ``frame_000001.tiff.meta.json``),
 also written atomically, after the raw file. The sidecar is separate because it holds the raw file's
@@ -43,7 +43,9 @@ from drivers.camera.base import DEFAULT_TIMEOUT_S, Camera, Frame
 from mlaqc import __version__
 from mlaqc.atomic import write_bytes_atomic
 from mlaqc.errors import DeviceError, InputError
-from mlaqc.inspection.rawio import RawFrame, check_exposure, write_raw
+from mlaqc.inspection.raw_levels import check_exposure
+from mlaqc.inspection.raw_write import write_raw
+from mlaqc.inspection.rawio import RawFrame
 
 log = logging.getLogger(__name__)
 

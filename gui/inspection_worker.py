@@ -228,7 +228,8 @@ def frame_to_image(frame: Any, dark: Any = None) -> np.ndarray:
     master dark (mlaqc.inspection.darks) checked against the frame and subtracted first."""
     from drivers.capture import Grab
     from mlaqc.inspection.pipeline import prepare
-    from mlaqc.inspection.rawio import RawFrame, check_exposure
+    from mlaqc.inspection.raw_levels import check_exposure
+    from mlaqc.inspection.rawio import RawFrame
 
     g = Grab(frame.data, (frame,), "")
     bits = max(8, int(frame.bits))
@@ -411,7 +412,7 @@ class InspectionWorker(QObject):
             dark, info, notes = None, None, []
             if req.darks:
                 from mlaqc.inspection.darks import load_frames, master_dark_cached, noise_info, noise_notes, with_noise
-                from mlaqc.inspection.rawio import Levels
+                from mlaqc.inspection.raw_levels import Levels
 
                 stage(3, "building the master dark")
                 s = cfg.sensor

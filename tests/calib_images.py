@@ -43,7 +43,7 @@ class White:
 
 
 def normalize(raw: np.ndarray, cfg) -> np.ndarray:
-    """(raw - black) / (white - black) as mlaqc.inspection.rawio.normalized does for a mono frame."""
+    """(raw - black) / (white - black) as mlaqc.inspection.raw_levels.normalized does for a mono frame."""
     from mlaqc.optics.sensor import white_level
 
     black = cfg.sensor.black_level_dn

@@ -19,7 +19,7 @@ from mlaqc.inspection.calibrate import Grid, calibrate, load_grid
 from mlaqc.cli import main
 from mlaqc.optics.errormap import ErrorMap
 from mlaqc.errors import InputError
-from mlaqc.inspection.rawio import write_raw
+from mlaqc.inspection.raw_write import write_raw
 from mlaqc.optics.sensor import expose, white_level
 
 PITCH = SMALL.layout.subimage_pitch_px

@@ -22,7 +22,8 @@ from calib_images import render_cache  # noqa: F401 (the session's cached render
 from mlaqc.cli import main
 from mlaqc.errors import InputError
 from mlaqc.inspection.calibrate import Grid, calibrate, load_grid
-from mlaqc.inspection.rawio import load_raw, normalized
+from mlaqc.inspection.raw_levels import normalized
+from mlaqc.inspection.rawio import load_raw
 from mlaqc.optics.config import config_to_toml, load_config
 
 FIXTURES = Path(__file__).resolve().parent.parent / "fixtures"

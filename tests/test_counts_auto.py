@@ -15,7 +15,7 @@ from scipy.spatial import cKDTree
 from mlaqc.cli import main
 from mlaqc.errors import InputError
 from mlaqc.inspection.pipeline import inspect_file
-from mlaqc.inspection.rawio import write_raw
+from mlaqc.inspection.raw_write import write_raw
 from mlaqc.optics.config import config_from_dict, config_to_toml
 from mlaqc.optics.errormap import random_defects
 from mlaqc.optics.sensor import white_level

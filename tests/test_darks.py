@@ -16,7 +16,9 @@ import analytic_frames as am
 from mlaqc.cli import main
 from mlaqc.errors import InputError
 from mlaqc.inspection import darks
-from mlaqc.inspection.rawio import RawFrame, normalized, write_raw
+from mlaqc.inspection.raw_levels import normalized
+from mlaqc.inspection.raw_write import write_raw
+from mlaqc.inspection.rawio import RawFrame
 from mlaqc.optics.config import load_config
 
 ROOT = Path(__file__).resolve().parent.parent

@@ -229,7 +229,7 @@ def test_focus_fit_split_over_lens_ranges_is_the_whole_array_call():
 def test_hot_pixel_plane_noise_reads_a_known_noise_on_either_sample(side):
     """The plane noise comes from a 1-in-9 sample, 1-in-16 from 4 Mpx on: both read a Gaussian noise of
     known sigma on a smooth scene (the ring mean of a plane cancels it) within 2 %."""
-    from mlaqc.inspection.rawio import _plane_noise
+    from mlaqc.inspection.raw_levels import _plane_noise
 
     rng = np.random.default_rng(side)
     yy, xx = np.mgrid[:side, :side]

@@ -75,12 +75,12 @@ def test_inspect_refuses_a_scene_exits_2_and_writes_nothing(tmp_path, capsys):
 
 def test_a_bayer_white_frame_is_prepared_as_the_monochrome_one(tmp_path):
     """The same analytic white frame through an RGGB sensor (sites at QE 0.45 / 0.6 / 0.6 / 0.4) and a
-    monochrome one: the loader balances the sites (rawio.normalized), so the same image to the noise (a
+    monochrome one: the loader balances the sites (raw_levels.normalized), so the same image to the noise (a
     checkerboard of the sites' QE otherwise) and the same lens centres."""
     import dataclasses
 
     from mlaqc.inspection.pipeline import load_frame
-    from mlaqc.inspection.rawio import write_raw
+    from mlaqc.inspection.raw_write import write_raw
 
     irradiance = frame(model(), 0.0) / 0.7
     qe = np.tile(np.array([[0.45, 0.6], [0.6, 0.4]]), (SHAPE[0] // 2, SHAPE[1] // 2))

@@ -15,7 +15,7 @@ pytest.importorskip("pyqtgraph")
 pytest.importorskip("pytestqt")
 
 import analytic_frames as am  # noqa: E402
-from mlaqc.inspection.rawio import write_raw  # noqa: E402
+from mlaqc.inspection.raw_write import write_raw  # noqa: E402
 
 ROOT = Path(__file__).resolve().parent.parent
 SMALL = str(ROOT / "fixtures" / "small_camera.toml")

@@ -32,7 +32,7 @@ SEEDED = {(10, 10): 0.05, (19, 19): -0.05}
 def frames(tmp_path_factory):
     """A white frame and one +u / -u pair (u = ±10 mm, offset (0, 0)) of the small camera with SEEDED, each
     with its .sim.json record; plus a copy of the +u frame without a record and a wrong-size frame with one."""
-    from mlaqc.inspection.rawio import write_raw
+    from mlaqc.inspection.raw_write import write_raw
     from mlaqc.optics.config import load_config
     from mlaqc.optics.errormap import ErrorMap
     from mlaqc.optics.simulate import simulate, write_simulation

@@ -10,8 +10,9 @@ import pytest
 import tifffile
 
 from mlaqc.errors import InputError
-from mlaqc.inspection.rawio import (Levels, check_exposure, load_raw, normalized, resolve_levels, unlit_level,
-                                    write_raw)
+from mlaqc.inspection.raw_levels import Levels, check_exposure, normalized, resolve_levels, unlit_level
+from mlaqc.inspection.raw_write import write_raw
+from mlaqc.inspection.rawio import load_raw
 
 
 def _discs(bits: int, black: int, peak_fraction: float = 0.8, shape=(240, 240), pitch: int = 20) -> np.ndarray:

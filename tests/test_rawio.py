@@ -13,15 +13,9 @@ import rawpy
 import tifffile
 
 from mlaqc.errors import InputError
-from mlaqc.inspection.rawio import (
-    CFA_PATTERNS,
-    RawFrame,
-    check_exposure,
-    load_raw,
-    normalized,
-    suppress_hot_pixels,
-    write_raw,
-)
+from mlaqc.inspection.raw_levels import check_exposure, normalized, suppress_hot_pixels
+from mlaqc.inspection.raw_write import write_raw
+from mlaqc.inspection.rawio import CFA_PATTERNS, RawFrame, load_raw
 
 H, W = 64, 96
 
@@ -603,7 +597,7 @@ def test_hot_pixels_match_the_filter_formulation(cfa: str | None, kind: str) -> 
 def test_exposure_statistics_from_the_histogram_match_numpy() -> None:
     """check_exposure reads its order statistics from the histogram of integer counts: the same values as
     np.percentile / np.median on the black-subtracted sample."""
-    from mlaqc.inspection.rawio import _integer_sample_stats
+    from mlaqc.inspection.raw_levels import _integer_sample_stats
 
     rng = np.random.default_rng(40)
     for trial in range(60):

@@ -133,9 +133,10 @@ def test_the_lattices_nearest_pinhole_is_the_argmin_over_all(cfg, u, f, s, off):
 
 @pytest.mark.parametrize("stored", ["uint16", "float32", "float64"])
 def test_spot_windows_are_the_normalized_frame_less_the_ring_median(stored):
-    """The compiled cut equals its definition: the frame normalized as rawio.normalized does (float32),
+    """The compiled cut equals its definition: the frame normalized as raw_levels.normalized does (float32),
     each window less the NumPy median of its outer ring, saturation where a pixel reaches SATURATED."""
-    from mlaqc.inspection.rawio import RawFrame, normalized
+    from mlaqc.inspection.raw_levels import normalized
+    from mlaqc.inspection.rawio import RawFrame
 
     rng = np.random.default_rng(3)
     counts = rng.integers(60, 4095, (120, 150)).astype(np.uint16)

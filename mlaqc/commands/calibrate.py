@@ -14,7 +14,8 @@ from mlaqc.errors import InputError
 from mlaqc.inspection.array_extent import calibrate_whole
 from mlaqc.inspection.flatfield import check_flat_field
 from mlaqc.inspection.optics_check import pitch_notes
-from mlaqc.inspection.rawio import Levels, check_exposure, load_raw, normalized, resolve_levels, suppress_hot_pixels
+from mlaqc.inspection.raw_levels import Levels, check_exposure, normalized, resolve_levels, suppress_hot_pixels
+from mlaqc.inspection.rawio import load_raw
 from mlaqc.optics.config import load_config
 
 

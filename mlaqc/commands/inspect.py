@@ -51,7 +51,7 @@ from mlaqc.atomic import write_bytes_atomic
 from mlaqc.commands.levels import add_level_options, stated_levels
 from mlaqc.commands.recording import Recorder, add_db_options, render_with_record
 from mlaqc.errors import InputError
-from mlaqc.inspection.rawio import Levels
+from mlaqc.inspection.raw_levels import Levels
 from mlaqc.inspection.results import detection_limit_text
 from mlaqc.optics.config import CameraConfig, load_config
 
@@ -541,7 +541,7 @@ def master_darks(args: argparse.Namespace, raws: list[str], stacks: dict[str, tu
     if not sets:
         return {}, None
     from mlaqc.inspection.darks import build_master_dark, prepare_check
-    from mlaqc.inspection.rawio import Levels as SensorLevels
+    from mlaqc.inspection.raw_levels import Levels as SensorLevels
 
     s = cfg.sensor
     masters: dict[tuple[str, ...], Any] = {}

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import argparse
 
-from mlaqc.inspection.rawio import Levels
+from mlaqc.inspection.raw_levels import Levels
 
 
 def add_level_options(p: argparse.ArgumentParser) -> None:

@@ -9,7 +9,8 @@ from typing import Any
 import numpy as np
 
 from mlaqc.errors import InputError
-from mlaqc.inspection.rawio import Levels, load_raw, normalized, resolve_levels, suppress_hot_pixels
+from mlaqc.inspection.raw_levels import Levels, normalized, resolve_levels, suppress_hot_pixels
+from mlaqc.inspection.rawio import load_raw
 
 # OpenCV names a Bayer conversion by the 2x2 block one pixel down and right of the pattern's origin
 _OPENCV_BAYER = {"RGGB": "COLOR_BayerBG2RGB", "BGGR": "COLOR_BayerRG2RGB", "GRBG": "COLOR_BayerGB2RGB",

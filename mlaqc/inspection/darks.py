@@ -13,7 +13,7 @@ Bad pixels: a pixel whose master-dark level stands more than BAD_SIGMA sigmas ab
 (dead) the median of its eight vertical neighbours in the same column (same-colour sites for a CFA),
 sigma being the robust spread of that residual over the frame. A column's own offset and a smooth glow
 cancel in that residual, so only the pixel's own deviation counts. This map is used instead of guessing
-bad pixels from the white frame (`rawio.suppress_hot_pixels`, which still runs on frames without a
+bad pixels from the white frame (`raw_levels.suppress_hot_pixels`, which still runs on frames without a
 dark): a hot pixel is restored by the subtraction, unless the frame clipped it at the white level; those
 and the dead pixels are replaced from their same-channel neighbours (`repair_mask`, `replace_bad_pixels`).
 
@@ -24,7 +24,7 @@ lattice's diagonal frequency, in a central crop with column/row offsets and smoo
 the spectrum's median: noise gives about 1, a frame with light through the MLA 10^4 and more).
 
 Frames (`load_frames`): one raw, or several of one state (a stack), each loaded with its levels
-settled as a single raw is (`rawio.resolve_levels`), checked against the first (size, bit depth,
+settled as a single raw is (`raw_levels.resolve_levels`), checked against the first (size, bit depth,
 exposure, gain) and against the master dark, checked for exposure, averaged in float32 counts, the
 master dark subtracted (the frame's nominal black level added back, so levels and checks keep their
 meaning), checked again for a black frame, normalized, and the bad pixels replaced. A stack of K
@@ -52,8 +52,15 @@ from typing import Any
 import numpy as np
 
 from mlaqc.errors import InputError
-from mlaqc.inspection.rawio import (Levels, RawFrame, check_exposure, levels_note, load_raw, normalized,
-                                    resolve_levels, suppress_hot_pixels)
+from mlaqc.inspection.raw_levels import (
+    Levels,
+    check_exposure,
+    levels_note,
+    normalized,
+    resolve_levels,
+    suppress_hot_pixels,
+)
+from mlaqc.inspection.rawio import RawFrame, load_raw
 
 METHODS = ("median", "mean")  # "mean": the sigma-clipped mean
 CLIP_SIGMA = 3.0  # the clipped mean drops samples this many read-noise sigmas from the pixel's median

@@ -15,7 +15,8 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from mlaqc.errors import InputError
-from mlaqc.inspection.rawio import Levels, load_raw, resolve_levels
+from mlaqc.inspection.raw_levels import Levels, resolve_levels
+from mlaqc.inspection.rawio import load_raw
 from mlaqc.optics.config import CameraConfig
 from mlaqc.optics.throughfocus import ThroughFocus
 from mlaqc.parallel import thread_map

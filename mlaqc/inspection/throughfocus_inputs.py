@@ -8,7 +8,8 @@ import numpy as np
 
 from mlaqc.errors import InputError
 from mlaqc.inspection.calibrate import Grid
-from mlaqc.inspection.rawio import RawFrame, check_exposure
+from mlaqc.inspection.raw_levels import check_exposure
+from mlaqc.inspection.rawio import RawFrame
 from mlaqc.inspection.throughfocus_spots import SpotFrame, Spots
 from mlaqc.optics.config import CameraConfig
 from mlaqc.optics.throughfocus import ThroughFocus

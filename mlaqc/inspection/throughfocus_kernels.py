@@ -151,7 +151,7 @@ def _select(a, k):
           "f8[:, ::1], i8[::1], i8[::1], f8, f8, i8, f8, f8[:, :, ::1], f4[::1], b1[::1]")
 def spot_windows_kernel(data, iy0, ix0, black, span, ring_px, saturated_level, cells, background, saturated):
     """Window m of `cells` (L, n, n) = the frame's pixels from (iy0[m], ix0[m]) normalized in float32,
-    (data - black) / span as `rawio.normalized` computes it, less the window's background: the median of
+    (data - black) / span as `raw_levels.normalized` computes it, less the window's background: the median of
     its outer ring (ring_px wide, float32 as NumPy's median of it); saturated[m]: a normalized pixel at or
     above `saturated_level`. The windows lie inside the frame (the caller checks)."""
     n = cells.shape[1]

@@ -7,7 +7,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from mlaqc.inspection import throughfocus_kernels as kern
-from mlaqc.inspection.rawio import RawFrame, normalized
+from mlaqc.inspection.raw_levels import normalized
+from mlaqc.inspection.rawio import RawFrame
 
 WINDOW_SIGMAS = 4.0  # moment window half-width, in the spot's per-axis rms
 MIN_WINDOW_PX = 2.0  # never narrower: a spot smaller than a pixel still has the pixel's own width
@@ -20,7 +21,7 @@ NOISE_WINDOWS = 128  # the frame's read noise is the robust spread of about this
 class SpotFrame:
     """A through-focus frame as `measure_through_focus` reads it: the counts as stored and the scale that
     normalizes them, (data - black) / span. A pinhole frame lights a few per cent of the sensor, so only
-    the windows the analysis cuts are normalized (the same float32 operations as `rawio.normalized`, so
+    the windows the analysis cuts are normalized (the same float32 operations as `raw_levels.normalized`, so
     the same values), never the whole frame: 32 frames of the shipped protocol are then read at 8 MB
     each as stored instead of 16 MB of float32 written and read again."""
 

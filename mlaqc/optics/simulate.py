@@ -22,7 +22,7 @@ from mlaqc import __version__
 from mlaqc.optics.datasheet import telecentric
 from mlaqc.atomic import atomic_path
 from mlaqc.errors import InputError
-from mlaqc.inspection.rawio import write_raw
+from mlaqc.inspection.raw_write import write_raw
 from mlaqc.optics.config import CameraConfig
 from mlaqc.optics.errormap import ErrorMap
 from mlaqc.optics.formation import apply_formation
