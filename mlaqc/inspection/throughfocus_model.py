@@ -91,16 +91,19 @@ MODEL_RAYS = 500_000  # pupil rays per frame of the model (a low-discrepancy set
 MODEL_PHASES = 8  # sub-pixel spot positions per axis at which the model's spots are read
 MODEL_FINE = 16  # ray bins per pixel side before the model's spots are pixelated (a multiple of MODEL_PHASES)
 SPOT_REACH_MM = 0.03  # a model spot's rays are those within this of its centroid (|1 - sV| <= 0.5)
+# a lens alone among healthy ones is traced with the rays that meet the MLA's front vertex plane within this many
+# pitches of its centre: a lone lens' aperture reaches 0.54 pitch from it at +15 %, sideways (Table 1)
+NEAR_PITCHES = 0.85
 FIELD_POINTS = 3  # field radii the model is traced at, 0 to the array's corner, even in r^2 (its D is linear in r^2)
-MODEL_FORMAT = 2  # the model's definition and its cache file's layout
+MODEL_FORMAT = 3  # the model's definition (3: each lens traced alone among healthy ones) and its cache file's layout
 
 
 def model_curves(cfg: CameraConfig, u_mm: float, f_number: float, r_in: float, *, rebuild: bool = False) -> ModelCurves:
     """The camera's model of one lens' pair of spots, shell by shell out to `r_in` lenses (see
     ModelCurves): from the package, else the disk cache (keyed by the optics, the image formation, the
     pixel and the pair geometry: `model_key`; `mlaqc.models.store`), else traced now and cached (Table 1:
-    6 s at +-5 mm f/11, its one shell; 8 s at +-10 mm f/8, five shells, on one core); `rebuild` traces it
-    again whatever is stored."""
+    31 s at +-5 mm f/11, its one shell; 72 s at +-10 mm f/8, five shells, on one core: each lens traced
+    alone takes 1.8x the 17 s of an array of flawed lenses); `rebuild` traces it again whatever is stored."""
     require_thick_main_lens(cfg, "the through-focus measurement (pinhole frames)")
     return _model_curves(cfg, abs(float(u_mm)), float(f_number), round(max(float(r_in), 0.0), 4), rebuild)
 
@@ -120,8 +123,8 @@ def model_key(cfg: CameraConfig, u_mm: float, f_number: float, r_in: float) -> s
             "pixel_um": cfg.pixel_at_mla_um, "fresnel": d["trace"]["fresnel"],
             **blur_key(cfg),
             "protocol": [abs(float(u_mm)), float(f_number), round(max(float(r_in), 0.0), 4)],
-            "model": [MODEL_FORMAT, list(MODEL_EPS), MODEL_RAYS, MODEL_PHASES, MODEL_FINE, SPOT_REACH_MM, FIELD_POINTS,
-                      WINDOW_SIGMAS, MIN_WINDOW_PX, RING_PX, int(math.floor(cfg.layout.subimage_pitch_px / 2))]}
+            "model": [MODEL_FORMAT, list(MODEL_EPS), MODEL_RAYS, MODEL_PHASES, MODEL_FINE, SPOT_REACH_MM, NEAR_PITCHES,
+                      FIELD_POINTS, WINDOW_SIGMAS, MIN_WINDOW_PX, RING_PX, int(math.floor(cfg.layout.subimage_pitch_px / 2))]}
     return hashlib.sha256(json.dumps(keep, sort_keys=True).encode()).hexdigest()[:16]
 
 
@@ -168,9 +171,13 @@ def load_model(path, key: str) -> ModelCurves:
 
 class _Landing:
     """The rays of one pinhole (`field_mm` along x from the axis, under the patch's centre lens; `pupil`:
-    (2, N) uniform draws on the pupil) that reach lenses `targets` of the patch MLA, traced through the
-    main lens once; `land(eps)` traces them on
-    through an MLA whose lenses all carry the radius error eps, to the sensor."""
+    (2, N) uniform draws on the pupil) that reach lenses `targets` of the patch MLA or their neighbours,
+    traced through the main lens once; `land(eps)` traces them on to the sensor, each target's through an
+    MLA where that lens alone carries the radius error eps, as a defect sits among healthy lenses: with
+    sag-intersection boundaries a lens' aperture is where its sags meet its neighbours', so a lone lens of
+    another curvature gains or loses aperture to them (a lone -10 % lens 6 % of its light), which an array
+    of such lenses does not. Its spot is then read from every ray that lands near it, its neighbours'
+    cells' included."""
 
     def __init__(self, patch: CameraConfig, tf: ThroughFocus, field_mm: float, targets: np.ndarray, pupil: np.ndarray):
         from mlaqc.optics.errormap import ErrorMap
@@ -193,14 +200,18 @@ class _Landing:
         r = sample_points(source_region(self.cam), pupil, x_obj, 0.0, square=True)
         self.cam.main.trace(r)
         self.cam.to_mla(r)
-        zf = self.cam.mla.z_front
+        mla = self.cam.mla
         with np.errstate(invalid="ignore", divide="ignore"):
-            cell, on = self.cam.mla.cell_of(r.x + (zf - r.z) * r.L / r.N, r.y + (zf - r.z) * r.M / r.N)
-        keep = np.flatnonzero(on & (r.w > 0) & np.isin(cell, targets))
-        lens = np.searchsorted(targets, cell[keep])
-        order = np.argsort(lens, kind="stable")  # each target's rays together: sums by cumulative sums
-        self.lens = lens[order]
-        self.base = [a[keep[order]] for a in (r.x, r.y, r.z, r.L, r.M, r.N, r.w)]
+            hx, hy = r.x + (mla.z_front - r.z) * r.L / r.N, r.y + (mla.z_front - r.z) * r.M / r.N
+        cell, on = mla.cell_of(hx, hy)
+        lit = on & (r.w > 0)
+        reach2 = (NEAR_PITCHES * mla.p) ** 2
+        picks = [np.flatnonzero(lit & ((hx - mla.gx[t]) ** 2 + (hy - mla.gy[t]) ** 2 <= reach2)) for t in targets]
+        # each target's rays together (sums by cumulative sums): those that reach its cell or its edges
+        self.lens = np.concatenate([np.full(len(k), i) for i, k in enumerate(picks)])
+        self.own = np.concatenate([cell[k] == t for k, t in zip(picks, targets)])
+        self.base = [np.concatenate([a[k] for k in picks]) for a in (r.x, r.y, r.z, r.L, r.M, r.N, r.w)]
+        self.targets = targets
         self.count = len(targets)
         self.bounds = np.searchsorted(self.lens, np.arange(self.count + 1))
 
@@ -211,17 +222,25 @@ class _Landing:
         from mlaqc.optics.raytrace import MicrolensArray, Rays
 
         shape = self.zero.shape
-        em = ErrorMap(shape, {**self.zero.lens, "radius_front_rel": np.full(shape, e),
-                              "radius_back_rel": np.full(shape, e)}, self.zero.globals, self.zero.packing)
-        rr = Rays(*(a.copy() for a in self.base))
-        MicrolensArray(self.fc, em).trace(rr)
-        with np.errstate(invalid="ignore", divide="ignore"):
-            t = (self.cam.z_sensor - self.cam.z_mla - rr.z) / rr.N
-        w = np.where(np.isfinite(rr.w) & np.isfinite(t), rr.w, 0.0)
-        x, y = np.where(w > 0, rr.x + t * rr.L, 0.0), np.where(w > 0, rr.y + t * rr.M, 0.0)
-        for _ in range(2):
-            mx, my = self.centroid(x, y, w)
+        out = []
+        for i, target in enumerate(self.targets):
+            rel = np.zeros(shape)
+            rel.flat[target] = e
+            em = ErrorMap(shape, {**self.zero.lens, "radius_front_rel": rel, "radius_back_rel": rel},
+                          self.zero.globals, self.zero.packing)
+            part = slice(self.bounds[i], self.bounds[i + 1])
+            rr = Rays(*(a[part].copy() for a in self.base))
+            MicrolensArray(self.fc, em).trace(rr)
+            with np.errstate(invalid="ignore", divide="ignore"):
+                t = (self.cam.z_sensor - self.cam.z_mla - rr.z) / rr.N
+            w = np.where(np.isfinite(rr.w) & np.isfinite(t), rr.w, 0.0)
+            out.append((np.where(w > 0, rr.x + t * rr.L, 0.0), np.where(w > 0, rr.y + t * rr.M, 0.0), w))
+        x, y, w = (np.concatenate(v) for v in zip(*out))
+        mx, my = self.centroid(x, y, w * self.own)  # first about the rays that entered the lens' own cell
+        for again in (True, False):
             w = np.where((np.abs(x - mx[self.lens]) < SPOT_REACH_MM) & (np.abs(y - my[self.lens]) < SPOT_REACH_MM), w, 0.0)
+            if again:
+                mx, my = self.centroid(x, y, w)
         return x, y, w
 
     def sums(self, v: np.ndarray) -> np.ndarray:
