@@ -51,12 +51,16 @@ KERNEL_OF_FILES = textwrap.dedent("""
 """)
 
 
-def run(folder: Path) -> tuple[str, bool]:
-    """k(1.0) in a fresh process, and whether it came from Numba's cache."""
+def run(folder: Path, path: Path | None = None) -> tuple[str, bool]:
+    """k(1.0) in a fresh process, and whether it came from Numba's cache; `path`: the folder the modules
+    are imported from (another name for `folder`, say)."""
     env = {k: v for k, v in os.environ.items() if not k.startswith("NUMBA_CACHE")}
     env["NUMBA_DEBUG_CACHE"] = "1"
-    out = subprocess.run([sys.executable, "-c", "import kernel_mod; print('k =', kernel_mod.k(1.0))"], cwd=folder,
-                         env=env, capture_output=True, text=True, check=True).stdout
+    if path is not None:
+        env["PYTHONPATH"] = os.pathsep.join([str(path), env.get("PYTHONPATH", "")])
+    out = subprocess.run([sys.executable, "-c", "import kernel_mod; print('k =', kernel_mod.k(1.0))"],
+                         cwd=folder if path is None else folder.parent, env=env, capture_output=True, text=True,
+                         check=True).stdout
     value = next(line for line in out.splitlines() if line.startswith("k = "))[4:]
     return value, "data loaded from" in out
 
@@ -73,16 +77,25 @@ def test_an_edited_helper_module_recompiles_the_kernel(tmp_path, registered):
     assert run(tmp_path) == (("202.0", False) if registered else ("4.0", True))
 
 
-def test_a_split_off_helper_file_recompiles_the_kernel_that_inlines_it(tmp_path):
+@pytest.mark.parametrize("linked", [False, True])
+def test_a_split_off_helper_file_recompiles_the_kernel_that_inlines_it(tmp_path, linked):
     """As the tracer is laid out (kernel_jit registers kernel_geometry, kernel_sampling and
-    raytrace_kernels): an edit to a jitted helper's own file recompiles the kernel in another file."""
-    (tmp_path / "jit_mod.py").write_text(JIT_MOD)
-    (tmp_path / "helper_mod.py").write_text(HELPER_FILE.format("1.0"))
-    (tmp_path / "kernel_mod.py").write_text(KERNEL_OF_FILES)
-    assert run(tmp_path) == ("4.0", False)
-    assert run(tmp_path) == ("4.0", True)
-    (tmp_path / "helper_mod.py").write_text(HELPER_FILE.format("100.0"))
-    assert run(tmp_path) == ("202.0", False)
+    raytrace_kernels): an edit to a jitted helper's own file recompiles the kernel in another file; also
+    where the package is imported through a symlink (Numba then names the files by the link's path,
+    while the registration resolved it)."""
+    folder = tmp_path / "real"
+    folder.mkdir()
+    link = None
+    if linked:
+        link = tmp_path / "link"
+        link.symlink_to(folder, target_is_directory=True)
+    (folder / "jit_mod.py").write_text(JIT_MOD)
+    (folder / "helper_mod.py").write_text(HELPER_FILE.format("1.0"))
+    (folder / "kernel_mod.py").write_text(KERNEL_OF_FILES)
+    assert run(folder, link) == ("4.0", False)
+    assert run(folder, link) == ("4.0", True)
+    (folder / "helper_mod.py").write_text(HELPER_FILE.format("100.0"))
+    assert run(folder, link) == ("202.0", False)
 
 
 def test_the_tracer_is_stamped_by_everything_it_takes_from_other_modules():

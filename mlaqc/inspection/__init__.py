@@ -5,7 +5,7 @@ from mlaqc.lazy import lazy_exports
 
 _EXPORTS = {
     "inspect_image": "pipeline", "inspect_file": "pipeline", "load_frame": "pipeline",
-    "load_raw": "rawio", "write_raw": "rawio", "RawFrame": "rawio",
+    "load_raw": "rawio", "write_raw": "raw_write", "RawFrame": "rawio",
     "calibrate": "calibrate", "load_grid": "calibrate", "Grid": "calibrate",
     "identify": "identify", "InspectionResult": "results", "Defect": "results",
 }

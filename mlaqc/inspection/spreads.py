@@ -1,4 +1,4 @@
-"""Per-lens noise spreads: what each lens' deviations are judged against (mlaqc.inspection.identify). A
+"""Per-lens noise spreads: what each lens' deviations are judged against (mlaqc.inspection.detection). A
 lens' spread is its noise class' (`lens_classes.noise_classes`: inner, the outer rings, the corner zones),
 never below the inner lenses', raised to its second ring's and its edge group's own where they have the
 lenses to read one; tail-aware (`tail_sigma`) so that systematics do not cross the threshold, robust so that

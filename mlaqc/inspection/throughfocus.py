@@ -19,8 +19,8 @@ so it also steepens the slope (Table 1: D moves 8-10 % more than the paraxial de
 makes g vary over the disc; off the axis its field curvature and astigmatism move the typical lens' D
 (Table 1 at u = 5 mm: by the equivalent of 1.4 % of focal length at the array's corner). All three come
 from the camera's own optics: `model_curves` traces a pinhole through the config's main lens and an MLA
-whose lenses all carry a radius error eps (every 0.5 % out to +-15 %), one lens per shell (lenses at the
-same distance from their pinhole), on the axis and at FIELD_POINTS field radii.
+in which one lens carries a radius error eps (every 0.5 % out to +-15 %) among healthy ones, one lens per
+shell (lenses at the same distance from their pinhole), on the axis and at FIELD_POINTS field radii.
 
 Pixel sampling. A spot of about a pixel (Table 1: 1-2 px at u = +-10 mm f/8, 1-2.5 px at +-5 mm f/11)
 is undersampled, and that is what limited the sizing (issue #12: at +-5 mm f/11, seeds 2-4, -3 % errors

@@ -95,11 +95,11 @@ EXPOSURE_WINDOWS = 64  # the exposure check looks at about this many of a frame'
 
 
 def _check_exposure(frame: SpotFrame, sp: Spots, name: str) -> None:
-    """The rawio black/saturation checks, on the sub-image windows that should be lit (a pinhole frame
+    """The raw_levels black/saturation checks, on the sub-image windows that should be lit (a pinhole frame
     lights a few per cent of the sensor: the whole frame's percentiles would call it black); every k-th
     window, about EXPOSURE_WINDOWS of them (the statistics of a frame-wide check need no more; each
     spot's own saturation is checked on all of them). A frame of integer counts is checked on its counts
-    against its own black and white levels (rawio's histogram statistics), as a white frame is."""
+    against its own black and white levels (raw_levels' histogram statistics), as a white frame is."""
     pick = slice(None, None, max(1, len(sp.cells) // EXPOSURE_WINDOWS))
     n = sp.cells.shape[-1]
     if frame.counts:

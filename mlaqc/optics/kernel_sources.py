@@ -45,7 +45,7 @@ def register(sources: tuple) -> None:
     stamp = digest(sources)
     for src in sources:
         if isinstance(src, Path):
-            _DIGESTS[os.path.abspath(src)] = stamp
+            _DIGESTS[os.path.realpath(src)] = stamp
     if config.CACHE_LOCATOR_CLASSES:  # Numba then ignores its locator list, and so this stamp
         warnings.warn("NUMBA_CACHE_LOCATOR_CLASSES is set: the ray tracer's cache is stamped by Numba alone, "
                       "and can serve old code after an edit to a module its kernels inline from", stacklevel=2)
@@ -145,7 +145,7 @@ def _locator_class():
 
         @classmethod
         def from_function(cls, py_func, py_file):
-            stamp = _DIGESTS.get(os.path.abspath(py_file))
+            stamp = _DIGESTS.get(os.path.realpath(py_file))  # the same file through a symlink too
             if stamp is None:
                 return None
             for other in _cache_impl()._locator_classes:
