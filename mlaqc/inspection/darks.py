@@ -52,14 +52,8 @@ from typing import Any
 import numpy as np
 
 from mlaqc.errors import InputError
-from mlaqc.inspection.raw_levels import (
-    Levels,
-    check_exposure,
-    levels_note,
-    normalized,
-    resolve_levels,
-    suppress_hot_pixels,
-)
+from mlaqc.inspection.raw_levels import (Levels, check_exposure, levels_note, normalized, resolve_levels,
+                                         suppress_hot_pixels)
 from mlaqc.inspection.rawio import RawFrame, load_raw
 
 METHODS = ("median", "mean")  # "mean": the sigma-clipped mean

@@ -25,14 +25,8 @@ from mlaqc.inspection.metrics import compute_metrics, reference_images
 from mlaqc.inspection.obscuration import obscuration_readings, retype
 from mlaqc.inspection.scratches import is_line, next_to_lines, scratch_notes
 from mlaqc.inspection.optics_check import anchoring_notes, pitch_notes
-from mlaqc.inspection.raw_levels import (
-    Levels,
-    check_exposure,
-    levels_note,
-    normalized,
-    resolve_levels,
-    suppress_hot_pixels,
-)
+from mlaqc.inspection.raw_levels import (Levels, check_exposure, levels_note, normalized, resolve_levels,
+                                         suppress_hot_pixels)
 from mlaqc.inspection.rawio import RawFrame, load_raw
 from mlaqc.inspection.results import InspectionResult, LazyReferences
 from mlaqc.inspection.subimages import divide
