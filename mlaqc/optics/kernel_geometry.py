@@ -215,15 +215,19 @@ if AVAILABLE:
         return lambda u, v, p, hw, lat: _bh(u, v, p, hw, lat)
 
 
+@jit_inline
+def row_col(x, y, s, lat):
+    """Row and column (ints) of the cell holding MLA-frame point (x, y), on the array or off it."""
+    if lat is None:
+        return math.floor((y - s[S_AY0]) * s[S_INVP]), math.floor((x - s[S_AX0]) * s[S_INVP])
+    rf, cf, _, _ = hex_locate((x - s[S_AX0]) * s[S_INVP], (y - s[S_AY0]) * s[S_INVP])
+    return int(rf), int(cf)
+
 
 @jit_inline
 def cell(x, y, s, lat):
-    if lat is None:
-        col = math.floor((x - s[S_AX0]) * s[S_INVP])
-        row = math.floor((y - s[S_AY0]) * s[S_INVP])
-    else:
-        rf, cf, _, _ = hex_locate((x - s[S_AX0]) * s[S_INVP], (y - s[S_AY0]) * s[S_INVP])
-        row, col = int(rf), int(cf)
+    """Flat index of the lens whose cell holds MLA-frame point (x, y); -1 off the array."""
+    row, col = row_col(x, y, s, lat)
     if col >= 0 and col < s[S_COLS] and row >= 0 and row < s[S_ROWS]:
         return int(row * s[S_COLS] + col)
     return -1
@@ -362,10 +366,5 @@ def surface_hit_own(px, py, pz, L, M, N, ox, oy, oz, c, fx, fy, rot, k, cx, cy, 
 @jit_inline
 def centre_cell(gx, gy, s, lat):
     """Row and column of the cell holding an MLA-frame point, clipped onto the array."""
-    if lat is None:
-        col = math.floor((gx - s[S_AX0]) * s[S_INVP])
-        row = math.floor((gy - s[S_AY0]) * s[S_INVP])
-    else:
-        rf, cf, _, _ = hex_locate((gx - s[S_AX0]) * s[S_INVP], (gy - s[S_AY0]) * s[S_INVP])
-        row, col = int(rf), int(cf)
+    row, col = row_col(gx, gy, s, lat)
     return min(max(row, 0), int(s[S_ROWS]) - 1), min(max(col, 0), int(s[S_COLS]) - 1)
