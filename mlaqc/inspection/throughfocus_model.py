@@ -102,8 +102,8 @@ def model_curves(cfg: CameraConfig, u_mm: float, f_number: float, r_in: float, *
     """The camera's model of one lens' pair of spots, shell by shell out to `r_in` lenses (see
     ModelCurves): from the package, else the disk cache (keyed by the optics, the image formation, the
     pixel and the pair geometry: `model_key`; `mlaqc.models.store`), else traced now and cached (Table 1:
-    31 s at +-5 mm f/11, its one shell; 72 s at +-10 mm f/8, five shells, on one core: each lens traced
-    alone takes 1.8x the 17 s of an array of flawed lenses); `rebuild` traces it again whatever is stored."""
+    28 s at +-5 mm f/11, its one shell, on one core: each lens traced alone takes 1.6x the 17 s of an array
+    of flawed lenses); `rebuild` traces it again whatever is stored."""
     require_thick_main_lens(cfg, "the through-focus measurement (pinhole frames)")
     return _model_curves(cfg, abs(float(u_mm)), float(f_number), round(max(float(r_in), 0.0), 4), rebuild)
 
@@ -215,22 +215,33 @@ class _Landing:
         self.count = len(targets)
         self.bounds = np.searchsorted(self.lens, np.arange(self.count + 1))
 
-    def land(self, e: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Sensor x, y (mm, camera frame) and weight of every ray (weight 0: lost, or beyond SPOT_REACH_MM
-        of its lens' spot: a ray the vertex-plane cell gave to the wrong lens lands a pitch away)."""
+    def lone_arrays(self, e: float) -> list:
+        """Per target, the patch MLA in which that lens alone carries the radius error e (the MLA does not
+        depend on the frame's object distance: both frames of a pair trace through the same arrays)."""
         from mlaqc.optics.errormap import ErrorMap
-        from mlaqc.optics.raytrace import MicrolensArray, Rays
+        from mlaqc.optics.raytrace import MicrolensArray
 
         shape = self.zero.shape
-        out = []
-        for i, target in enumerate(self.targets):
+        arrays = []
+        for target in self.targets:
             rel = np.zeros(shape)
             rel.flat[target] = e
             em = ErrorMap(shape, {**self.zero.lens, "radius_front_rel": rel, "radius_back_rel": rel},
                           self.zero.globals, self.zero.packing)
+            arrays.append(MicrolensArray(self.fc, em))
+        return arrays
+
+    def land(self, arrays: list) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Sensor x, y (mm, camera frame) and weight of every ray, each target's traced through its own
+        array of `lone_arrays` (weight 0: lost, or beyond SPOT_REACH_MM of its lens' spot: a ray the
+        vertex-plane cell gave to the wrong lens lands a pitch away)."""
+        from mlaqc.optics.raytrace import Rays
+
+        out = []
+        for i, mla in enumerate(arrays):
             part = slice(self.bounds[i], self.bounds[i + 1])
             rr = Rays(*(a[part].copy() for a in self.base))
-            MicrolensArray(self.fc, em).trace(rr)
+            mla.trace(rr)
             with np.errstate(invalid="ignore", divide="ignore"):
                 t = (self.cam.z_sensor - self.cam.z_mla - rr.z) / rr.N
             w = np.where(np.isfinite(rr.w) & np.isfinite(t), rr.w, 0.0)
@@ -370,8 +381,9 @@ def trace_model(cfg: CameraConfig, u_mm: float, f_number: float, r_in: float) ->
         lands = [_Landing(patch, f, rf, targets, pupil) for f in frames]
         for j, e in enumerate(eps):
             imgs = []
+            arrays = lands[0].lone_arrays(e)
             for k, land in enumerate(lands):
-                x, y, w = land.land(e)
+                x, y, w = land.land(arrays)
                 geo[i, k, j] = land.moment(x, y, w)[slots]
                 imgs.append(_pixelated(land, x, y, w, slots[:S], opt.pixel_mm, half, psf))
             m2p, m2m = _read_model_spots(imgs[0], imgs[1])
